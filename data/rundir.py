@@ -1,0 +1,144 @@
+"""A stage's output folder: `config.json`, `metrics.csv`, `manifest.json` (written last: the Makefile sentinel).
+
+manifest.json schema:
+    {stage, nerfpipe_version, started (ISO time), wall_seconds, versions {python, torch, ...},
+     inputs {path: sha256}, outputs [paths], used {what: detail}, left_out {what: why}, ...extra}
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import hashlib
+import io
+import os
+import platform
+import time
+from collections.abc import Iterable, Mapping
+from datetime import datetime, timezone
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+from data.atomic import write_json, write_text
+
+__all__ = ["config_to_json", "write_config", "write_manifest", "sha256_file", "versions", "MetricsLog", "Stopwatch"]
+
+_PACKAGES = ("nerfpipe", "torch", "numpy", "pycolmap", "opencv-contrib-python-headless", "scikit-image", "trimesh",
+             "pymeshlab")  # fmt: skip
+
+
+def versions() -> dict[str, str]:
+    out = {"python": platform.python_version()}
+    for name in _PACKAGES:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            pass
+    return out
+
+
+def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _jsonable(value: Any) -> Any:
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: _jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, float) and (value != value or value in (float("inf"), float("-inf"))):
+        return str(value)  # strict JSON has no NaN/inf
+    return value
+
+
+def config_to_json(config: Any) -> dict[str, Any]:
+    """A stage config dataclass as a JSON-ready dict (paths as strings, inf as "inf")."""
+    return _jsonable(config)
+
+
+def write_config(folder: str | os.PathLike, config: Any) -> Path:
+    return write_json(Path(folder) / "config.json", config_to_json(config))
+
+
+def write_manifest(
+    folder: str | os.PathLike,
+    *,
+    stage: str,
+    started: float,
+    inputs: Iterable[str | os.PathLike] = (),
+    outputs: Iterable[str | os.PathLike] = (),
+    used: Mapping[str, Any] | None = None,
+    left_out: Mapping[str, str] | None = None,
+    name: str = "manifest.json",
+    **extra: Any,
+) -> Path:
+    """Write the provenance record. Call it LAST: its presence means the folder is complete.
+
+    started: `time.time()` when the stage began; inputs are hashed (files) or listed (folders).
+    """
+    hashed = {}
+    for p in inputs:
+        p = Path(p)
+        hashed[str(p)] = sha256_file(p) if p.is_file() else ("folder" if p.is_dir() else "missing")
+    doc = {
+        "stage": stage,
+        "nerfpipe_version": versions().get("nerfpipe", "unknown"),
+        "started": datetime.fromtimestamp(started, timezone.utc).isoformat(),
+        "wall_seconds": round(time.time() - started, 3),
+        "versions": versions(),
+        "inputs": hashed,
+        "outputs": [str(p) for p in outputs],
+        "used": _jsonable(dict(used or {})),
+        "left_out": dict(left_out or {}),
+        **_jsonable(extra),
+    }
+    return write_json(Path(folder) / name, doc)
+
+
+class Stopwatch:
+    """Wall-clock seconds since construction (time.perf_counter)."""
+
+    def __init__(self) -> None:
+        self.t0 = time.perf_counter()
+
+    def __call__(self) -> float:
+        return time.perf_counter() - self.t0
+
+
+class MetricsLog:
+    """Error-vs-run-time log: rows of {step, seconds, ...}; `save()` rewrites the CSV atomically."""
+
+    def __init__(self, path: str | os.PathLike, columns: Iterable[str]):
+        self.path = Path(path)
+        self.columns = list(columns)
+        if self.columns[:2] != ["step", "seconds"]:
+            raise ValueError(f"expected columns to start with step, seconds; got {self.columns[:2]}")
+        self.rows: list[dict[str, Any]] = []
+
+    def append(self, **row: Any) -> None:
+        unknown = set(row) - set(self.columns)
+        if unknown:
+            raise ValueError(f"unknown metrics columns {sorted(unknown)}; expected {self.columns}")
+        self.rows.append(row)
+
+    def load(self) -> None:
+        """Read existing rows (for --resume)."""
+        if self.path.is_file():
+            with open(self.path, newline="") as f:
+                self.rows = [{k: v for k, v in r.items() if v != ""} for r in csv.DictReader(f)]
+
+    def save(self) -> Path:
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, fieldnames=self.columns, restval="", lineterminator="\n")
+        w.writeheader()
+        w.writerows(self.rows)
+        return write_text(self.path, buf.getvalue())
