@@ -1,0 +1,65 @@
+# nerfpipe: `make demo` (install + the whole chain on the built-in scene), `make test`,
+# `make PHOTOS=~/captures/mug OUT=runs/mug` (your photos), `make POSED=path/to/dataset OUT=runs/x` (posed data).
+SHELL := bash
+.SHELLFLAGS := -eu -o pipefail -c
+.DELETE_ON_ERROR:
+MAKEFLAGS += --warn-undefined-variables --no-builtin-rules
+.SUFFIXES:
+.DEFAULT_GOAL := all
+
+PYTHON ?= python3
+VENV := .venv
+INSTALLED := $(VENV)/.installed
+NERFPIPE := $(VENV)/bin/nerfpipe
+
+# ------------------------------------------------------------------------------------------- install
+# torch first, pinned: on our machines torch==2.13.0 is a local CPU wheel (any other spec downloads GBs).
+$(INSTALLED): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(VENV)/bin/pip install --quiet torch==2.13.0
+	$(VENV)/bin/pip install --quiet -e '.[dev]'
+	touch $@
+
+.PHONY: install
+install: $(INSTALLED)
+
+# ------------------------------------------------------------------------------------------- checks
+.PHONY: test lint format
+test: $(INSTALLED)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/pytest
+
+lint: $(INSTALLED)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+format: $(INSTALLED)
+	$(VENV)/bin/ruff format .
+	$(VENV)/bin/ruff check --fix .
+
+# ------------------------------------------------------------------------------------------- pipelines
+# Inputs: exactly one of PHOTOS (folder of photos or a video file) or POSED (an already-posed dataset).
+PHOTOS ?=
+POSED ?=
+OUT ?= runs/default
+include pipelines/common.mk
+include pipelines/photos.mk
+include pipelines/posed.mk
+include pipelines/demo.mk
+include pipelines/bench.mk
+
+.PHONY: all
+all: $(INSTALLED)
+ifneq ($(PHOTOS),)
+all: $(PIPELINE_OUTPUTS)
+else ifneq ($(POSED),)
+all: $(PIPELINE_OUTPUTS)
+else
+all:
+	@echo "nothing to do: give PHOTOS=dir|video.mp4 or POSED=dataset (and OUT=runs/name), or run 'make demo'"
+endif
+
+.PHONY: clean-runs
+clean-runs:
+	rm -rf runs

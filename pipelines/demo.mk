@@ -1,0 +1,22 @@
+# `make demo`: install, generate the built-in synthetic photo scene, then run the photos pipeline on it.
+DEMO_OUT := runs/demo
+DEMO_INPUT := $(DEMO_OUT)/input
+DEMO_SCENE_ARGS := --kind photos --size 192 --views 32 --seed 0
+DEMO_TRAIN_ARGS := --max-seconds 120
+
+$(DEMO_INPUT)/manifest.json: stages/scene.py $(wildcard stages/scene_*.py) | $(INSTALLED)
+	$(NERFPIPE) scene $(DEMO_INPUT) $(DEMO_SCENE_ARGS)
+
+.PHONY: demo
+demo: $(DEMO_INPUT)/manifest.json
+	$(MAKE) --no-print-directory all PHOTOS=$(DEMO_INPUT)/images OUT=$(DEMO_OUT) \
+		TRAIN_ARGS="$(DEMO_TRAIN_ARGS)" EVAL_ARGS="--ground-truth $(DEMO_INPUT)/ground_truth"
+	@echo
+	@echo "demo outputs in $(DEMO_OUT):"
+	@echo "  poses report   $(DEMO_OUT)/scene/poses_report.json"
+	@echo "  transforms     $(DEMO_OUT)/scene/transforms.json"
+	@echo "  trained run    $(DEMO_OUT)/run (metrics.csv, psnr_vs_time.png, checkpoint.pt)"
+	@echo "  turntable      $(DEMO_OUT)/turntable.mp4"
+	@echo "  depth maps     $(DEMO_OUT)/depth/"
+	@echo "  metrics        $(DEMO_OUT)/eval.json"
+	@echo "  mesh           $(DEMO_OUT)/mesh.ply"

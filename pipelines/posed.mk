@@ -1,0 +1,9 @@
+# An already-posed dataset (COLMAP model, Blender, LLFF, tiny-NeRF npz, transforms.json): no `poses` stage.
+ifneq ($(POSED),)
+POSED_FILES := $(if $(wildcard $(POSED)/.),$(wildcard $(POSED)/*.json $(POSED)/*.npy $(POSED)/*.npz),$(POSED))
+
+$(SCENE_DIR)/transforms.json: $(POSED_FILES) stages/convert.py | $(INSTALLED)
+	$(NERFPIPE) convert $(POSED) $(SCENE_DIR)
+
+PIPELINE_OUTPUTS := $(SCENE_DIR)/transforms.json $(COMMON_OUTPUTS)
+endif
