@@ -1,0 +1,203 @@
+"""Occupancy grid over an axis-aligned box, and ray marching that samples only occupied cells.
+
+Conventions:
+- The grid covers `aabb [2, 3]` (min, max) with G x G x G cells, indexed [ix, iy, iz] along x, y, z;
+  cell (i, j, k) spans lo + (i, j, k) * cell_size to lo + (i + 1, j + 1, k + 1) * cell_size.
+- `density [G, G, G]` is a running estimate of the field's density sigma (1 / length) per cell:
+  at each update, updated cells become max(decay * old, sigma at random points in the cell).
+  `binary [G, G, G]` marks cells with density > min(threshold, mean density) (nerfacc's rule).
+  Before the first update every cell counts as occupied.
+- Points outside the box are never occupied.
+- Marching: rays (unit directions, t = distance) step from max(near, t_box_in) to min(far, t_box_out) in
+  intervals of `step_size` (the last one shorter); intervals whose midpoint lies in an unoccupied cell are
+  dropped. Output is packed: `ray_indices [N]` (non-decreasing), `t_starts [N]`, `t_ends [N]`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from radiance.aabb import as_aabb, ray_aabb_intersect
+
+__all__ = ["OccupancyGrid", "march_rays", "march_rays_reference", "query_reference"]
+
+
+class OccupancyGrid(torch.nn.Module):
+    """[G, G, G] occupancy over a box, kept as buffers (saved by state_dict, moved by .to())."""
+
+    def __init__(self, aabb, resolution: int = 128, *, threshold: float = 0.01, decay: float = 0.95):
+        super().__init__()
+        if resolution < 1:
+            raise ValueError(f"expected resolution >= 1, got {resolution}")
+        if not 0 <= decay <= 1:
+            raise ValueError(f"expected decay in [0, 1], got {decay}")
+        self.resolution = resolution
+        self.threshold = threshold
+        self.decay = decay
+        g = resolution
+        self.register_buffer("aabb", as_aabb(aabb, dtype=torch.float32).clone())  # [2, 3]
+        self.register_buffer("density", torch.zeros(g, g, g))  # [G, G, G]
+        self.register_buffer("binary", torch.ones(g, g, g, dtype=torch.bool))  # [G, G, G]
+
+    @property
+    def cell_size(self) -> Tensor:  # [3]
+        return (self.aabb[1] - self.aabb[0]) / self.resolution
+
+    @property
+    def skip_fraction(self) -> float:
+        """Fraction of cells marked empty (what marching skips)."""
+        return 1.0 - float(self.binary.float().mean())
+
+    def cell_index(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """x [N, 3] -> (cell index [N, 3] long, clamped into the grid; inside-the-box mask [N])."""
+        if x.ndim != 2 or x.shape[-1] != 3:
+            raise ValueError(f"expected x [N, 3], got {tuple(x.shape)}")
+        lo, hi = self.aabb[0].to(x), self.aabb[1].to(x)
+        inside = ((x >= lo) & (x <= hi)).all(dim=-1)  # [N]
+        idx = torch.floor((x - lo) / (hi - lo) * self.resolution).long().clamp(0, self.resolution - 1)
+        return idx, inside
+
+    def query(self, x: Tensor) -> Tensor:
+        """Occupancy of points x [N, 3] -> bool [N] (False outside the box)."""
+        idx, inside = self.cell_index(x)
+        return self.binary[idx[:, 0], idx[:, 1], idx[:, 2]] & inside
+
+    def cell_centers(self) -> Tensor:
+        """Centres of all cells, flattened in [ix, iy, iz] order: [G^3, 3]."""
+        return self._points_in_cells(torch.arange(self.resolution**3, device=self.aabb.device), None)
+
+    def _points_in_cells(self, flat: Tensor, generator: torch.Generator | None) -> Tensor:
+        g = self.resolution
+        ijk = torch.stack([flat // (g * g), (flat // g) % g, flat % g], dim=-1).float()  # [M, 3]
+        if generator is None:
+            offset = torch.full_like(ijk, 0.5)
+        else:
+            offset = torch.rand(ijk.shape, generator=generator, device=ijk.device)
+        return self.aabb[0] + (ijk + offset) * self.cell_size  # [M, 3]
+
+    @torch.no_grad()
+    def update(
+        self,
+        density_fn: Callable[[Tensor], Tensor],  # x [M, 3] -> sigma [M]
+        step: int,
+        *,
+        every: int = 16,
+        warmup_steps: int = 256,
+        points_per_cell: int = 1,
+        chunk: int = 1 << 18,
+        generator: torch.Generator | None = None,
+    ) -> bool:
+        """EMA update from the field's density; runs only when step % every == 0. Returns whether it ran.
+
+        Before warmup_steps every cell is refreshed; afterwards a random quarter of all cells plus a random
+        quarter's worth of occupied cells (nerfacc's schedule). Each refreshed cell takes the max of
+        `points_per_cell` densities at uniform random points inside it.
+        """
+        if step % every != 0:
+            return False
+        n_cells, device = self.resolution**3, self.aabb.device
+        if step < warmup_steps:
+            cells = torch.arange(n_cells, device=device)
+        else:
+            n = max(1, n_cells // 4)
+            rand_cells = torch.randint(n_cells, (n,), generator=generator, device=device)
+            occupied = torch.nonzero(self.binary.reshape(-1))[:, 0]
+            if occupied.numel():
+                pick = torch.randint(occupied.numel(), (n,), generator=generator, device=device)
+                rand_cells = torch.cat([rand_cells, occupied[pick]])
+            cells = torch.unique(rand_cells)
+        if generator is None:
+            generator = torch.Generator(device=device).manual_seed(step)
+        sigma = torch.zeros(cells.shape[0], device=device)  # [M]
+        for _ in range(points_per_cell):
+            parts = [
+                density_fn(self._points_in_cells(cells[i : i + chunk], generator)).reshape(-1).float()
+                for i in range(0, cells.shape[0], chunk)
+            ]
+            sigma = torch.maximum(sigma, torch.cat(parts).nan_to_num(nan=0.0, posinf=torch.finfo(torch.float32).max))
+        flat = self.density.view(-1)
+        flat[cells] = torch.maximum(flat[cells] * self.decay, sigma)
+        thresh = min(self.threshold, float(self.density.mean()))
+        self.binary.copy_(self.density > thresh)
+        return True
+
+
+def query_reference(grid: OccupancyGrid, x: Tensor) -> Tensor:
+    """Plain per-point loop twin of `OccupancyGrid.query` (for tests)."""
+    lo, hi = grid.aabb[0].tolist(), grid.aabb[1].tolist()
+    g, out = grid.resolution, []
+    for p in x.tolist():
+        if not all(lo[k] <= p[k] <= hi[k] for k in range(3)):
+            out.append(False)
+            continue
+        ijk = [min(max(math.floor((p[k] - lo[k]) / (hi[k] - lo[k]) * g), 0), g - 1) for k in range(3)]
+        out.append(bool(grid.binary[ijk[0], ijk[1], ijk[2]]))
+    return torch.tensor(out, dtype=torch.bool)
+
+
+def _march_bounds(grid: OccupancyGrid, rays_o: Tensor, rays_d: Tensor, near, far) -> tuple[Tensor, Tensor]:
+    t_near, t_far, hit = ray_aabb_intersect(rays_o, rays_d, grid.aabb.to(rays_o))
+    near_t = torch.as_tensor(near, dtype=rays_o.dtype, device=rays_o.device).expand_as(t_near)
+    far_t = torch.as_tensor(far, dtype=rays_o.dtype, device=rays_o.device).expand_as(t_near)
+    t0, t1 = torch.maximum(t_near, near_t), torch.minimum(t_far, far_t)  # [R]
+    return t0, torch.where(hit, t1, t0)  # missed rays: empty range
+
+
+@torch.no_grad()
+def march_rays(
+    grid: OccupancyGrid,
+    rays_o: Tensor,  # [R, 3]
+    rays_d: Tensor,  # [R, 3] unit
+    *,
+    near: float | Tensor = 0.0,  # scalar or [R]
+    far: float | Tensor = float("inf"),  # scalar or [R]
+    step_size: float,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Uniform steps inside the box, keeping intervals whose midpoint is occupied.
+
+    Returns packed (ray_indices [N] long, t_starts [N], t_ends [N]) in rays' dtype, sorted by ray then t.
+    Memory is R x (longest chord / step_size); chunk the rays for big batches.
+    """
+    if not step_size > 0:
+        raise ValueError(f"expected step_size > 0, got {step_size}")
+    t0, t1 = _march_bounds(grid, rays_o, rays_d, near, far)  # [R]
+    span = float((t1 - t0).max()) if t0.numel() else 0.0
+    n_steps = max(0, math.ceil(span / step_size) + 1)
+    k = torch.arange(n_steps, dtype=rays_o.dtype, device=rays_o.device)  # [M]
+    starts = t0[:, None] + k * step_size  # [R, M]
+    ends = torch.minimum(starts + step_size, t1[:, None])  # [R, M]
+    valid = starts < t1[:, None]  # [R, M]
+    ray_idx, col = torch.nonzero(valid, as_tuple=True)  # row-major: sorted by ray, then t
+    s, e = starts[ray_idx, col], ends[ray_idx, col]  # [N']
+    mid = rays_o[ray_idx] + rays_d[ray_idx] * (0.5 * (s + e))[:, None]  # [N', 3]
+    keep = grid.query(mid)  # [N']
+    return ray_idx[keep], s[keep], e[keep]
+
+
+def march_rays_reference(
+    grid: OccupancyGrid, rays_o: Tensor, rays_d: Tensor, *, near=0.0, far=float("inf"), step_size: float
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Plain per-ray while-loop twin of `march_rays` (for tests)."""
+    t0, t1 = _march_bounds(grid, rays_o, rays_d, near, far)
+    ids, starts, ends = [], [], []
+    for r in range(rays_o.shape[0]):
+        k = 0
+        while True:
+            s = t0[r] + torch.tensor(float(k), dtype=rays_o.dtype) * step_size
+            if not s < t1[r]:
+                break
+            e = torch.minimum(s + step_size, t1[r])
+            mid = rays_o[r] + rays_d[r] * (0.5 * (s + e))
+            if query_reference(grid, mid[None])[0]:
+                ids.append(r)
+                starts.append(s)
+                ends.append(e)
+            k += 1
+    like = dict(dtype=rays_o.dtype)
+    if not ids:
+        return torch.zeros(0, dtype=torch.long), torch.zeros(0, **like), torch.zeros(0, **like)
+    return torch.tensor(ids, dtype=torch.long), torch.stack(starts), torch.stack(ends)

@@ -1,0 +1,261 @@
+"""Model-free volume rendering of rays: a sampler, a field callback and the compositing core.
+
+Conventions:
+- Rays: `rays_o [R, 3]`, `rays_d [R, 3]` unit length; `t` is distance along the ray; `near`, `far` are a
+  float or [R] (far may be inf with a disparity sampler; the occupancy sampler clips to the grid's box).
+- A sampler maps (rays_o, rays_d, near [R], far [R]) to `Samples`: intervals [t_start, t_end), padded [R, S]
+  (`ray_indices` None) or packed [N] (`ray_indices [N]`). See radiance.compositing for the maths.
+- The field is queried once per interval at its midpoint (t_start for an infinite last interval):
+  `rgb_sigma_fn(x [N, 3], d [N, 3]) -> (rgb [N, 3], sigma [N])`, `sigma_fn(x [N, 3], d [N, 3]) -> sigma [N]`,
+  always with flat [N, 3] inputs whatever the layout; the renderer knows nothing else about the model.
+- Outputs are dicts; per-ray entries (PER_RAY_KEYS) are [R] or [R, 3], per-sample ones are shaped like t_starts.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from radiance.compositing import (
+    accumulate,
+    beer_lambert,
+    composite,
+    interval_midpoints,
+    median_depth,
+    render_weights,
+)
+from radiance.occupancy import OccupancyGrid, march_rays
+from radiance.safe import safe_div
+from radiance.samplers import resample_intervals, stratified_intervals
+
+__all__ = [
+    "PER_RAY_KEYS",
+    "Samples",
+    "StratifiedSampler",
+    "OccupancySampler",
+    "sample_points",
+    "render_rays",
+    "render_rays_hierarchical",
+    "render_depth",
+    "render_attenuation",
+    "chunked",
+]
+
+PER_RAY_KEYS = ("rgb", "depth", "depth_median", "acc")
+
+RgbSigmaFn = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
+SigmaFn = Callable[[Tensor, Tensor], Tensor]
+
+
+@dataclass(frozen=True)
+class Samples:
+    """Intervals along rays, padded [R, S] (ray_indices None) or packed [N] (ray_indices [N])."""
+
+    t_starts: Tensor
+    t_ends: Tensor
+    ray_indices: Tensor | None
+    n_rays: int
+
+
+@dataclass(frozen=True, kw_only=True)
+class StratifiedSampler:
+    """n_samples contiguous intervals over [near, far] per ray (padded), see samplers.stratified_intervals."""
+
+    n_samples: int
+    """Intervals per ray."""
+    spacing: str = "linear"
+    """'linear' in t, or 'disparity' (uniform in 1/t, allows far = inf)."""
+    jitter: bool = False
+    """Jitter interior edges (training); off for evaluation."""
+    generator: torch.Generator | None = None
+    """Random source for the jitter."""
+
+    def __call__(self, rays_o: Tensor, rays_d: Tensor, near: Tensor, far: Tensor) -> Samples:
+        t_starts, t_ends = stratified_intervals(
+            near, far, self.n_samples, jitter=self.jitter, generator=self.generator, spacing=self.spacing
+        )
+        return Samples(t_starts, t_ends, None, rays_o.shape[0])
+
+
+@dataclass(frozen=True, kw_only=True)
+class OccupancySampler:
+    """Packed samples at step_size, only in the grid's occupied cells, see occupancy.march_rays."""
+
+    grid: OccupancyGrid
+    """The occupancy grid (its box bounds the march)."""
+    step_size: float
+    """Interval length along the ray (scene units)."""
+
+    def __call__(self, rays_o: Tensor, rays_d: Tensor, near: Tensor, far: Tensor) -> Samples:
+        ray_indices, t_starts, t_ends = march_rays(
+            self.grid, rays_o, rays_d, near=near, far=far, step_size=self.step_size
+        )
+        return Samples(t_starts, t_ends, ray_indices, rays_o.shape[0])
+
+
+def _check_rays(rays_o: Tensor, rays_d: Tensor) -> None:
+    if rays_o.ndim != 2 or rays_o.shape[-1] != 3 or rays_d.shape != rays_o.shape:
+        raise ValueError(f"expected rays_o, rays_d [R, 3], got {tuple(rays_o.shape)}, {tuple(rays_d.shape)}")
+
+
+def _per_ray(value: float | Tensor, rays_o: Tensor, name: str) -> Tensor:
+    v = torch.as_tensor(value, dtype=rays_o.dtype, device=rays_o.device)
+    if v.ndim == 0:
+        return v.expand(rays_o.shape[0])
+    if v.shape != (rays_o.shape[0],):
+        raise ValueError(f"expected {name} a float or [R] with R={rays_o.shape[0]}, got {tuple(v.shape)}")
+    return v
+
+
+def sample_points(rays_o: Tensor, rays_d: Tensor, samples: Samples) -> tuple[Tensor, Tensor]:
+    """Midpoints of the intervals as flat positions x [N, 3] and directions d [N, 3] (N = R * S if padded)."""
+    t_mid = interval_midpoints(samples.t_starts, samples.t_ends)
+    if samples.ray_indices is None:
+        s = t_mid.shape[1]
+        d = rays_d[:, None, :].expand(-1, s, -1).reshape(-1, 3)  # [R * S, 3]
+        o = rays_o[:, None, :].expand(-1, s, -1).reshape(-1, 3)
+        return o + d * t_mid.reshape(-1, 1), d
+    d = rays_d[samples.ray_indices]  # [N, 3]
+    return rays_o[samples.ray_indices] + d * t_mid[:, None], d
+
+
+def _sample(rays_o, rays_d, near, far, sampler) -> Samples:
+    _check_rays(rays_o, rays_d)
+    return sampler(rays_o, rays_d, _per_ray(near, rays_o, "near"), _per_ray(far, rays_o, "far"))
+
+
+def _eval_sigma(rays_o, rays_d, samples: Samples, sigma_fn: SigmaFn) -> Tensor:
+    shape = samples.t_starts.shape
+    if samples.t_starts.numel() == 0:
+        return samples.t_starts.new_zeros(shape)
+    x, d = sample_points(rays_o, rays_d, samples)
+    return sigma_fn(x, d).reshape(shape)
+
+
+def _composite_samples(rays_o, rays_d, samples: Samples, rgb_sigma_fn: RgbSigmaFn, background) -> dict:
+    shape = samples.t_starts.shape
+    if samples.t_starts.numel() == 0:
+        sigmas, rgbs = samples.t_starts.new_zeros(shape), samples.t_starts.new_zeros((*shape, 3))
+    else:
+        x, d = sample_points(rays_o, rays_d, samples)
+        rgbs, sigmas = rgb_sigma_fn(x, d)
+        rgbs, sigmas = rgbs.reshape(*shape, -1), sigmas.reshape(shape)
+    out = composite(
+        sigmas, rgbs, samples.t_starts, samples.t_ends, samples.ray_indices, samples.n_rays, background=background
+    )
+    return {**out, "sigmas": sigmas, "t_starts": samples.t_starts, "t_ends": samples.t_ends,
+            "ray_indices": samples.ray_indices}  # fmt: skip
+
+
+def render_rays(
+    rays_o: Tensor,  # [R, 3]
+    rays_d: Tensor,  # [R, 3]
+    *,
+    near: float | Tensor,
+    far: float | Tensor,
+    sampler: Callable[[Tensor, Tensor, Tensor, Tensor], Samples],
+    rgb_sigma_fn: RgbSigmaFn,
+    background: Tensor | None = None,  # [3] or [R, 3]
+) -> dict:
+    """Emission-absorption render: rgb [R, 3], depth [R] (expected t), depth_median [R], acc [R],
+    plus weights, transmittance, sigmas, t_starts, t_ends, ray_indices (per sample)."""
+    samples = _sample(rays_o, rays_d, near, far, sampler)
+    return _composite_samples(rays_o, rays_d, samples, rgb_sigma_fn, background)
+
+
+def render_rays_hierarchical(
+    rays_o: Tensor,  # [R, 3]
+    rays_d: Tensor,  # [R, 3]
+    *,
+    near: float | Tensor,
+    far: float | Tensor,
+    coarse_sampler: StratifiedSampler,
+    n_fine: int,
+    coarse_fn: RgbSigmaFn,
+    fine_fn: RgbSigmaFn,
+    background: Tensor | None = None,
+    jitter: bool = False,
+    generator: torch.Generator | None = None,
+) -> dict:
+    """Vanilla NeRF: a coarse pass, then the fine field on the coarse edges plus n_fine edges drawn
+    from the coarse weights. Returns the fine pass's dict with the coarse pass's under "coarse"."""
+    samples = _sample(rays_o, rays_d, near, far, coarse_sampler)
+    coarse = _composite_samples(rays_o, rays_d, samples, coarse_fn, background)
+    t_starts, t_ends = resample_intervals(
+        samples.t_starts, samples.t_ends, coarse["weights"].detach(), n_fine, jitter=jitter, generator=generator
+    )
+    fine = _composite_samples(rays_o, rays_d, Samples(t_starts, t_ends, None, samples.n_rays), fine_fn, background)
+    return {**fine, "coarse": coarse}
+
+
+def render_depth(
+    rays_o: Tensor,
+    rays_d: Tensor,
+    *,
+    near: float | Tensor,
+    far: float | Tensor,
+    sampler: Callable[[Tensor, Tensor, Tensor, Tensor], Samples],
+    sigma_fn: SigmaFn,
+) -> dict:
+    """Density-only emission-absorption: depth [R], depth_median [R], acc [R], weights (no colour)."""
+    s = _sample(rays_o, rays_d, near, far, sampler)
+    sigmas = _eval_sigma(rays_o, rays_d, s, sigma_fn)
+    weights, trans, _ = render_weights(sigmas, s.t_starts, s.t_ends, s.ray_indices, s.n_rays)
+    acc = accumulate(weights, None, s.ray_indices, s.n_rays)
+    t_mid = interval_midpoints(s.t_starts, s.t_ends)
+    return {
+        "depth": safe_div(accumulate(weights, t_mid, s.ray_indices, s.n_rays), acc),
+        "depth_median": median_depth(sigmas, s.t_starts, s.t_ends, s.ray_indices, s.n_rays),
+        "acc": acc,
+        "weights": weights,
+        "transmittance": trans,
+        "sigmas": sigmas,
+        "t_starts": s.t_starts,
+        "t_ends": s.t_ends,
+        "ray_indices": s.ray_indices,
+    }
+
+
+def render_attenuation(
+    rays_o: Tensor,
+    rays_d: Tensor,
+    *,
+    near: float | Tensor,
+    far: float | Tensor,
+    sampler: Callable[[Tensor, Tensor, Tensor, Tensor], Samples],
+    sigma_fn: SigmaFn,
+    i0: float | Tensor = 1.0,
+) -> dict:
+    """X-ray (Beer-Lambert): intensity [R] = i0 exp(-optical_depth), optical_depth [R], transmittance [R]."""
+    s = _sample(rays_o, rays_d, near, far, sampler)
+    mus = _eval_sigma(rays_o, rays_d, s, sigma_fn)
+    out = beer_lambert(mus, s.t_starts, s.t_ends, s.ray_indices, s.n_rays, i0=i0)
+    return {**out, "sigmas": mus, "t_starts": s.t_starts, "t_ends": s.t_ends, "ray_indices": s.ray_indices}
+
+
+def chunked(
+    fn: Callable[..., dict],
+    *tensors: Tensor,  # each [R, ...], sliced together along dim 0
+    chunk: int = 8192,
+    keys: tuple[str, ...] | None = PER_RAY_KEYS,
+) -> dict[str, Tensor]:
+    """Run fn on slices of `chunk` rays under no_grad and concatenate its outputs along dim 0.
+
+    keys: which outputs to keep (default the per-ray ones; None keeps every tensor output, which must then
+    all be per-ray). Keeps peak memory to one chunk's samples.
+    """
+    if chunk < 1:
+        raise ValueError(f"expected chunk >= 1, got {chunk}")
+    if not tensors or any(t.shape[0] != tensors[0].shape[0] for t in tensors):
+        raise ValueError(f"expected tensors with one leading size, got {[tuple(t.shape) for t in tensors]}")
+    parts: dict[str, list[Tensor]] = {}
+    with torch.no_grad():
+        for i in range(0, tensors[0].shape[0], chunk):
+            out = fn(*(t[i : i + chunk] for t in tensors))
+            for k, v in out.items():
+                if isinstance(v, Tensor) and (keys is None or k in keys):
+                    parts.setdefault(k, []).append(v)
+    return {k: torch.cat(v, dim=0) for k, v in parts.items()}

@@ -1,0 +1,112 @@
+"""Occupancy grid on an analytic sphere: marked cells, skip fraction, marching against plain twins."""
+
+import math
+
+import pytest
+import torch
+
+from radiance.occupancy import OccupancyGrid, march_rays, march_rays_reference, query_reference
+from radiance.render import OccupancySampler, render_rays
+
+RADIUS, SIGMA = 0.6, 10.0
+AABB = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]
+
+
+def sphere_density(x):
+    return torch.where(x.norm(dim=-1) < RADIUS, SIGMA, 0.0).to(x)
+
+
+def sphere_rgb_sigma(x, d):
+    return torch.sigmoid(x * 3).to(x), sphere_density(x)
+
+
+@pytest.fixture(scope="module")
+def grid():
+    g = OccupancyGrid(AABB, resolution=32)
+    assert g.update(sphere_density, step=0, points_per_cell=16, generator=torch.Generator().manual_seed(0))
+    return g
+
+
+def rays(n=24, seed=0, dtype=torch.float32):
+    gen = torch.Generator().manual_seed(seed)
+    target = (torch.rand(n, 3, generator=gen) * 1.6 - 0.8).to(dtype)
+    o = torch.tensor([0.3, -2.5, 0.4], dtype=dtype).expand(n, 3).clone()
+    d = target - o
+    return o, d / d.norm(dim=-1, keepdim=True)
+
+
+def test_grid_marks_sphere_cells_and_skip_fraction(grid):
+    centres = grid.cell_centers().reshape(32, 32, 32, 3)
+    half_diag = math.sqrt(3) / 2 * float(grid.cell_size[0])
+    r = centres.norm(dim=-1)
+    assert grid.binary[r < RADIUS].all()
+    assert not grid.binary[r > RADIUS + half_diag].any()
+    frac = lambda rad: (4 / 3 * math.pi * rad**3) / 8  # noqa: E731
+    assert 1 - frac(RADIUS + half_diag) <= grid.skip_fraction <= 1 - frac(RADIUS - half_diag)
+    assert grid.skip_fraction == pytest.approx(1 - frac(RADIUS), abs=0.05)
+
+
+def test_query_matches_plain_loop_and_outside_is_empty(grid):
+    x = torch.rand(500, 3, generator=torch.Generator().manual_seed(1)) * 2.4 - 1.2
+    x[0] = torch.tensor([1.0, 1.0, 1.0])  # max corner belongs to the last cell
+    assert torch.equal(grid.query(x), query_reference(grid, x))
+    assert not grid.query(torch.tensor([[1.1, 0.0, 0.0], [0.0, 0.0, 0.0]])).tolist()[0]
+
+
+def test_fresh_grid_is_all_occupied_and_update_schedule():
+    g = OccupancyGrid(AABB, resolution=8)
+    assert g.skip_fraction == 0.0
+    assert not g.update(sphere_density, step=3, every=16)
+    assert g.update(sphere_density, step=0, every=16)
+    assert g.skip_fraction > 0.5
+    before = g.density.clone()
+    assert g.update(lambda x: torch.zeros(x.shape[0]), step=512, every=16, warmup_steps=256)
+    assert (g.density <= before).all() and (g.density < before).any()  # decays where refreshed
+
+
+def test_state_dict_round_trip(grid):
+    other = OccupancyGrid(AABB, resolution=32)
+    other.load_state_dict(grid.state_dict())
+    assert torch.equal(other.binary, grid.binary) and torch.equal(other.density, grid.density)
+    assert set(grid.state_dict()) == {"aabb", "density", "binary"}
+
+
+def test_march_matches_plain_loop_and_stays_in_occupied_cells(grid):
+    o, d = rays(12, dtype=torch.float64)
+    fast = march_rays(grid, o, d, near=0.1, far=6.0, step_size=0.04)
+    ref = march_rays_reference(grid, o, d, near=0.1, far=6.0, step_size=0.04)
+    for a, b in zip(fast, ref, strict=True):
+        torch.testing.assert_close(a, b)
+    ray_indices, t0, t1 = fast
+    assert ray_indices.numel() > 0 and (ray_indices[1:] >= ray_indices[:-1]).all()
+    mid = o[ray_indices] + d[ray_indices] * ((t0 + t1) / 2)[:, None]
+    assert grid.query(mid).all()
+    assert ((t1 - t0) <= 0.04 + 1e-12).all() and (t1 > t0).all()
+
+
+def test_marched_render_equals_unmarched_render_and_closed_form(grid):
+    o, d = rays(64, seed=2, dtype=torch.float64)
+    full = OccupancyGrid(AABB, resolution=32)  # never updated: every cell occupied
+    kw = dict(near=0.0, far=10.0, rgb_sigma_fn=sphere_rgb_sigma, background=torch.tensor([1.0, 0.0, 0.0]))
+    marched = render_rays(o, d, sampler=OccupancySampler(grid=grid, step_size=0.01), **kw)
+    unmarched = render_rays(o, d, sampler=OccupancySampler(grid=full, step_size=0.01), **kw)
+    assert marched["t_starts"].numel() < 0.5 * unmarched["t_starts"].numel()
+    # Equal up to cells where the sphere cuts only a sliver that the random update points missed.
+    for k in ("rgb", "depth", "depth_median", "acc"):
+        torch.testing.assert_close(marched[k], unmarched[k], atol=1e-5, rtol=1e-5)
+    # Closed form: acc = 1 - exp(-sigma * chord) through the sphere.
+    b2 = (o.norm(dim=-1) ** 2 - (o * d).sum(-1) ** 2).clamp(min=0)
+    chord = 2 * (RADIUS**2 - b2).clamp(min=0).sqrt()
+    torch.testing.assert_close(marched["acc"], 1 - torch.exp(-SIGMA * chord), atol=2 * SIGMA * 0.01, rtol=0)
+
+
+def test_march_misses_and_empty_grid():
+    g = OccupancyGrid(AABB, resolution=4)
+    g.update(lambda x: torch.zeros(x.shape[0]), step=0)
+    o, d = rays(5)
+    ri, t0, t1 = march_rays(g, o, d, step_size=0.1)
+    assert ri.numel() == t0.numel() == t1.numel() == 0
+    out = render_rays(o, d, near=0.0, far=5.0, sampler=OccupancySampler(grid=g, step_size=0.1),
+                      rgb_sigma_fn=sphere_rgb_sigma, background=torch.ones(3))  # fmt: skip
+    torch.testing.assert_close(out["rgb"], torch.ones(5, 3))
+    assert (out["acc"] == 0).all()

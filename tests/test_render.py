@@ -1,0 +1,141 @@
+"""render_rays and friends on analytic fields: closed forms, hierarchical sampling, chunking, X-ray."""
+
+import math
+
+import pytest
+import torch
+
+from radiance.render import (
+    PER_RAY_KEYS,
+    StratifiedSampler,
+    chunked,
+    render_attenuation,
+    render_depth,
+    render_rays,
+    render_rays_hierarchical,
+)
+
+RADIUS, MU = 0.7, 2.0
+
+
+def sphere_sigma(x, d):
+    return torch.where(x.norm(dim=-1) < RADIUS, MU, 0.0).to(x)
+
+
+def sphere_rgb_sigma(x, d):
+    return torch.tensor([0.2, 0.6, 1.0], dtype=x.dtype).expand(x.shape[0], 3), sphere_sigma(x, d)
+
+
+def rays(n=32, seed=0):
+    """Rays from distance 2.5 towards random points in the sphere's bounding square (some miss)."""
+    gen = torch.Generator().manual_seed(seed)
+    o = torch.tensor([0.0, 0.0, 2.5], dtype=torch.float64).expand(n, 3).clone()
+    target = torch.cat([torch.rand(n, 2, generator=gen, dtype=torch.float64) * 1.8 - 0.9,
+                        torch.zeros(n, 1, dtype=torch.float64)], dim=-1)  # fmt: skip
+    d = target - o
+    return o, d / d.norm(dim=-1, keepdim=True)
+
+
+def chord(o, d):
+    b2 = (o.norm(dim=-1) ** 2 - (o * d).sum(-1) ** 2).clamp(min=0)
+    return 2 * (RADIUS**2 - b2).clamp(min=0).sqrt()
+
+
+def test_beer_lambert_matches_analytic_line_integral_through_sphere():
+    o, d = rays()
+    n, near, far = 800, 1.5, 3.5
+    out = render_attenuation(o, d, near=near, far=far, sampler=StratifiedSampler(n_samples=n), sigma_fn=sphere_sigma,
+                             i0=100.0)  # fmt: skip
+    expected = MU * chord(o, d)
+    step = (far - near) / n
+    torch.testing.assert_close(out["optical_depth"], expected, atol=2 * MU * step, rtol=0)
+    torch.testing.assert_close(out["intensity"], 100.0 * torch.exp(-out["optical_depth"]))
+    assert (chord(o, d) == 0).any() and (chord(o, d) > 0).any()
+
+
+def test_emission_absorption_matches_closed_form_with_background():
+    o, d = rays(seed=1)
+    bg = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    out = render_rays(o, d, near=1.5, far=3.5, sampler=StratifiedSampler(n_samples=800), rgb_sigma_fn=sphere_rgb_sigma,
+                      background=bg)  # fmt: skip
+    acc = 1 - torch.exp(-MU * chord(o, d))
+    torch.testing.assert_close(out["acc"], acc, atol=0.01, rtol=0)
+    colour = torch.tensor([0.2, 0.6, 1.0], dtype=torch.float64)
+    torch.testing.assert_close(out["rgb"], out["acc"][:, None] * colour + (1 - out["acc"])[:, None] * bg)
+    assert out["weights"].shape == (32, 800) and out["ray_indices"] is None
+    # Median depth through a homogeneous sphere: entry + ln 2 / mu where the chord absorbs more than half.
+    entry = (-(o * d).sum(-1)) - chord(o, d) / 2
+    deep = MU * chord(o, d) > math.log(2) + 0.1
+    torch.testing.assert_close(out["depth_median"][deep], entry[deep] + math.log(2) / MU, atol=0.01, rtol=0)
+    assert torch.isinf(out["depth_median"][chord(o, d) == 0]).all()
+
+
+def test_density_only_render_shares_the_core():
+    o, d = rays(seed=2)
+    kw = dict(near=1.5, far=3.5, sampler=StratifiedSampler(n_samples=64))
+    a = render_depth(o, d, sigma_fn=sphere_sigma, **kw)
+    b = render_rays(o, d, rgb_sigma_fn=sphere_rgb_sigma, **kw)
+    for k in ("depth", "depth_median", "acc", "weights"):
+        torch.testing.assert_close(a[k], b[k], equal_nan=True)
+
+
+def test_hierarchical_sampling_concentrates_near_the_surface():
+    o, d = rays(8, seed=3)
+    gen = torch.Generator().manual_seed(0)
+    out = render_rays_hierarchical(
+        o, d, near=1.5, far=3.5, coarse_sampler=StratifiedSampler(n_samples=16, jitter=True, generator=gen),
+        n_fine=32, coarse_fn=sphere_rgb_sigma, fine_fn=sphere_rgb_sigma, jitter=True, generator=gen,
+    )  # fmt: skip
+    assert out["t_starts"].shape == (8, 48) and out["coarse"]["t_starts"].shape == (8, 16)
+    torch.testing.assert_close(out["t_starts"][:, 1:], out["t_ends"][:, :-1])
+    acc = 1 - torch.exp(-MU * chord(o, d))
+    err_fine = (out["acc"] - acc).abs().max()
+    err_coarse = (out["coarse"]["acc"] - acc).abs().max()
+    assert err_fine <= err_coarse + 1e-12
+
+
+def test_gradients_flow_to_the_field():
+    o, d = rays(4, seed=4)
+    scale = torch.tensor(1.0, dtype=torch.float64, requires_grad=True)
+    fn = lambda x, d: (torch.sigmoid(x) * scale, sphere_sigma(x, d) * scale)  # noqa: E731
+    out = render_rays(o, d, near=1.5, far=3.5, sampler=StratifiedSampler(n_samples=32), rgb_sigma_fn=fn)
+    out["rgb"].sum().backward()
+    assert torch.isfinite(scale.grad) and scale.grad != 0
+
+
+def test_infinite_far_plane_renders_finite():
+    o, d = rays(8, seed=5)
+    out = render_rays(o, d, near=0.5, far=math.inf, sampler=StratifiedSampler(n_samples=64, spacing="disparity"),
+                      rgb_sigma_fn=sphere_rgb_sigma, background=torch.ones(3))  # fmt: skip
+    for k in ("rgb", "depth", "acc"):
+        assert torch.isfinite(out[k]).all()
+    assert torch.isinf(out["t_ends"][:, -1]).all()
+
+
+def test_chunked_equals_one_batch_and_has_no_grad():
+    o, d = rays(50, seed=6)
+    render = lambda o_, d_: render_rays(  # noqa: E731
+        o_, d_, near=1.5, far=3.5, sampler=StratifiedSampler(n_samples=32), rgb_sigma_fn=sphere_rgb_sigma
+    )
+    whole = render(o, d)
+    parts = chunked(render, o, d, chunk=7)
+    assert set(parts) == set(PER_RAY_KEYS)
+    for k in PER_RAY_KEYS:
+        torch.testing.assert_close(parts[k], whole[k], equal_nan=True)
+        assert not parts[k].requires_grad
+    with pytest.raises(ValueError, match="chunk"):
+        chunked(render, o, d, chunk=0)
+
+
+def test_render_validates_inputs():
+    o, d = rays(4)
+    with pytest.raises(ValueError, match="rays_o"):
+        render_rays(
+            o[:, :2], d, near=1.0, far=2.0, sampler=StratifiedSampler(n_samples=4), rgb_sigma_fn=sphere_rgb_sigma
+        )
+    with pytest.raises(ValueError, match="near"):
+        render_rays(o, d, near=torch.ones(3), far=2.0, sampler=StratifiedSampler(n_samples=4),
+                    rgb_sigma_fn=sphere_rgb_sigma)  # fmt: skip
+    with pytest.raises(ValueError, match="background"):
+        render_rays(o, d, near=1.0, far=2.0, sampler=StratifiedSampler(n_samples=4), rgb_sigma_fn=sphere_rgb_sigma,
+                    background=torch.ones(2))  # fmt: skip
