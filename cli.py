@@ -9,7 +9,7 @@ from __future__ import annotations
 import sys
 from enum import Enum
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal, get_args
 
 import typer
 
@@ -44,19 +44,26 @@ def _main(
     """nerfpipe: each command is one stage; stages talk only through files."""
 
 
+def _choices(name: str, literal) -> type[Enum]:
+    """A str Enum of a Literal's values, so typer shows and checks the choices."""
+    return Enum(name, {v: v for v in get_args(literal)}, type=str)
+
+
+def _csv_ints(text: str, option: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise UserError(f"{option}: expected comma-separated integers, got {text!r}") from None
+
+
 # ---------------------------------------------------------------------------------------------- scene
-class SceneKind(str, Enum):
-    photos = "photos"
-    posed = "posed"
-    rgba = "rgba"
+SceneKind = _choices("SceneKind", Literal["photos", "posed", "rgba"])
 
 
 @app.command()
 def scene(
     out_dir: Annotated[Path, typer.Argument(help="Folder to write the synthetic scene into.")],
-    kind: Annotated[SceneKind, typer.Option(help="photos: bare images; posed/rgba: with transforms.json.")] = (
-        SceneKind.posed
-    ),
+    kind: Annotated[SceneKind, typer.Option(help="photos: bare images; posed/rgba: with transforms.json.")] = "posed",
     size: Annotated[int, typer.Option(help="Image width and height in pixels.")] = 64,
     views: Annotated[int, typer.Option(help="Number of camera views.")] = 24,
     seed: Annotated[int, typer.Option(help="Random seed (the scene is deterministic for a seed).")] = 0,
@@ -64,8 +71,44 @@ def scene(
     """Generate a procedural, textured scene with exact cameras, depth and surface mesh."""
     from stages import scene as stage
 
-    out = stage.run(stage.Config(out_dir=out_dir, kind=kind.value, size=size, views=views, seed=seed))
+    out = stage.run(stage.Config(out_dir=out_dir, kind=SceneKind(kind).value, size=size, views=views, seed=seed))
     typer.echo(f"scene written to {out_dir} ({out})")
+
+
+# ---------------------------------------------------------------------------------------------- convert
+ConvertKind = _choices("ConvertKind", Literal["auto", "colmap", "blender", "llff", "npz", "transforms"])
+UpAxis = _choices("UpAxis", Literal["auto", "keep", "cameras"])
+
+
+@app.command()
+def convert(
+    source: Annotated[
+        Path, typer.Argument(help="COLMAP model/folder, Blender folder, LLFF folder, .npz, or transforms.json.")
+    ],
+    scene_dir: Annotated[Path, typer.Argument(help="Output folder for transforms.json and images.")],
+    kind: Annotated[ConvertKind, typer.Option(help="Source kind; auto looks at the files.")] = "auto",
+    images: Annotated[Path | None, typer.Option(help="Image folder for COLMAP/LLFF sources (default: found).")] = None,
+    downscales: Annotated[str, typer.Option(help="Factors for downscaled copies images_F, comma-separated.")] = "2,4,8",
+    holdout_every: Annotated[int, typer.Option(help="Without the dataset's own split, every N-th frame is test.")] = 8,
+    up: Annotated[UpAxis, typer.Option(help="Up axis: keep the source z, or the cameras' mean up.")] = "auto",
+    normalize: Annotated[bool, typer.Option(help="Re-centre and scale the scene into [-1, 1]^3.")] = True,
+) -> None:
+    """Convert a posed source into SCENE_DIR/transforms.json (OpenGL, normalised, transform recorded)."""
+    from stages import convert as stage
+
+    out = stage.run(
+        stage.Config(
+            source=source,
+            scene_dir=scene_dir,
+            kind=ConvertKind(kind).value,
+            images=images,
+            downscales=_csv_ints(downscales, "--downscales"),
+            holdout_every=holdout_every,
+            up=UpAxis(up).value,
+            normalize=normalize,
+        )  # fmt: skip
+    )
+    typer.echo(f"{out.num_frames} frames ({out.kind}) -> {out.transforms}; splits {out.splits}")
 
 
 # ---------------------------------------------------------------------------------------------- entry
@@ -93,6 +136,7 @@ def main(argv: list[str] | None = None) -> None:
             raise
         print(f"error: {type(e).__name__}: {_one_line(str(e))} (rerun with --debug for details)", file=sys.stderr)
         sys.exit(1)
+
 
 if __name__ == "__main__":  # `python cli.py ...` works as well as the `nerfpipe` console script
     main()

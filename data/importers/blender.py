@@ -1,0 +1,86 @@
+"""NeRF Blender layout (`transforms_{train,val,test}.json`, `camera_angle_x`, RGBA PNGs) -> `Source`.
+
+Poses are already OpenGL camera-to-world in Blender's z-up world, so the up axis is kept. `file_path` is
+written without extension (`./train/r_0`): `.png` is added when the bare path does not exist. Splits come from
+the files. The object is known to lie in [-1.5, 1.5]^3 (the NeRF synthetic scenes' box).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from data.errors import UserError
+from data.importers import Source, SourceFrame, flat_name, image_shape
+from radiance.camera import Intrinsics
+
+__all__ = ["load", "OBJECT_BOX"]
+
+OBJECT_BOX = np.array([[-1.5] * 3, [1.5] * 3])
+
+
+def _resolve(root: Path, rel: str) -> Path:
+    p = root / rel
+    return p if p.suffix or p.is_file() else p.with_name(p.name + ".png")
+
+
+def _matrix(value, where: str) -> np.ndarray:
+    try:
+        m = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise UserError(f"{where}: expected a 4x4 matrix of numbers") from None
+    if m.shape != (4, 4):
+        raise UserError(f"{where}: expected a 4x4 matrix, got shape {m.shape}")
+    if not np.isfinite(m).all():
+        raise UserError(f"{where}: contains NaN or infinity")
+    return m
+
+
+def load(source: Path) -> Source:
+    root = source.parent if source.is_file() else source
+    files = {s: root / f"transforms_{s}.json" for s in ("train", "val", "test")}
+    files = {s: f for s, f in files.items() if f.is_file()}
+    if not files:
+        raise UserError(f"{root}: no transforms_{{train,val,test}}.json")
+    frames, splits = [], {}
+    first_shape = None
+    for split, path in files.items():
+        try:
+            doc = json.loads(path.read_text(encoding="utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise UserError(f"{path}: not valid JSON ({e})") from None
+        ang = doc.get("camera_angle_x") if isinstance(doc, dict) else None
+        if isinstance(ang, bool) or not isinstance(ang, int | float) or not (0 < ang < math.pi):
+            raise UserError(f"{path}: camera_angle_x: missing or not an angle in (0, pi) radians, got {ang!r}")
+        raw = doc.get("frames")
+        if not isinstance(raw, list) or not raw:
+            raise UserError(f"{path}: frames: missing or empty")
+        start = len(frames)
+        for i, fr in enumerate(raw):
+            fp = fr.get("file_path") if isinstance(fr, dict) else None
+            if not isinstance(fp, str) or not fp:
+                raise UserError(f"{path}: frames[{i}].file_path: missing or not a string")
+            if "transform_matrix" not in fr:
+                raise UserError(f"{path}: frames[{i}].transform_matrix: missing")
+            m = _matrix(fr["transform_matrix"], f"{path}: frames[{i}].transform_matrix")
+            img = _resolve(root, fp)
+            if first_shape is None and img.is_file():
+                first_shape = image_shape(img)
+            frames.append((flat_name(fp, img.suffix), m, float(ang), img))
+        splits[split] = tuple(range(start, len(frames)))
+    if first_shape is None:
+        raise UserError(f"{root}: none of the images listed in {', '.join(f.name for f in files.values())} exist")
+    h, w, channels = first_shape
+    out = []
+    for name, m, ang, img in frames:
+        f = 0.5 * w / math.tan(0.5 * ang)
+        intr = Intrinsics(w=w, h=h, fx=f, fy=f, cx=w / 2, cy=h / 2)
+        out.append(SourceFrame(name=name, world_from_cam=m, intrinsics=intr, image=img))
+    return Source(
+        kind="blender", frames=tuple(out), splits=splits, has_alpha=channels == 4, up="keep", scene_type="object",
+        box=OBJECT_BOX, inputs=tuple(files.values()),
+        used={"splits": {s: len(i) for s, i in splits.items()}, "object_box": OBJECT_BOX.tolist()},
+    )  # fmt: skip

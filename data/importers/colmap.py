@@ -1,0 +1,142 @@
+"""COLMAP sparse model (binary or text) -> `Source`.
+
+Where models are looked for, under SOURCE: SOURCE itself, SOURCE/sparse, SOURCE/colmap/sparse (the `poses`
+stage's layout), and each one's sub-folders (`sparse/0`, `sparse/1`, ...). With several models the one with the
+most registered images (then most points) is taken; the others are listed in `left_out`.
+Images: the `images` override, else the first of <model>/../images, <model>/../../images, SOURCE/images,
+SOURCE/colmap/images that holds at least one of the model's images.
+Cameras: COLMAP `cam_from_world` is world -> camera in OpenCV axes; we invert it and flip to OpenGL axes.
+Supported models: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV (distortion kept as k1 k2 p1 p2).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from data.errors import UserError
+from data.importers import Source, SourceFrame, flat_name
+from radiance.camera import Intrinsics
+
+__all__ = ["find_models", "load", "intrinsics_from_camera"]
+
+_MODEL_FILES = ("cameras", "images")
+
+
+def _is_model(folder: Path) -> bool:
+    return all((folder / f"{n}.bin").is_file() or (folder / f"{n}.txt").is_file() for n in _MODEL_FILES)
+
+
+def find_models(source: Path) -> list[Path]:
+    """Model folders under `source` (see the module docstring), sorted by path."""
+    if not source.is_dir():
+        return []
+    found = []
+    for base in (source, source / "sparse", source / "colmap" / "sparse"):
+        if not base.is_dir():
+            continue
+        if _is_model(base):
+            found.append(base)
+        found.extend(sub for sub in sorted(base.iterdir()) if sub.is_dir() and _is_model(sub))
+    return sorted(set(found))
+
+
+def intrinsics_from_camera(cam) -> Intrinsics:
+    """pycolmap.Camera -> Intrinsics (UserError for models we cannot represent)."""
+    name = cam.model.name
+    p = [float(v) for v in cam.params]
+    w, h = int(cam.width), int(cam.height)
+    if name == "SIMPLE_PINHOLE":
+        return Intrinsics(w=w, h=h, fx=p[0], fy=p[0], cx=p[1], cy=p[2])
+    if name == "PINHOLE":
+        return Intrinsics(w=w, h=h, fx=p[0], fy=p[1], cx=p[2], cy=p[3])
+    if name == "SIMPLE_RADIAL":
+        return Intrinsics(w=w, h=h, fx=p[0], fy=p[0], cx=p[1], cy=p[2], k1=p[3])
+    if name == "RADIAL":
+        return Intrinsics(w=w, h=h, fx=p[0], fy=p[0], cx=p[1], cy=p[2], k1=p[3], k2=p[4])
+    if name == "OPENCV":
+        return Intrinsics(w=w, h=h, fx=p[0], fy=p[1], cx=p[2], cy=p[3], k1=p[4], k2=p[5], p1=p[6], p2=p[7])
+    raise UserError(
+        f"COLMAP camera {cam.camera_id} uses the {name} model; supported: SIMPLE_PINHOLE, PINHOLE, "
+        "SIMPLE_RADIAL, RADIAL, OPENCV (undistort the images with COLMAP first)"
+    )
+
+
+def _read(folder: Path):
+    import pycolmap
+
+    try:
+        return pycolmap.Reconstruction(str(folder))
+    except Exception as e:  # pycolmap raises plain RuntimeError/ValueError on unreadable files
+        msg = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
+        raise UserError(f"{folder}: cannot read the COLMAP model ({msg})") from None
+
+
+def _image_dir(model: Path, source: Path, names: list[str], override: Path | None) -> Path:
+    if override is not None:
+        if not Path(override).is_dir():
+            raise UserError(f"{override}: image folder not found")
+        return Path(override)
+    candidates = [model.parent / "images", model.parent.parent / "images", source / "images"]
+    candidates.append(source / "colmap" / "images")
+    for c in candidates:
+        if c.is_dir() and any((c / n).is_file() for n in names):
+            return c
+    raise UserError(
+        f"{model}: none of the model's images (e.g. {names[0]!r}) found in "
+        f"{', '.join(str(c) for c in dict.fromkeys(candidates))}; pass the image folder with --images"
+    )
+
+
+def load(source: Path, *, images: Path | None = None) -> Source:
+    import torch
+
+    from radiance.camera import opengl_from_opencv
+
+    source = Path(source)
+    models = find_models(source)
+    if not models:
+        raise UserError(f"{source}: no COLMAP model (cameras + images .bin/.txt) here, in sparse/ or sparse/N/")
+    recs = [(m, _read(m)) for m in models]
+    sizes = {m: (r.num_reg_images(), r.num_points3D()) for m, r in recs}
+    model, rec = max(recs, key=lambda mr: sizes[mr[0]])
+    if rec.num_reg_images() == 0:
+        raise UserError(f"{model}: the COLMAP model has no registered images")
+    left_out = {
+        str(m): f"smaller model ({sizes[m][0]} images, {sizes[m][1]} points) than {model.name}"
+        for m, _ in recs
+        if m != model
+    }
+
+    posed = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
+    names = [im.name for im in posed]
+    image_dir = _image_dir(model, source, names, images)
+    cams = {cid: intrinsics_from_camera(cam) for cid, cam in rec.cameras.items()}
+    frames = []
+    for im in posed:
+        cam_from_world_cv = np.eye(4)
+        cam_from_world_cv[:3] = im.cam_from_world().matrix()
+        world_from_cam_cv = torch.from_numpy(np.linalg.inv(cam_from_world_cv))
+        world_from_cam_gl = opengl_from_opencv(world_from_cam_cv).numpy()  # OpenCV -> OpenGL camera axes
+        frames.append(
+            SourceFrame(
+                name=flat_name(im.name),
+                world_from_cam=world_from_cam_gl,
+                intrinsics=cams[im.camera_id],
+                image=image_dir / im.name,
+            )  # fmt: skip
+        )
+    ids = sorted(rec.points3D)
+    points = np.array([rec.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
+    colors = np.array([rec.points3D[i].color for i in ids], dtype=np.uint8).reshape(-1, 3)
+    unposed = rec.num_images() - len(posed)
+    if unposed:
+        left_out["unregistered images"] = f"{unposed} images in the model have no pose"
+    inputs = tuple(sorted(p for p in model.iterdir() if p.is_file()))
+    return Source(
+        kind="colmap", frames=tuple(frames), up="cameras", points=points, colors=colors, inputs=inputs,
+        used={"model": str(model), "images": str(image_dir), "models_found": len(models),
+              "cameras": sorted({rec.cameras[c].model.name for c in rec.cameras})},
+        left_out=left_out,
+    )  # fmt: skip

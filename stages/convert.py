@@ -1,0 +1,276 @@
+"""Stage `convert`: a posed source (COLMAP, NeRF Blender, LLFF, tiny-NeRF npz, transforms.json) -> SCENE_DIR.
+
+Writes, in this order:
+- `images/<name>` (copied byte for byte; npz arrays encoded as PNG) and `images_<F>/<name>` downscaled by
+  F (cv2.INTER_AREA, same name and format, size `Intrinsics.scaled(1 / F)`) for each F in `downscales` whose
+  result keeps at least `min_downscaled_size` pixels on the short side;
+- `sparse_points.ply` (COLMAP sources): the sparse points with colours **in the scene frame**; it is named by
+  the top-level key `sparse_points_path`, not nerfstudio's `ply_file_path` (which nerfstudio reads as being in
+  the source frame);
+- `transforms.json` (atomic, `data.transforms.write_scene`): OpenGL camera-to-world in the scene frame,
+  intrinsics with their distortion kept (rays are undistorted, images are not resampled), `applied_transform`
+  + `applied_scale` (source -> scene, see `stages.normalize` for how they are chosen), `aabb`, `near`, `far`,
+  `has_alpha`, `train/val/test_filenames`, and `scene_type` ('object', 'forward' or '360');
+- `convert_manifest.json` last.
+
+Splits: the dataset's own where it has them (Blender files, the tiny-NeRF npz convention, a transforms.json's
+`*_filenames`), else every `holdout_every`-th frame (indices 0, 8, 16, ... as in LLFF's `llffhold`) is test;
+val = test when the source has no val. Frames whose image file is missing are skipped and counted.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import shutil
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from data.atomic import atomic_path, write_bytes
+from data.errors import UserError
+from data.importers import Source, SourceFrame, load_source
+from data.rundir import config_to_json, write_manifest
+from data.transforms import Frame, Scene, read_scene, write_scene
+from stages.normalize import Normalization, normalize
+
+__all__ = ["Config", "Outputs", "run", "holdout_splits"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Config:
+    source: Path
+    """COLMAP folder/model, Blender folder, LLFF folder, .npz file, or a transforms.json (or its folder)."""
+    scene_dir: Path
+    """Output folder: transforms.json, images/, images_F/, sparse_points.ply, convert_manifest.json."""
+    kind: Literal["auto", "colmap", "blender", "llff", "npz", "transforms"] = "auto"
+    """Source kind; 'auto' looks at the files (Blender, LLFF, COLMAP, then transforms.json)."""
+    images: Path | None = None
+    """Image folder for COLMAP / LLFF sources (default: found next to the model / images/)."""
+    downscales: tuple[int, ...] = (2, 4, 8)
+    """Factors F for the downscaled copies images_F/."""
+    min_downscaled_size: int = 32
+    """Make images_F only if the short image side divided by F is at least this many pixels."""
+    holdout_every: int = 8
+    """Without the dataset's own split, every N-th frame (0, N, 2N, ...) is test; 0 = no test frames."""
+    up: Literal["auto", "keep", "cameras"] = "auto"
+    """Up axis: 'keep' the source's z, 'cameras' = mean camera up; 'auto': keep for Blender/npz/transforms."""
+    normalize: bool = True
+    """Re-centre and scale into [-1, 1]^3; False keeps the source frame (identity transform, scale 1)."""
+    roi_percentile: float = 1.0
+    """Sparse points outside the [p, 100 - p] percentile range per axis are left out of the region of interest."""
+    roi_margin: float = 0.1
+    """Padding of the points' box on each side, as a fraction of its longest half side."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class Outputs:
+    transforms: Path
+    """SCENE_DIR/transforms.json."""
+    manifest: Path
+    """SCENE_DIR/convert_manifest.json."""
+    kind: str
+    """The source kind read."""
+    num_frames: int
+    """Frames written."""
+    splits: dict[str, int]
+    """Frames per split."""
+    downscales: tuple[int, ...]
+    """The images_F folders made."""
+    applied_transform: np.ndarray
+    """[3, 4] source -> scene (before the scale)."""
+    applied_scale: float
+    """Source -> scene scale."""
+
+
+def holdout_splits(n: int, every: int) -> dict[str, tuple[int, ...]]:
+    """Every `every`-th index (0, every, ...) is test; all frames train when n < 2 or every <= 0."""
+    if every <= 0 or n < 2:
+        return {"train": tuple(range(n)), "test": ()}
+    test = tuple(range(0, n, every))
+    return {"train": tuple(i for i in range(n) if i % every), "test": test}
+
+
+def _existing(source: Source) -> tuple[list[int], dict[str, tuple[int, ...]] | None]:
+    """Indices of the frames whose image exists, and the splits remapped to them."""
+    keep = [i for i, f in enumerate(source.frames) if f.image is None or f.image.is_file()]
+    new_index = {old: new for new, old in enumerate(keep)}
+    splits = None
+    if source.splits is not None:
+        splits = {s: tuple(new_index[i] for i in idx if i in new_index) for s, idx in source.splits.items()}
+    return keep, splits
+
+
+def _scene_type(source: Source, frames: list[SourceFrame]) -> str:
+    """The importer's, else 'forward' when every camera looks within 45 degrees of the mean view, else '360'."""
+    if source.scene_type is not None:
+        return source.scene_type
+    fwd = -np.stack([f.world_from_cam[:3, 2] for f in frames])
+    mean = fwd.mean(0)
+    if np.linalg.norm(mean) < 1e-9:
+        return "360"
+    return "forward" if (fwd @ (mean / np.linalg.norm(mean))).min() > math.cos(math.radians(45)) else "360"
+
+
+def _compose(norm: Normalization, source_from_original: np.ndarray | None) -> tuple[np.ndarray, float]:
+    """applied_transform [3, 4] and scale of scene <- original (through the source file's own mapping)."""
+    if source_from_original is None:
+        return norm.applied_transform, norm.applied_scale
+    total = norm.scene_from_source() @ source_from_original
+    scale = float(np.cbrt(np.linalg.det(total[:3, :3])))
+    return total[:3] / scale, scale
+
+
+def _write_image(frame: SourceFrame, pixels, dest: Path, factors: list[int]) -> None:
+    """Copy / encode one image into images/ and its downscaled copies into images_F/."""
+    import cv2
+
+    intr = frame.intrinsics
+    if pixels is not None:
+        img = pixels
+        img = cv2.cvtColor(img, cv2.COLOR_RGBA2BGRA if img.shape[-1] == 4 else cv2.COLOR_RGB2BGR)
+        _imwrite(dest / "images" / frame.name, img)
+    else:
+        img = cv2.imread(str(frame.image), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise UserError(f"{frame.image}: cannot decode image")
+        with atomic_path(dest / "images" / frame.name) as tmp:
+            shutil.copyfile(frame.image, tmp)
+    if img.shape[:2] != (intr.h, intr.w):
+        raise UserError(
+            f"{frame.image or frame.name}: image is {img.shape[1]}x{img.shape[0]} but its camera says {intr.w}x{intr.h}"
+        )
+    for f in factors:
+        small = intr.scaled(1.0 / f)
+        _imwrite(dest / f"images_{f}" / frame.name, cv2.resize(img, (small.w, small.h), interpolation=cv2.INTER_AREA))
+
+
+def _imwrite(path: Path, img: np.ndarray) -> None:
+    import cv2
+
+    params = [cv2.IMWRITE_JPEG_QUALITY, 95] if path.suffix.lower() in (".jpg", ".jpeg") else []
+    ok, buf = cv2.imencode(path.suffix, img, params)
+    if not ok:
+        raise UserError(f"{path}: cannot encode image as {path.suffix}")
+    write_bytes(path, buf.tobytes())
+
+
+def _copy_aux(src: Path | None, dest_dir: Path, name: str) -> str | None:
+    if src is None or not src.is_file():
+        return None
+    with atomic_path(dest_dir / name) as tmp:
+        shutil.copyfile(src, tmp)
+    return f"{dest_dir.name}/{name}"
+
+
+def _write_ply(path: Path, points: np.ndarray, colors: np.ndarray | None) -> None:
+    import trimesh
+
+    cloud = trimesh.PointCloud(points, colors=colors if colors is not None and len(colors) else None)
+    write_bytes(path, cloud.export(file_type="ply"))
+
+
+def run(config: Config) -> Outputs:
+    started = time.time()
+    source = load_source(Path(config.source), config.kind, images=config.images)
+    scene_dir = Path(config.scene_dir)
+    for inp in source.inputs:
+        if inp.resolve() == (scene_dir / "transforms.json").resolve():
+            raise UserError(f"{inp}: the source is the output itself; choose another --scene-dir")
+    keep, splits = _existing(source)
+    frames, missing = [source.frames[i] for i in keep], len(source.frames) - len(keep)
+    if not frames:
+        raise UserError(f"{config.source}: none of the {len(source.frames)} images listed exist")
+    if missing:
+        log.warning("convert: skipped %d of %d frames whose image is missing", missing, len(source.frames))
+    names = [f.name for f in frames]
+    if len(set(names)) != len(names):
+        dup = next(n for n in names if names.count(n) > 1)
+        raise UserError(f"{config.source}: two images map to the same output name {dup!r}")
+
+    up = config.up if config.up != "auto" else source.up
+    norm = normalize(
+        np.stack([f.world_from_cam for f in frames]), [f.intrinsics for f in frames],
+        up=up, points=source.points, box=source.box,  # type: ignore[arg-type]
+        depth_bounds=source.depth_bounds[keep] if source.depth_bounds is not None else None,
+        percentile=config.roi_percentile, margin=config.roi_margin, rescale=config.normalize,
+    )  # fmt: skip
+    scene_from_source = norm.scene_from_source()
+    applied, scale = _compose(norm, source.source_from_original)
+
+    if splits is None:
+        splits = holdout_splits(len(frames), config.holdout_every)
+    if "val" not in splits:
+        splits["val"] = splits.get("test", ())
+    splits = {s: splits[s] for s in ("train", "val", "test") if s in splits}
+
+    short = min(min(f.intrinsics.w, f.intrinsics.h) for f in frames)
+    factors = sorted(f for f in set(config.downscales) if f > 1 and short / f >= config.min_downscaled_size)
+    px = source.pixels
+
+    def write_one(i: int) -> None:
+        _write_image(frames[i], px(i) if px is not None else None, scene_dir, factors)
+
+    with ThreadPoolExecutor(max_workers=max(1, min(8, os.cpu_count() or 1))) as pool:
+        list(pool.map(write_one, range(len(frames))))
+
+    intrs = [f.intrinsics for f in frames]
+    shared = intrs[0] if all(i == intrs[0] for i in intrs) else None
+    out_frames = []
+    for f in frames:
+        world_from_cam = scene_from_source @ f.world_from_cam
+        world_from_cam[:3, :3] /= norm.applied_scale  # rotation stays orthonormal; the scale moves the centre only
+        out_frames.append(
+            Frame(
+                file_path=f"images/{f.name}",
+                world_from_cam=world_from_cam,
+                intrinsics=None if shared is not None else f.intrinsics,
+                mask_path=_copy_aux(f.mask, scene_dir / "masks", f.name),
+                depth_file_path=_copy_aux(f.depth, scene_dir / "depths", f.name),
+            )  # fmt: skip
+        )
+
+    extra = dict(source.extra)
+    extra["scene_type"] = _scene_type(source, frames)
+    outputs = [scene_dir / "images", *(scene_dir / f"images_{f}" for f in factors)]
+    if source.points is not None and len(source.points):
+        pts = source.points @ scene_from_source[:3, :3].T + scene_from_source[:3, 3]
+        _write_ply(scene_dir / "sparse_points.ply", pts, source.colors)
+        extra["sparse_points_path"] = "sparse_points.ply"
+        outputs.append(scene_dir / "sparse_points.ply")
+
+    scene = Scene(
+        root=scene_dir, frames=tuple(out_frames), intrinsics=shared, applied_transform=applied,
+        applied_scale=scale, aabb=norm.aabb, near=norm.near, far=norm.far, splits=splits,
+        has_alpha=source.has_alpha, extra=extra,
+    )  # fmt: skip
+    transforms = write_scene(scene, scene_dir / "transforms.json")
+    read_scene(transforms)  # what we wrote must parse
+    outputs.insert(0, transforms)
+
+    left_out = dict(source.left_out)
+    if missing:
+        left_out["missing images"] = f"{missing} of {len(source.frames)} frames skipped: image file not found"
+    skipped = sorted(set(config.downscales) - set(factors))
+    if skipped:
+        left_out[f"images_{skipped}"] = f"short image side {short} px / F < {config.min_downscaled_size} px"
+    manifest = write_manifest(
+        scene_dir, name="convert_manifest.json", stage="convert", started=started, inputs=source.inputs,
+        outputs=outputs,
+        used={**source.used, "kind": source.kind, "up": norm.up_method, "roi": norm.roi_method,
+              "scene_type": extra["scene_type"], "frames": len(frames), "downscales": factors},
+        left_out=left_out, config=config_to_json(config),
+    )  # fmt: skip
+    log.info("convert: %d frames from %s (%s) -> %s", len(frames), config.source, source.kind, transforms)
+    return Outputs(
+        transforms=transforms, manifest=manifest, kind=source.kind, num_frames=len(frames),
+        splits={s: len(i) for s, i in splits.items()}, downscales=tuple(factors),
+        applied_transform=applied, applied_scale=scale,
+    )  # fmt: skip

@@ -1,0 +1,224 @@
+"""Stage `convert`: every source kind round-trips its poses through source_from_scene; splits; bad input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import fixtures_convert as fx
+import numpy as np
+import pytest
+import trimesh
+
+from data.errors import UserError
+from data.transforms import load_image, read_scene
+from stages.convert import Config, holdout_splits, run
+
+
+def _back_in_source(scene, frame) -> np.ndarray:
+    m = scene.source_from_scene() @ frame.world_from_cam
+    m[:3, :3] *= scene.applied_scale
+    return m
+
+
+def assert_round_trip(scene_dir: Path, expected: dict[str, np.ndarray], tol: float = 1e-6):
+    scene = read_scene(scene_dir)
+    assert sorted(Path(f.file_path).name for f in scene.frames) == sorted(expected)
+    for f in scene.frames:
+        np.testing.assert_allclose(_back_in_source(scene, f), expected[Path(f.file_path).name], atol=tol)
+        assert scene.image_path(scene.frames.index(f)).is_file()
+    assert (np.abs(scene.aabb) <= 1 + 1e-9).all()
+    assert (scene_dir / "convert_manifest.json").is_file()
+    return scene
+
+
+def _split_names(scene, name):
+    return [Path(scene.frames[i].file_path).name for i in scene.splits[name]]
+
+
+def test_blender_round_trip_splits_alpha(tmp_path):
+    expected = fx.make_blender(tmp_path / "src")
+    out = run(Config(source=tmp_path / "src", scene_dir=tmp_path / "scene"))
+    scene = assert_round_trip(tmp_path / "scene", expected)
+    assert out.kind == "blender" and scene.has_alpha and scene.extra["scene_type"] == "object"
+    assert {s: len(i) for s, i in scene.splits.items()} == {"train": 4, "val": 2, "test": 3}
+    assert _split_names(scene, "val") == ["val_r_0.png", "val_r_1.png"]
+    np.testing.assert_allclose(scene.applied_scale, 1 / 1.5)  # the [-1.5, 1.5]^3 object box -> [-1, 1]^3
+    np.testing.assert_allclose(scene.aabb, [[-1] * 3, [1] * 3])
+    assert out.downscales == ()  # 40 px / 2 < 32 px
+    assert load_image(scene.image_path(0)).shape == (40, 40, 4)
+    assert 0 < scene.near < scene.far
+
+
+def test_llff_round_trip_forward(tmp_path):
+    expected = fx.make_llff(tmp_path / "src")
+    run(Config(source=tmp_path / "src", scene_dir=tmp_path / "scene"))
+    scene = assert_round_trip(tmp_path / "scene", expected)
+    assert scene.extra["scene_type"] == "forward"
+    assert scene.frame_intrinsics(0).fx == pytest.approx(30.0)  # hwf at twice the image size
+    assert _split_names(scene, "test") == ["img_000.png", "img_008.png"]  # every 8th from 0, LLFF's llffhold
+    assert scene.splits["val"] == scene.splits["test"]
+    ups = np.stack([f.world_from_cam[:3, 1] for f in scene.frames]).mean(0)
+    np.testing.assert_allclose(ups / np.linalg.norm(ups), [0, 0, 1], atol=1e-9)
+    # near/far from the bounds: every bound depth, scaled, lies inside [near, far]
+    assert scene.near <= 0.9 * 3.0 * scene.applied_scale + 1e-9 and scene.far >= 8.0 * scene.applied_scale
+
+
+@pytest.mark.parametrize("n", [106, 10])
+def test_npz_round_trip_and_split_convention(tmp_path, n):
+    expected = fx.make_npz(tmp_path / "tiny.npz", n, alpha=n == 10)
+    run(Config(source=tmp_path / "tiny.npz", scene_dir=tmp_path / "scene"))
+    scene = assert_round_trip(tmp_path / "scene", expected)
+    assert scene.has_alpha == (n == 10)
+    if n == 106:
+        assert scene.splits["train"] == tuple(range(100)) and scene.splits["test"] == tuple(range(100, 106))
+    else:
+        assert scene.splits["test"] == (0, 8)
+    img = load_image(scene.image_path(3))
+    src = np.load(tmp_path / "tiny.npz")["images"][3]
+    np.testing.assert_allclose(img[..., :3], src, atol=0.5 / 255 + 1e-6)
+
+
+@pytest.mark.parametrize("text", [False, True])
+def test_colmap_round_trip_points_in_aabb(tmp_path, text):
+    src = tmp_path / "src"
+    expected = fx.make_colmap(src / "sparse" / "0", src / "images", 10, text=text)
+    out = run(Config(source=src, scene_dir=tmp_path / "scene"))
+    scene = assert_round_trip(tmp_path / "scene", expected)
+    intr = scene.frame_intrinsics(0)
+    assert (intr.k1, intr.k2, intr.p1, intr.p2) == pytest.approx((-0.05, 0.01, 0.001, -0.002))  # distortion kept
+    assert (intr.fx, intr.fy, intr.cx, intr.cy) == pytest.approx((40.0, 41.0, 24.3, 17.8))
+    points = np.asarray(trimesh.load(tmp_path / "scene" / scene.extra["sparse_points_path"]).vertices)
+    assert len(points) == 60
+    assert ((points >= scene.aabb[0]) & (points <= scene.aabb[1])).all()
+    ups = np.stack([f.world_from_cam[:3, 1] for f in scene.frames]).mean(0)
+    assert ups[2] / np.linalg.norm(ups) > 1 - 1e-9  # mean camera up is +z
+    assert out.splits == {"train": 8, "val": 2, "test": 2}
+    assert scene.extra["scene_type"] == "360"
+    # every point seen by a camera in front of it lies within [near, far]
+    for f in scene.frames:
+        d = points - f.world_from_cam[:3, 3]
+        front = d @ -f.world_from_cam[:3, 2] > 0
+        assert (np.linalg.norm(d[front], axis=1) <= scene.far).all()
+
+
+def test_colmap_largest_model_chosen(tmp_path):
+    src = tmp_path / "src"
+    fx.make_colmap(src / "sparse" / "0", src / "images", 4, seed=8)
+    expected = fx.make_colmap(src / "sparse" / "1", src / "images", 9, seed=5)
+    run(Config(source=src, scene_dir=tmp_path / "scene"))
+    assert_round_trip(tmp_path / "scene", expected)
+    manifest = json.loads((tmp_path / "scene" / "convert_manifest.json").read_text())
+    assert manifest["used"]["model"].endswith("sparse/1")
+    assert any(k.endswith("sparse/0") for k in manifest["left_out"])
+
+
+def test_colmap_poses_stage_layout_downscales(tmp_path):
+    """The `poses` stage writes SCENE_DIR/colmap/sparse (files directly) + colmap/images; convert in place."""
+    scene_dir = tmp_path / "scene"
+    expected = fx.make_colmap(scene_dir / "colmap" / "sparse", scene_dir / "colmap" / "images", 6, size=(72, 96))
+    out = run(Config(source=scene_dir, scene_dir=scene_dir))
+    assert_round_trip(scene_dir, expected)
+    assert out.downscales == (2,)
+    assert load_image(scene_dir / "images_2" / "frame_000.png").shape == (36, 48, 3)
+
+
+def test_transforms_skips_missing_and_composes_applied(tmp_path):
+    # a nerfstudio-like file: poses already moved by applied_transform / applied_scale from an "original" frame
+    a = np.concatenate([fx.rotation([0.2, 0.1, -0.3]), [[0.5], [-1.0], [2.0]]], axis=1)
+    expected = fx.make_transforms(tmp_path / "src", doc_extra={"applied_transform": a.tolist(), "applied_scale": 0.5})
+    out = run(Config(source=tmp_path / "src" / "transforms.json", scene_dir=tmp_path / "scene"))
+    assert out.num_frames == 4
+    scene = read_scene(tmp_path / "scene")
+    file_from_original = np.eye(4)
+    file_from_original[:3] = 0.5 * a
+    for f in scene.frames:
+        back = file_from_original @ _back_in_source(scene, f)  # scene -> original -> the file's frame
+        back[:3, :3] /= 0.5
+        np.testing.assert_allclose(back, expected[Path(f.file_path).name], atol=1e-6)
+    assert scene.frame_intrinsics(0).k1 == pytest.approx(0.05)
+    manifest = json.loads((tmp_path / "scene" / "convert_manifest.json").read_text())
+    assert "2 of 6" in manifest["left_out"]["missing images"]
+
+
+def test_transforms_plain_round_trip(tmp_path):
+    expected = fx.make_transforms(tmp_path / "src", missing=())
+    run(Config(source=tmp_path / "src", scene_dir=tmp_path / "scene"))
+    assert_round_trip(tmp_path / "scene", expected)
+
+
+def test_holdout_rule():
+    assert holdout_splits(10, 8) == {"train": (1, 2, 3, 4, 5, 6, 7, 9), "test": (0, 8)}
+    assert holdout_splits(1, 8) == {"train": (0,), "test": ()}
+
+
+# ---- bad input: one-line UserError naming the problem
+
+
+def _fails(match: str, **cfg):
+    with pytest.raises(UserError, match=match) as e:
+        run(Config(**cfg))
+    assert "\n" not in str(e.value)
+
+
+def test_bad_inputs(tmp_path):
+    scene = tmp_path / "scene"
+    (tmp_path / "empty").mkdir()
+    _fails("unknown source kind", source=tmp_path / "empty", scene_dir=scene)
+    _fails("no such file", source=tmp_path / "nope", scene_dir=scene)
+    (tmp_path / "c" / "sparse" / "0").mkdir(parents=True)
+    _fails("no COLMAP model", source=tmp_path / "c", scene_dir=scene, kind="colmap")
+    _fails("unknown source kind 'bogus'", source=tmp_path / "empty", scene_dir=scene, kind="bogus")
+
+    fx.make_transforms(tmp_path / "nan", missing=())
+    doc = json.loads((tmp_path / "nan" / "transforms.json").read_text())
+    doc["frames"][1]["transform_matrix"][0][3] = float("nan")
+    (tmp_path / "nan" / "transforms.json").write_text(json.dumps(doc))
+    _fails(r"frames\[1\]\.transform_matrix: contains NaN", source=tmp_path / "nan", scene_dir=scene)
+    doc["frames"][1]["transform_matrix"][0][3] = 0.0
+    del doc["frames"][2]["transform_matrix"]
+    (tmp_path / "nan" / "transforms.json").write_text(json.dumps(doc))
+    _fails(r"frames\[2\]\.transform_matrix: missing", source=tmp_path / "nan", scene_dir=scene)
+
+    fx.make_transforms(tmp_path / "gone", missing=tuple(range(6)))
+    _fails("none of the 6 images", source=tmp_path / "gone", scene_dir=scene)
+    fx.make_transforms(tmp_path / "same", missing=())
+    _fails("the source is the output itself", source=tmp_path / "same", scene_dir=tmp_path / "same")
+
+    fx.make_colmap(tmp_path / "noimg" / "sparse" / "0", None, 4)
+    _fails("pass the image folder with --images", source=tmp_path / "noimg", scene_dir=scene)
+    fx.make_colmap(tmp_path / "fish" / "sparse", tmp_path / "fish" / "images", 4, model="OPENCV_FISHEYE")
+    _fails("OPENCV_FISHEYE model", source=tmp_path / "fish", scene_dir=scene)
+
+    fx.make_llff(tmp_path / "llff", n=5)
+    (tmp_path / "llff" / "images" / "img_004.png").unlink()
+    _fails("4 images but poses_bounds.npy has 5 poses", source=tmp_path / "llff", scene_dir=scene)
+
+    fx.make_blender(tmp_path / "bl", counts=(2, 0, 0))
+    (tmp_path / "bl" / "transforms_train.json").write_text(json.dumps({"frames": []}))
+    _fails("camera_angle_x", source=tmp_path / "bl", scene_dir=scene)
+    assert not (scene / "transforms.json").exists()
+
+
+def test_no_normalize_keeps_source_frame(tmp_path):
+    src = tmp_path / "src"
+    expected = fx.make_colmap(src / "sparse", src / "images", 5)
+    run(Config(source=src, scene_dir=tmp_path / "scene", normalize=False))
+    scene = read_scene(tmp_path / "scene")
+    np.testing.assert_allclose(scene.applied_transform, np.eye(4)[:3])
+    assert scene.applied_scale == 1.0
+    for f in scene.frames:
+        np.testing.assert_allclose(f.world_from_cam, expected[Path(f.file_path).name], atol=1e-9)
+
+
+def test_look_at_point_converging_and_parallel():
+    from stages.normalize import look_at_point
+
+    centres = np.array([[4.0, 0, 0], [0, 4.0, 0], [-4.0, 0, 1]])
+    target = np.array([0.5, -0.2, 0.3])
+    fwd = (target - centres) / np.linalg.norm(target - centres, axis=1, keepdims=True)
+    np.testing.assert_allclose(look_at_point(centres, fwd), target, atol=1e-9)
+    parallel = np.tile([[0.0, 0.0, -1.0]], (3, 1))
+    a, b = look_at_point(centres, parallel), look_at_point(centres, parallel)
+    np.testing.assert_array_equal(a, b)  # deterministic fallback, in front of the rig
+    assert a[2] < centres[:, 2].mean()
