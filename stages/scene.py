@@ -1,0 +1,305 @@
+"""`scene` stage: a synthetic, analytically rendered scene with exact cameras, depth and mesh.
+
+The project's fixture for every later stage and its built-in demo. A textured ground slab and five
+high-texture objects (spheres, boxes, a cylinder; `stages.scene_objects`) are ray cast exactly from cameras on
+a hemisphere around them.
+
+Conventions (docs/DESIGN.md):
+- World frame = scene frame: metres, right-handed, up +z, ground top at z = 0; `applied_transform` is the
+  identity and `applied_scale` 1.
+- Cameras: `world_from_cam` 4x4 in OpenGL axes (x right, y up, looking down -z); pinhole, no distortion,
+  principal point at the image centre (w / 2, h / 2; pixel centres at +0.5).
+- Colour: each pixel averages `SUPERSAMPLE x SUPERSAMPLE` stratified rays (box filter). Opaque kinds composite
+  the background colour `BACKGROUND`; `rgba` stores straight (unpremultiplied) colour and alpha = the fraction
+  of the pixel's rays that hit the scene, so compositing it on `BACKGROUND` gives the `posed` image.
+- Depth (`ground_truth/depth/*.npy`, float32 [H, W]): z-depth along the optical axis in metres of the ray
+  through the pixel centre; 0 where that ray hits nothing (background).
+
+Outputs under `out_dir`:
+  images/frame_0000.png ...              RGB (photos, posed) or RGBA (rgba)
+  transforms.json                        posed and rgba only (data.transforms format)
+  ground_truth/cameras.json              exact intrinsics, world_from_cam (OpenGL) per image name, background
+  ground_truth/depth/frame_0000.npy ...  z-depth, metres, 0 = background
+  ground_truth/mesh.ply                  the rendered surface (concatenated closed primitives)
+  manifest.json                          written last
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import cv2
+import numpy as np
+import trimesh
+
+from data.atomic import atomic_path, write_bytes, write_json
+from data.errors import UserError
+from data.rundir import config_to_json, write_manifest
+from data.transforms import Frame, Scene, write_scene
+from radiance.camera import Intrinsics
+from stages.scene_objects import Primitive, default_primitives, shade, solid_texture
+
+__all__ = ["Config", "Outputs", "run", "cameras", "render_view", "scene_mesh", "SUPERSAMPLE", "BACKGROUND"]
+
+VERSION = "1"
+SUPERSAMPLE = 2
+"""Rays per pixel along each axis (2 -> 4 stratified rays per pixel)."""
+BACKGROUND = (1.0, 1.0, 1.0)
+"""Background colour of the opaque kinds (RGB in [0, 1])."""
+FOV_X_DEG = 45.0
+CAMERA_RADIUS = 2.4
+"""Distance from the look-at point, metres (the scene's bounding sphere, r ~ 0.8 m, subtends ~20 deg)."""
+LOOK_AT = np.array([0.0, 0.0, 0.12])
+ELEVATION_DEG = (15.0, 50.0)
+TEST_EVERY = 8
+
+
+@dataclass(frozen=True, kw_only=True)
+class Config:
+    out_dir: Path
+    """Folder to write the scene into (created; existing files of the same names are replaced)."""
+    kind: Literal["photos", "posed", "rgba"] = "posed"
+    """photos: bare images for COLMAP; posed: images + transforms.json; rgba: transparent background + alpha."""
+    size: int = 64
+    """Image width = height, pixels."""
+    views: int = 24
+    """Number of cameras."""
+    seed: int = 0
+    """Picks the textures and the camera jitter; same seed, byte-identical output."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class Outputs:
+    out_dir: Path
+    """The scene folder."""
+    images: tuple[Path, ...]
+    """The rendered images, in view order."""
+    transforms: Path | None
+    """transforms.json (None for kind=photos)."""
+    cameras: Path
+    """ground_truth/cameras.json."""
+    depths: tuple[Path, ...]
+    """ground_truth/depth/*.npy, in view order."""
+    mesh: Path
+    """ground_truth/mesh.ply."""
+    manifest: Path
+    """manifest.json (written last)."""
+
+
+# ---------------------------------------------------------------- cameras
+
+
+def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """world_from_cam [4, 4] in OpenGL axes: camera -z towards target, camera y as close to world +z as can be."""
+    forward = (target - eye) / np.linalg.norm(target - eye)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, up, -forward, eye
+    return m
+
+
+def intrinsics(size: int) -> Intrinsics:
+    f = 0.5 * size / math.tan(math.radians(FOV_X_DEG) / 2)
+    return Intrinsics(w=size, h=size, fx=f, fy=f, cx=size / 2, cy=size / 2)
+
+
+def cameras(views: int, seed: int) -> np.ndarray:
+    """world_from_cam [V, 4, 4] (OpenGL axes): azimuths evenly spread with jitter, elevations 15-50 deg
+    stratified (golden-ratio sequence), radius 2.4 m +- 3 %, all looking at `LOOK_AT`."""
+    rng = np.random.default_rng([seed, 7])
+    i = np.arange(views)
+    azimuth = 2 * np.pi * (i + rng.uniform(-0.3, 0.3, views) + rng.uniform()) / views
+    lo, hi = ELEVATION_DEG
+    frac = (i * 0.6180339887 + rng.uniform()) % 1.0
+    elevation = np.radians(lo + (hi - lo) * frac)
+    radius = CAMERA_RADIUS * (1 + rng.uniform(-0.03, 0.03, views))
+    eye = LOOK_AT + radius[:, None] * np.stack(
+        [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], axis=-1
+    )
+    return np.stack([_look_at(e, LOOK_AT) for e in eye])
+
+
+# ---------------------------------------------------------------- rendering
+
+
+def _rays(intr: Intrinsics, world_from_cam: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rays through (col + ox, row + oy) for every pixel and each offset [S, 2]: o, d [H * W * S, 3] float64,
+    ordered (row, col, sample)."""
+    v, u = np.meshgrid(np.arange(intr.h, dtype=np.float64), np.arange(intr.w, dtype=np.float64), indexing="ij")
+    uu = (u[..., None] + offsets[:, 0]).reshape(-1)
+    vv = (v[..., None] + offsets[:, 1]).reshape(-1)
+    # OpenCV normalised (x, y, 1) -> OpenGL camera (x, -y, -1), then to world.
+    dirs = np.stack([(uu - intr.cx) / intr.fx, -(vv - intr.cy) / intr.fy, -np.ones_like(uu)], axis=-1)
+    r = world_from_cam[:3, :3]
+    d = dirs[:, :1] * r[:, 0] + dirs[:, 1:2] * r[:, 1] + dirs[:, 2:3] * r[:, 2]  # dirs @ r.T
+    d /= np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2 + d[:, 2] ** 2)[:, None]
+    o = np.broadcast_to(world_from_cam[:3, 3], d.shape)
+    return o, d
+
+
+def _cast(prims: tuple[Primitive, ...], o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First hit: t [R] (inf = miss) and primitive index [R] (-1 = miss)."""
+    t = np.full(len(o), np.inf)
+    which = np.full(len(o), -1)
+    for k, prim in enumerate(prims):
+        idx = np.flatnonzero(prim.candidates(o, d))  # bounding-sphere culling
+        tk = prim.intersect(o[idx], d[idx])
+        closer = tk < t[idx]
+        t[idx[closer]] = tk[closer]
+        which[idx[closer]] = k
+    return t, which
+
+
+def render_view(
+    prims: tuple[Primitive, ...], intr: Intrinsics, world_from_cam: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One view: straight colour [H, W, 3] (mean over covered rays; 0 where none), coverage alpha [H, W]
+    and z-depth [H, W] of the pixel-centre ray (0 = background), all float64."""
+    s = SUPERSAMPLE
+    grid = (np.arange(s) + 0.5) / s
+    offsets = np.stack(np.meshgrid(grid, grid, indexing="xy"), axis=-1).reshape(-1, 2)  # [S, 2]
+    o, d = _rays(intr, world_from_cam, offsets)
+    t, which = _cast(prims, o, d)
+    rgb = np.zeros((len(o), 3))
+    for k, prim in enumerate(prims):
+        m = which == k
+        if m.any():
+            p = o[m] + t[m, None] * d[m]
+            rgb[m] = shade(solid_texture(p, prim.material), prim.normal(p))
+    hit = (which >= 0).reshape(intr.h, intr.w, s * s)
+    alpha = hit.mean(-1)
+    colour_sum = rgb.reshape(intr.h, intr.w, s * s, 3).sum(-2)
+    colour = colour_sum / np.maximum(hit.sum(-1), 1)[..., None]
+
+    oc, dc = _rays(intr, world_from_cam, np.array([[0.5, 0.5]]))
+    tc, _ = _cast(prims, oc, dc)
+    forward = -world_from_cam[:3, 2]
+    z = np.where(
+        np.isfinite(tc), tc * (dc[:, 0] * forward[0] + dc[:, 1] * forward[1] + dc[:, 2] * forward[2]), 0.0
+    ).reshape(intr.h, intr.w)
+    return colour, alpha, z
+
+
+def scene_mesh(prims: tuple[Primitive, ...]) -> trimesh.Trimesh:
+    """The scene surface: the primitives' closed meshes concatenated (no boolean union: where an object is sunk
+    into the ground slab, the hidden parts of both stay as interior faces)."""
+    return trimesh.util.concatenate([p.mesh() for p in prims])
+
+
+def _to_u8(x: np.ndarray) -> np.ndarray:
+    return np.round(np.clip(x, 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def _png(rgb: np.ndarray, alpha: np.ndarray | None) -> bytes:
+    img = _to_u8(rgb)[..., ::-1]  # RGB -> BGR for OpenCV
+    if alpha is not None:
+        img = np.concatenate([img, _to_u8(alpha)[..., None]], axis=-1)
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img))
+    if not ok:
+        raise RuntimeError("PNG encoding failed")
+    return buf.tobytes()
+
+
+# ---------------------------------------------------------------- files
+
+
+def _write_npy(path: Path, arr: np.ndarray) -> None:
+    with atomic_path(path) as tmp:
+        np.save(tmp, arr)
+
+
+def _write_mesh(path: Path, mesh: trimesh.Trimesh) -> None:
+    with atomic_path(path) as tmp:
+        mesh.export(tmp, file_type="ply", encoding="binary")
+
+
+def _write_transforms(
+    out_dir: Path, names: list[str], world_from_cam: np.ndarray, intr: Intrinsics, aabb, near, far, rgba: bool
+) -> Path:
+    """transforms.json in the scene frame (= this generator's world: identity applied_transform, scale 1)."""
+    test = tuple(range(0, len(names), TEST_EVERY))
+    train = tuple(i for i in range(len(names)) if i % TEST_EVERY)
+    frames = tuple(
+        Frame(file_path=f"images/{n}", world_from_cam=w, intrinsics=None)
+        for n, w in zip(names, world_from_cam, strict=True)
+    )
+    scene = Scene(
+        root=out_dir, frames=frames, intrinsics=intr, applied_transform=np.eye(4)[:3], applied_scale=1.0,
+        aabb=aabb, near=near, far=far, splits={"train": train, "val": test, "test": test}, has_alpha=rgba,
+    )  # fmt: skip
+    return Path(write_scene(scene, out_dir / "transforms.json"))
+
+
+def run(config: Config) -> Outputs:
+    """Render the scene described by `config` into `config.out_dir`; see the module docstring for the files."""
+    if config.size < 8 or config.views < 1:
+        raise UserError(f"scene: expected --size >= 8 and --views >= 1, got size={config.size}, views={config.views}")
+    if config.kind not in ("photos", "posed", "rgba"):
+        raise UserError(f"scene: expected --kind photos|posed|rgba, got {config.kind!r}")
+    started = time.time()
+    out = Path(config.out_dir)
+    prims = default_primitives(config.seed)
+    intr = intrinsics(config.size)
+    world_from_cam = cameras(config.views, config.seed)
+    names = [f"frame_{i:04d}.png" for i in range(config.views)]
+    rgba = config.kind == "rgba"
+    bg = np.array(BACKGROUND)
+
+    images, depths = [], []
+    for name, w in zip(names, world_from_cam, strict=True):
+        colour, alpha, z = render_view(prims, intr, w)
+        if not rgba:
+            colour = alpha[..., None] * colour + (1 - alpha[..., None]) * bg
+        images.append(write_bytes(out / "images" / name, _png(colour, alpha if rgba else None)))
+        depth_path = out / "ground_truth" / "depth" / name.replace(".png", ".npy")
+        _write_npy(depth_path, z.astype(np.float32))
+        depths.append(depth_path)
+
+    mesh = scene_mesh(prims)
+    mesh_path = out / "ground_truth" / "mesh.ply"
+    _write_mesh(mesh_path, mesh)
+    aabb = mesh.bounds + np.array([[-0.05], [0.05]])
+    dist = np.linalg.norm(world_from_cam[:, :3, 3] - LOOK_AT, axis=-1)
+    r_bound = float(np.max(np.linalg.norm(mesh.vertices - LOOK_AT, axis=-1)))
+    near, far = float(max(0.05, 0.9 * (dist.min() - r_bound))), float(1.1 * (dist.max() + r_bound))
+
+    intr_doc = {"w": intr.w, "h": intr.h, "fl_x": intr.fx, "fl_y": intr.fy, "cx": intr.cx, "cy": intr.cy}
+    cams_doc = {
+        "convention": "world_from_cam 4x4, OpenGL camera axes (x right, y up, looking down -z); metres; up +z; "
+        "frames keyed by image stem",
+        "depth": "depth/<stem>.npy: float32 [H, W] z-depth along the optical axis, metres, of the ray through "
+        "the pixel centre; 0 = background",
+        "mesh": "mesh.ply: the rendered surface, closed primitives concatenated (hidden faces where objects sink "
+        "into the ground slab), metres",
+        "camera_model": "PINHOLE",
+        **intr_doc,
+        "background": list(BACKGROUND) if not rgba else None,
+        "aabb": aabb.tolist(), "near": near, "far": far,
+        "frames": {
+            Path(n).stem: {"file_path": f"images/{n}", "world_from_cam": w.tolist(), **intr_doc}
+            for n, w in zip(names, world_from_cam, strict=True)
+        },
+    }  # fmt: skip
+    cams_path = write_json(out / "ground_truth" / "cameras.json", cams_doc)
+    transforms = None
+    if config.kind != "photos":
+        transforms = _write_transforms(out, names, world_from_cam, intr, aabb, near, far, rgba)
+
+    outputs = [*images, *depths, mesh_path, cams_path, *([transforms] if transforms else [])]
+    manifest_path = write_manifest(
+        out, stage="scene", started=started, outputs=[p.relative_to(out) for p in outputs],
+        used={"supersample": f"{SUPERSAMPLE}x{SUPERSAMPLE} rays per pixel, box filter", "fov_x_deg": FOV_X_DEG,
+              "background": "transparent" if rgba else list(BACKGROUND), "camera_radius_m": CAMERA_RADIUS,
+              "elevation_deg": list(ELEVATION_DEG), "test_split": f"every {TEST_EVERY}th view"},
+        config=config_to_json(config),
+    )  # fmt: skip
+    return Outputs(
+        out_dir=out, images=tuple(images), transforms=transforms, cameras=cams_path, depths=tuple(depths),
+        mesh=mesh_path, manifest=manifest_path,
+    )  # fmt: skip
