@@ -111,6 +111,117 @@ def convert(
     typer.echo(f"{out.num_frames} frames ({out.kind}) -> {out.transforms}; splits {out.splits}")
 
 
+# ---------------------------------------------------------------------------------------------- render
+RenderPath = _choices("RenderPath", Literal["turntable", "spiral", "test", "train"])
+Device = _choices("Device", Literal["auto", "cpu", "cuda"])
+DeviceOpt = Annotated[Device, typer.Option(help="Where to run: auto uses CUDA when available.")]
+
+
+@app.command()
+def render(
+    run_dir: Annotated[Path, typer.Argument(help="A trained run directory.")],
+    out: Annotated[Path, typer.Argument(help="Output video (.mp4, H.264).")],
+    path: Annotated[RenderPath, typer.Option(help="Camera path.")] = "turntable",
+    frames: Annotated[int, typer.Option(help="Frames for turntable/spiral.")] = 120,
+    fps: Annotated[float, typer.Option(help="Frames per second.")] = 30.0,
+    downscale: Annotated[float, typer.Option(help="Divide the training image size by this.")] = 1.0,
+    elevation: Annotated[float | None, typer.Option(help="Turntable elevation in degrees (default: cameras').")] = None,
+    radius: Annotated[float | None, typer.Option(help="Orbit radius in your units (default: cameras').")] = None,
+    outputs: Annotated[str, typer.Option(help="Panels side by side: rgb,depth,accumulation.")] = "rgb",
+    frames_dir: Annotated[Path | None, typer.Option(help="Also write PNG frames here.")] = None,
+    device: DeviceOpt = "auto",
+) -> None:
+    """Render a turntable, spiral or dataset-camera video of a trained run."""
+    from stages import render as stage
+
+    out_ = stage.run(
+        stage.Config(
+            run_dir=run_dir,
+            out=out,
+            path=RenderPath(path).value,
+            frames=frames,
+            fps=fps,
+            downscale=downscale,
+            elevation=elevation,
+            radius=radius,
+            outputs=stage.parse_outputs(outputs),
+            frames_dir=frames_dir,
+            device=Device(device).value,
+        )  # fmt: skip
+    )
+    typer.echo(f"{out_.n_frames} frames {out_.size[0]}x{out_.size[1]} -> {out_.video}")
+
+
+# ---------------------------------------------------------------------------------------------- depth
+DepthViews = _choices("DepthViews", Literal["test", "train", "turntable"])
+DepthKind = _choices("DepthKind", Literal["expected", "median"])
+
+
+@app.command()
+def depth(
+    run_dir: Annotated[Path, typer.Argument(help="A trained run directory.")],
+    out_dir: Annotated[Path, typer.Argument(help="Output folder for depth maps.")],
+    views: Annotated[DepthViews, typer.Option(help="Which cameras.")] = "test",
+    kind: Annotated[DepthKind, typer.Option(help="Expected or median ray-termination depth.")] = "expected",
+    frames: Annotated[int, typer.Option(help="Frames for --views turntable.")] = 120,
+    downscale: Annotated[float, typer.Option(help="Divide the image size by this.")] = 1.0,
+    video: Annotated[bool, typer.Option(help="Also write depth.mp4.")] = False,
+    device: DeviceOpt = "auto",
+) -> None:
+    """Depth maps in your units (.npy), 16-bit millimetre PNGs, coloured previews and opacity."""
+    from stages import depth as stage
+
+    out = stage.run(
+        stage.Config(
+            run_dir=run_dir,
+            out_dir=out_dir,
+            views=DepthViews(views).value,
+            kind=DepthKind(kind).value,
+            frames=frames,
+            downscale=downscale,
+            video=video,
+            device=Device(device).value,
+        )  # fmt: skip
+    )
+    lo, hi = out.depth_range
+    typer.echo(f"{len(out.names)} depth maps (range {lo:.3g}..{hi:.3g}) -> {out.out_dir}")
+
+
+# ---------------------------------------------------------------------------------------------- eval
+@app.command(name="eval")
+def eval_(
+    run_dir: Annotated[Path, typer.Argument(help="A trained run directory.")],
+    out: Annotated[Path, typer.Argument(help="Output JSON.")],
+    ground_truth: Annotated[Path | None, typer.Option(help="A synthetic scene's ground_truth/ folder.")] = None,
+    device: DeviceOpt = "auto",
+) -> None:
+    """PSNR, SSIM, render speed (and depth error with ground truth) on the test views, to JSON."""
+    from stages import eval as stage
+
+    res = stage.run(stage.Config(run_dir=run_dir, out=out, ground_truth=ground_truth, device=Device(device).value))
+    r = res.result
+    typer.echo(f"PSNR {r.get('psnr')}  SSIM {r.get('ssim')}  -> {res.out}")
+
+
+# ---------------------------------------------------------------------------------------------- report
+@app.command()
+def report(
+    runs_and_out: Annotated[list[Path], typer.Argument(help="RUN_DIR... OUT_DIR")],
+    levels: Annotated[str, typer.Option(help="PSNR levels (dB) for time-to-reach, comma-separated.")] = "20,25,30",
+) -> None:
+    """Compare runs: held-out PSNR against wall-clock seconds (PNG) and a table (markdown + CSV)."""
+    from stages import report as stage
+
+    if len(runs_and_out) < 2:
+        raise UserError("report: expected at least one RUN_DIR and an OUT_DIR")
+    try:
+        lv = tuple(float(v) for v in levels.split(",") if v.strip())
+    except ValueError:
+        raise UserError(f"--levels: expected comma-separated numbers, got {levels!r}") from None
+    out = stage.run(stage.Config(runs=tuple(runs_and_out[:-1]), out_dir=runs_and_out[-1], levels=lv))
+    typer.echo(f"report -> {out.markdown}, {out.plot}")
+
+
 # ---------------------------------------------------------------------------------------------- entry
 def _one_line(text: str) -> str:
     lines = [ln.strip() for ln in str(text).strip().splitlines() if ln.strip()]

@@ -1,0 +1,210 @@
+"""Stage `depth`: a trained run -> depth maps in the user's units for a set of views.
+
+    nerfpipe depth RUN_DIR OUT_DIR [--views test|train|turntable] [--kind expected|median] [--video]
+
+Depth is z-depth (along each camera's optical axis) in the user's (source) units: the scene-frame depth divided
+by `applied_scale` (the rotation/translation of `applied_transform` do not change distances). `expected` is the
+z-depth of the weight-averaged ray distance, `median` of the distance where accumulated weight reaches 1/2.
+Background: pixels whose accumulated opacity is below `acc_threshold` (default 0.5: the ray is more likely to
+miss than to hit) have no depth; they are 0 in every depth output (the nerfstudio / 16-bit PNG convention
+"0 = no depth"); `accumulation/` keeps the opacity so another threshold can be applied later.
+
+Outputs under OUT_DIR, per view NAME (image stem, or frame_00000... for the turntable):
+  depth/NAME.npy          float32 [H, W] z-depth, user units, 0 = background
+  depth_mm/NAME.png       uint16 millimetres (= user units x 1000, assuming metres), rounded, clipped to 65535
+  depth_color/NAME.png    turbo over one range for every view (1st-99th percentile), colour bar in user units
+  accumulation/NAME.png   uint8 grey opacity
+  cameras.json            each view's camera in the source frame (OpenGL world_from_cam) + intrinsics
+  depth.mp4               (--video) the coloured depth maps as a video
+  metrics.csv, manifest.json (written last)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from data.atomic import atomic_path, write_json
+from data.errors import UserError
+from data.rundir import MetricsLog, Stopwatch, config_to_json, write_manifest
+from data.transforms import Scene
+from data.video import colorize, depth_legend_png, to_uint8, video_writer, write_png
+from stages import render as render_stage
+
+__all__ = ["Config", "Outputs", "VIEWS", "KINDS", "run", "source_world_from_cam", "depth_mm"]
+
+VIEWS = ("test", "train", "turntable")
+KINDS = ("expected", "median")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Config:
+    run_dir: Path
+    """Trained run directory."""
+    out_dir: Path
+    """Folder for the depth maps (created)."""
+    views: str = "test"
+    """Which cameras: test (the held-out split; val if there is no test split) | train | turntable."""
+    kind: str = "expected"
+    """expected (weight-averaged distance) | median (distance at half the accumulated weight)."""
+    frames: int = 120
+    """Turntable frames (views=turntable only)."""
+    downscale: float = 1.0
+    """Render at 1/downscale of each camera's resolution."""
+    acc_threshold: float = 0.5
+    """Pixels with accumulated opacity below this are background: depth 0."""
+    video: bool = False
+    """Also write depth.mp4 of the coloured depth maps."""
+    fps: float = 30.0
+    """Frames per second of depth.mp4."""
+    device: str = "auto"
+    """torch device: auto, cpu, cuda, cuda:N."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class Outputs:
+    out_dir: Path
+    names: tuple[str, ...]
+    depth: tuple[Path, ...]
+    """depth/NAME.npy per view."""
+    depth_mm: tuple[Path, ...]
+    depth_color: tuple[Path, ...]
+    accumulation: tuple[Path, ...]
+    cameras: Path
+    video: Path | None
+    depth_range: tuple[float, float]
+    """Colour range of depth_color / depth.mp4, user units."""
+    manifest: Path
+
+
+def source_world_from_cam(scene: Scene, world_from_cam: np.ndarray) -> np.ndarray:
+    """Scene-frame camera [4, 4] -> the same camera in the source frame (rigid: the scale goes into the centre)."""
+    m = scene.source_from_scene() @ np.asarray(world_from_cam, dtype=np.float64)
+    m[:3, :3] /= np.linalg.norm(m[:3, :3], axis=0, keepdims=True)
+    return m
+
+
+def depth_mm(depth_user: np.ndarray) -> np.ndarray:
+    """Depth in metres [H, W] -> uint16 millimetres (0 stays 0 = no depth; clipped to 65535)."""
+    mm = np.rint(np.nan_to_num(np.asarray(depth_user, np.float64), nan=0.0, posinf=0.0, neginf=0.0) * 1000.0)
+    return np.clip(mm, 0, 65535).astype(np.uint16)
+
+
+def _write_npy(path: Path, arr: np.ndarray) -> Path:
+    with atomic_path(path, suffix=".npy") as tmp, open(tmp, "wb") as f:
+        np.save(f, arr)
+    return path
+
+
+def _global_range(paths: list[Path], max_samples: int = 1_000_000) -> tuple[float, float]:
+    """1st-99th percentile of the non-zero depth over every map (subsampled), without holding them all."""
+    per_map = max(1, max_samples // max(1, len(paths)))
+    vals = []
+    for p in paths:
+        d = np.load(p, mmap_mode="r").reshape(-1)
+        step = max(1, d.size // per_map)
+        v = np.asarray(d[::step])
+        vals.append(v[v > 0])
+    v = np.concatenate(vals) if vals else np.zeros(0)
+    if v.size == 0:
+        return 0.0, 1.0
+    lo, hi = (float(x) for x in np.percentile(v, [1, 99]))
+    return (lo, hi) if hi > lo else (lo, lo + max(1e-6, abs(lo) * 1e-3))
+
+
+def run(config: Config, progress: Any | None = None) -> Outputs:
+    started = time.time()
+    if config.views not in VIEWS:
+        raise UserError(f"--views: expected one of {', '.join(VIEWS)}, got {config.views!r}")
+    if config.kind not in KINDS:
+        raise UserError(f"--kind: expected one of {', '.join(KINDS)}, got {config.kind!r}")
+    if not 0 <= config.acc_threshold <= 1:
+        raise UserError(f"--acc-threshold: expected a value in [0, 1], got {config.acc_threshold}")
+    out_dir = Path(config.out_dir)
+    device = render_stage.resolve_device(config.device)
+    trained = render_stage.load_run(config.run_dir, device)
+    scene = trained.scene
+    cams = render_stage.camera_path(scene, config.views, frames=config.frames, downscale=config.downscale)
+    scale = float(scene.applied_scale)
+    key = "depth" if config.kind == "expected" else "depth_median"
+
+    metrics = MetricsLog(out_dir / "metrics.csv", ["step", "seconds", "rays_per_s", "background_fraction"])
+    clock = Stopwatch()
+    files: dict[str, list[Path]] = {"depth": [], "depth_mm": [], "accumulation": []}
+    cameras_doc: dict[str, Any] = {}
+    owns_progress = progress is None
+    if owns_progress:
+        from rich.progress import Progress
+
+        progress = Progress(transient=True)
+        progress.start()
+    try:
+        task = progress.add_task(f"depth {config.views}", total=2 * len(cams.names))
+        for k, name in enumerate(cams.names):
+            intr, pose = cams.intrinsics[k], cams.world_from_cams[k]
+            t0 = time.perf_counter()
+            view = render_stage.render_view(trained, intr, pose, device)
+            seconds = time.perf_counter() - t0
+            valid = (view["acc"] >= config.acc_threshold) & np.isfinite(view[key]) & (view[key] > 0)
+            depth = np.where(valid, view[key] / scale, 0.0).astype(np.float32)
+            files["depth"].append(_write_npy(out_dir / "depth" / f"{name}.npy", depth))
+            files["depth_mm"].append(write_png(out_dir / "depth_mm" / f"{name}.png", depth_mm(depth)))
+            files["accumulation"].append(write_png(out_dir / "accumulation" / f"{name}.png", to_uint8(view["acc"])))
+            cameras_doc[name] = {
+                "world_from_cam": source_world_from_cam(scene, pose).tolist(),
+                "w": intr.w, "h": intr.h, "fl_x": intr.fx, "fl_y": intr.fy, "cx": intr.cx, "cy": intr.cy,
+                "k1": intr.k1, "k2": intr.k2, "k3": intr.k3, "p1": intr.p1, "p2": intr.p2,
+            }  # fmt: skip
+            metrics.append(step=k, seconds=round(clock(), 4), rays_per_s=round(intr.w * intr.h / max(seconds, 1e-9)),
+                           background_fraction=round(float(1 - valid.mean()), 6))  # fmt: skip
+            progress.advance(task)
+
+        lo, hi = _global_range(files["depth"])
+        color_paths: list[Path] = []
+        video_path = out_dir / "depth.mp4" if config.video else None
+        with _maybe_video(video_path, config.fps) as video:
+            for k, name in enumerate(cams.names):
+                depth = np.load(files["depth"][k])
+                rgb = colorize(depth, lo, hi, valid=depth > 0)
+                color_paths.append(
+                    depth_legend_png(out_dir / "depth_color" / f"{name}.png", rgb, lo, hi, "z-depth (user units)")
+                )
+                if video is not None:
+                    video.write(to_uint8(rgb))
+                progress.advance(task)
+    finally:
+        if owns_progress:
+            progress.stop()
+
+    cameras_path = write_json(out_dir / "cameras.json", {
+        "convention": "world_from_cam 4x4 in the source (user) frame, OpenGL camera axes (x right, y up, looking "
+                      "down -z); depth/NAME.npy is z-depth along -z in the same units; intrinsics in pixels",
+        "frames": cameras_doc,
+    })  # fmt: skip
+    metrics.save()
+    manifest = write_manifest(
+        out_dir, stage="depth", started=started,
+        inputs=[Path(config.run_dir) / "checkpoint.pt", Path(config.run_dir) / "config.json"],
+        outputs=[*files["depth"], *files["depth_mm"], *color_paths, *files["accumulation"], cameras_path,
+                 metrics.path, *([video_path] if video_path else [])],
+        used={**cams.used, "kind": config.kind, "device": str(device), "views": len(cams.names),
+              "units": "user (source) units: scene depth / applied_scale", "applied_scale": scale,
+              "background": f"accumulation < {config.acc_threshold} -> depth 0",
+              "depth_mm": "round(depth * 1000), clipped to 65535 (assumes the user's units are metres)",
+              "color_range_user_units": [lo, hi], "colormap": "turbo"},
+        config=config_to_json(config),
+    )  # fmt: skip
+    return Outputs(
+        out_dir=out_dir, names=cams.names, depth=tuple(files["depth"]), depth_mm=tuple(files["depth_mm"]),
+        depth_color=tuple(color_paths), accumulation=tuple(files["accumulation"]), cameras=cameras_path,
+        video=video_path, depth_range=(lo, hi), manifest=manifest,
+    )  # fmt: skip
+
+
+def _maybe_video(path: Path | None, fps: float):
+    return video_writer(path, fps=fps) if path is not None else contextlib.nullcontext()

@@ -1,0 +1,286 @@
+"""Stage `eval`: image quality on the held-out views, render speed and (with ground truth) depth error.
+
+    nerfpipe eval RUN_DIR OUT.json [--ground-truth DIR]
+
+Per test view (the `test` split; `val` when there is none): PSNR, SSIM (`skimage.metrics.structural_similarity`,
+channel_axis, data_range 1) of the render against the photo (RGBA photos composited on the run's evaluation
+background), at the photo's resolution. Rays per second = rendered pixels / render seconds (all views).
+LPIPS only when the `lpips` package and its AlexNet weights are already on this machine (never downloaded);
+otherwise `"lpips": null` with the reason in `"lpips_unavailable"`.
+
+Depth (with `--ground-truth`, the synthetic scene's `ground_truth/` folder or the scene folder holding it):
+`cameras.json` with `frames: {image name or stem: world_from_cam | {world_from_cam, ...}}` and
+`depth/<image stem>.npy` z-depth in metres, 0 = background. The run's expected z-depth is taken to the user's
+(source) units (/ applied_scale) and compared on the pixels where the ground truth has depth. When the run's
+cameras, mapped to the source frame, do not coincide with the ground-truth cameras (e.g. COLMAP poses), a
+similarity (Umeyama) fitted from the run's camera centres to the ground-truth centres, matched by image stem,
+converts the depth scale; the JSON says which (`depth_alignment.method`: none | similarity).
+
+Writes OUT.json, OUT.metrics.csv (per view: step, seconds, psnr, ssim, depth_mae) and OUT.manifest.json (last).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from data.atomic import write_json
+from data.errors import UserError
+from data.rundir import MetricsLog, Stopwatch, config_to_json, write_manifest
+from data.transforms import Scene, load_image
+from stages import render as render_stage
+from stages.depth import source_world_from_cam
+
+__all__ = ["Config", "Outputs", "run", "ssim", "lpips_status", "GroundTruth", "read_ground_truth", "align_to"]
+
+ALEXNET_WEIGHTS = "alexnet-owt-7be5be79.pth"
+"""torchvision's AlexNet checkpoint file name, which lpips loads from the torch hub cache."""
+SAME_FRAME_TOL = 1e-4
+"""Camera centres within this fraction of the ground-truth extent: the run is already in the GT frame."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class Config:
+    run_dir: Path
+    """Trained run directory."""
+    out: Path
+    """Output JSON file."""
+    ground_truth: Path | None = None
+    """Ground-truth folder (cameras.json, depth/*.npy in metres) or the scene folder holding ground_truth/."""
+    device: str = "auto"
+    """torch device: auto, cpu, cuda, cuda:N."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class Outputs:
+    out: Path
+    """The JSON report."""
+    metrics: Path
+    manifest: Path
+    result: dict
+    """What OUT.json holds."""
+
+
+def ssim(a: np.ndarray, b: np.ndarray) -> float:
+    """SSIM of two [H, W, 3] images in [0, 1] (skimage defaults: 7x7 uniform window)."""
+    from skimage.metrics import structural_similarity
+
+    return float(structural_similarity(a, b, channel_axis=-1, data_range=1.0))
+
+
+def lpips_status() -> tuple[Any | None, str | None]:
+    """(an LPIPS-AlexNet callable, None) when the package and every weight file are present offline, else
+    (None, reason). Never downloads."""
+    try:
+        import lpips  # noqa: F401
+    except ImportError:
+        return None, "the lpips package is not installed (nerfpipe never downloads it or its weights)"
+    hub = Path(torch.hub.get_dir()) / "checkpoints" / ALEXNET_WEIGHTS
+    lin = Path(lpips.__file__).parent / "weights" / "v0.1" / "alex.pth"
+    missing = [str(p) for p in (hub, lin) if not p.is_file()]
+    if missing:
+        return None, f"LPIPS weights not present offline: {', '.join(missing)} (never downloaded)"
+    try:
+        model = lpips.LPIPS(net="alex", verbose=False).eval()
+    except Exception as exc:  # any failure to build it offline is a reason, not a crash
+        return None, f"LPIPS could not be built offline: {type(exc).__name__}: {exc}"
+
+    @torch.no_grad()
+    def score(pred: np.ndarray, gt: np.ndarray) -> float:
+        def to_t(x):
+            return torch.from_numpy(np.ascontiguousarray(x)).permute(2, 0, 1)[None].float() * 2 - 1
+
+        return float(model(to_t(pred), to_t(gt)).item())
+
+    return score, None
+
+
+@dataclass(frozen=True, kw_only=True)
+class GroundTruth:
+    folder: Path
+    world_from_cam: dict[str, np.ndarray]
+    """Image stem (file name without extension) -> [4, 4] OpenGL camera, ground-truth frame."""
+
+
+def read_ground_truth(path: Path) -> GroundTruth:
+    path = Path(path)
+    folder = path / "ground_truth" if (path / "ground_truth" / "cameras.json").is_file() else path
+    cams = folder / "cameras.json"
+    if not cams.is_file():
+        raise UserError(f"--ground-truth: {path} has no cameras.json (nor ground_truth/cameras.json)")
+    try:
+        doc = json.loads(cams.read_text(encoding="utf-8"))
+        frames = {}
+        for key, value in doc["frames"].items():
+            if isinstance(value, dict):  # {file_path, world_from_cam (or transform_matrix), intrinsics...}
+                value = value.get("world_from_cam", value.get("transform_matrix"))
+            frames[Path(str(key)).stem] = np.asarray(value, dtype=np.float64)
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise UserError(f"{cams}: expected {{'frames': {{image name: 4x4 matrix}}}} ({type(exc).__name__})") from None
+    bad = [k for k, m in frames.items() if m.shape != (4, 4) or not np.isfinite(m).all()]
+    if bad:
+        raise UserError(f"{cams}: frames[{bad[0]!r}] is not a finite 4x4 matrix")
+    return GroundTruth(folder=folder, world_from_cam=frames)
+
+
+def align_to(scene: Scene, gt: GroundTruth) -> dict[str, Any]:
+    """How the run's source frame maps onto the ground-truth frame, from camera centres matched by file name.
+
+    Returns {method: none | similarity, scale (GT units per user unit), matched, rms_centre_error, ...}.
+    """
+    from stages.poses_eval import umeyama
+
+    src, dst = [], []
+    for f in scene.frames:
+        name = Path(f.file_path).stem
+        if name in gt.world_from_cam:
+            src.append(source_world_from_cam(scene, f.world_from_cam)[:3, 3])
+            dst.append(gt.world_from_cam[name][:3, 3])
+    if not src:
+        raise UserError(f"--ground-truth: no image name of the run's scene appears in {gt.folder / 'cameras.json'}")
+    src_a, dst_a = np.array(src), np.array(dst)
+    extent = float(np.linalg.norm(dst_a.max(0) - dst_a.min(0))) or 1.0
+    err = np.linalg.norm(src_a - dst_a, axis=1)
+    if err.max() <= SAME_FRAME_TOL * extent:
+        return {"method": "none", "reason": "the run's cameras (source frame) coincide with the ground truth",
+                "scale": 1.0, "matched": len(src), "rms_centre_error": float(np.sqrt((err**2).mean()))}  # fmt: skip
+    if len(src) < 3:
+        raise UserError(f"--ground-truth: frames differ and only {len(src)} camera(s) match by name (need 3)")
+    s, rot, t = umeyama(src_a, dst_a)
+    res = np.linalg.norm(s * src_a @ rot.T + t - dst_a, axis=1)
+    return {
+        "method": "similarity",
+        "reason": "the run's source frame is not the ground-truth frame: Umeyama fit of camera centres by name",
+        "scale": float(s), "rotation": rot.tolist(), "translation": t.tolist(), "matched": len(src),
+        "rms_centre_error": float(np.sqrt((res**2).mean())),
+    }  # fmt: skip
+
+
+def _mean(values: list[float | None]) -> float | None:
+    v = [x for x in values if x is not None and math.isfinite(x)]
+    return float(np.mean(v)) if v else None
+
+
+def run(config: Config, progress: Any | None = None) -> Outputs:
+    started = time.time()
+    out = Path(config.out)
+    if out.suffix.lower() != ".json":
+        raise UserError(f"{out}: expected a .json output path")
+    gt = read_ground_truth(config.ground_truth) if config.ground_truth is not None else None
+    device = render_stage.resolve_device(config.device)
+    trained = render_stage.load_run(config.run_dir, device)
+    scene = trained.scene
+    split = "test" if scene.split("test") else "val"
+    idx = scene.split(split)
+    if not idx:
+        raise UserError(f"{config.run_dir}: the run's scene has no test or val split to evaluate on")
+    alignment = align_to(scene, gt) if gt is not None else None
+    lpips_fn, lpips_reason = lpips_status()
+    background = trained.background.detach().float().cpu().numpy().reshape(3)
+    scale = float(scene.applied_scale)
+
+    metrics = MetricsLog(render_stage.sidecar(out, "metrics.csv"), ["step", "seconds", "psnr", "ssim", "depth_mae"])
+    clock = Stopwatch()
+    views: list[dict[str, Any]] = []
+    render_seconds, rendered_px = 0.0, 0
+    abs_errors: list[np.ndarray] = []
+    covered = gt_pixels = 0
+    owns_progress = progress is None
+    if owns_progress:
+        from rich.progress import Progress
+
+        progress = Progress(transient=True)
+        progress.start()
+    try:
+        task = progress.add_task(f"eval {split}", total=len(idx))
+        for k, i in enumerate(idx):
+            photo = load_image(scene.image_path(i))
+            if photo.shape[2] == 4:
+                photo = photo[..., :3] * photo[..., 3:] + background * (1 - photo[..., 3:])
+            intr = scene.frame_intrinsics(i)
+            h, w = photo.shape[:2]
+            if (intr.w, intr.h) != (w, h):
+                intr = intr.scaled(w / intr.w)
+            pose = scene.frames[i].world_from_cam
+            t0 = time.perf_counter()
+            view = render_stage.render_view(trained, intr, pose, device)
+            render_seconds += time.perf_counter() - t0
+            rendered_px += w * h
+            pred = np.clip(view["rgb"], 0.0, 1.0)
+            row: dict[str, Any] = {"name": Path(scene.frames[i].file_path).name,
+                                   "psnr": render_stage.psnr(pred, photo), "ssim": ssim(pred, photo),
+                                   "lpips": lpips_fn(pred, photo) if lpips_fn else None}  # fmt: skip
+            if gt is not None:
+                err, n_cov, n_gt = _depth_errors(trained, view, intr, pose, row["name"], gt, alignment, scale, device)
+                if err is not None:
+                    abs_errors.append(err)
+                    covered, gt_pixels = covered + n_cov, gt_pixels + n_gt
+                    row["depth_mae"] = float(err.mean()) if err.size else None
+            views.append(row)
+            metrics.append(step=k, seconds=round(clock(), 4), psnr=round(row["psnr"], 4), ssim=round(row["ssim"], 5),
+                           depth_mae="" if row.get("depth_mae") is None else round(row["depth_mae"], 6))  # fmt: skip
+            progress.advance(task)
+    finally:
+        if owns_progress:
+            progress.stop()
+
+    result: dict[str, Any] = {
+        "run_dir": str(config.run_dir), "split": split, "n_views": len(views),
+        "psnr": _mean([v["psnr"] for v in views]), "ssim": _mean([v["ssim"] for v in views]),
+        "lpips": _mean([v["lpips"] for v in views]) if lpips_fn else None, "lpips_unavailable": lpips_reason,
+        "rays_per_second": rendered_px / max(render_seconds, 1e-9), "render_seconds": render_seconds,
+        "device": str(device), "views": views,
+    }  # fmt: skip
+    result.update(_depth_summary(gt, alignment, abs_errors, covered, gt_pixels))
+    write_json(out, result)
+    metrics.save()
+    manifest = write_manifest(
+        out.parent, stage="eval", started=started, name=render_stage.sidecar(out, "manifest.json").name,
+        inputs=[Path(config.run_dir) / "checkpoint.pt", Path(config.run_dir) / "config.json",
+                *([gt.folder / "cameras.json"] if gt else [])],
+        outputs=[out, metrics.path], used={"split": split, "views": len(views), "device": str(device),
+                                           "ssim": "skimage structural_similarity, 7x7, data_range 1"},
+        left_out={**({"lpips": lpips_reason} if lpips_reason else {}),
+                  **({} if gt else {"depth": "no --ground-truth given"})},
+        config=config_to_json(config),
+    )  # fmt: skip
+    return Outputs(out=out, metrics=metrics.path, manifest=manifest, result=result)
+
+
+def _depth_errors(trained, view, intr, pose, name, gt, alignment, scale, device):
+    """|pred - gt| [n] in GT units on the pixels where the GT has depth; (None, 0, 0) when no GT depth file."""
+    path = gt.folder / "depth" / f"{Path(name).stem}.npy"
+    if not path.is_file():
+        return None, 0, 0
+    gt_depth = np.load(path).astype(np.float64)
+    if gt_depth.shape != view["depth"].shape:  # ground truth at another resolution: render at its size
+        view = render_stage.render_view(trained, intr.scaled(gt_depth.shape[1] / intr.w), pose, device)
+    pred = view["depth"].astype(np.float64) / scale * alignment["scale"]
+    has_gt = np.isfinite(gt_depth) & (gt_depth > 0)
+    ok = has_gt & np.isfinite(pred)
+    covered = int((has_gt & (view["acc"] >= render_stage.OPAQUE)).sum())
+    return np.abs(pred[ok] - gt_depth[ok]), covered, int(has_gt.sum())
+
+
+def _depth_summary(gt, alignment, abs_errors, covered, gt_pixels) -> dict[str, Any]:
+    if gt is None:
+        return {"depth_mae": None, "depth_median_abs_error": None, "depth_coverage": None, "depth_alignment": None,
+                "depth_unavailable": "no --ground-truth given", "ground_truth": None}  # fmt: skip
+    err = np.concatenate(abs_errors) if abs_errors else np.zeros(0)
+    return {
+        "depth_mae": float(err.mean()) if err.size else None,
+        "depth_median_abs_error": float(np.median(err)) if err.size else None,
+        "depth_coverage": covered / gt_pixels if gt_pixels else None,
+        "depth_units": "ground-truth units (metres): run depth / applied_scale x alignment scale",
+        "depth_pixels": int(err.size),
+        "depth_alignment": alignment,
+        "depth_unavailable": None if err.size else "no ground-truth depth file matched a test view",
+        "ground_truth": str(gt.folder),
+    }

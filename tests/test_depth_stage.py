@@ -1,0 +1,103 @@
+"""Stage `depth`: npy in the user's units, mm PNG consistent with it, colour/opacity PNGs, cameras, errors."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import imageio.v2 as iio
+import numpy as np
+import pytest
+import torch
+
+import stages.depth as depth_stage
+import stages.render as render_stage
+from data.errors import UserError
+
+try:  # the analytic stand-in lives with the render tests
+    from test_render_stage import SPHERE_RADIUS, sphere_run  # noqa: F401  (fixture)
+except ImportError:  # tests/ imported as a package
+    from tests.test_render_stage import SPHERE_RADIUS, sphere_run  # noqa: F401
+
+
+def test_depth_maps_in_user_units_and_consistent_pngs(sphere_run, tmp_path):
+    run_dir, fake = sphere_run
+    out = depth_stage.run(depth_stage.Config(run_dir=run_dir, out_dir=tmp_path / "d"))
+    test_idx = fake.scene.split("test")
+    assert len(out.names) == len(test_idx) == len(out.depth)
+    scale = fake.scene.applied_scale  # 2: scene = 2 x user units
+    for k, i in enumerate(test_idx):
+        depth = np.load(out.depth[k])
+        assert depth.dtype == np.float32 and depth.shape == (25, 33)
+        # analytic: the sphere's nearest point is 3 - r scene units from the camera (at the image centre)
+        hit = depth > 0
+        assert 0.05 < hit.mean() < 0.9
+        assert depth[hit].min() == pytest.approx((3.0 - SPHERE_RADIUS) / scale, abs=0.02)
+        pose = fake.scene.frames[i].world_from_cam
+        view = render_stage.render_view(fake, fake.scene.frame_intrinsics(i), pose, torch.device("cpu"))
+        assert np.allclose(depth[hit], view["depth"][hit] / scale, rtol=1e-6)
+        mm = cv2.imread(str(out.depth_mm[k]), cv2.IMREAD_UNCHANGED)
+        assert mm.dtype == np.uint16 and mm.shape == depth.shape
+        assert np.array_equal(mm == 0, ~hit)
+        assert np.abs(mm.astype(np.float64) - depth * 1000).max() <= 0.5 + 1e-3
+        acc = iio.imread(out.accumulation[k])
+        assert np.array_equal(acc > 127, hit)
+        color = iio.imread(out.depth_color[k])
+        assert color.ndim == 3 and color.shape[1] > color.shape[0]  # image plus a colour bar
+    lo, hi = out.depth_range
+    assert (3.0 - SPHERE_RADIUS) / scale - 0.05 < lo < hi < 3.0 / scale
+    cams = json.loads(out.cameras.read_text())["frames"]
+    first = np.array(cams[out.names[0]]["world_from_cam"])
+    assert np.allclose(np.linalg.norm(first[:3, 3]), 3.0 / scale)  # camera centre in user units
+    assert np.allclose(first[:3, :3].T @ first[:3, :3], np.eye(3))
+    manifest = json.loads(out.manifest.read_text())
+    assert manifest["stage"] == "depth" and manifest["used"]["applied_scale"] == scale
+    assert out.video is None
+
+
+def test_turntable_median_depth_with_video(sphere_run, tmp_path):
+    run_dir, _ = sphere_run
+    out = depth_stage.run(depth_stage.Config(run_dir=run_dir, out_dir=tmp_path / "d", views="turntable",
+                                             kind="median", frames=3, video=True, downscale=2))  # fmt: skip
+    assert out.names == ("frame_00000", "frame_00001", "frame_00002")
+    assert np.load(out.depth[0]).shape == (12, 16)
+    reader = iio.get_reader(str(out.video), format="ffmpeg")
+    frames = [f for f in reader.iter_data()]
+    reader.close()
+    assert len(frames) == 3 and frames[0].shape == (12, 16, 3)
+
+
+def test_depth_mm_rounds_clips_and_keeps_zero():
+    d = np.array([[0.0, 0.0004, 1.2344, 70.0, np.nan]])
+    assert depth_stage.depth_mm(d).tolist() == [[0, 0, 1234, 65535, 0]]
+
+
+@pytest.mark.parametrize(
+    ("changes", "match"),
+    [({"views": "val"}, "--views"), ({"kind": "mean"}, "--kind"), ({"acc_threshold": 2.0}, "--acc-threshold")],
+)
+def test_bad_inputs_are_one_line_user_errors(sphere_run, tmp_path, changes, match):
+    run_dir, _ = sphere_run
+    with pytest.raises(UserError, match=match) as e:
+        depth_stage.run(depth_stage.Config(run_dir=run_dir, out_dir=tmp_path / "d", **changes))
+    assert "\n" not in str(e.value)
+
+
+def test_missing_run_dir(tmp_path):
+    with pytest.raises(UserError, match="not found"):
+        depth_stage.run(depth_stage.Config(run_dir=tmp_path / "missing", out_dir=tmp_path / "d"))
+
+
+def test_depth_from_a_real_training_run(tmp_path):
+    try:
+        from test_render_stage import train_tiny_run
+    except ImportError:
+        from tests.test_render_stage import train_tiny_run
+
+    run_dir = train_tiny_run(tmp_path, kind="rgba")
+    out = depth_stage.run(depth_stage.Config(run_dir=run_dir, out_dir=tmp_path / "d", device="cpu"))
+    assert len(out.names) >= 1 and (tmp_path / "d" / "manifest.json").is_file()
+    depth = np.load(out.depth[0])
+    mm = cv2.imread(str(out.depth_mm[0]), cv2.IMREAD_UNCHANGED)
+    assert depth.shape == mm.shape == (24, 24) and np.isfinite(depth).all() and (depth >= 0).all()
+    assert np.abs(mm.astype(np.float64) - np.minimum(depth * 1000, 65535)).max() <= 0.5 + 1e-3

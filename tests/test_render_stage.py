@@ -1,0 +1,211 @@
+"""Stage `render`: mp4 decodes back with the right frames/size, outputs stack, bad inputs are one-line errors.
+
+Fast tests use `SphereRun`, an analytic stand-in for `stages.train.load_trained` (an opaque sphere: exact depth
+and opacity) patched into `stages.render.load_run`; the depth and eval tests import it from here.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import imageio.v2 as iio
+import numpy as np
+import pytest
+import torch
+
+import stages.render as render_stage
+from data.errors import UserError
+from data.transforms import Frame, Scene, write_scene
+from data.video import to_uint8, write_png
+from radiance import paths
+from radiance.camera import Intrinsics
+
+SPHERE_RADIUS = 0.5  # scene units
+BACKGROUND = (1.0, 1.0, 1.0)
+
+
+@dataclass
+class SphereRun:
+    """Duck-typed `Trained`: an opaque sphere at the origin, colour from its normal, miss -> background."""
+
+    scene: Scene
+    background: torch.Tensor = torch.tensor(BACKGROUND)
+    miss_depth: float = 10.0
+
+    def render_rays(self, rays_o, rays_d):
+        b = (rays_o * rays_d).sum(-1)
+        c = (rays_o * rays_o).sum(-1) - SPHERE_RADIUS**2
+        disc = b * b - c
+        hit = disc > 0
+        t = torch.where(hit, -b - torch.sqrt(disc.clamp_min(0)), torch.full_like(b, self.miss_depth))
+        normal = (rays_o + t[:, None] * rays_d) / SPHERE_RADIUS
+        rgb = torch.where(hit[:, None], 0.5 + 0.5 * normal.clamp(-1, 1), self.background.to(rays_o))
+        return {"rgb": rgb, "depth": t, "depth_median": t, "acc": hit.to(rays_o.dtype)}
+
+
+def sphere_scene(root: Path, *, views: int = 8, w: int = 33, h: int = 25, applied_scale: float = 2.0) -> Scene:
+    """Cameras on an orbit (radius 3 scene units) looking at the origin; odd test split; images rendered by
+    the sphere (so replay PSNR is ~ 8-bit quantisation only). Scene = applied_scale * source."""
+    intr = Intrinsics(w=w, h=h, fx=30.0, fy=30.0, cx=w / 2, cy=h / 2)
+    orbit = paths.Orbit(centre=np.zeros(3), up=np.array([0.0, 0, 1]), radius=3.0, elevation_deg=20.0,
+                        start_azimuth_deg=0.0)  # fmt: skip
+    poses = paths.turntable(orbit, views)
+    frames = tuple(Frame(file_path=f"images/v{i:03d}.png", world_from_cam=p) for i, p in enumerate(poses))
+    scene = Scene(
+        root=root, frames=frames, intrinsics=intr, applied_scale=applied_scale,
+        applied_transform=np.eye(4)[:3], splits={"train": tuple(range(0, views, 2)), "test": tuple(range(1, views, 2))},
+        near=0.1, far=10.0,
+    )  # fmt: skip
+    fake = SphereRun(scene=scene)
+    for i, p in enumerate(poses):
+        view = render_stage.render_view(fake, intr, p, torch.device("cpu"))
+        write_png(root / frames[i].file_path, to_uint8(view["rgb"]))
+    write_scene(scene)
+    return scene
+
+
+@pytest.fixture
+def sphere_run(tmp_path, monkeypatch):
+    """A run dir (empty but present) whose `load_run` yields the analytic sphere."""
+    scene = sphere_scene(tmp_path / "scene")
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    fake = SphereRun(scene=scene)
+    monkeypatch.setattr(render_stage, "load_run", lambda run_dir, device: fake)
+    return run_dir, fake
+
+
+def _read_video(path: Path) -> np.ndarray:
+    reader = iio.get_reader(str(path), format="ffmpeg")
+    try:
+        return np.stack([frame for frame in reader.iter_data()])
+    finally:
+        reader.close()
+
+
+def test_turntable_mp4_decodes_with_frames_size_and_motion(sphere_run, tmp_path):
+    run_dir, _ = sphere_run
+    out = tmp_path / "out" / "turn.mp4"
+    res = render_stage.run(render_stage.Config(run_dir=run_dir, out=out, frames=10, fps=10,
+                                               outputs=("rgb", "depth", "accumulation"),
+                                               frames_dir=tmp_path / "frames"))  # fmt: skip
+    video = _read_video(out)
+    assert video.shape == (10, 26, 100, 3)  # 25 x (3 * 33) padded to even
+    assert res.size == (25, 99) and res.n_frames == 10
+    assert video.std() > 10  # not constant
+    assert np.abs(video[0].astype(int) - video[5].astype(int)).mean() > 1  # moves (sphere colour follows normal)
+    assert len(res.frames) == 10 and all(p.is_file() for p in res.frames)
+    png = iio.imread(res.frames[3])
+    assert png.shape == (25, 99, 3)
+    assert res.manifest.name == "turn.manifest.json" and res.manifest.is_file()
+    assert res.metrics.read_text().startswith("step,seconds,rays_per_s,psnr")
+    assert not list(out.parent.glob(".turn*"))  # no temporaries left
+
+
+def test_accumulation_panel_matches_sphere_silhouette(sphere_run, tmp_path):
+    run_dir, fake = sphere_run
+    out = tmp_path / "acc.mp4"
+    render_stage.run(render_stage.Config(run_dir=run_dir, out=out, frames=2, outputs=("accumulation",),
+                                         frames_dir=tmp_path / "f"))  # fmt: skip
+    frame = iio.imread(tmp_path / "f" / "frame_00000.png")
+    cams = render_stage.camera_path(fake.scene, "turntable", frames=2)
+    acc = render_stage.render_view(fake, cams.intrinsics[0], cams.world_from_cams[0], torch.device("cpu"))["acc"]
+    assert np.array_equal(frame[..., 0] > 127, acc > 0.5)
+
+
+def test_test_path_replays_dataset_cameras_with_psnr(sphere_run, tmp_path):
+    run_dir, fake = sphere_run
+    res = render_stage.run(render_stage.Config(run_dir=run_dir, out=tmp_path / "t.mp4", path="test"))
+    assert res.n_frames == len(fake.scene.split("test"))
+    rows = res.metrics.read_text().strip().splitlines()[1:]
+    psnrs = [float(r.split(",")[3]) for r in rows]
+    assert len(psnrs) == res.n_frames and min(psnrs) > 40  # the images are this renderer's own output
+
+
+def test_turntable_uses_training_median_radius_unless_given(sphere_run):
+    _, fake = sphere_run
+    cams = render_stage.camera_path(fake.scene, "turntable", frames=6)
+    dist = np.linalg.norm(cams.world_from_cams[:, :3, 3], axis=1)
+    assert np.allclose(dist, 3.0) and cams.used["elevation_deg"] == pytest.approx(20.0)
+    cams = render_stage.camera_path(fake.scene, "turntable", frames=6, radius=2.0, elevation=45.0, downscale=2)
+    rel = cams.world_from_cams[:, :3, 3]
+    assert np.allclose(np.linalg.norm(rel, axis=1), 4.0)  # user units * applied_scale (2)
+    assert np.allclose(np.degrees(np.arcsin(rel[:, 2] / 4.0)), 45.0)
+    assert (cams.intrinsics[0].w, cams.intrinsics[0].h) == (16, 12)  # round(33 / 2), round(25 / 2)
+    assert np.allclose(-cams.world_from_cams[:, :3, 2], -rel / 4.0)
+
+
+def test_spiral_path_renders(sphere_run, tmp_path):
+    run_dir, _ = sphere_run
+    res = render_stage.run(render_stage.Config(run_dir=run_dir, out=tmp_path / "s.mp4", path="spiral", frames=4))
+    assert _read_video(res.video).shape[0] == 4
+
+
+@pytest.mark.parametrize(
+    ("changes", "match"),
+    [
+        ({"outputs": ("rgb", "normals")}, "--outputs"),
+        ({"path": "zigzag"}, "--path"),
+        ({"out": Path("x.avi")}, ".mp4"),
+        ({"frames": 0}, "--frames"),
+        ({"elevation": 95.0}, "--elevation"),
+        ({"fps": 0}, "--fps"),
+    ],
+)
+def test_bad_inputs_are_one_line_user_errors(sphere_run, tmp_path, changes, match):
+    run_dir, _ = sphere_run
+    config = {"run_dir": run_dir, "out": tmp_path / "o.mp4", "frames": 2, **changes}
+    with pytest.raises(UserError, match=match) as e:
+        render_stage.run(render_stage.Config(**config))
+    assert "\n" not in str(e.value)
+    assert not (tmp_path / "o.mp4").exists()
+
+
+def test_missing_run_dir_is_a_user_error(tmp_path):
+    with pytest.raises(UserError, match="run directory not found"):
+        render_stage.run(render_stage.Config(run_dir=tmp_path / "nope", out=tmp_path / "o.mp4"))
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(UserError, match="checkpoint.pt"):
+        render_stage.run(render_stage.Config(run_dir=tmp_path / "empty", out=tmp_path / "o.mp4"))
+
+
+def test_parse_outputs():
+    assert render_stage.parse_outputs("rgb, depth") == ("rgb", "depth")
+    for bad in ("", "rgb,rgb", "rgb,normal"):
+        with pytest.raises(UserError):
+            render_stage.parse_outputs(bad)
+
+
+def test_psnr_is_capped_for_identical_images():
+    a = np.random.default_rng(0).random((4, 4, 3))
+    assert render_stage.psnr(a, a) == pytest.approx(100.0)
+    assert render_stage.psnr(a, a + 0.1) == pytest.approx(20.0, abs=1e-6)
+    assert math.isfinite(render_stage.psnr(a, 1 - a))
+
+
+# --- integration: a real (2-step) training run -------------------------------------------------------------
+
+
+def train_tiny_run(root: Path, kind: str = "posed") -> Path:
+    """A synthetic scene and a 2-step training on it (seconds on CPU): a real `load_trained` run dir."""
+    from stages import scene as scene_stage
+    from stages import train
+
+    scene_dir = root / "scene"
+    scene_stage.run(scene_stage.Config(out_dir=scene_dir, kind=kind, size=24, views=10, seed=0))
+    train.run(train.Config(scene_dir=scene_dir, run_dir=root / "run", max_steps=2, max_seconds=60.0, batch_rays=256,
+                           resolution=(16, 24), occupancy_resolution=16, eval_every=0, final_eval_views=1,
+                           device="cpu"))  # fmt: skip
+    return root / "run"
+
+
+def test_render_from_a_real_training_run(tmp_path):
+    run_dir = train_tiny_run(tmp_path)
+    out = render_stage.run(render_stage.Config(run_dir=run_dir, out=tmp_path / "v.mp4", frames=3, device="cpu",
+                                               outputs=("rgb", "depth", "accumulation")))  # fmt: skip
+    video = _read_video(out.video)
+    assert video.shape == (3, 24, 72, 3)
+    manifest = (tmp_path / "v.manifest.json").read_text()
+    assert '"stage": "render"' in manifest and '"radius_scene"' in manifest
