@@ -56,6 +56,10 @@ def _csv_ints(text: str, option: str) -> tuple[int, ...]:
         raise UserError(f"{option}: expected comma-separated integers, got {text!r}") from None
 
 
+Device = _choices("Device", Literal["auto", "cpu", "cuda"])
+DeviceOpt = Annotated[Device, typer.Option(help="Where to run: auto uses CUDA when available.")]
+
+
 # ---------------------------------------------------------------------------------------------- scene
 SceneKind = _choices("SceneKind", Literal["photos", "posed", "rgba"])
 
@@ -72,7 +76,7 @@ def scene(
     from stages import scene as stage
 
     out = stage.run(stage.Config(out_dir=out_dir, kind=SceneKind(kind).value, size=size, views=views, seed=seed))
-    typer.echo(f"scene written to {out_dir} ({out})")
+    typer.echo(f"{len(out.images)} images, ground truth and manifest -> {out.out_dir}")
 
 
 # ---------------------------------------------------------------------------------------------- convert
@@ -111,10 +115,56 @@ def convert(
     typer.echo(f"{out.num_frames} frames ({out.kind}) -> {out.transforms}; splits {out.splits}")
 
 
+# ---------------------------------------------------------------------------------------------- train
+FieldKind = _choices("FieldKind", Literal["fast", "vanilla"])
+
+
+@app.command()
+def train(
+    scene_dir: Annotated[Path, typer.Argument(help="Folder with transforms.json.")],
+    run_dir: Annotated[Path, typer.Argument(help="Run directory to write (config, checkpoint, metrics).")],
+    field: Annotated[FieldKind, typer.Option(help="fast: factorised grid (default); vanilla: the NeRF paper.")] = (
+        "fast"
+    ),
+    max_steps: Annotated[int, typer.Option(help="Stop after this many steps.")] = 30000,
+    max_seconds: Annotated[float, typer.Option(help="Stop after this many seconds of training.")] = 900.0,
+    device: DeviceOpt = "auto",
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    resume: Annotated[bool, typer.Option(help="Continue from RUN_DIR/checkpoint.pt.")] = False,
+    batch_rays: Annotated[int, typer.Option(help="Rays per step.")] = 4096,
+    lr: Annotated[float | None, typer.Option(help="Base learning rate (default: per field).")] = None,
+    eval_every: Annotated[int, typer.Option(help="Held-out PSNR every N steps (0: only at the end).")] = 250,
+    view_dependent: Annotated[
+        bool | None, typer.Option("--view-dependent/--no-view-dependent", help="Colour depends on view direction.")
+    ] = None,
+    final_eval_views: Annotated[int | None, typer.Option(help="Test views rendered in full at the end.")] = None,
+) -> None:
+    """Train a radiance field; logs held-out PSNR against wall-clock seconds."""
+    from stages import train as stage
+
+    out = stage.run(
+        stage.Config(
+            scene_dir=scene_dir,
+            run_dir=run_dir,
+            field=FieldKind(field).value,
+            max_steps=max_steps,
+            max_seconds=max_seconds,
+            device=Device(device).value,
+            seed=seed,
+            resume=resume,
+            batch_rays=batch_rays,
+            lr=lr,
+            eval_every=eval_every,
+            view_dependent=view_dependent,
+            final_eval_views=final_eval_views,
+        )  # fmt: skip
+    )
+    psnr = "n/a" if out.test_psnr is None else f"{out.test_psnr:.2f} dB"
+    typer.echo(f"{out.steps} steps in {out.seconds:.1f} s, test PSNR {psnr} -> {out.run_dir}")
+
+
 # ---------------------------------------------------------------------------------------------- render
 RenderPath = _choices("RenderPath", Literal["turntable", "spiral", "test", "train"])
-Device = _choices("Device", Literal["auto", "cpu", "cuda"])
-DeviceOpt = Annotated[Device, typer.Option(help="Where to run: auto uses CUDA when available.")]
 
 
 @app.command()
