@@ -79,6 +79,47 @@ def scene(
     typer.echo(f"{len(out.images)} images, ground truth and manifest -> {out.out_dir}")
 
 
+# ---------------------------------------------------------------------------------------------- poses
+Matcher = _choices("Matcher", Literal["auto", "exhaustive", "sequential"])
+CameraModel = _choices("CameraModel", Literal["SIMPLE_RADIAL", "RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE"])
+
+
+@app.command()
+def poses(
+    input: Annotated[Path, typer.Argument(help="A folder of photos or a video file.")],
+    scene_dir: Annotated[Path, typer.Argument(help="Output folder: colmap/ and poses_report.json.")],
+    max_image_size: Annotated[int, typer.Option(help="Downscale images to this long side for features.")] = 1000,
+    max_num_features: Annotated[int, typer.Option(help="SIFT features per image.")] = 2048,
+    matcher: Annotated[Matcher, typer.Option(help="auto: exhaustive for photos, sequential for video.")] = "auto",
+    single_camera: Annotated[bool, typer.Option(help="One shared camera per image size.")] = True,
+    camera_model: Annotated[CameraModel, typer.Option(help="COLMAP camera model.")] = "SIMPLE_RADIAL",
+    video_frames: Annotated[int, typer.Option(help="Frames to extract from a video (sharpest per window).")] = 150,
+    drop_blurry: Annotated[float, typer.Option(help="Drop the blurriest images: a fraction (<1) or a count.")] = 0.0,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+) -> None:
+    """Camera poses with COLMAP (in-process, pycolmap): features, matching, mapping; keeps the largest model."""
+    from stages import poses as stage
+
+    out = stage.run(
+        stage.Config(
+            input=input,
+            scene_dir=scene_dir,
+            max_image_size=max_image_size,
+            max_num_features=max_num_features,
+            matcher=Matcher(matcher).value,
+            single_camera=single_camera,
+            camera_model=CameraModel(camera_model).value,
+            video_frames=video_frames,
+            drop_blurry=drop_blurry,
+            seed=seed,
+        )  # fmt: skip
+    )
+    typer.echo(
+        f"{out.registered}/{out.total} images registered, mean reprojection error "
+        f"{out.mean_reprojection_error:.2f} px -> {out.sparse}"
+    )
+
+
 # ---------------------------------------------------------------------------------------------- convert
 ConvertKind = _choices("ConvertKind", Literal["auto", "colmap", "blender", "llff", "npz", "transforms"])
 UpAxis = _choices("UpAxis", Literal["auto", "keep", "cameras"])
