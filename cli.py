@@ -313,6 +313,49 @@ def report(
     typer.echo(f"report -> {out.markdown}, {out.plot}")
 
 
+# ---------------------------------------------------------------------------------------------- mesh
+MeshFrame = _choices("MeshFrame", Literal["user", "normalized"])
+
+
+@app.command()
+def mesh(
+    run_dir: Annotated[Path, typer.Argument(help="A trained run directory.")],
+    out: Annotated[Path, typer.Argument(help="Output mesh: .ply, .obj or .glb.")],
+    resolution: Annotated[int, typer.Option(help="Grid cells along the box's longest side.")] = 256,
+    threshold: Annotated[str, typer.Option(help="Density iso-level, or auto (from training rays).")] = "auto",
+    bbox: Annotated[str, typer.Option(help="auto, or x0,y0,z0,x1,y1,z1 in the chosen frame.")] = "auto",
+    frame: Annotated[MeshFrame, typer.Option(help="user: your source frame and units; normalized: training.")] = (
+        "user"
+    ),
+    target_faces: Annotated[int | None, typer.Option(help="Decimate to about this many faces.")] = None,
+    cleanup: Annotated[bool, typer.Option(help="Remove floaters, repair, smooth (pymeshlab).")] = True,
+    colors: Annotated[bool, typer.Option(help="Vertex colours from the field.")] = True,
+    device: DeviceOpt = "auto",
+) -> None:
+    """Mesh the density field: marching cubes, cleanup, colours, exported in your coordinates."""
+    from stages import mesh as stage
+
+    kwargs = {} if cleanup else {"cleanup": None}
+    out_ = stage.run(
+        stage.Config(
+            run_dir=run_dir,
+            out=out,
+            resolution=resolution,
+            threshold=stage.parse_threshold(threshold),
+            bbox=stage.parse_bbox(bbox),
+            frame=MeshFrame(frame).value,
+            target_faces=target_faces,
+            colors=colors,
+            device=Device(device).value,
+            **kwargs,
+        )  # fmt: skip
+    )
+    typer.echo(
+        f"{out_.vertices} vertices, {out_.faces} faces (level {out_.threshold:.4g}, watertight {out_.watertight}) "
+        f"-> {out_.mesh}"
+    )
+
+
 # ---------------------------------------------------------------------------------------------- entry
 def _one_line(text: str) -> str:
     lines = [ln.strip() for ln in str(text).strip().splitlines() if ln.strip()]

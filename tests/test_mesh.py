@@ -1,0 +1,224 @@
+"""Stage `mesh` on the analytic stand-in (`stages.mesh_fixtures`) and on a short real training run."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from data.errors import UserError
+from stages import mesh
+from stages.mesh_cleanup import mesh_stats
+from stages.mesh_fixtures import StandIn
+
+
+def _load(path: Path) -> trimesh.Trimesh:
+    return trimesh.load(path, force="mesh", process=False)
+
+
+def _gt_source(standin: StandIn, n: int = 60_000) -> np.ndarray:
+    return standin.scene_to_source(standin.surface_points(n))
+
+
+def _diag(points: np.ndarray) -> float:
+    return float(np.linalg.norm(points.max(0) - points.min(0)))
+
+
+def _files(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir())
+
+
+def test_chamfer_distance_of_shifted_points():
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(500, 3))
+    assert mesh.chamfer_distance(a, a) == 0.0
+    assert mesh.chamfer_distance(a, a + [0.0, 0.0, 1e-3]) == pytest.approx(1e-3, rel=1e-6)
+    with pytest.raises(ValueError):
+        mesh.chamfer_distance(a, np.zeros((0, 3)))
+
+
+def test_auto_threshold_finds_the_half_opacity_density(tmp_path):
+    s = StandIn(tmp_path)
+    level, info = mesh.auto_threshold(mesh.density_function(s), s.scene, s.aabb.numpy())
+    # head-on rays cross opacity 0.5 at sigma_max / 2 = 50; oblique ones earlier, at lower density
+    assert 20 < level <= 55, info
+    assert not info["fallback"] and info["rays_reaching_half_opacity"] > 100
+
+
+def test_standin_meshes_to_its_exact_surface_in_the_source_frame(tmp_path):
+    s = StandIn(tmp_path)  # non-trivial applied_transform (rotation + translation) and applied_scale 0.25
+    out = mesh.extract(s, mesh.Config(run_dir=tmp_path, out=tmp_path / "m.ply", resolution=96))
+    m = _load(out.mesh)
+    gt = _gt_source(s)
+    err = mesh.chamfer_distance(mesh.surface_points(m.vertices, m.faces, 60_000), gt)
+    assert err < 0.005 * _diag(gt), err  # no re-alignment: the export is in the source frame
+    stats = mesh_stats(np.asarray(m.vertices), np.asarray(m.faces))
+    assert stats["watertight"] and stats["components"] == 1 and stats["signed_volume"] > 0  # outward
+    report = json.loads((tmp_path / "mesh_report.json").read_text())
+    assert report["frame"] == "user" and report["final"]["faces"] == out.faces
+    assert np.allclose(report["out_from_scene"], s.scene.source_from_scene())
+    assert [st["step"] for st in report["steps"]][0] == "marching_cubes"
+    assert report["threshold"]["value"] == pytest.approx(out.threshold)
+    assert report["peak_rss_mb"] > 0 and report["timing_seconds"]["total"] > 0
+
+
+def test_mirroring_transform_keeps_faces_outward(tmp_path):
+    s = StandIn(tmp_path, mirror=True)
+    assert np.linalg.det(s.scene.source_from_scene()[:3, :3]) < 0
+    out = mesh.extract(s, mesh.Config(run_dir=tmp_path, out=tmp_path / "m.ply", resolution=48, threshold=50.0))
+    m = _load(out.mesh)
+    assert mesh_stats(np.asarray(m.vertices), np.asarray(m.faces))["signed_volume"] > 0
+    gt = _gt_source(s, 20_000)
+    assert mesh.chamfer_distance(mesh.surface_points(m.vertices, m.faces, 20_000), gt) < 0.01 * _diag(gt)
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".obj", ".glb"])
+def test_formats_round_trip(tmp_path, suffix):
+    s = StandIn(tmp_path)
+    out = mesh.extract(s, mesh.Config(run_dir=tmp_path, out=tmp_path / f"m{suffix}", resolution=40, threshold=50.0))
+    m = _load(out.mesh)
+    assert len(m.vertices) == out.vertices and len(m.faces) == out.faces
+    gt = _gt_source(s, 20_000)
+    assert np.allclose(m.bounds, [gt.min(0), gt.max(0)], atol=0.03 * _diag(gt))
+    assert not [n for n in _files(tmp_path) if n.startswith(".")]  # no temporary left behind
+
+
+def test_vertex_colors_come_from_the_field(tmp_path):
+    s = StandIn(tmp_path)
+    out = mesh.extract(s, mesh.Config(run_dir=tmp_path, out=tmp_path / "m.ply", resolution=40, threshold=50.0))
+    m = _load(out.mesh)
+    colors = np.asarray(m.visual.vertex_colors)[:, :3] / 255.0
+    x_scene = (np.c_[m.vertices, np.ones(len(m.vertices))] @ s.scene.scene_from_source().T)[:, :3]
+    expect = s.color(torch.as_tensor(x_scene), None).numpy()
+    assert np.abs(colors - expect).max() < 3 / 255
+
+
+def test_threshold_outside_range_is_a_one_line_user_error(tmp_path):
+    s = StandIn(tmp_path)
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    with pytest.raises(UserError) as e:
+        mesh.extract(s, mesh.Config(run_dir=tmp_path, out=out_dir / "m.ply", resolution=32, threshold=1e6))
+    msg = str(e.value)
+    assert "\n" not in msg and "range [" in msg and "100" in msg, msg
+    assert _files(out_dir) == []
+
+
+def test_empty_field_is_a_one_line_user_error(tmp_path):
+    s = StandIn(tmp_path, empty=True)
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    for threshold in ("auto", 1.0):
+        with pytest.raises(UserError) as e:
+            mesh.extract(s, mesh.Config(run_dir=tmp_path, out=out_dir / "m.ply", resolution=32, threshold=threshold))
+        assert "\n" not in str(e.value) and "empty" in str(e.value), str(e.value)
+    assert _files(out_dir) == []
+
+
+def test_cleanup_removes_a_small_floating_blob(tmp_path):
+    s = StandIn(tmp_path, floater=True)
+    kw = dict(run_dir=tmp_path, resolution=64, threshold=50.0, colors=False)
+    raw = mesh.extract(s, mesh.Config(out=tmp_path / "raw.ply", cleanup=None, **kw))
+    raw_m = _load(raw.mesh)
+    assert mesh_stats(np.asarray(raw_m.vertices), np.asarray(raw_m.faces))["components"] == 2
+    clean = mesh.extract(s, mesh.Config(out=tmp_path / "clean.ply", **kw))
+    m = _load(clean.mesh)
+    assert mesh_stats(np.asarray(m.vertices), np.asarray(m.faces))["components"] == 1
+    floater_centre = s.scene_to_source(np.array([[0.62, 0.62, 0.62]]))[0]
+    assert np.linalg.norm(np.asarray(m.vertices) - floater_centre, axis=1).min() > 0.2
+
+
+def test_decimation_and_bbox_crop_in_normalized_frame(tmp_path):
+    s = StandIn(tmp_path)
+    bbox = (-1.0, -1.0, -1.0, 0.0, 1.0, 1.0)  # the left half: cuts the sphere, the cap closes it
+    out = mesh.extract(s, mesh.Config(run_dir=tmp_path, out=tmp_path / "m.ply", resolution=64, threshold=50.0,
+                                      frame="normalized", bbox=bbox, target_faces=2000))  # fmt: skip
+    m = _load(out.mesh)
+    assert len(m.faces) <= 2000
+    assert m.bounds[1, 0] <= 0.05 and m.bounds[0, 0] == pytest.approx(-0.6, abs=0.03)  # scene frame
+    assert mesh_stats(np.asarray(m.vertices), np.asarray(m.faces))["watertight"]
+
+
+def test_bbox_in_the_user_frame_crops_there(tmp_path):
+    s = StandIn(tmp_path)
+    gt = _gt_source(s, 20_000)
+    lo, hi = gt.min(0), gt.max(0)
+    mid = 0.5 * (lo + hi)
+    bbox = (*(lo - 0.1), mid[0], *(hi[1:] + 0.1))  # user-frame box: everything with x below the middle
+    out = mesh.extract(s, mesh.Config(run_dir=tmp_path, out=tmp_path / "m.ply", resolution=48, threshold=50.0,
+                                      bbox=bbox))  # fmt: skip
+    m = _load(out.mesh)
+    grid = json.loads(out.report.read_text())["grid"]
+    assert grid["crop"] == "--bbox (user frame)"
+    h = grid["voxel"]  # the cap lies within 1.5 voxels of the box: whole voxels centred on it, then the pad
+    assert mid[0] < m.bounds[1, 0] <= mid[0] + 1.5 * h and m.bounds[0, 0] == pytest.approx(lo[0], abs=h)
+
+
+def test_parse_helpers_and_bad_config():
+    assert mesh.parse_threshold("auto") == "auto" and mesh.parse_threshold("2.5") == 2.5
+    assert mesh.parse_bbox("auto") is None and mesh.parse_bbox("0,0,0,1,1,1") == (0, 0, 0, 1, 1, 1)
+    for bad in ("x", "nan"):
+        with pytest.raises(UserError):
+            mesh.parse_threshold(bad)
+    with pytest.raises(UserError):
+        mesh.parse_bbox("0,0,1")
+    with pytest.raises(UserError, match="bbox"):
+        mesh.run(mesh.Config(run_dir=Path("."), out=Path("m.ply"), bbox=(0, 0, 0, 1, -1, 1)))
+    with pytest.raises(UserError, match="format"):
+        mesh.run(mesh.Config(run_dir=Path("."), out=Path("m.stl")))
+
+
+def test_missing_run_dir_is_a_user_error(tmp_path):
+    with pytest.raises(UserError, match="run directory"):
+        mesh.run(mesh.Config(run_dir=tmp_path / "nope", out=tmp_path / "m.ply"))
+
+
+def test_coarse_to_fine_sampling_matches_dense_sampling():
+    """The fast path (coarse pass, refine near the surface) against its plain twin (every sample)."""
+    from skimage.measure import marching_cubes
+
+    from stages.mesh_grid import make_grid, sample_volume
+
+    s = StandIn(floater=True)
+    fn, cpu = mesh.density_function(s), torch.device("cpu")
+    fast = make_grid(np.array([-1.0] * 3), np.array([1.0, 1.0, 0.5]), 72, stride=4)
+    plain = dataclasses.replace(fast, stride=1)
+    v_fast, st_fast = sample_volume(fn, fast, 50.0, device=cpu, chunk=10_000)
+    v_plain, st_plain = sample_volume(fn, plain, 50.0, device=cpu)
+    assert st_fast["evaluated"] < 0.6 * st_plain["evaluated"] == 0.6 * st_plain["samples"]
+    a = marching_cubes(v_fast, 50.0, gradient_direction="ascent")
+    b = marching_cubes(v_plain, 50.0, gradient_direction="ascent")
+    assert a[0].shape == b[0].shape and np.array_equal(a[1], b[1]) and np.allclose(a[0], b[0], atol=1e-5)
+
+
+TRAIN_STEPS, TRAINED_CHAMFER = 80, 0.06  # fraction of the ground truth's bounding-box diagonal
+
+
+def test_short_training_meshes_near_the_ground_truth(tmp_path):
+    """scene (posed) -> convert (non-trivial applied transform) -> train -> mesh, compared in metres."""
+    from stages import convert, train
+    from stages import scene as scene_stage
+    from stages.mesh_fixtures import visible_points
+
+    src = scene_stage.run(scene_stage.Config(out_dir=tmp_path / "src", kind="posed", size=32, views=16, seed=1))
+    convert.run(convert.Config(source=tmp_path / "src", scene_dir=tmp_path / "scene"))
+    # step-bound (not time-bound), as in test_train: a loaded machine makes it slower, not flaky
+    train.run(train.Config(scene_dir=tmp_path / "scene", run_dir=tmp_path / "run", max_steps=TRAIN_STEPS,
+                           max_seconds=600.0, batch_rays=256, resolution=(24, 48), occupancy_resolution=32,
+                           log_every=50, eval_every=0, final_eval_views=1, device="cpu"))  # fmt: skip
+    out = mesh.run(mesh.Config(run_dir=tmp_path / "run", out=tmp_path / "mesh.glb", resolution=48))
+    report = json.loads(out.report.read_text())
+    assert not report["threshold"]["fallback"] and report["frame"] == "user"
+    assert report["inputs"] and all(len(h) == 64 for h in report["inputs"].values())  # sha256 of the run
+    gt_mesh = _load(src.mesh)
+    gt = mesh.surface_points(np.asarray(gt_mesh.vertices), np.asarray(gt_mesh.faces), 40_000)
+    gt = gt[visible_points(gt, src.out_dir)]
+    m = _load(out.mesh)
+    pred = mesh.surface_points(np.asarray(m.vertices), np.asarray(m.faces), 40_000)
+    pred = pred[visible_points(pred, src.out_dir)]
+    assert mesh.chamfer_distance(pred, gt) < TRAINED_CHAMFER * _diag(gt)
