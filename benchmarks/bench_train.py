@@ -1,0 +1,145 @@
+"""Training benchmark: fast vs vanilla field on lego_100 (and lego_400), PSNR against wall-clock.
+
+lego_100 (../shared/data/lego_100): train views 0-99, test views 100-105. The npz images are premultiplied
+(composited on black); with the matching alpha we write straight RGBA PNGs, so training composites random
+backgrounds and evaluation uses white (the NeRF Blender convention). Both fields get the same time budget
+through `stages.train.run`; the report gives final test PSNR, the time each needed to reach the vanilla
+run's best PSNR (ratio = speed-up), peak memory, and one PNG of PSNR vs time for both.
+
+threads=1 by default: on the shared 2-core dev machine two intra-op threads ran ~12x slower than one.
+Vanilla renders 2 of the 6 test views in full at the end (each costs minutes on CPU).
+
+Run (2 CPU cores, 120 s each):
+  .venv/bin/python -c "from benchmarks.bench_train import main; main()"
+  .venv/bin/python -c "from benchmarks.bench_train import main; main(seconds=900, dataset='lego_400')"
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from data.transforms import Frame, Scene, write_scene
+from radiance.camera import Intrinsics
+from stages import train
+
+__all__ = ["lego_100_scene", "lego_400_scene", "main"]
+
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+AABB = np.array([[-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]])
+
+
+def _write_png(path: Path, rgba: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    bgra = cv2.cvtColor(np.round(np.clip(rgba, 0, 1) * 255).astype(np.uint8), cv2.COLOR_RGBA2BGRA)
+    cv2.imwrite(str(path), bgra)
+
+
+def lego_100_scene(out: Path) -> Path:
+    """Write lego_100 as a scene folder (RGBA PNGs + transforms.json). Returns the folder."""
+    if (out / "transforms.json").is_file():
+        return out
+    d = np.load(DATA / "lego_100" / "tiny_lego_100px.npz")
+    alpha = np.load(DATA / "lego_100" / "tiny_lego_100px_alpha.npz")["alpha"]
+    images, poses, focal = d["images"], d["poses"].astype(np.float64), float(d["focal"])
+    frames = []
+    for i in range(images.shape[0]):
+        a = alpha[i][..., None]
+        rgb = np.where(a > 0, images[i] / np.maximum(a, 1e-6), 0.0)  # un-premultiply
+        _write_png(out / "images" / f"{i:03d}.png", np.concatenate([rgb, a], axis=-1))
+        frames.append(Frame(file_path=f"images/{i:03d}.png", world_from_cam=poses[i]))
+    h, w = images.shape[1:3]
+    scene = Scene(root=out, frames=tuple(frames), intrinsics=Intrinsics(w=w, h=h, fx=focal, fy=focal, cx=w / 2,
+                  cy=h / 2), aabb=AABB, near=2.0, far=6.0, has_alpha=True,
+                  splits={"train": tuple(range(100)), "test": tuple(range(100, 106))})  # fmt: skip
+    write_scene(scene, out / "transforms.json")
+    return out
+
+
+def lego_400_scene(out: Path) -> Path:
+    """lego_400 (Blender layout): train = transforms_train, test = the first 25 of transforms_test."""
+    if (out / "transforms.json").is_file():
+        return out
+    src = DATA / "lego_400"
+    frames, splits = [], {"train": [], "test": []}
+    for split, limit in (("train", None), ("test", 25)):
+        doc = json.loads((src / f"transforms_{split}.json").read_text())
+        for f in doc["frames"][:limit]:
+            splits[split].append(len(frames))
+            frames.append(Frame(file_path=str((src / (f["file_path"] + ".png")).resolve()),
+                                world_from_cam=np.array(f["transform_matrix"], dtype=np.float64)))  # fmt: skip
+        angle = doc["camera_angle_x"]
+    img = cv2.imread(frames[0].file_path, cv2.IMREAD_UNCHANGED)
+    h, w = img.shape[:2]
+    fx = 0.5 * w / math.tan(0.5 * angle)
+    # Frames point outside `out`, which data.transforms refuses: link the images in.
+    local = []
+    for i, f in enumerate(frames):
+        link = out / "images" / f"{i:03d}.png"
+        link.parent.mkdir(parents=True, exist_ok=True)
+        if not link.exists():
+            link.symlink_to(f.file_path)
+        local.append(Frame(file_path=f"images/{i:03d}.png", world_from_cam=f.world_from_cam))
+    scene = Scene(root=out, frames=tuple(local), intrinsics=Intrinsics(w=w, h=h, fx=fx, fy=fx, cx=w / 2, cy=h / 2),
+                  aabb=AABB, near=2.0, far=6.0, has_alpha=True,
+                  splits={k: tuple(v) for k, v in splits.items()})  # fmt: skip
+    write_scene(scene, out / "transforms.json")
+    return out
+
+
+def _curve(metrics: Path) -> list[tuple[float, float]]:
+    with open(metrics, newline="") as f:
+        return [(float(r["seconds"]), float(r["test_psnr"])) for r in csv.DictReader(f) if r["test_psnr"]]
+
+
+def _time_to(curve: list[tuple[float, float]], psnr: float) -> float | None:
+    return next((s for s, p in curve if p >= psnr), None)
+
+
+def main(seconds: float = 120.0, dataset: str = "lego_100", out: Path = Path("runs/bench_train"),
+         fields: tuple[str, ...] = ("fast", "vanilla"), threads: int | None = 1) -> dict:  # fmt: skip
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scene_dir = (lego_100_scene if dataset == "lego_100" else lego_400_scene)(out / dataset / "scene")
+    results, curves = {}, {}
+    for field in fields:
+        # CPU-sized settings: small batches so that many steps fit the budget; periodic evaluation is excluded
+        # from the training time (stages.train) so it does not bias the curve.
+        fast = field == "fast"
+        cfg = train.Config(scene_dir=scene_dir, run_dir=out / dataset / field, field=field, max_seconds=seconds,
+                           max_steps=10**9, batch_rays=1024 if fast else 256, eval_every=50 if fast else 5,
+                           eval_pixels=2048, step_ratio=2.0 if dataset == "lego_100" else 1.0,
+                           resolution=(48, 128) if dataset == "lego_100" else (96, 300), threads=threads,
+                           final_eval_views=None if fast else 2)  # fmt: skip
+        res = train.run(cfg)
+        manifest = json.loads(res.manifest.read_text())
+        curves[field] = _curve(res.metrics)
+        results[field] = {"steps": res.steps, "seconds": round(res.seconds, 1), "test_psnr": res.test_psnr,
+                          "peak_rss_mb": manifest["used"]["peak_rss_mb"]}  # fmt: skip
+        print(field, results[field], flush=True)
+    if "fast" in curves and "vanilla" in curves and curves["vanilla"]:
+        target = max(p for _, p in curves["vanilla"])
+        t_fast, t_van = _time_to(curves["fast"], target), _time_to(curves["vanilla"], target)
+        results["speedup"] = {"psnr": round(target, 2), "fast_s": t_fast, "vanilla_s": t_van,
+                              "ratio": round(t_van / t_fast, 1) if t_fast and t_van else None}  # fmt: skip
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for field, pts in curves.items():
+        if pts:
+            ax.plot(*zip(*pts, strict=True), "o-", markersize=3, label=field)
+    ax.set_xlabel("wall-clock seconds")
+    ax.set_ylabel("test PSNR (dB)")
+    ax.set_title(f"{dataset}: test PSNR vs time")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.savefig(out / dataset / "psnr_vs_time.png", dpi=100)
+    (out / dataset / "results.json").write_text(json.dumps(results, indent=2) + "\n")
+    print(json.dumps(results, indent=2))
+    return results

@@ -1,0 +1,168 @@
+"""TensoRF-style VM field (Chen et al. 2022): the default, fast field. Pure torch.
+
+The scene box `aabb` [2, 3] is mapped to [-1, 1]^3. Density and appearance are each a sum of
+vector-matrix (VM) components: for each axis m, a plane over the two other axes times a line along m,
+    f(x) = sum_m sum_r P_m,r(x_u, x_v) * L_m,r(x_m)   (bilinear / linear interpolation, align_corners).
+- density: `density_rank` components per axis, summed, then
+  sigma = density_scale * softplus(f + density_shift)   (per world unit; never overflows),
+- colour: `app_rank` components per axis give 3 * app_rank features, a linear basis maps them to
+  `app_dim`, and a small MLP (with optional view-direction encoding) gives RGB through a sigmoid.
+`upsample(resolution)` resamples planes and lines to a finer grid (coarse-to-fine as TensoRF does);
+the optimizer must then be rebuilt. `has_color=False` gives a density-only field (X-ray).
+
+Positions outside the box get zero density (the renderer only samples inside it anyway).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from radiance.fields.base import Field, check_points
+from radiance.fields.encodings import positional_encoding
+
+__all__ = ["TensoRF"]
+
+# Plane m spans axes PLANE_AXES[m]; its line runs along LINE_AXIS[m].
+PLANE_AXES = ((0, 1), (0, 2), (1, 2))
+LINE_AXIS = (2, 1, 0)
+
+
+def _vm_features(planes: Tensor, lines: Tensor, xn: Tensor) -> Tensor:
+    """planes [3, C, R, R], lines [3, C, R, 1], xn [N, 3] in [-1, 1] -> per-axis products [3, C, N]."""
+    if xn.shape[0] == 0:
+        return planes.new_zeros(3, planes.shape[1], 0)
+    plane_uv = torch.stack([xn[:, list(ax)] for ax in PLANE_AXES])  # [3, N, 2] (x -> W, y -> H)
+    line_w = xn[:, list(LINE_AXIS)].T  # [3, N]
+    line_uv = torch.stack([torch.zeros_like(line_w), line_w], dim=-1)  # [3, N, 2]
+    p = F.grid_sample(planes, plane_uv[:, :, None, :], mode="bilinear", align_corners=True)  # [3, C, N, 1]
+    ln = F.grid_sample(lines, line_uv[:, :, None, :], mode="bilinear", align_corners=True)  # [3, C, N, 1]
+    return (p * ln)[..., 0]
+
+
+class TensoRF(Field):
+    """VM-decomposed density (+ appearance) grid with a small shading MLP."""
+
+    def __init__(
+        self,
+        *,
+        aabb: Tensor | list,
+        resolution: int = 128,
+        density_rank: int = 16,
+        app_rank: int = 48,
+        app_dim: int = 27,
+        hidden: int = 64,
+        view_freqs: int = 2,
+        feat_freqs: int = 0,
+        has_color: bool = True,
+        view_dependent: bool = True,
+        density_shift: float = -10.0,
+        density_scale: float = 25.0,
+        init_std: float = 0.1,
+    ) -> None:
+        super().__init__()
+        aabb = torch.as_tensor(aabb, dtype=torch.float32).reshape(2, 3)
+        if not bool((aabb[1] > aabb[0]).all()):
+            raise ValueError(f"expected aabb [[min], [max]] with max > min, got {aabb.tolist()}")
+        self.register_buffer("aabb", aabb)
+        self.resolution = int(resolution)
+        self.density_rank, self.app_rank, self.app_dim, self.hidden = density_rank, app_rank, app_dim, hidden
+        self.view_freqs, self.feat_freqs = view_freqs, feat_freqs
+        self.has_color = has_color
+        self.view_dependent = view_dependent and has_color
+        self.density_shift, self.density_scale, self.init_std = density_shift, density_scale, init_std
+        r = self.resolution
+        self.density_planes = nn.Parameter(init_std * torch.randn(3, density_rank, r, r))
+        self.density_lines = nn.Parameter(init_std * torch.randn(3, density_rank, r, 1))
+        if has_color:
+            self.app_planes = nn.Parameter(init_std * torch.randn(3, app_rank, r, r))
+            self.app_lines = nn.Parameter(init_std * torch.randn(3, app_rank, r, 1))
+            self.basis = nn.Linear(3 * app_rank, app_dim, bias=False)
+            n_in = app_dim + 2 * feat_freqs * app_dim
+            if self.view_dependent:
+                n_in += 3 + 2 * view_freqs * 3
+            self.mlp = nn.Sequential(
+                nn.Linear(n_in, hidden), nn.ReLU(inplace=True),
+                nn.Linear(hidden, hidden), nn.ReLU(inplace=True),
+                nn.Linear(hidden, 3),
+            )  # fmt: skip
+            nn.init.constant_(self.mlp[-1].bias, 0.0)
+
+    def normalize(self, x: Tensor) -> Tensor:
+        """Scene frame [N, 3] -> box coordinates in [-1, 1]^3 (outside the box: beyond +-1)."""
+        return (x - self.aabb[0]) * (2.0 / (self.aabb[1] - self.aabb[0])) - 1.0
+
+    def _inside(self, xn: Tensor) -> Tensor:
+        return (xn.abs() <= 1.0).all(dim=-1)
+
+    def density(self, x: Tensor) -> Tensor:
+        check_points(x)
+        xn = self.normalize(x)
+        f = _vm_features(self.density_planes, self.density_lines, xn.clamp(-1, 1)).sum(dim=(0, 1))  # [N]
+        sigma = self.density_scale * F.softplus((f + self.density_shift).clamp(max=1e4))
+        return torch.where(self._inside(xn), sigma, torch.zeros_like(sigma))
+
+    def color(self, x: Tensor, d: Tensor | None) -> Tensor:
+        check_points(x)
+        if not self.has_color:
+            raise ValueError("this field is density-only (has_color=False)")
+        xn = self.normalize(x).clamp(-1, 1)
+        f = _vm_features(self.app_planes, self.app_lines, xn)  # [3, Ra, N]
+        feat = self.basis(f.permute(2, 0, 1).reshape(x.shape[0], 3 * self.app_rank))  # [N, app_dim]
+        parts = [feat]
+        if self.feat_freqs:
+            parts.append(positional_encoding(feat, self.feat_freqs, include_input=False))
+        if self.view_dependent:
+            if d is None:
+                raise ValueError("this field is view dependent: pass directions d [N, 3]")
+            parts += [d, positional_encoding(d, self.view_freqs, include_input=False)]
+        return torch.sigmoid(self.mlp(torch.cat(parts, dim=-1)))
+
+    def grid_parameters(self) -> list[nn.Parameter]:
+        names = ["density_planes", "density_lines"] + (["app_planes", "app_lines"] if self.has_color else [])
+        return [getattr(self, n) for n in names]
+
+    def param_groups(self, lr: float) -> list[dict]:
+        """Grids at `lr`, the basis and MLP at lr / 20 (TensoRF: 0.02 and 0.001)."""
+        grids = self.grid_parameters()
+        ids = {id(p) for p in grids}
+        rest = [p for p in self.parameters() if id(p) not in ids]
+        groups = [{"params": grids, "lr": lr, "lr_scale": 1.0}]
+        if rest:
+            groups.append({"params": rest, "lr": lr / 20.0, "lr_scale": 1.0 / 20.0})
+        return groups
+
+    def density_l1(self) -> Tensor:
+        """Mean absolute value of the density factors (TensoRF's L1 sparsity prior)."""
+        return self.density_planes.abs().mean() + self.density_lines.abs().mean()
+
+    @torch.no_grad()
+    def upsample(self, resolution: int) -> None:
+        """Resample every plane and line to `resolution` per axis (new Parameters: rebuild the optimizer)."""
+        r = int(resolution)
+        for name in [n for n in ("density_planes", "app_planes") if hasattr(self, n)]:
+            p = getattr(self, name)
+            setattr(self, name, nn.Parameter(F.interpolate(p.data, size=(r, r), mode="bilinear", align_corners=True)))
+        for name in [n for n in ("density_lines", "app_lines") if hasattr(self, n)]:
+            p = getattr(self, name)
+            setattr(self, name, nn.Parameter(F.interpolate(p.data, size=(r, 1), mode="bilinear", align_corners=True)))
+        self.resolution = r
+
+    def config(self) -> dict:
+        return {
+            "kind": "fast",
+            "aabb": self.aabb.tolist(),
+            "resolution": self.resolution,
+            "density_rank": self.density_rank,
+            "app_rank": self.app_rank,
+            "app_dim": self.app_dim,
+            "hidden": self.hidden,
+            "view_freqs": self.view_freqs,
+            "feat_freqs": self.feat_freqs,
+            "has_color": self.has_color,
+            "view_dependent": self.view_dependent,
+            "density_shift": self.density_shift,
+            "density_scale": self.density_scale,
+            "init_std": self.init_std,
+        }

@@ -1,0 +1,111 @@
+"""Fields: shapes, finite outputs and gradients, density-only mode, the paper's architecture, upsampling."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from radiance.fields import NeRFMLP, TensoRF, VanillaNeRF, make_field
+from radiance.fields.encodings import encoded_size, positional_encoding
+
+AABB = [[-1.0, -1.0, -0.5], [1.0, 1.0, 1.5]]
+
+
+def _inputs(n: int = 257, scale: float = 1.0):
+    g = torch.Generator().manual_seed(0)
+    x = (torch.rand(n, 3, generator=g) * 2 - 1) * scale + torch.tensor([0.0, 0.0, 0.5])
+    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    return x, d
+
+
+@pytest.mark.parametrize(
+    "field",
+    [
+        TensoRF(aabb=AABB, resolution=16, density_rank=4, app_rank=6, hidden=16),
+        TensoRF(aabb=AABB, resolution=16, density_rank=4, app_rank=6, hidden=16, view_dependent=False),
+        NeRFMLP(width=32),
+    ],
+    ids=["fast", "fast-lambertian", "vanilla"],
+)
+def test_field_shapes_finite_and_gradients(field):
+    x, d = _inputs()
+    sigma, rgb = field(x, d if field.view_dependent else None)
+    assert sigma.shape == (x.shape[0],) and rgb.shape == (x.shape[0], 3)
+    assert torch.isfinite(sigma).all() and (sigma >= 0).all()
+    assert ((rgb >= 0) & (rgb <= 1)).all()
+    (sigma.sum() + rgb.sum()).backward()
+    grads = [p.grad for p in field.parameters() if p.requires_grad]
+    assert all(g is not None and torch.isfinite(g).all() for g in grads)
+    assert any(g.abs().sum() > 0 for g in grads)
+
+
+def test_density_only_field():
+    field = TensoRF(aabb=AABB, resolution=8, density_rank=2, has_color=False)
+    x, _ = _inputs()
+    sigma, rgb = field(x, None)
+    assert rgb is None and sigma.shape == (x.shape[0],)
+    assert not hasattr(field, "app_planes")
+    sigma.sum().backward()
+    assert torch.isfinite(field.density_planes.grad).all()
+    with pytest.raises(ValueError, match="density-only"):
+        field.color(x, None)
+    mlp = NeRFMLP(width=16, has_color=False)
+    assert mlp(x)[1] is None
+
+
+def test_density_finite_for_extreme_inputs_and_zero_outside_box():
+    field = TensoRF(aabb=AABB, resolution=8, density_rank=2, has_color=False)
+    with torch.no_grad():
+        field.density_planes.fill_(1e3)
+        field.density_lines.fill_(1e3)
+    x = torch.tensor([[0.0, 0.0, 0.5], [5.0, 0.0, 0.0], [0.0, 0.0, -1e30]])
+    sigma = field.density(x)
+    assert torch.isfinite(sigma).all()
+    assert sigma[0] > 0 and sigma[1] == 0 and sigma[2] == 0
+
+
+def test_view_dependent_field_requires_directions():
+    field = TensoRF(aabb=AABB, resolution=8, density_rank=2, app_rank=2, hidden=8)
+    x, _ = _inputs(5)
+    with pytest.raises(ValueError, match="view dependent"):
+        field(x, None)
+    with pytest.raises(ValueError, match=r"\[N, 3\]"):
+        field(x[:, :2], None)
+
+
+def test_vanilla_matches_the_paper():
+    net = NeRFMLP()
+    assert encoded_size(3, 10) == 63 and encoded_size(3, 4) == 27
+    assert len(net.layers) == 8 and all(layer.out_features == 256 for layer in net.layers)
+    assert net.layers[0].in_features == 63 and net.layers[5].in_features == 256 + 63  # skip after layer 5
+    assert net.rgb_hidden.in_features == 256 + 27 and net.rgb_hidden.out_features == 128
+    model = VanillaNeRF()
+    assert (model.n_coarse, model.n_fine) == (64, 128)
+    assert model.coarse is not model.fine
+
+
+def test_positional_encoding_includes_identity():
+    x = torch.tensor([[0.25, -0.5, 1.0]])
+    enc = positional_encoding(x, 2)
+    assert enc.shape == (1, 15)
+    torch.testing.assert_close(enc[:, :3], x)
+    torch.testing.assert_close(enc[:, 3:6], torch.sin(x))
+    torch.testing.assert_close(enc[:, 9:12], torch.cos(x))
+    torch.testing.assert_close(enc[:, 6:9], torch.sin(2 * x))
+
+
+def test_upsample_keeps_the_function_and_config_round_trips():
+    torch.manual_seed(0)
+    field = TensoRF(aabb=AABB, resolution=8, density_rank=2, app_rank=3, hidden=8)
+    x, d = _inputs(64, scale=0.9)
+    before = field(x, d)
+    field.upsample(15)  # 8 -> 15 with align_corners: a refinement of the same piecewise-linear lines
+    after = field(x, d)
+    assert field.density_planes.shape[-1] == 15
+    torch.testing.assert_close(after[0], before[0], rtol=0.2, atol=1e-3)
+    clone = make_field(field.config())
+    clone.load_state_dict(field.state_dict())
+    torch.testing.assert_close(clone(x, d)[1], after[1])
+    assert make_field(VanillaNeRF(view_dependent=False).config()).view_dependent is False
+    with pytest.raises(ValueError, match="unknown field"):
+        make_field({"kind": "nope"})
