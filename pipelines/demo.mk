@@ -1,10 +1,10 @@
 # `make demo`: install, generate the built-in synthetic photo scene, then run the photos pipeline on it.
 DEMO_OUT := runs/demo
 DEMO_INPUT := $(DEMO_OUT)/input
-DEMO_SCENE_ARGS := --kind photos --size 192 --views 32 --seed 0
+DEMO_SCENE_ARGS := --kind photos --size 256 --views 40 --seed 0
 DEMO_TRAIN_ARGS := --max-seconds 120
 
-$(DEMO_INPUT)/manifest.json: stages/scene.py $(wildcard stages/scene_*.py) | $(INSTALLED)
+$(DEMO_INPUT)/manifest.json: pipelines/demo.mk stages/scene.py $(wildcard stages/scene_*.py) | $(INSTALLED)
 	$(NERFPIPE) scene $(DEMO_INPUT) $(DEMO_SCENE_ARGS)
 
 .PHONY: demo

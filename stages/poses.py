@@ -439,6 +439,7 @@ class _Timer:
 def run(config: Config, progress: Progress | None = None) -> Outputs:
     """Photos or video -> SCENE_DIR/colmap (see the module docstring). UserError on bad input or a failed model."""
     kind = _check(config)
+    pycolmap.logging.minloglevel = 1  # COLMAP's INFO lines would drown the summary; warnings and errors stay
     console = Console(stderr=True)
     scene_dir = Path(config.scene_dir)
     colmap_dir = scene_dir / "colmap"
