@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import csv
 import json
-import math
 from pathlib import Path
 
 import cv2
@@ -62,33 +61,13 @@ def lego_100_scene(out: Path) -> Path:
 
 
 def lego_400_scene(out: Path) -> Path:
-    """lego_400 (Blender layout): train = transforms_train, test = the first 25 of transforms_test."""
+    """lego_400 (Blender layout) through `stages.convert`: its train / val / test splits; the benchmark renders
+    the first 25 test views in full at the end."""
     if (out / "transforms.json").is_file():
         return out
-    src = DATA / "lego_400"
-    frames, splits = [], {"train": [], "test": []}
-    for split, limit in (("train", None), ("test", 25)):
-        doc = json.loads((src / f"transforms_{split}.json").read_text())
-        for f in doc["frames"][:limit]:
-            splits[split].append(len(frames))
-            frames.append(Frame(file_path=str((src / (f["file_path"] + ".png")).resolve()),
-                                world_from_cam=np.array(f["transform_matrix"], dtype=np.float64)))  # fmt: skip
-        angle = doc["camera_angle_x"]
-    img = cv2.imread(frames[0].file_path, cv2.IMREAD_UNCHANGED)
-    h, w = img.shape[:2]
-    fx = 0.5 * w / math.tan(0.5 * angle)
-    # Frames point outside `out`, which data.transforms refuses: link the images in.
-    local = []
-    for i, f in enumerate(frames):
-        link = out / "images" / f"{i:03d}.png"
-        link.parent.mkdir(parents=True, exist_ok=True)
-        if not link.exists():
-            link.symlink_to(f.file_path)
-        local.append(Frame(file_path=f"images/{i:03d}.png", world_from_cam=f.world_from_cam))
-    scene = Scene(root=out, frames=tuple(local), intrinsics=Intrinsics(w=w, h=h, fx=fx, fy=fx, cx=w / 2, cy=h / 2),
-                  aabb=AABB, near=2.0, far=6.0, has_alpha=True,
-                  splits={k: tuple(v) for k, v in splits.items()})  # fmt: skip
-    write_scene(scene, out / "transforms.json")
+    from stages import convert
+
+    convert.run(convert.Config(source=DATA / "lego_400", scene_dir=out, kind="blender", downscales=()))
     return out
 
 
@@ -117,8 +96,8 @@ def main(seconds: float = 120.0, dataset: str = "lego_100", out: Path = Path("ru
         cfg = train.Config(scene_dir=scene_dir, run_dir=out / dataset / field, field=field, max_seconds=seconds,
                            max_steps=10**9, batch_rays=1024 if fast else 256, eval_every=50 if fast else 5,
                            eval_pixels=2048, step_ratio=2.0 if dataset == "lego_100" else 1.0,
-                           resolution=(48, 128) if dataset == "lego_100" else (96, 300), threads=threads,
-                           final_eval_views=None if fast else 2)  # fmt: skip
+                           resolution=(64, 160) if dataset == "lego_100" else (96, 300), threads=threads,
+                           final_eval_views=(None if dataset == "lego_100" else 25) if fast else 2)  # fmt: skip
         res = train.run(cfg)
         manifest = json.loads(res.manifest.read_text())
         curves[field] = _curve(res.metrics)

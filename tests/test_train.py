@@ -98,14 +98,14 @@ def test_user_errors(rgba_scene, tmp_path):
         train.load_trained(tmp_path / "nowhere", "cpu")
 
 
-STEPS, PSNR_FLOOR = 120, 16.0
+STEPS, PSNR_FLOOR = 300, 20.0
 
 
 def test_short_training_clears_a_psnr_floor(tmp_path):
     scene_dir = tmp_path / "posed"
     scene_stage.run(scene_stage.Config(out_dir=scene_dir, kind="posed", size=32, views=16, seed=1))
-    # Step-bound (not time-bound) so a loaded machine makes it slower, not flaky; ~15 s on an idle 2-core CPU.
+    # Step-bound (not time-bound) so a loaded machine makes it slower, not flaky; ~11 s on the dev CPU.
     out = train.run(_config(scene_dir, tmp_path / "run", max_steps=STEPS, max_seconds=600.0, batch_rays=512,
                             resolution=(24, 48), occupancy_resolution=32, log_every=50, eval_every=0))  # fmt: skip
-    # A white image scores ~11 dB on this scene; the fast field passes the floor within STEPS steps.
+    # A white image scores ~11 dB on this scene; measured 22.7 dB after 300 steps (seed 1).
     assert out.test_psnr is not None and out.test_psnr > PSNR_FLOOR, out.test_psnr
