@@ -172,7 +172,7 @@ def train(
     device: DeviceOpt = "auto",
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     resume: Annotated[bool, typer.Option(help="Continue from RUN_DIR/checkpoint.pt.")] = False,
-    batch_rays: Annotated[int, typer.Option(help="Rays per step.")] = 4096,
+    batch_rays: Annotated[int | None, typer.Option(help="Rays per step (default: 1024 on CPU, 4096 on CUDA).")] = None,
     lr: Annotated[float | None, typer.Option(help="Base learning rate (default: per field).")] = None,
     eval_every: Annotated[int, typer.Option(help="Held-out PSNR every N steps (0: only at the end).")] = 250,
     view_dependent: Annotated[

@@ -67,8 +67,9 @@ class Config:
     """Seed for initialisation and ray batches."""
     resume: bool = False
     """Continue from run_dir/checkpoint.pt (step count, optimizer state and elapsed time continue)."""
-    batch_rays: int = 4096
-    """Rays per optimizer step."""
+    batch_rays: int | None = None
+    """Rays per optimizer step (None: 1024 on CPU, where more small steps beat fewer big ones in a fixed
+    time budget (22.6 vs 18.1 dB after 30 s on a 128 px scene), 4096 on CUDA)."""
     lr: float | None = None
     """Base learning rate (None: 0.02 for fast grids (MLP at lr/20), 5e-4 for vanilla)."""
     lr_decay: float = 0.1
@@ -406,7 +407,7 @@ def _validate(config: Config) -> None:
         raise UserError(f"unknown field {config.field!r}: expected fast or vanilla")
     if config.max_steps < 0 or not config.max_seconds > 0:
         raise UserError(f"expected max_steps >= 0 and max_seconds > 0, got {config.max_steps}, {config.max_seconds}")
-    if config.batch_rays < 1:
+    if config.batch_rays is not None and config.batch_rays < 1:
         raise UserError(f"expected batch_rays >= 1, got {config.batch_rays}")
     if config.lr is not None and not config.lr > 0:
         raise UserError(f"expected lr > 0, got {config.lr}")
@@ -466,6 +467,7 @@ def run(config: Config, progress=None) -> Outputs:
 def _run(config: Config, progress) -> Outputs:
     started = time.time()
     device = _device(config.device)
+    batch_rays = config.batch_rays or (4096 if device.type == "cuda" else 1024)
     scene_path = Path(config.scene_dir)
     if not (scene_path.is_file() or (scene_path / "transforms.json").is_file()):
         raise UserError(f"{scene_path}: no transforms.json (run convert or scene first)")
@@ -530,7 +532,7 @@ def _run(config: Config, progress) -> Outputs:
             model.grid.update(model.field.density, step, every=config.occupancy_every, warmup_steps=64)
         lr = base_lr * lr_factor * config.lr_decay**frac
         _set_lr(opt, lr)
-        idx = torch.randint(train.dirs.shape[0], (config.batch_rays,), generator=gen)
+        idx = torch.randint(train.dirs.shape[0], (batch_rays,), generator=gen)
         o, d, rgb, alpha = train.batch(idx, device)
         bg = torch.rand(o.shape[0], 3, generator=gen).to(device) if rgba else white
         target = _composite_gt(rgb, alpha, bg)
@@ -601,6 +603,7 @@ def _run(config: Config, progress) -> Outputs:
 
     peak = torch.cuda.max_memory_allocated() if device.type == "cuda" else None
     used = {
+        "batch_rays": batch_rays,
         "field": model.field.config(),
         "device": str(device),
         "cpu_threads": torch.get_num_threads() if device.type == "cpu" else None,
