@@ -3,6 +3,8 @@ DEMO_OUT := runs/demo
 DEMO_INPUT := $(DEMO_OUT)/input
 DEMO_SCENE_ARGS := --kind photos --size 256 --views 40 --seed 0
 DEMO_TRAIN_ARGS := --max-seconds 120
+# ~30k rays/s on 2 CPU cores: 60 frames at half size keep the demo within its 6 minutes
+DEMO_RENDER_ARGS := --frames 60 --downscale 2
 
 $(DEMO_INPUT)/manifest.json: pipelines/demo.mk stages/scene.py $(wildcard stages/scene_*.py) | $(INSTALLED)
 	$(NERFPIPE) scene $(DEMO_INPUT) $(DEMO_SCENE_ARGS)
@@ -10,7 +12,7 @@ $(DEMO_INPUT)/manifest.json: pipelines/demo.mk stages/scene.py $(wildcard stages
 .PHONY: demo
 demo: $(DEMO_INPUT)/manifest.json
 	$(MAKE) --no-print-directory all PHOTOS=$(DEMO_INPUT)/images OUT=$(DEMO_OUT) \
-		TRAIN_ARGS="$(DEMO_TRAIN_ARGS)" EVAL_ARGS="--ground-truth $(DEMO_INPUT)/ground_truth"
+		TRAIN_ARGS="$(DEMO_TRAIN_ARGS)" RENDER_ARGS="$(DEMO_RENDER_ARGS)" EVAL_ARGS="--ground-truth $(DEMO_INPUT)/ground_truth"
 	@echo
 	@echo "demo outputs in $(DEMO_OUT):"
 	@echo "  poses report   $(DEMO_OUT)/scene/poses_report.json"
