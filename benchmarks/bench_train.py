@@ -6,12 +6,12 @@ backgrounds and evaluation uses white (the NeRF Blender convention). Both fields
 through `stages.train.run`; the report gives final test PSNR, the time each needed to reach the vanilla
 run's best PSNR (ratio = speed-up), peak memory, and one PNG of PSNR vs time for both.
 
-threads=1 by default: on the shared 2-core dev machine two intra-op threads ran ~12x slower than one.
+Threads: torch's default (2 here). On an idle 2-core machine two threads beat one (84 vs 62 steps in 30 s);
+on an oversubscribed one, `--threads 1` is far faster (two threads thrash).
 Vanilla renders 2 of the 6 test views in full at the end (each costs minutes on CPU).
 
-Run (2 CPU cores, 120 s each):
-  .venv/bin/python -c "from benchmarks.bench_train import main; main()"
-  .venv/bin/python -c "from benchmarks.bench_train import main; main(seconds=900, dataset='lego_400')"
+Run (2 CPU cores, 120 s each):  make bench-train   (= .venv/bin/python -m benchmarks.bench_train --out DIR)
+  .venv/bin/python -m benchmarks.bench_train --dataset lego_400 --seconds 900 --fields fast
 """
 
 from __future__ import annotations
@@ -81,7 +81,7 @@ def _time_to(curve: list[tuple[float, float]], psnr: float) -> float | None:
 
 
 def main(seconds: float = 120.0, dataset: str = "lego_100", out: Path = Path("runs/bench_train"),
-         fields: tuple[str, ...] = ("fast", "vanilla"), threads: int | None = 1) -> dict:  # fmt: skip
+         fields: tuple[str, ...] = ("fast", "vanilla"), threads: int | None = None) -> dict:  # fmt: skip
     import matplotlib
 
     matplotlib.use("Agg")
@@ -122,3 +122,20 @@ def main(seconds: float = 120.0, dataset: str = "lego_100", out: Path = Path("ru
     (out / dataset / "results.json").write_text(json.dumps(results, indent=2) + "\n")
     print(json.dumps(results, indent=2))
     return results
+
+
+def cli(argv: list[str] | None = None) -> None:
+    import argparse
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", type=Path, default=Path("runs/bench_train"))
+    p.add_argument("--seconds", type=float, default=120.0)
+    p.add_argument("--dataset", choices=("lego_100", "lego_400"), default="lego_100")
+    p.add_argument("--fields", default="fast,vanilla", help="comma-separated: fast,vanilla")
+    p.add_argument("--threads", type=int, default=None)
+    a = p.parse_args(argv)
+    main(seconds=a.seconds, dataset=a.dataset, out=a.out, fields=tuple(a.fields.split(",")), threads=a.threads)
+
+
+if __name__ == "__main__":
+    cli()
