@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["as_aabb", "ray_aabb_intersect", "ray_aabb_intersect_reference"]
+__all__ = ["as_aabb", "ray_aabb_intersect", "ray_aabb_segment", "ray_aabb_intersect_reference"]
 
 
 def as_aabb(aabb, dtype: torch.dtype | None = None, device=None) -> Tensor:
@@ -60,6 +60,25 @@ def ray_aabb_intersect(rays_o: Tensor, rays_d: Tensor, aabb) -> tuple[Tensor, Te
     hit = t_far >= t_near  # [R]
     zeros = torch.zeros_like(t_near)
     return torch.where(hit, t_near, zeros), torch.where(hit, t_far, zeros), hit
+
+
+def ray_aabb_segment(
+    rays_o: Tensor,  # [R, 3]
+    rays_d: Tensor,  # [R, 3]
+    aabb,  # [2, 3] or [6]
+    near: float | Tensor,  # scalar or [R]
+    far: float | Tensor,  # scalar or [R]
+) -> tuple[Tensor, Tensor]:
+    """The part of [near, far] inside the box: (t0 [R], t1 [R]) with t0 >= near and t1 >= t0.
+
+    t0 = max(t_near, near); t1 = min(t_far, far) for hit rays, t1 = t0 (empty) for missed rays and where
+    the box ends before `near`.
+    """
+    t0, t1, hit = ray_aabb_intersect(rays_o, rays_d, aabb)
+    like = dict(dtype=t0.dtype, device=t0.device)
+    t0 = torch.maximum(t0, torch.as_tensor(near, **like))
+    t1 = torch.where(hit, torch.minimum(t1, torch.as_tensor(far, **like)), t0)
+    return t0, torch.maximum(t1, t0)
 
 
 def ray_aabb_intersect_reference(rays_o: Tensor, rays_d: Tensor, aabb) -> tuple[Tensor, Tensor, Tensor]:

@@ -52,6 +52,16 @@ class OccupancyGrid(torch.nn.Module):
         """Fraction of cells marked empty (what marching skips)."""
         return 1.0 - float(self.binary.float().mean())
 
+    def occupied_aabb(self) -> Tensor | None:
+        """[2, 3] box around the occupied cells, padded by one cell and kept inside the grid's box
+        (None when no cell is occupied)."""
+        ijk = torch.nonzero(self.binary)  # [K, 3]
+        if ijk.shape[0] == 0:
+            return None
+        lo = (ijk.amin(dim=0) - 1).clamp(min=0).to(self.aabb.dtype)
+        hi = (ijk.amax(dim=0) + 2).clamp(max=self.resolution).to(self.aabb.dtype)
+        return torch.stack([self.aabb[0] + lo * self.cell_size, self.aabb[0] + hi * self.cell_size])
+
     def cell_index(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """x [N, 3] -> (cell index [N, 3] long, clamped into the grid; inside-the-box mask [N])."""
         if x.ndim != 2 or x.shape[-1] != 3:

@@ -8,6 +8,9 @@ Conventions:
 - The field is queried once per interval at its midpoint (t_start for an infinite last interval):
   `rgb_sigma_fn(x [N, 3], d [N, 3]) -> (rgb [N, 3], sigma [N])`, `sigma_fn(x [N, 3], d [N, 3]) -> sigma [N]`,
   always with flat [N, 3] inputs whatever the layout; the renderer knows nothing else about the model.
+- `render_marched` (occupancy-grid marching, two passes) splits the callbacks instead:
+  `sigma_fn(x [N, 3]) -> sigma [N]` on every sample (position only, like OccupancyGrid.update's density_fn),
+  then `rgb_fn(x [K, 3], d [K, 3]) -> rgb [K, 3]` only on the K samples whose weight counts.
 - Outputs are dicts; per-ray entries (PER_RAY_KEYS) are [R] or [R, 3], per-sample ones are shaped like t_starts.
 """
 
@@ -19,6 +22,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from radiance.aabb import ray_aabb_segment
 from radiance.compositing import (
     accumulate,
     beer_lambert,
@@ -39,6 +43,7 @@ __all__ = [
     "sample_points",
     "render_rays",
     "render_rays_hierarchical",
+    "render_marched",
     "render_depth",
     "render_attenuation",
     "chunked",
@@ -48,6 +53,8 @@ PER_RAY_KEYS = ("rgb", "depth", "depth_median", "acc")
 
 RgbSigmaFn = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
 SigmaFn = Callable[[Tensor, Tensor], Tensor]
+PositionSigmaFn = Callable[[Tensor], Tensor]
+RgbFn = Callable[[Tensor, Tensor], Tensor]
 
 
 @dataclass(frozen=True)
@@ -189,6 +196,70 @@ def render_rays_hierarchical(
     )
     fine = _composite_samples(rays_o, rays_d, Samples(t_starts, t_ends, None, samples.n_rays), fine_fn, background)
     return {**fine, "coarse": coarse}
+
+
+def render_marched(
+    rays_o: Tensor,  # [R, 3]
+    rays_d: Tensor,  # [R, 3] unit
+    *,
+    grid: OccupancyGrid,
+    sigma_fn: PositionSigmaFn,  # x [N, 3] -> sigma [N]
+    rgb_fn: RgbFn | None,  # (x [K, 3], d [K, 3]) -> rgb [K, 3]; None: density only
+    near: float | Tensor,
+    far: float | Tensor,
+    step_size: float,
+    background: Tensor | None = None,  # [3] or [R, 3]
+    color_threshold: float = 1e-4,
+    color_per_ray: float = 16.0,
+    jitter: bool = False,
+    generator: torch.Generator | None = None,
+    with_median: bool = False,
+) -> dict:
+    """Occupancy-grid marching (packed samples) in two passes: density on every sample, colour where it counts.
+
+    Marches only through the box around the grid's occupied cells (TensoRF's shrink, recomputed on the fly),
+    at `step_size`; `jitter` shifts each ray's steps by U[0, step_size) (drawn from `generator`, the global
+    source when None) so training sees every depth. Colour is evaluated only where the weight exceeds
+    `color_threshold` (TensoRF's rule), and at most at the `color_per_ray * R` largest weights of the batch,
+    which bounds the cost early on when every sample is faint; samples left out contribute no colour (their
+    weight still counts in `acc`).
+
+    Returns acc [R], depth [R] (expected t), rgb [R, 3] (on the background; absent when rgb_fn is None),
+    depth_median [R] (only with_median), and per sample (packed [N]) weights, sigmas, t_starts, t_ends,
+    ray_indices.
+    """
+    _check_rays(rays_o, rays_d)
+    n = rays_o.shape[0]
+    near_t, far_t = _per_ray(near, rays_o, "near"), _per_ray(far, rays_o, "far")
+    box = grid.occupied_aabb()
+    if box is None:
+        t_near = t_far = torch.zeros(n, dtype=rays_o.dtype, device=rays_o.device)
+    else:
+        t_near, t_far = ray_aabb_segment(rays_o, rays_d, box, near_t, far_t)
+    if jitter:
+        u = torch.rand(t_near.shape, generator=generator, dtype=t_near.dtype, device=t_near.device)
+        t_near = t_near + u * step_size
+    ray_idx, t0, t1 = march_rays(grid, rays_o, rays_d, near=t_near, far=torch.maximum(t_far, t_near),
+                                 step_size=step_size)  # fmt: skip
+    t_mid = 0.5 * (t0 + t1)
+    x = rays_o[ray_idx] + rays_d[ray_idx] * t_mid[:, None]  # [N, 3]
+    sigma = sigma_fn(x)  # [N]
+    weights, _, _ = render_weights(sigma, t0, t1, ray_idx, n)
+    acc = accumulate(weights, None, ray_idx, n)  # [R]
+    out = {"acc": acc}
+    if rgb_fn is not None:
+        w = weights.detach()
+        budget = int(color_per_ray * n)
+        if w.numel() > budget:
+            color_threshold = max(color_threshold, float(torch.topk(w, budget, sorted=False).values.min()))
+        keep = w >= color_threshold if budget < w.numel() else w > color_threshold  # [N]
+        rgb_s = rgb_fn(x[keep], rays_d[ray_idx[keep]])  # [K, 3]
+        rgb = accumulate(weights[keep], rgb_s, ray_idx[keep], n)
+        out["rgb"] = rgb if background is None else rgb + (1 - acc)[:, None] * background.to(rgb)
+    out["depth"] = safe_div(accumulate(weights, t_mid, ray_idx, n), acc)
+    if with_median:
+        out["depth_median"] = median_depth(sigma, t0, t1, ray_idx, n)
+    return {**out, "weights": weights, "sigmas": sigma, "t_starts": t0, "t_ends": t1, "ray_indices": ray_idx}
 
 
 def render_depth(

@@ -33,13 +33,11 @@ from data.atomic import atomic_path
 from data.errors import UserError
 from data.rundir import MetricsLog, write_config, write_manifest
 from data.transforms import Scene, load_image, read_scene
-from radiance.aabb import ray_aabb_intersect
+from radiance.aabb import ray_aabb_segment
 from radiance.camera import generate_rays
-from radiance.compositing import accumulate, composite, median_depth, render_weights
 from radiance.fields import Field, TensoRF, VanillaNeRF, make_field
-from radiance.occupancy import OccupancyGrid, march_rays
-from radiance.safe import safe_div
-from radiance.samplers import resample_intervals, stratified_intervals
+from radiance.occupancy import OccupancyGrid
+from radiance.render import StratifiedSampler, render_marched, render_rays_hierarchical
 
 __all__ = ["Config", "Outputs", "Trained", "run", "load_trained", "TrainingDiverged"]
 
@@ -122,27 +120,11 @@ class TrainingDiverged(RuntimeError):
 
 
 # ----------------------------------------------------------------------------------------------------------
-# Rendering: one function per field kind, both returning dict(rgb, depth, depth_median, acc, ...).
+# Rendering: radiance.render's model-free renderers, given callbacks over the field. Both kinds return
+# dict(rgb, depth, depth_median, acc, samples, ...); vanilla adds rgb_coarse.
 
 
-def _box_near_far(rays_o: Tensor, rays_d: Tensor, aabb: Tensor, near: float, far: float) -> tuple[Tensor, Tensor]:
-    t0, t1, hit = ray_aabb_intersect(rays_o, rays_d, aabb)
-    t0 = t0.clamp(min=near)
-    t1 = torch.where(hit, t1.clamp(max=far), t0)
-    return t0, torch.maximum(t1, t0)
-
-
-def _occupied_box(grid: OccupancyGrid) -> Tensor | None:
-    """[2, 3] box around the occupied cells, padded by one cell (None when no cell is occupied)."""
-    ijk = torch.nonzero(grid.binary)  # [K, 3]
-    if ijk.shape[0] == 0:
-        return None
-    lo = (ijk.amin(dim=0) - 1).clamp(min=0).to(grid.aabb.dtype)
-    hi = (ijk.amax(dim=0) + 2).clamp(max=grid.resolution).to(grid.aabb.dtype)
-    return torch.stack([grid.aabb[0] + lo * grid.cell_size, grid.aabb[0] + hi * grid.cell_size])
-
-
-def render_fast(
+def _render_fast(
     field: TensoRF,
     grid: OccupancyGrid,
     rays_o: Tensor,  # [R, 3]
@@ -152,83 +134,56 @@ def render_fast(
     far: float,
     step_size: float,
     background: Tensor,  # [3] or [R, 3]
-    color_threshold: float = 1e-4,
-    color_per_ray: float = 16.0,
     jitter: bool = False,
     with_median: bool = False,
 ) -> dict[str, Tensor]:
-    """Occupancy-grid marching, packed samples.
-
-    Colour is evaluated only where the weight exceeds `color_threshold` (TensoRF's rule), and at most at the
-    `color_per_ray * R` largest weights of the batch, which bounds the cost early on when every sample is
-    faint; samples left out contribute no colour (their weight still counts in `acc`).
-    """
-    n = rays_o.shape[0]
-    # March only through the box around the occupied cells (TensoRF's shrink, recomputed on the fly): fewer
-    # candidate steps per ray; `jitter` shifts each ray's steps by U[0, step) so training sees every depth.
-    box = _occupied_box(grid)
-    if box is None:
-        t_near = t_far = torch.zeros(n, dtype=rays_o.dtype, device=rays_o.device)
-    else:
-        t_near, t_far = _box_near_far(rays_o, rays_d, box, near, far)
-    if jitter:
-        t_near = t_near + torch.rand_like(t_near) * step_size
-    ray_idx, t0, t1 = march_rays(grid, rays_o, rays_d, near=t_near, far=torch.maximum(t_far, t_near),
-                                 step_size=step_size)  # fmt: skip
-    t_mid = 0.5 * (t0 + t1)
-    x = rays_o[ray_idx] + rays_d[ray_idx] * t_mid[:, None]  # [N, 3]
-    sigma = field.density(x)  # [N]
-    weights, _, _ = render_weights(sigma, t0, t1, ray_idx, n)
-    acc = accumulate(weights, None, ray_idx, n)  # [R]
-    out = {"acc": acc, "samples": torch.tensor(float(ray_idx.numel()))}
+    """TensoRF + occupancy grid: radiance.render.render_marched over the field's density and colour."""
+    rgb_fn = None
     if field.has_color:
-        w = weights.detach()
-        budget = int(color_per_ray * n)
-        if w.numel() > budget:
-            color_threshold = max(color_threshold, float(torch.topk(w, budget, sorted=False).values.min()))
-        keep = w >= color_threshold if budget < w.numel() else w > color_threshold
-        d = rays_d[ray_idx[keep]] if field.view_dependent else None
-        rgb_s = field.color(x[keep], d)  # [K, 3]
-        rgb = accumulate(weights[keep], rgb_s, ray_idx[keep], n)
-        out["rgb"] = rgb + (1 - acc)[:, None] * background.to(rgb)
-    out["depth"] = safe_div(accumulate(weights, t_mid, ray_idx, n), acc)
-    if with_median:
-        out["depth_median"] = median_depth(sigma, t0, t1, ray_idx, n)
+        rgb_fn = lambda x, d: field.color(x, d if field.view_dependent else None)  # noqa: E731
+    out = render_marched(
+        rays_o, rays_d, grid=grid, sigma_fn=field.density, rgb_fn=rgb_fn, near=near, far=far, step_size=step_size,
+        background=background, jitter=jitter, with_median=with_median,
+    )  # fmt: skip
+    out["samples"] = torch.tensor(float(out["ray_indices"].numel()))
     return out
 
 
-def render_vanilla(
+def _rgb_sigma(net, view_dependent: bool):
+    """A NeRF MLP (x, d) -> (sigma, rgb | None) as render_rays' rgb_sigma_fn (rgb 0 for density-only)."""
+
+    def fn(x: Tensor, d: Tensor) -> tuple[Tensor, Tensor]:
+        sigma, rgb = net(x, d if view_dependent else None)
+        if rgb is None:
+            rgb = torch.zeros(*sigma.shape, 3, dtype=sigma.dtype, device=sigma.device)
+        return rgb, sigma
+
+    return fn
+
+
+def _render_vanilla(
     field: VanillaNeRF,
-    rays_o: Tensor,
-    rays_d: Tensor,
+    rays_o: Tensor,  # [R, 3]
+    rays_d: Tensor,  # [R, 3] unit
     *,
-    aabb: Tensor,
+    aabb: Tensor,  # [2, 3]
     near: float,
     far: float,
-    background: Tensor,
+    background: Tensor,  # [3] or [R, 3]
     jitter: bool,
     generator: torch.Generator | None = None,
 ) -> dict[str, Tensor]:
-    """NeRF: n_coarse stratified samples in the box, n_fine importance samples, the fine net on all of them."""
-    t_near, t_far = _box_near_far(rays_o, rays_d, aabb, near, far)
-    s0, s1 = stratified_intervals(t_near, t_far, field.n_coarse, jitter=jitter, generator=generator)
-
-    def run_net(net, t0: Tensor, t1: Tensor) -> dict[str, Tensor]:
-        t_mid = 0.5 * (t0 + t1)
-        x = (rays_o[:, None] + rays_d[:, None] * t_mid[..., None]).reshape(-1, 3)
-        d = rays_d[:, None].expand(-1, t0.shape[1], -1).reshape(-1, 3) if field.view_dependent else None
-        sigma, rgb = net(x, d)
-        sigma = sigma.reshape(t0.shape)
-        if rgb is None:
-            rgb = torch.zeros(*t0.shape, 3, dtype=sigma.dtype, device=sigma.device)
-        return composite(sigma, rgb.reshape(*t0.shape, 3), t0, t1, background=background)
-
-    coarse = run_net(field.coarse, s0, s1)
-    f0, f1 = resample_intervals(s0, s1, coarse["weights"].detach(), field.n_fine, jitter=jitter, generator=generator)
-    fine = run_net(field.fine, f0, f1)
-    out = {k: fine[k] for k in ("rgb", "depth", "depth_median", "acc")}
-    out["rgb_coarse"] = coarse["rgb"]
-    out["samples"] = torch.tensor(float(s0.numel() + f0.numel()))
+    """NeRF: n_coarse stratified samples in the box, n_fine importance samples, the fine net on all of them
+    (radiance.render.render_rays_hierarchical)."""
+    t_near, t_far = ray_aabb_segment(rays_o, rays_d, aabb, near, far)
+    out = render_rays_hierarchical(
+        rays_o, rays_d, near=t_near, far=t_far, n_fine=field.n_fine, background=background,
+        coarse_sampler=StratifiedSampler(n_samples=field.n_coarse, jitter=jitter, generator=generator),
+        coarse_fn=_rgb_sigma(field.coarse, field.view_dependent), fine_fn=_rgb_sigma(field.fine, field.view_dependent),
+        jitter=jitter, generator=generator,
+    )  # fmt: skip
+    out["rgb_coarse"] = out["coarse"]["rgb"]
+    out["samples"] = torch.tensor(float(out["coarse"]["t_starts"].numel() + out["t_starts"].numel()))
     return out
 
 
@@ -324,9 +279,9 @@ class _Model:
 
     def render(self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, gen=None, median=False):
         if self.kind == "fast":
-            return render_fast(self.field, self.grid, o, d, near=self.near, far=self.far, step_size=self.step_size,
+            return _render_fast(self.field, self.grid, o, d, near=self.near, far=self.far, step_size=self.step_size,
                                background=background, jitter=train, with_median=median)  # fmt: skip
-        return render_vanilla(self.field, o, d, aabb=self.aabb, near=self.near, far=self.far, background=background,
+        return _render_vanilla(self.field, o, d, aabb=self.aabb, near=self.near, far=self.far, background=background,
                               jitter=train, generator=gen)  # fmt: skip
 
 
