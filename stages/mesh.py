@@ -216,15 +216,11 @@ def density_function(trained: Any) -> DensityFn:
 def _occupied_box(trained: Any) -> tuple[np.ndarray, np.ndarray, str]:
     """Scene-frame box to mesh: occupied cells of the occupancy grid (+1 cell), within the aabb; else the aabb."""
     aabb = _np(trained.aabb).reshape(2, 3)
-    occ = _occupancy_binary(trained)
-    if occ is None or not occ[0].any():
+    box = trained.occupancy.occupied_aabb() if _occupancy_binary(trained) is not None else None
+    if box is None:
         return aabb[0], aabb[1], "aabb"
-    binary, box = occ
-    cell = (box[1] - box[0]) / np.asarray(binary.shape)
-    idx = np.argwhere(binary)
-    lo = box[0] + (idx.min(0) - 1) * cell
-    hi = box[0] + (idx.max(0) + 2) * cell
-    return np.maximum(lo, aabb[0]), np.minimum(hi, aabb[1]), "occupancy grid"
+    box = _np(box)
+    return np.maximum(box[0], aabb[0]), np.minimum(box[1], aabb[1]), "occupancy grid"
 
 
 # ---------------------------------------------------------------------------------------------- threshold
