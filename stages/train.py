@@ -69,7 +69,8 @@ class Config:
     """Rays per optimizer step (None: 1024 on CPU, where more small steps beat fewer big ones in a fixed
     time budget (22.6 vs 18.1 dB after 30 s on a 128 px scene), 4096 on CUDA)."""
     lr: float | None = None
-    """Base learning rate (None: 0.02 for fast grids (MLP at lr/20), 5e-4 for vanilla)."""
+    """Base learning rate (None: 0.03 for fast grids (MLP at lr/20), 5e-4 for vanilla).
+    Fast, lego_100, 120 s: 0.02 -> 31.0 dB, 0.03 -> 31.5 dB, 0.05 -> 31.1 dB (single runs, 2 idle CPU cores)."""
     lr_decay: float = 0.1
     """Final learning-rate factor reached at the end of the run (exponential decay)."""
     eval_every: int = 250
@@ -448,7 +449,7 @@ def _run(config: Config, progress) -> Outputs:
         g = torch.Generator().manual_seed(config.seed + 1)
         eval_px = torch.randperm(test.dirs.shape[0], generator=g)[: config.eval_pixels]
 
-    base_lr = config.lr if config.lr is not None else (0.02 if config.field == "fast" else 5e-4)
+    base_lr = config.lr if config.lr is not None else (0.03 if config.field == "fast" else 5e-4)
     opt = _make_optimizer(model.field, base_lr)
     step, seconds_before, lr_factor = 0, 0.0, 1.0
     if state is not None:
