@@ -100,17 +100,18 @@ class OccupancyGrid(torch.nn.Module):
         points_per_cell: int = 1,
         chunk: int = 1 << 18,
         generator: torch.Generator | None = None,
+        full: bool = False,
     ) -> bool:
         """EMA update from the field's density; runs only when step % every == 0. Returns whether it ran.
 
-        Before warmup_steps every cell is refreshed; afterwards a random quarter of all cells plus a random
-        quarter's worth of occupied cells (nerfacc's schedule). Each refreshed cell takes the max of
-        `points_per_cell` densities at uniform random points inside it.
+        Before warmup_steps (or with `full`) every cell is refreshed; afterwards a random quarter of all cells
+        plus a random quarter's worth of occupied cells (nerfacc's schedule). Each refreshed cell takes the max
+        of `points_per_cell` densities at uniform random points inside it.
         """
-        if step % every != 0:
+        if step % every != 0 and not full:
             return False
         n_cells, device = self.resolution**3, self.aabb.device
-        if step < warmup_steps:
+        if full or step < warmup_steps:
             cells = torch.arange(n_cells, device=device)
         else:
             n = max(1, n_cells // 4)

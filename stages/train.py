@@ -540,6 +540,10 @@ def _run(config: Config, progress) -> Outputs:
             _save_checkpoint(ckpt_path, model, opt, step, elapsed(), lr_factor, gen.get_state())
             metrics.save()
     train_seconds = elapsed()
+    if model.grid is not None:
+        # Every cell once more: the saved grid must match the final field (render and mesh skip by it), not a
+        # partial refresh from before the last steps moved the surface.
+        model.grid.update(model.field.density, step, full=True, points_per_cell=4)
     _save_checkpoint(ckpt_path, model, opt, step, train_seconds, lr_factor, gen.get_state())
 
     model.field.eval()
