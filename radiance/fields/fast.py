@@ -29,8 +29,39 @@ PLANE_AXES = ((0, 1), (0, 2), (1, 2))
 LINE_AXIS = (2, 1, 0)
 
 
+# grid_sample's CPU backward parallelises over the batch only: 3 planes on 2 threads leave one idle half the
+# time. Splitting the channels into CHANNEL_SPLIT groups (3 * 2 = 6 batches) balances it; each channel is
+# interpolated exactly as before. lego_100, 2 CPU cores, final grid: 23-26 -> 28-31 steps/s; bench_train fast
+# 120 s: 1989 -> 3055 steps, 31.42 -> 32.04 dB (with fused Adam; before both: 1599 steps, 31.08 dB).
+CHANNEL_SPLIT = 2
+
+
+def _grid_sample(grids: Tensor, uv: Tensor) -> Tensor:
+    """grids [3, C, H, W], uv [3, N, 2] -> bilinear (align_corners) samples [3, C, N], channels split in groups."""
+    c = grids.shape[1]
+    k = CHANNEL_SPLIT if c % CHANNEL_SPLIT == 0 else 1
+    g = grids.reshape(3 * k, c // k, *grids.shape[2:])
+    out = F.grid_sample(g, uv.repeat_interleave(k, dim=0)[:, :, None, :], mode="bilinear", align_corners=True)
+    return out.reshape(3, c, -1)
+
+
+def _vm_inputs(xn: Tensor) -> tuple[Tensor, Tensor]:
+    # Slices, not index lists: PLANE_AXES = (0, 1), (0, 2), (1, 2) and LINE_AXIS = (2, 1, 0).
+    plane_uv = torch.stack([xn[:, :2], xn[:, ::2], xn[:, 1:]])  # [3, N, 2] (x -> W, y -> H)
+    line_w = xn.flip(1).T  # [3, N]
+    return plane_uv, torch.stack([torch.zeros_like(line_w), line_w], dim=-1)  # [3, N, 2]
+
+
 def _vm_features(planes: Tensor, lines: Tensor, xn: Tensor) -> Tensor:
     """planes [3, C, R, R], lines [3, C, R, 1], xn [N, 3] in [-1, 1] -> per-axis products [3, C, N]."""
+    if xn.shape[0] == 0:
+        return planes.new_zeros(3, planes.shape[1], 0)
+    plane_uv, line_uv = _vm_inputs(xn)
+    return _grid_sample(planes, plane_uv) * _grid_sample(lines, line_uv)
+
+
+def _vm_features_reference(planes: Tensor, lines: Tensor, xn: Tensor) -> Tensor:
+    """Plain twin of `_vm_features` (index lists, one grid_sample per grid, channels unsplit; for tests)."""
     if xn.shape[0] == 0:
         return planes.new_zeros(3, planes.shape[1], 0)
     plane_uv = torch.stack([xn[:, list(ax)] for ax in PLANE_AXES])  # [3, N, 2] (x -> W, y -> H)
