@@ -22,8 +22,11 @@ from torch import Tensor
 
 from data.transforms import Frame, Scene
 from radiance.camera import Intrinsics, project
+from radiance.paths import look_at
 
-__all__ = ["StandIn", "look_at", "visible_points", "VISIBILITY_TOL"]
+Z_UP = np.array([0.0, 0.0, 1.0])
+
+__all__ = ["StandIn", "visible_points", "VISIBILITY_TOL"]
 
 VISIBILITY_TOL = 0.01
 """Metres: a point counts as seen when the first hit towards it is at most this much nearer."""
@@ -31,19 +34,6 @@ VISIBILITY_TOL = 0.01
 SPHERE = (np.array([-0.25, 0.0, 0.0]), 0.35)  # centre, radius (scene frame)
 BOX = (np.array([0.3, 0.05, 0.0]), np.array([0.2, 0.25, 0.3]))  # centre, half extents
 FLOATER = (np.array([0.62, 0.62, 0.62]), 0.04)
-
-
-def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """world_from_cam [4, 4], OpenGL axes: camera -z towards target."""
-    fwd = (target - eye) / np.linalg.norm(target - eye)
-    right = np.cross(fwd, up)
-    if np.linalg.norm(right) < 1e-8:
-        right = np.cross(fwd, [1.0, 0.0, 0.0])
-    right /= np.linalg.norm(right)
-    cam_up = np.cross(right, fwd)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, cam_up, -fwd, eye
-    return m
 
 
 def _rotation(axis, angle_deg: float) -> np.ndarray:
@@ -82,7 +72,11 @@ class StandIn:
             z = 1 - 2 * (i + 0.5) / views
             r = math.sqrt(1 - z * z)
             eye = 3.0 * np.array([r * math.cos(golden * i), r * math.sin(golden * i), z])
-            frames.append(Frame(file_path=f"images/{i:03d}.png", world_from_cam=look_at(eye, np.zeros(3))))
+            frames.append(
+                Frame(
+                    file_path=f"images/{i:03d}.png", world_from_cam=look_at(eye, np.zeros(3), np.array([0.0, 0.0, 1.0]))
+                )
+            )
         focal = 0.5 * size / math.tan(math.radians(20.0))
         self.scene = Scene(
             root=Path(root), frames=tuple(frames),

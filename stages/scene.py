@@ -41,6 +41,7 @@ from data.errors import UserError
 from data.rundir import config_to_json, write_manifest
 from data.transforms import Frame, Scene, write_scene
 from radiance.camera import Intrinsics
+from radiance.paths import look_at
 from stages.scene_objects import Primitive, default_primitives, shade, solid_texture
 
 __all__ = ["Config", "Outputs", "run", "cameras", "render_view", "scene_mesh", "SUPERSAMPLE", "BACKGROUND"]
@@ -53,6 +54,7 @@ BACKGROUND = (1.0, 1.0, 1.0)
 FOV_X_DEG = 45.0
 CAMERA_RADIUS = 2.4
 """Distance from the look-at point, metres (the scene's bounding sphere, r ~ 0.8 m, subtends ~20 deg)."""
+UP = np.array([0.0, 0.0, 1.0])  # world up: camera image up is as close to +z as can be
 LOOK_AT = np.array([0.0, 0.0, 0.12])
 ELEVATION_DEG = (15.0, 50.0)
 TEST_EVERY = 8
@@ -93,17 +95,6 @@ class Outputs:
 # ---------------------------------------------------------------- cameras
 
 
-def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """world_from_cam [4, 4] in OpenGL axes: camera -z towards target, camera y as close to world +z as can be."""
-    forward = (target - eye) / np.linalg.norm(target - eye)
-    right = np.cross(forward, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    up = np.cross(right, forward)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, up, -forward, eye
-    return m
-
-
 def intrinsics(size: int) -> Intrinsics:
     f = 0.5 * size / math.tan(math.radians(FOV_X_DEG) / 2)
     return Intrinsics(w=size, h=size, fx=f, fy=f, cx=size / 2, cy=size / 2)
@@ -122,7 +113,7 @@ def cameras(views: int, seed: int) -> np.ndarray:
     eye = LOOK_AT + radius[:, None] * np.stack(
         [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], axis=-1
     )
-    return np.stack([_look_at(e, LOOK_AT) for e in eye])
+    return np.stack([look_at(e, LOOK_AT, UP) for e in eye])
 
 
 # ---------------------------------------------------------------- rendering

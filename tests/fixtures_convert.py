@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from radiance.paths import look_at
+
 OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
@@ -21,18 +23,6 @@ def rotation(axis_angle) -> np.ndarray:
     return r
 
 
-def look_at(centre, target, world_up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """OpenGL camera-to-world [4, 4] at `centre` looking at `target`."""
-    centre, target, world_up = (np.asarray(v, dtype=np.float64) for v in (centre, target, world_up))
-    back = centre - target
-    back /= np.linalg.norm(back)
-    right = np.cross(world_up, back)
-    right /= np.linalg.norm(right)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, np.cross(back, right), back, centre
-    return m
-
-
 def orbit(n: int, seed: int, radius: float = 4.0) -> list[np.ndarray]:
     """n z-up cameras on the upper hemisphere looking near the origin."""
     rng = np.random.default_rng(seed)
@@ -41,7 +31,7 @@ def orbit(n: int, seed: int, radius: float = 4.0) -> list[np.ndarray]:
         az = 2 * np.pi * i / n + rng.uniform(-0.2, 0.2)
         el = rng.uniform(0.2, 0.9)
         c = radius * np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
-        poses.append(look_at(c, rng.uniform(-0.1, 0.1, 3)))
+        poses.append(look_at(c, rng.uniform(-0.1, 0.1, 3), np.array([0.0, 0.0, 1.0])))
     return poses
 
 
@@ -89,7 +79,9 @@ def make_llff(root: Path, n: int = 9, size=(24, 32)) -> dict[str, np.ndarray]:
     rows, expected = [], {}
     for i in range(n):
         c = np.array([0.3 * (i % 3), 0.2 * (i // 3), 0.0])
-        pose = similarity(look_at(c + [0, 0, 5.0], [0.1 * i, 0.0, 0.0], (0, 1, 0)), world, [1.0, 2.0, 3.0], 1.0)
+        pose = similarity(
+            look_at(c + [0, 0, 5.0], [0.1 * i, 0.0, 0.0], np.array([0.0, 1.0, 0.0])), world, [1.0, 2.0, 3.0], 1.0
+        )
         m = np.zeros((3, 5))
         m[:, 0], m[:, 1], m[:, 2], m[:, 3] = -pose[:3, 1], pose[:3, 0], pose[:3, 2], pose[:3, 3]  # down right back
         m[:, 4] = [2 * h, 2 * w, 60.0]
