@@ -62,7 +62,7 @@ def lego_100_scene(out: Path) -> Path:
 
 def lego_400_scene(out: Path) -> Path:
     """lego_400 (Blender layout) through `stages.convert`: its train / val / test splits; the benchmark renders
-    the first 25 test views in full at the end."""
+    25 evenly spaced test views (of 200) in full at the end."""
     if (out / "transforms.json").is_file():
         return out
     from stages import convert

@@ -39,7 +39,7 @@ from radiance.fields import Field, TensoRF, VanillaNeRF, make_field
 from radiance.occupancy import OccupancyGrid
 from radiance.render import StratifiedSampler, render_marched, render_rays_hierarchical
 
-__all__ = ["Config", "Outputs", "Trained", "run", "load_trained", "TrainingDiverged"]
+__all__ = ["Config", "Outputs", "Trained", "run", "load_trained", "TrainingDiverged", "evenly_spaced"]
 
 VERSION = "1"
 CHECKPOINT_FORMAT = 1
@@ -97,7 +97,9 @@ class Config:
     density_l1: float = 0.0
     """fast: weight of the L1 sparsity prior on the density factors."""
     final_eval_views: int | None = None
-    """Test views rendered in full at the end (None: all)."""
+    """Test views rendered in full at the end, evenly spaced over the test split (None: all). The NeRF
+    Blender test views follow a path round the object, so the first k views are one arc, not a sample
+    (lego_400: the first 25 score 29.7 dB where 25 evenly spaced score 32.5 dB)."""
     threads: int | None = None
     """CPU: torch intra-op threads during the run (None: torch's default). On a shared or oversubscribed CPU,
     1 can be many times faster than 2 (measured 0.16 s vs 2.0 s per step on the 2-core dev machine)."""
@@ -237,6 +239,15 @@ def _load_views(scene: Scene, indices: tuple[int, ...]) -> _Views:
         rgba.append(torch.from_numpy(np.round(img.reshape(-1, 4) * 255).astype(np.uint8)))
         shapes.append((intr.h, intr.w))
     return _Views(torch.stack(origins), torch.cat(views), torch.cat(dirs), torch.cat(rgba), shapes)
+
+
+def evenly_spaced(n: int, k: int | None) -> list[int]:
+    """k indices spread evenly over range(n), first and last included (all n when k is None or >= n)."""
+    if k is None or k >= n:
+        return list(range(n))
+    if k < 1:
+        raise ValueError(f"expected k >= 1 views, got {k}")
+    return sorted({int(i) for i in np.linspace(0, n - 1, k).round()})
 
 
 def _composite_gt(rgb: Tensor, alpha: Tensor, background: Tensor) -> Tensor:
@@ -550,14 +561,11 @@ def _run(config: Config, progress) -> Outputs:
     _save_checkpoint(ckpt_path, model, opt, step, train_seconds, lr_factor, gen.get_state())
 
     model.field.eval()
-    test_psnr = None
+    test_psnr, chosen = None, []
     if test is not None:
-        n_views = len(test.shapes) if config.final_eval_views is None else min(config.final_eval_views,
-                                                                                len(test.shapes))  # fmt: skip
-        psnrs, start = [], 0
-        for h, w in test.shapes[:n_views]:
-            psnrs.append(_eval(model, test, torch.arange(start, start + h * w), white, device))
-            start += h * w
+        chosen = evenly_spaced(len(test.shapes), config.final_eval_views)
+        starts = np.cumsum([0] + [h * w for h, w in test.shapes])
+        psnrs = [_eval(model, test, torch.arange(starts[v], starts[v + 1]), white, device) for v in chosen]
         test_psnr = float(np.mean(psnrs))
         metrics.append(step=step, seconds=round(train_seconds, 3), test_psnr=f"{test_psnr:.3f}")
     metrics.save()
@@ -575,6 +583,7 @@ def _run(config: Config, progress) -> Outputs:
         "train_views": len(train_idx),
         "test_views": len(test_idx),
         "test_psnr_full_images": test_psnr,
+        "test_views_full_eval": [test_idx[v] for v in chosen],
         "background": "random per ray in training, white for eval" if rgba else "none (opaque RGB images)",
         "view_dependent": model.field.view_dependent,
         "scene_type": "forward-facing" if _is_forward_facing(scene) else "bounded / 360",

@@ -130,3 +130,12 @@ def test_fused_adam_matches_its_plain_twin():
             opt.step()
     for a, b in zip(fields[0].parameters(), fields[1].parameters(), strict=True):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+
+
+def test_final_eval_views_are_evenly_spaced():
+    assert train.evenly_spaced(200, 25)[:3] == [0, 8, 17] and train.evenly_spaced(200, 25)[-1] == 199
+    assert len(train.evenly_spaced(200, 25)) == 25
+    assert train.evenly_spaced(5, None) == train.evenly_spaced(5, 9) == [0, 1, 2, 3, 4]
+    assert train.evenly_spaced(5, 1) == [0]
+    with pytest.raises(ValueError, match="k >= 1"):
+        train.evenly_spaced(5, 0)
