@@ -131,7 +131,11 @@ class OccupancyGrid(torch.nn.Module):
                 density_fn(self._points_in_cells(cells[i : i + chunk], generator)).reshape(-1).float()
                 for i in range(0, cells.shape[0], chunk)
             ]
-            sigma = torch.maximum(sigma, torch.cat(parts).nan_to_num(nan=0.0, posinf=torch.finfo(torch.float32).max))
+            got = torch.cat(parts)
+            # NaN (a diverging field; training's non-finite-loss guard deals with it) counts as occupied, never
+            # as empty space to skip; inf is the largest finite density (the threshold is a comparison).
+            got = torch.where(torch.isnan(got), torch.full_like(got, math.inf), got)
+            sigma = torch.maximum(sigma, got.clamp(max=torch.finfo(torch.float32).max))
         flat = self.density.view(-1)
         flat[cells] = torch.maximum(flat[cells] * self.decay, sigma)
         thresh = min(self.threshold, float(self.density.mean()))

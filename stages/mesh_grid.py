@@ -92,7 +92,9 @@ class _Evaluator:
         self.pending, self.count = [], 0
         x = torch.from_numpy(ijk).to(self.device, torch.float32) @ self.rot.T + self.off  # [M, 3]
         sigma = self.density(x).reshape(-1).float()
-        sigma = torch.nan_to_num(sigma, nan=0.0, posinf=float(np.finfo(np.float32).max)).cpu().numpy()
+        if bool(torch.isnan(sigma).any()):
+            raise ValueError(f"the field returned NaN density at {int(torch.isnan(sigma).sum())} grid points")
+        sigma = sigma.clamp(max=float(np.finfo(np.float32).max)).cpu().numpy()  # inf: densest finite value
         out.reshape(-1)[dest] = sigma
         self.evaluated += len(ijk)
 

@@ -222,3 +222,17 @@ def test_short_training_meshes_near_the_ground_truth(tmp_path):
     pred = mesh.surface_points(np.asarray(m.vertices), np.asarray(m.faces), 40_000)
     pred = pred[visible_points(pred, src.out_dir)]
     assert mesh.chamfer_distance(pred, gt) < TRAINED_CHAMFER * _diag(gt)
+
+
+def test_volume_sampling_refuses_nan_density_and_caps_inf():
+    from stages.mesh_grid import make_grid, sample_volume
+
+    grid = make_grid(np.array([-1.0] * 3), np.array([1.0] * 3), 16, stride=1)
+
+    def dense_corner(x):
+        return torch.where(x[:, 0] > 0.5, torch.inf, 1.0)
+
+    vol, _ = sample_volume(dense_corner, grid, None, device=torch.device("cpu"))
+    assert np.isfinite(vol).all() and vol.max() == np.finfo(np.float32).max
+    with pytest.raises(ValueError, match="NaN density"):
+        sample_volume(lambda x: torch.where(x[:, 0] > 0.5, torch.nan, 1.0), grid, None, device=torch.device("cpu"))

@@ -110,3 +110,20 @@ def test_march_misses_and_empty_grid():
                       rgb_sigma_fn=sphere_rgb_sigma, background=torch.ones(3))  # fmt: skip
     torch.testing.assert_close(out["rgb"], torch.ones(5, 3))
     assert (out["acc"] == 0).all()
+
+
+def test_nan_and_inf_densities_count_as_occupied_not_empty():
+    """A diverging field's NaN must never open a hole that rays skip; inf is simply very dense."""
+
+    def broken(x):
+        sigma = sphere_density(x)
+        sigma[x[:, 0] > 0.5] = torch.nan  # a slab of NaN outside the sphere
+        sigma[x[:, 0] < -0.8] = torch.inf
+        return sigma
+
+    g = OccupancyGrid(AABB, resolution=16)
+    g.update(broken, step=0, points_per_cell=4, generator=torch.Generator().manual_seed(0))
+    assert torch.isfinite(g.density).all()
+    centres = g.cell_centers().reshape(16, 16, 16, 3)
+    assert g.binary[centres[..., 0] > 0.6].all() and g.binary[centres[..., 0] < -0.9].all()
+    assert not g.binary[(centres.norm(dim=-1) > 0.8) & (centres[..., 0].abs() < 0.4)].any()
