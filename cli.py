@@ -62,6 +62,7 @@ DeviceOpt = Annotated[Device, typer.Option(help="Where to run: auto uses CUDA wh
 
 # ---------------------------------------------------------------------------------------------- scene
 SceneKind = _choices("SceneKind", Literal["photos", "posed", "rgba"])
+SceneLayout = _choices("SceneLayout", Literal["orbit", "forward"])
 
 
 @app.command()
@@ -71,11 +72,13 @@ def scene(
     size: Annotated[int, typer.Option(help="Image width and height in pixels.")] = 64,
     views: Annotated[int, typer.Option(help="Number of camera views.")] = 24,
     seed: Annotated[int, typer.Option(help="Random seed (the scene is deterministic for a seed).")] = 0,
+    layout: Annotated[SceneLayout, typer.Option(help="orbit: 360-degree rig; forward: LLFF-style.")] = "orbit",
 ) -> None:
     """Generate a procedural, textured scene with exact cameras, depth and surface mesh."""
     from stages import scene as stage
 
-    out = stage.run(stage.Config(out_dir=out_dir, kind=SceneKind(kind).value, size=size, views=views, seed=seed))
+    out = stage.run(stage.Config(out_dir=out_dir, kind=SceneKind(kind).value, size=size, views=views, seed=seed,
+                                 layout=SceneLayout(layout).value))  # fmt: skip
     typer.echo(f"{len(out.images)} images, ground truth and manifest -> {out.out_dir}")
 
 
@@ -158,6 +161,7 @@ def convert(
 
 # ---------------------------------------------------------------------------------------------- train
 FieldKind = _choices("FieldKind", Literal["fast", "vanilla"])
+SceneModel = _choices("SceneModel", Literal["auto", "box", "ndc"])
 
 
 @app.command()
@@ -178,7 +182,12 @@ def train(
     view_dependent: Annotated[
         bool | None, typer.Option("--view-dependent/--no-view-dependent", help="Colour depends on view direction.")
     ] = None,
-    final_eval_views: Annotated[int | None, typer.Option(help="Test views rendered in full at the end.")] = None,
+    final_eval_views: Annotated[
+        int | None, typer.Option(help="Test views rendered in full at the end (evenly spaced; default all).")
+    ] = None,
+    scene_model: Annotated[
+        SceneModel, typer.Option(help="box: the scene's aabb; ndc: forward-facing NDC; auto: from the cameras.")
+    ] = "auto",
 ) -> None:
     """Train a radiance field; logs held-out PSNR against wall-clock seconds."""
     from stages import train as stage
@@ -198,6 +207,7 @@ def train(
             eval_every=eval_every,
             view_dependent=view_dependent,
             final_eval_views=final_eval_views,
+            scene_model=SceneModel(scene_model).value,
         )  # fmt: skip
     )
     psnr = "n/a" if out.test_psnr is None else f"{out.test_psnr:.2f} dB"
@@ -205,14 +215,14 @@ def train(
 
 
 # ---------------------------------------------------------------------------------------------- render
-RenderPath = _choices("RenderPath", Literal["turntable", "spiral", "test", "train"])
+RenderPath = _choices("RenderPath", Literal["auto", "turntable", "spiral", "test", "train"])
 
 
 @app.command()
 def render(
     run_dir: Annotated[Path, typer.Argument(help="A trained run directory.")],
     out: Annotated[Path, typer.Argument(help="Output video (.mp4, H.264).")],
-    path: Annotated[RenderPath, typer.Option(help="Camera path.")] = "turntable",
+    path: Annotated[RenderPath, typer.Option(help="auto: spiral if forward-facing, else turntable.")] = "auto",
     frames: Annotated[int, typer.Option(help="Frames for turntable/spiral.")] = 120,
     fps: Annotated[float, typer.Option(help="Frames per second.")] = 30.0,
     downscale: Annotated[float, typer.Option(help="Divide the training image size by this.")] = 1.0,

@@ -28,7 +28,7 @@ from data.atomic import write_json
 from data.errors import UserError
 from radiance.camera import Intrinsics
 
-__all__ = ["Frame", "Scene", "read_scene", "write_scene", "load_image", "SPLITS"]
+__all__ = ["Frame", "Scene", "read_scene", "write_scene", "load_image", "is_forward_facing", "SPLITS"]
 
 SPLITS = ("train", "val", "test")
 _INTRINSIC_KEYS = ("w", "h", "fl_x", "fl_y", "cx", "cy")
@@ -370,3 +370,15 @@ def load_image(path: str | os.PathLike) -> np.ndarray:
     else:
         img = cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2RGB)
     return (img.astype(np.float32) / scale).clip(0.0, 1.0)
+
+
+def is_forward_facing(scene: Scene) -> bool:
+    """convert's `scene_type` when present, else: all cameras look within 45 degrees of their mean direction."""
+    if scene.extra.get("scene_type") in ("object", "360", "forward"):
+        return scene.extra["scene_type"] == "forward"
+    fwd = -np.stack([f.world_from_cam[:3, 2] for f in scene.frames])  # OpenGL looks down -z
+    mean = fwd.mean(axis=0)
+    if np.linalg.norm(mean) < 1e-6:
+        return False
+    mean /= np.linalg.norm(mean)
+    return bool((fwd @ mean).min() > math.cos(math.radians(45.0)))

@@ -14,8 +14,8 @@ CORE_CODE := $(wildcard radiance/*.py radiance/fields/*.py data/*.py data/import
 $(RUN_DIR)/manifest.json: $(SCENE_DIR)/transforms.json stages/train.py $(CORE_CODE) | $(INSTALLED)
 	$(NERFPIPE) train $(SCENE_DIR) $(RUN_DIR) $(TRAIN_ARGS)
 
-$(OUT)/turntable.mp4: $(RUN_DIR)/manifest.json stages/render.py $(CORE_CODE) | $(INSTALLED)
-	$(NERFPIPE) render $(RUN_DIR) $@ --path turntable $(RENDER_ARGS)
+$(OUT)/video.mp4: $(RUN_DIR)/manifest.json stages/render.py $(CORE_CODE) | $(INSTALLED)
+	$(NERFPIPE) render $(RUN_DIR) $@ --path auto $(RENDER_ARGS)
 
 $(OUT)/depth/manifest.json: $(RUN_DIR)/manifest.json stages/depth.py $(CORE_CODE) | $(INSTALLED)
 	$(NERFPIPE) depth $(RUN_DIR) $(OUT)/depth $(DEPTH_ARGS)
@@ -26,5 +26,5 @@ $(OUT)/eval.json: $(RUN_DIR)/manifest.json stages/eval.py $(CORE_CODE) | $(INSTA
 $(OUT)/mesh.ply: $(RUN_DIR)/manifest.json $(wildcard stages/mesh*.py) $(CORE_CODE) | $(INSTALLED)
 	$(NERFPIPE) mesh $(RUN_DIR) $@ $(MESH_ARGS)
 
-COMMON_OUTPUTS := $(RUN_DIR)/manifest.json $(OUT)/turntable.mp4 $(OUT)/depth/manifest.json $(OUT)/eval.json \
+COMMON_OUTPUTS := $(RUN_DIR)/manifest.json $(OUT)/video.mp4 $(OUT)/depth/manifest.json $(OUT)/eval.json \
 	$(OUT)/mesh.ply

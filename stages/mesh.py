@@ -187,12 +187,14 @@ def _occupancy_binary(trained: Any) -> tuple[np.ndarray, np.ndarray] | None:
 def density_function(trained: Any) -> DensityFn:
     """The field's density, zero without a query in cells the run's occupancy grid marks empty.
 
-    Calls the run's `Field.density` directly when there is one: `Trained.density` splits queries into small
-    render-sized chunks, several times slower on a CPU than the large chunks meshing sends.
+    Calls the run's `Field.density` directly when there is one and the field lives in the scene frame:
+    `Trained.density` splits queries into small render-sized chunks, several times slower on a CPU than the
+    large chunks meshing sends. NDC runs go through `Trained.density`, which maps points into NDC.
     """
     occ = getattr(trained, "occupancy", None)
     field = getattr(trained, "field", None)
-    query = field.density if isinstance(field, torch.nn.Module) and hasattr(field, "density") else trained.density
+    direct = isinstance(field, torch.nn.Module) and hasattr(field, "density") and getattr(trained, "ndc", None) is None
+    query = field.density if direct else trained.density
     device = _field_device(trained)
 
     @torch.inference_mode()

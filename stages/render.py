@@ -1,6 +1,6 @@
 """Stage `render`: a trained run -> an H.264 mp4 along a camera path (and optionally the PNG frames).
 
-    nerfpipe render RUN_DIR OUT.mp4 [--path turntable|spiral|test|train] [--frames 120] [--fps 30]
+    nerfpipe render RUN_DIR OUT.mp4 [--path auto|turntable|spiral|test|train] [--frames 120] [--fps 30]
         [--downscale 1] [--elevation DEG] [--radius R] [--outputs rgb,depth,accumulation] [--frames-dir DIR]
 
 Paths (`radiance.paths`): `turntable` orbits the point the training cameras look at (least-squares intersection
@@ -30,7 +30,7 @@ import torch
 
 from data.errors import UserError
 from data.rundir import MetricsLog, Stopwatch, config_to_json, write_manifest
-from data.transforms import Scene, load_image
+from data.transforms import Scene, is_forward_facing, load_image
 from data.video import colorize, grey, to_uint8, video_writer, write_png
 from radiance import paths
 from radiance.camera import Intrinsics, generate_rays
@@ -52,7 +52,7 @@ __all__ = [
     "sidecar",
 ]
 
-PATHS = ("turntable", "spiral", "test", "train")
+PATHS = ("auto", "turntable", "spiral", "test", "train")
 OUTPUT_KINDS = ("rgb", "depth", "accumulation")
 OPAQUE = 0.5
 """Pixels with accumulated opacity below this count as background for depth ranges and depth exports."""
@@ -64,8 +64,9 @@ class Config:
     """Trained run directory (config.json, checkpoint.pt, ...)."""
     out: Path
     """Output video, `.mp4`."""
-    path: str = "turntable"
-    """Camera path: turntable | spiral | test | train."""
+    path: str = "auto"
+    """Camera path: turntable | spiral | test | train; auto: spiral for a forward-facing scene (the cameras
+    only saw it from one side), turntable otherwise."""
     frames: int = 120
     """Number of frames of a turntable / spiral (test / train replay every camera of the split)."""
     fps: float = 30.0
@@ -202,6 +203,8 @@ def camera_path(
     """Cameras of a path over a trained run's scene. radius in the user's units (scaled into the scene frame)."""
     if kind not in PATHS:
         raise UserError(f"--path: unknown path {kind!r}; expected one of {', '.join(PATHS)}")
+    if kind == "auto":
+        kind = "spiral" if is_forward_facing(scene) else "turntable"
     if not downscale > 0:
         raise UserError(f"--downscale: expected > 0, got {downscale}")
     if kind in ("test", "train"):

@@ -42,7 +42,7 @@ from data.rundir import config_to_json, write_manifest
 from data.transforms import Frame, Scene, write_scene
 from radiance.camera import Intrinsics
 from radiance.paths import look_at
-from stages.scene_objects import Primitive, default_primitives, shade, solid_texture
+from stages.scene_objects import Primitive, backdrop, default_primitives, shade, solid_texture
 
 __all__ = ["Config", "Outputs", "run", "cameras", "render_view", "scene_mesh", "SUPERSAMPLE", "BACKGROUND"]
 
@@ -57,6 +57,9 @@ CAMERA_RADIUS = 2.4
 UP = np.array([0.0, 0.0, 1.0])  # world up: camera image up is as close to +z as can be
 LOOK_AT = np.array([0.0, 0.0, 0.12])
 ELEVATION_DEG = (15.0, 50.0)
+FORWARD_SPREAD = (0.9, 0.5)
+"""layout=forward: camera centres spread over this width x height (metres) of a plane facing the scene."""
+FORWARD_ELEVATION_DEG = 20.0
 TEST_EVERY = 8
 
 
@@ -72,6 +75,10 @@ class Config:
     """Number of cameras."""
     seed: int = 0
     """Picks the textures and the camera jitter; same seed, byte-identical output."""
+    layout: Literal["orbit", "forward"] = "orbit"
+    """orbit: cameras all round the scene on a hemisphere (a 360-degree capture). forward: cameras on a
+    jittered grid in one plane, all looking the same way at the scene, with a textured wall 4 m behind it (an
+    LLFF-style forward-facing capture: content from ~1.5 m to ~7 m)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -100,9 +107,15 @@ def intrinsics(size: int) -> Intrinsics:
     return Intrinsics(w=size, h=size, fx=f, fy=f, cx=size / 2, cy=size / 2)
 
 
-def cameras(views: int, seed: int) -> np.ndarray:
-    """world_from_cam [V, 4, 4] (OpenGL axes): azimuths evenly spread with jitter, elevations 15-50 deg
-    stratified (golden-ratio sequence), radius 2.4 m +- 3 %, all looking at `LOOK_AT`."""
+def cameras(views: int, seed: int, layout: str = "orbit") -> np.ndarray:
+    """world_from_cam [V, 4, 4] (OpenGL axes), all looking at `LOOK_AT`.
+
+    orbit: azimuths evenly spread with jitter, elevations 15-50 deg stratified (golden-ratio sequence), radius
+    2.4 m +- 3 %. forward: centres on a jittered grid of `FORWARD_SPREAD` in the plane 2.4 m from `LOOK_AT`,
+    seen from azimuth -90 deg (looking along +y) and 20 deg elevation.
+    """
+    if layout == "forward":
+        return _forward_cameras(views, seed)
     rng = np.random.default_rng([seed, 7])
     i = np.arange(views)
     azimuth = 2 * np.pi * (i + rng.uniform(-0.3, 0.3, views) + rng.uniform()) / views
@@ -113,6 +126,21 @@ def cameras(views: int, seed: int) -> np.ndarray:
     eye = LOOK_AT + radius[:, None] * np.stack(
         [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], axis=-1
     )
+    return np.stack([look_at(e, LOOK_AT, UP) for e in eye])
+
+
+def _forward_cameras(views: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng([seed, 11])
+    cols = math.ceil(math.sqrt(views * FORWARD_SPREAD[0] / FORWARD_SPREAD[1]))
+    rows = math.ceil(views / cols)
+    k = np.arange(views)
+    u = ((k % cols) + 0.5 + rng.uniform(-0.25, 0.25, views)) / cols - 0.5  # [-0.5, 0.5]
+    v = ((k // cols) + 0.5 + rng.uniform(-0.25, 0.25, views)) / rows - 0.5
+    el = math.radians(FORWARD_ELEVATION_DEG)
+    back = np.array([0.0, -math.cos(el), math.sin(el)])  # from LOOK_AT towards the rig
+    right = np.array([1.0, 0.0, 0.0])
+    up = np.cross(back, right)
+    eye = LOOK_AT + CAMERA_RADIUS * back + FORWARD_SPREAD[0] * u[:, None] * right + FORWARD_SPREAD[1] * v[:, None] * up
     return np.stack([look_at(e, LOOK_AT, UP) for e in eye])
 
 
@@ -233,18 +261,23 @@ def run(config: Config) -> Outputs:
         raise UserError(f"scene: expected --size >= 8 and --views >= 1, got size={config.size}, views={config.views}")
     if config.kind not in ("photos", "posed", "rgba"):
         raise UserError(f"scene: expected --kind photos|posed|rgba, got {config.kind!r}")
+    if config.layout not in ("orbit", "forward"):
+        raise UserError(f"scene: expected --layout orbit|forward, got {config.layout!r}")
     started = time.time()
     out = Path(config.out_dir)
     prims = default_primitives(config.seed)
+    if config.layout == "forward":
+        prims = (*prims, backdrop(config.seed))
     intr = intrinsics(config.size)
-    world_from_cam = cameras(config.views, config.seed)
+    world_from_cam = cameras(config.views, config.seed, config.layout)
     names = [f"frame_{i:04d}.png" for i in range(config.views)]
     rgba = config.kind == "rgba"
     bg = np.array(BACKGROUND)
 
-    images, depths = [], []
+    images, depths, z_min = [], [], np.inf
     for name, w in zip(names, world_from_cam, strict=True):
         colour, alpha, z = render_view(prims, intr, w)
+        z_min = min(z_min, float(z[z > 0].min(initial=np.inf)))
         if not rgba:
             colour = alpha[..., None] * colour + (1 - alpha[..., None]) * bg
         images.append(write_bytes(out / "images" / name, _png(colour, alpha if rgba else None)))
@@ -259,6 +292,10 @@ def run(config: Config) -> Outputs:
     dist = np.linalg.norm(world_from_cam[:, :3, 3] - LOOK_AT, axis=-1)
     r_bound = float(np.max(np.linalg.norm(mesh.vertices - LOOK_AT, axis=-1)))
     near, far = float(max(0.05, 0.9 * (dist.min() - r_bound))), float(1.1 * (dist.max() + r_bound))
+    if config.layout == "forward" and np.isfinite(z_min):
+        # The wall makes the bounding-sphere bound useless (0.05 m); a forward-facing near bound is the closest
+        # content actually seen (as LLFF's poses_bounds.npy has it), and NDC puts its near plane there.
+        near = 0.9 * z_min
 
     intr_doc = {"w": intr.w, "h": intr.h, "fl_x": intr.fx, "fl_y": intr.fy, "cx": intr.cx, "cy": intr.cy}
     cams_doc = {
@@ -287,7 +324,9 @@ def run(config: Config) -> Outputs:
         out, stage="scene", started=started, outputs=[p.relative_to(out) for p in outputs],
         used={"supersample": f"{SUPERSAMPLE}x{SUPERSAMPLE} rays per pixel, box filter", "fov_x_deg": FOV_X_DEG,
               "background": "transparent" if rgba else list(BACKGROUND), "camera_radius_m": CAMERA_RADIUS,
-              "elevation_deg": list(ELEVATION_DEG), "test_split": f"every {TEST_EVERY}th view"},
+              "layout": config.layout, "test_split": f"every {TEST_EVERY}th view",
+              **({"elevation_deg": list(ELEVATION_DEG)} if config.layout == "orbit" else
+                 {"forward_spread_m": list(FORWARD_SPREAD), "elevation_deg": FORWARD_ELEVATION_DEG})},
         config=config_to_json(config),
     )  # fmt: skip
     return Outputs(

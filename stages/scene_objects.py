@@ -26,6 +26,7 @@ __all__ = [
     "solid_texture",
     "shade",
     "default_primitives",
+    "backdrop",
 ]
 
 _MASK32 = np.uint64(0xFFFFFFFF)
@@ -332,3 +333,12 @@ def default_primitives(seed: int) -> tuple[Primitive, ...]:
         Sphere(center=np.array([0.4, -0.2, 0.12 - sink]), radius=0.12,
                material=_material(rng, int(keys[5]), 0.06, 0.02)),
     )  # fmt: skip
+
+
+def backdrop(seed: int) -> Primitive:
+    """A textured wall 4 m behind the objects (seen from azimuth -90 deg: the plane y = 4), 8 m wide and 6 m
+    tall: the far content of a forward-facing capture, beyond any box drawn round the objects."""
+    rng = np.random.default_rng([seed, 20261122])
+    key = int(rng.integers(0, 2**31))
+    return Box(center=np.array([0.0, 4.05, 0.0]), half=np.array([4.0, 0.05, 3.0]), yaw=0.0,
+               material=_material(rng, key, 0.5, 0.15))  # fmt: skip

@@ -32,10 +32,11 @@ from torch import Tensor
 from data.atomic import atomic_path
 from data.errors import UserError
 from data.rundir import MetricsLog, write_config, write_manifest
-from data.transforms import Scene, load_image, read_scene
+from data.transforms import Scene, is_forward_facing, load_image, read_scene
 from radiance.aabb import ray_aabb_segment
 from radiance.camera import generate_rays
 from radiance.fields import Field, TensoRF, VanillaNeRF, make_field
+from radiance.ndc import NDC, fit_ndc
 from radiance.occupancy import OccupancyGrid
 from radiance.render import StratifiedSampler, render_marched, render_rays_hierarchical
 
@@ -81,6 +82,11 @@ class Config:
     """Write a metrics row every this many steps."""
     checkpoint_every: int = 1000
     """Write checkpoint.pt every this many steps (and at the end)."""
+    scene_model: Literal["auto", "box", "ndc"] = "auto"
+    """Where the field lives. box: the scene's aabb (bounded and 360-degree scenes). ndc: normalised device
+    coordinates of the mean camera (forward-facing captures whose content reaches to infinity; NeRF's LLFF
+    mode, `radiance.ndc`). auto: ndc when the cameras are forward-facing (convert's scene_type, else all
+    within 45 degrees of their mean direction), box otherwise."""
     view_dependent: bool | None = None
     """Colour depends on view direction (None: on for every scene; off suits Lambertian scenes)."""
     resolution: tuple[int, int] = (64, 160)
@@ -258,18 +264,6 @@ def _psnr(mse: float) -> float:
     return -10.0 * math.log10(max(mse, 1e-12))
 
 
-def _is_forward_facing(scene: Scene) -> bool:
-    """convert's `scene_type` when present, else: all cameras look within 45 degrees of their mean direction."""
-    if scene.extra.get("scene_type") in ("object", "360", "forward"):
-        return scene.extra["scene_type"] == "forward"
-    fwd = -np.stack([f.world_from_cam[:3, 2] for f in scene.frames])  # OpenGL looks down -z
-    mean = fwd.mean(axis=0)
-    if np.linalg.norm(mean) < 1e-6:
-        return False
-    mean /= np.linalg.norm(mean)
-    return bool((fwd @ mean).min() > math.cos(math.radians(45.0)))
-
-
 # ----------------------------------------------------------------------------------------------------------
 # Model state
 
@@ -282,7 +276,8 @@ class _Model:
     step_size: float
     near: float
     far: float
-    aabb: Tensor
+    aabb: Tensor  # [2, 3] the field's box: scene frame, or NDC space when ndc is set
+    ndc: NDC | None = None
 
     @property
     def chunk(self) -> int:
@@ -290,6 +285,20 @@ class _Model:
         return 8192 if self.kind == "fast" else 1024
 
     def render(self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, gen=None, median=False):
+        """World rays o, d [R, 3] (unit d) -> dict(rgb, depth, depth_median, acc, ...); depths are distances
+        along the world rays whatever space the field lives in."""
+        if self.ndc is None:
+            return self._render(o, d, background, train=train, gen=gen, median=median)
+        o_n, d_n, valid = self.ndc.rays_to_ndc(o, d)
+        out = self._render(o_n, d_n, background, train=train, gen=gen, median=median)
+        for key in ("depth", "depth_median"):
+            if key in out:
+                out[key] = self.ndc.world_t(o, d, o_n, d_n, out[key])
+        if not bool(valid.all()):  # rays away from the reference view see nothing (the dummy ray misses)
+            out["depth"] = torch.where(valid, out["depth"], torch.zeros_like(out["depth"]))
+        return out
+
+    def _render(self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, gen=None, median=False):
         if self.kind == "fast":
             return _render_fast(self.field, self.grid, o, d, near=self.near, far=self.far, step_size=self.step_size,
                                background=background, jitter=train, with_median=median)  # fmt: skip
@@ -301,8 +310,33 @@ def _step_size(aabb: Tensor, resolution: int, ratio: float) -> float:
     return float((aabb[1] - aabb[0]).mean()) / resolution * ratio
 
 
-def _build_model(config: Config, scene: Scene, device: torch.device, field_cfg: dict | None) -> _Model:
-    aabb = torch.as_tensor(scene.aabb, dtype=torch.float32).reshape(2, 3)
+def _fit_ndc(scene: Scene) -> NDC:
+    """NDC of the scene's mean camera; its near plane is the scene's near bound."""
+    if not (scene.near > 0 and math.isfinite(scene.near)):
+        raise UserError(f"{scene.root}: NDC needs a near bound > 0 in transforms.json, got near={scene.near}")
+    return fit_ndc(np.stack([f.world_from_cam for f in scene.frames]), scene.frame_intrinsics(0), scene.near)
+
+
+def _uses_ndc(config: Config, scene: Scene) -> bool:
+    if config.scene_model not in ("auto", "box", "ndc"):
+        raise UserError(f"unknown scene model {config.scene_model!r}: expected auto, box or ndc")
+    if config.scene_model == "auto":
+        return is_forward_facing(scene)
+    return config.scene_model == "ndc"
+
+
+def _build_model(config: Config, scene: Scene, device: torch.device, field_cfg: dict | None,
+                 ndc: NDC | None = None) -> _Model:  # fmt: skip
+    """The field, its occupancy grid (fast) and render settings. With `ndc`, the field's box is the NDC box
+    of the training cameras (near 0, far: the box's end at infinity); otherwise the scene's aabb."""
+    if ndc is None:
+        aabb = torch.as_tensor(scene.aabb, dtype=torch.float32).reshape(2, 3)
+        near, far = float(scene.near), (scene.far if math.isfinite(scene.far) else 1e10)
+    else:
+        poses = np.stack([f.world_from_cam for f in scene.frames])
+        intr = [scene.frame_intrinsics(i) for i in range(len(scene.frames))]
+        aabb = torch.as_tensor(ndc.box(poses, intr), dtype=torch.float32)
+        near, far = 0.0, 1e10
     view_dep = True if config.view_dependent is None else config.view_dependent
     if field_cfg is None:
         if config.field == "fast":
@@ -313,9 +347,8 @@ def _build_model(config: Config, scene: Scene, device: torch.device, field_cfg: 
     grid = None
     if field_cfg["kind"] == "fast":
         grid = OccupancyGrid(aabb, config.occupancy_resolution).to(device)
-    far = scene.far if math.isfinite(scene.far) else 1e10
     step = _step_size(aabb, config.resolution[1], config.step_ratio)
-    return _Model(field, grid, field_cfg["kind"], step, float(scene.near), float(far), aabb.to(device))
+    return _Model(field, grid, field_cfg["kind"], step, near, float(far), aabb.to(device), ndc)
 
 
 def _make_optimizer(field: Field, lr: float, *, fused: bool = True) -> torch.optim.Adam:
@@ -346,6 +379,7 @@ def _save_checkpoint(path: Path, model: _Model, opt: torch.optim.Optimizer, step
         "field_config": model.field.config(),
         "field": model.field.state_dict(),
         "occupancy": model.grid.state_dict() if model.grid is not None else None,
+        "ndc": model.ndc.to_dict() if model.ndc is not None else None,
         "optimizer": opt.state_dict(),
         "step": step,
         "seconds": seconds,
@@ -450,7 +484,11 @@ def _run(config: Config, progress) -> Outputs:
                         f"config asks for {config.field}")  # fmt: skip
     torch.manual_seed(config.seed)
     gen = torch.Generator().manual_seed(config.seed)
-    model = _build_model(config, scene, device, state["field_config"] if state else None)
+    if state is not None:
+        ndc = NDC.from_dict(state["ndc"]) if state.get("ndc") is not None else None
+    else:
+        ndc = _fit_ndc(scene) if _uses_ndc(config, scene) else None
+    model = _build_model(config, scene, device, state["field_config"] if state else None, ndc)
 
     train_idx = scene.split("train")
     test_idx = scene.split("test") or scene.split("val")
@@ -586,16 +624,23 @@ def _run(config: Config, progress) -> Outputs:
         "test_views_full_eval": [test_idx[v] for v in chosen],
         "background": "random per ray in training, white for eval" if rgba else "none (opaque RGB images)",
         "view_dependent": model.field.view_dependent,
-        "scene_type": "forward-facing" if _is_forward_facing(scene) else "bounded / 360",
+        "scene_type": "forward-facing" if is_forward_facing(scene) else "bounded / 360",
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
         "peak_cuda_mb": round(peak / 2**20, 1) if peak is not None else None,
     }
     if model.grid is not None:
         used["occupancy_skip_fraction"] = round(model.grid.skip_fraction, 4)
         used["samples_per_ray"] = round(samples_per_ray, 2)
+    used["scene_model"] = "ndc" if ndc is not None else "box"
+    if ndc is not None:
+        used["ndc"] = {**ndc.to_dict(), "box": model.aabb.tolist(),
+                       "note": "field and occupancy grid live in NDC of the mean camera (radiance.ndc); depths "
+                               "are mapped back to scene units"}  # fmt: skip
     left_out = {}
-    if _is_forward_facing(scene):
-        left_out["ndc"] = "forward-facing scene trained in its aabb: NDC / scene contraction not implemented yet"
+    if ndc is not None:
+        left_out["aabb"] = "forward-facing: the field spans the NDC frustum (near plane to infinity), not the aabb"
+    elif is_forward_facing(scene):
+        left_out["ndc"] = "forward-facing scene trained in its aabb because scene_model=box was asked for"
     else:
         left_out["ndc"] = "bounded 360-degree scene: NDC only applies to forward-facing captures"
     if not rgba:
@@ -623,7 +668,7 @@ class Trained:
     scene: Scene
     field: Field
     occupancy: OccupancyGrid | None
-    aabb: Tensor  # [2, 3]
+    aabb: Tensor  # [2, 3] scene frame (NDC runs: the scene's aabb, not the field's NDC box)
     background: Tensor  # [3] evaluation background
     device: torch.device
     _model: _Model
@@ -652,11 +697,30 @@ class Trained:
                 parts[k].append(out[k])
         return {k: torch.cat(v) if v else torch.zeros(0, device=self.device) for k, v in parts.items()}
 
+    @property
+    def ndc(self) -> NDC | None:
+        """The NDC map when the field lives in NDC (forward-facing runs), else None."""
+        return self._model.ndc
+
     @torch.no_grad()
     def density(self, x: Tensor) -> Tensor:
-        """x [N, 3] scene frame -> sigma [N] >= 0."""
-        return torch.cat([self.field.density(x[i : i + self.chunk].to(self.device, torch.float32))
-                          for i in range(0, x.shape[0], self.chunk)]) if x.shape[0] else x.new_zeros(0)  # fmt: skip
+        """x [N, 3] scene frame -> sigma [N] >= 0 per scene unit.
+
+        NDC runs: the NDC density times NDC length per scene length along the mean camera's ray through x
+        (`radiance.ndc`); 0 before the near plane.
+        """
+        out = []
+        for i in range(0, x.shape[0], self.chunk):
+            xi = x[i : i + self.chunk].to(self.device, torch.float32)
+            if self.ndc is None:
+                out.append(self.field.density(xi))
+                continue
+            front = self.ndc.in_front(xi)
+            inside = self.ndc.points_from_ndc(torch.zeros(1, 3, dtype=xi.dtype, device=xi.device))  # z' = 0
+            xs = torch.where(front[:, None], xi, inside)  # points before the near plane: a harmless stand-in
+            sigma = self.field.density(self.ndc.points_to_ndc(xs).clamp(-2.0, 2.0))
+            out.append(torch.where(front, sigma * self.ndc.world_density_scale(xs), torch.zeros_like(sigma)))
+        return torch.cat(out) if out else x.new_zeros(0)
 
     @torch.no_grad()
     def color(self, x: Tensor, d: Tensor | None) -> Tensor:
@@ -676,6 +740,10 @@ class Trained:
                     if d is not None
                     else torch.tensor([0.0, 0.0, -1.0]).to(xi).expand_as(xi)
                 )
+            if self.ndc is not None:
+                if di is not None:
+                    di = self.ndc.directions_to_ndc(xi, di)
+                xi = self.ndc.points_to_ndc(xi)
             out.append(self.field.color(xi, di))
         return torch.cat(out) if out else x.new_zeros(0, 3)
 
@@ -698,11 +766,16 @@ def load_trained(run_dir: str | Path, device: str | torch.device = "auto") -> Tr
         scene = read_scene(config.scene_dir)
     except UserError as exc:
         raise UserError(f"{run_dir}: the run's scene cannot be read: {exc}") from None
-    model = _build_model(config, scene, dev, state["field_config"])
+    ndc = NDC.from_dict(state["ndc"]) if state.get("ndc") is not None else None
+    model = _build_model(config, scene, dev, state["field_config"], ndc)
     model.field.load_state_dict(state["field"])
     if model.grid is not None and state["occupancy"] is not None:
         model.grid.load_state_dict(state["occupancy"])
     model.field.eval()
     background = torch.tensor(WHITE, device=dev)
-    return Trained(scene=scene, field=model.field, occupancy=model.grid, aabb=model.aabb, background=background,
+    if ndc is None:
+        occupancy, aabb = model.grid, model.aabb
+    else:  # the grid and box are in NDC; consumers (mesh) work in the scene frame
+        occupancy, aabb = None, torch.as_tensor(scene.aabb, dtype=torch.float32, device=dev).reshape(2, 3)
+    return Trained(scene=scene, field=model.field, occupancy=occupancy, aabb=aabb, background=background,
                    device=dev, _model=model)  # fmt: skip

@@ -33,7 +33,7 @@ def test_posed_chain_builds_everything_then_nothing(tmp_path):
     ]  # fmt: skip
     first = _make("all", *args)
     assert first.returncode == 0, first.stderr[-2000:]
-    for rel in ("scene/transforms.json", "run/manifest.json", "run/checkpoint.pt", "turntable.mp4",
+    for rel in ("scene/transforms.json", "run/manifest.json", "run/checkpoint.pt", "video.mp4",
                 "depth/manifest.json", "eval.json", "mesh.ply"):  # fmt: skip
         assert (out / rel).is_file(), rel
     again = _make("-n", "all", *args)
