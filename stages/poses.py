@@ -16,6 +16,10 @@ Outputs (COLMAP conventions: OpenCV camera axes, `cam_from_world` poses, binary 
                                     into place complete, so colmap/ exists only after a success
   SCENE_DIR/poses_report.json       also on failure (status "failed" and the error): counts, per-image
                                     features / matches / observations / screening, why images were left out
+
+A rerun first moves an earlier colmap/ (with its poses_report.json inside) to SCENE_DIR/colmap.previous/: a
+failed rerun leaves no colmap/ that looks current, yet loses nothing (the error says where the old model is);
+a successful one deletes colmap.previous/.
 """
 
 from __future__ import annotations
@@ -436,6 +440,20 @@ class _Timer:
         return _Phase()
 
 
+def _set_aside(colmap_dir: Path, report_path: Path) -> Path | None:
+    """Move an earlier run's colmap/ (and its report, into it) to colmap.previous/; returns that folder, or
+    None when there was no earlier colmap/ (an older colmap.previous/ is then left as it is)."""
+    previous = colmap_dir.with_name("colmap.previous")
+    if not colmap_dir.exists():
+        report_path.unlink(missing_ok=True)  # a failed run's report: this run writes its own
+        return previous if previous.exists() else None
+    shutil.rmtree(previous, ignore_errors=True)
+    os.replace(colmap_dir, previous)
+    if report_path.exists():
+        os.replace(report_path, previous / report_path.name)
+    return previous
+
+
 def run(config: Config, progress: Progress | None = None) -> Outputs:
     """Photos or video -> SCENE_DIR/colmap (see the module docstring). UserError on bad input or a failed model."""
     kind = _check(config)
@@ -445,9 +463,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     colmap_dir = scene_dir / "colmap"
     report_path = scene_dir / "poses_report.json"
     scene_dir.mkdir(parents=True, exist_ok=True)
-    # Stale outputs of an earlier run must not look like this run's result.
-    shutil.rmtree(colmap_dir, ignore_errors=True)
-    report_path.unlink(missing_ok=True)
+    previous = _set_aside(colmap_dir, report_path)
     build = Path(tempfile.mkdtemp(prefix=".colmap.tmp-", dir=scene_dir))
     images, db = build / "images", build / "database.db"
     images.mkdir()
@@ -510,7 +526,11 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
                 write_json(report_path, _report(config, state, "failed", str(e).splitlines()[0] if str(e) else ""))
             except Exception:  # the report must never hide the original error
                 pass
+        if isinstance(e, UserError) and previous is not None:
+            raise UserError(f"{e} (the earlier model is kept in {previous})") from None
         raise
+    if previous is not None:
+        shutil.rmtree(previous, ignore_errors=True)
     _summary(console, report)
     return Outputs(
         colmap_dir=colmap_dir, sparse=colmap_dir / "sparse", images=colmap_dir / "images",

@@ -59,6 +59,8 @@ def synthetic(tmp_path_factory) -> dict:
     good = (photos / "frame_0007.jpg").read_bytes()
     (photos / "broken.jpg").write_bytes(good[: len(good) // 3])  # truncated JPEG
     (photos / "notes.txt").write_text("not an image")
+    (root / "out" / "colmap").mkdir(parents=True)  # an earlier run's model: replaced, and not kept aside
+    (root / "out" / "colmap" / "stale.txt").write_text("from an earlier run")
     out = poses.run(poses.Config(input=photos, scene_dir=root / "out", num_threads=2))
     return {"root": root, "photos": photos, "out": out}
 
@@ -87,6 +89,7 @@ def test_synthetic_outputs_and_report(synthetic):
     for f in ("cameras.bin", "images.bin", "points3D.bin"):
         assert (out.sparse / f).is_file()
     assert not (out.sparse / "0").exists()
+    assert not (colmap / "stale.txt").exists() and not (colmap.parent / "colmap.previous").exists()
     assert (colmap / "manifest.json").is_file() and out.database.is_file()
     names = json.loads((colmap / "names.json").read_text())
     assert names["frame 0005 é.png"] == str(photos / "frame 0005 é.png")
@@ -174,15 +177,24 @@ def test_unrelated_images_fail_with_report(tmp_path):
     assert report["status"] == "failed" and report["images"]["n0.png"]["features"] > 100
 
 
-def test_stale_model_removed_on_failure(tmp_path):
+def test_failed_rerun_sets_the_earlier_model_aside(tmp_path):
     (tmp_path / "s" / "colmap" / "sparse").mkdir(parents=True)
     (tmp_path / "s" / "colmap" / "manifest.json").write_text("{}")
+    (tmp_path / "s" / "poses_report.json").write_text('{"status": "ok"}')
     (tmp_path / "white").mkdir()
     for i in range(3):
         Image.new("RGB", (64, 64), (255, 255, 255)).save(tmp_path / "white" / f"w{i}.png")
-    with pytest.raises(UserError):
+    with pytest.raises(UserError) as excinfo:
         poses.run(poses.Config(input=tmp_path / "white", scene_dir=tmp_path / "s", num_threads=2))
-    _assert_nothing_complete(tmp_path / "s")
+    assert "colmap.previous" in _one_line_error(excinfo)
+    _assert_nothing_complete(tmp_path / "s")  # nothing looks current ...
+    kept = tmp_path / "s" / "colmap.previous"  # ... and nothing is lost
+    assert (kept / "sparse").is_dir() and (kept / "manifest.json").is_file()
+    assert json.loads((kept / "poses_report.json").read_text())["status"] == "ok"
+    assert json.loads((tmp_path / "s" / "poses_report.json").read_text())["status"] == "failed"
+    with pytest.raises(UserError) as excinfo:  # failing again keeps the same earlier model
+        poses.run(poses.Config(input=tmp_path / "white", scene_dir=tmp_path / "s", num_threads=2))
+    assert "colmap.previous" in _one_line_error(excinfo) and (kept / "sparse").is_dir()
 
 
 # ---------------------------------------------------------------- screening units
