@@ -80,6 +80,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--max-num-features", type=int, default=poses.Config.max_num_features)
     p.add_argument("--camera-model", default=poses.Config.camera_model)
     p.add_argument("--num-threads", type=int, default=2)
+    p.add_argument("--seed", type=int, default=0, help="synthetic scene's seed (textures and camera jitter)")
     p.add_argument("--out", type=Path, default=None, help="keep outputs here (default: a temporary folder)")
     args = p.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="bench_poses_") as tmp:
@@ -94,7 +95,7 @@ def main(argv: list[str] | None = None) -> None:
             from stages import scene
 
             scene_dir = out / "synthetic_scene"
-            scene.run(scene.Config(out_dir=scene_dir, kind="photos", size=256, views=40, seed=0))
+            scene.run(scene.Config(out_dir=scene_dir, kind="photos", size=256, views=40, seed=args.seed))
             ref = read_scene_cameras(scene_dir / "ground_truth" / "cameras.json")
             bench("synthetic", scene_dir / "images", ref, out / "synthetic", args)
 

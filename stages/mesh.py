@@ -20,7 +20,8 @@ Steps:
 6. Vertex colours: `trained.color(x, -n)`, the colour a camera looking straight at the surface along the
    inward normal sees (a view-independent field ignores the direction).
 7. Export in the output frame: `scene.source_from_scene()` for `--frame user` (winding reversed if it
-   mirrors), identity for `--frame normalized`; written atomically, then `mesh_report.json` next to it.
+   mirrors), identity for `--frame normalized`; written atomically, then `OUT.report.json` next to it
+   (`mesh.ply` -> `mesh.report.json`, so several meshes in one folder keep their own reports).
 
 Frames: the scene (normalized, training) frame is where the field lives; the user (source) frame is the one
 `convert` started from: `p_scene = applied_scale * (applied_transform @ [p_src; 1])` (docs/DESIGN.md).
@@ -68,7 +69,7 @@ class Config:
     run_dir: Path
     """Trained run directory (config.json + checkpoint.pt from `train`)."""
     out: Path
-    """Output mesh; the format follows the extension: .ply, .obj or .glb. mesh_report.json goes next to it."""
+    """Output mesh; the format follows the extension: .ply, .obj or .glb. OUT.report.json goes next to it."""
     resolution: int = 256
     """Voxels along the longest side of the box (cubic voxels)."""
     threshold: float | Literal["auto"] = "auto"
@@ -101,7 +102,7 @@ class Outputs:
     mesh: Path
     """The mesh file."""
     report: Path
-    """mesh_report.json (written last)."""
+    """OUT.report.json next to the mesh (written last)."""
     vertices: int
     faces: int
     threshold: float
@@ -494,7 +495,7 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
     timing["total"] = round(time.perf_counter() - t_start, 3)
     seconds = timing["total"]
     report = write_manifest(
-        out.parent, name="mesh_report.json", stage="mesh", started=started, inputs=inputs, outputs=[out],
+        out.parent, name=f"{out.stem}.report.json", stage="mesh", started=started, inputs=inputs, outputs=[out],
         used={"config": config_to_json(config)}, left_out=left_out, version=VERSION,
         threshold={"value": level, **threshold_info},
         grid={"crop": how, "frame": "scene" if np.allclose(grid.scene_from_grid, np.eye(4)) else config.frame,

@@ -1,6 +1,6 @@
 """Mesh cleanup for `stages.mesh` (pymeshlab 2023.12+ filter names), and mesh statistics.
 
-Each step records the vertex / face counts after it, so `mesh_report.json` shows what every step did.
+Each step records the vertex / face counts after it, so the mesh's `OUT.report.json` shows what every step did.
 Order: exact duplicates and degenerate faces -> small floating components (relative diameter, then face
 count) -> non-manifold edges and vertices -> optional hole closing -> Taubin smoothing (shrink-free) ->
 optional quadric edge-collapse decimation. All thresholds are relative to the mesh's own size, so the

@@ -59,7 +59,7 @@ def test_standin_meshes_to_its_exact_surface_in_the_source_frame(tmp_path):
     assert err < 0.005 * _diag(gt), err  # no re-alignment: the export is in the source frame
     stats = mesh_stats(np.asarray(m.vertices), np.asarray(m.faces))
     assert stats["watertight"] and stats["components"] == 1 and stats["signed_volume"] > 0  # outward
-    report = json.loads((tmp_path / "mesh_report.json").read_text())
+    report = json.loads((tmp_path / "m.report.json").read_text())
     assert report["frame"] == "user" and report["final"]["faces"] == out.faces
     assert np.allclose(report["out_from_scene"], s.scene.source_from_scene())
     assert [st["step"] for st in report["steps"]][0] == "marching_cubes"
