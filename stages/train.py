@@ -324,8 +324,6 @@ def _fit_ndc(scene: Scene) -> NDC:
 
 
 def _uses_ndc(config: Config, scene: Scene) -> bool:
-    if config.scene_model not in ("auto", "box", "ndc"):
-        raise UserError(f"unknown scene model {config.scene_model!r}: expected auto, box or ndc")
     if config.scene_model == "auto":
         return is_forward_facing(scene)
     return config.scene_model == "ndc"
@@ -416,6 +414,8 @@ def _read_checkpoint(path: Path, device) -> dict:
 def _validate(config: Config) -> None:
     if config.field not in ("fast", "vanilla"):
         raise UserError(f"unknown field {config.field!r}: expected fast or vanilla")
+    if config.scene_model not in ("auto", "box", "ndc"):
+        raise UserError(f"unknown scene model {config.scene_model!r}: expected auto, box or ndc")
     if config.max_steps < 0 or not config.max_seconds > 0:
         raise UserError(f"expected max_steps >= 0 and max_seconds > 0, got {config.max_steps}, {config.max_seconds}")
     if config.batch_rays is not None and config.batch_rays < 1:

@@ -89,6 +89,10 @@ def test_user_errors(rgba_scene, tmp_path):
         train.run(_config(tmp_path / "missing", tmp_path / "run"))
     with pytest.raises(UserError, match="field"):
         train.run(_config(rgba_scene, tmp_path / "run", field="nope"))
+    with pytest.raises(UserError, match="scene model"):
+        train.run(_config(rgba_scene, tmp_path / "run", scene_model="nope"))
+    with pytest.raises(UserError, match="render_step_factor"):
+        train.run(_config(rgba_scene, tmp_path / "run", render_step_factor=0.0))
     with pytest.raises(UserError, match="no checkpoint"):
         train.run(_config(rgba_scene, tmp_path / "run", resume=True))
     (tmp_path / "bad").mkdir()
