@@ -28,7 +28,16 @@ from data.atomic import write_json
 from data.errors import UserError
 from radiance.camera import Intrinsics
 
-__all__ = ["Frame", "Scene", "read_scene", "write_scene", "load_image", "is_forward_facing", "SPLITS"]
+__all__ = [
+    "Frame",
+    "Scene",
+    "read_scene",
+    "write_scene",
+    "load_image",
+    "is_forward_facing",
+    "cameras_face_forward",
+    "SPLITS",
+]
 
 SPLITS = ("train", "val", "test")
 _INTRINSIC_KEYS = ("w", "h", "fl_x", "fl_y", "cx", "cy")
@@ -372,13 +381,19 @@ def load_image(path: str | os.PathLike) -> np.ndarray:
     return (img.astype(np.float32) / scale).clip(0.0, 1.0)
 
 
-def is_forward_facing(scene: Scene) -> bool:
-    """convert's `scene_type` when present, else: all cameras look within 45 degrees of their mean direction."""
-    if scene.extra.get("scene_type") in ("object", "360", "forward"):
-        return scene.extra["scene_type"] == "forward"
-    fwd = -np.stack([f.world_from_cam[:3, 2] for f in scene.frames])  # OpenGL looks down -z
+def cameras_face_forward(world_from_cam: np.ndarray) -> bool:
+    """True when every camera of world_from_cam [N, 4, 4] (OpenGL axes) looks within 45 degrees of their mean
+    viewing direction (a forward-facing capture); False for a rig without a mean direction."""
+    fwd = -np.asarray(world_from_cam, dtype=np.float64)[:, :3, 2]  # OpenGL looks down -z
     mean = fwd.mean(axis=0)
     if np.linalg.norm(mean) < 1e-6:
         return False
     mean /= np.linalg.norm(mean)
     return bool((fwd @ mean).min() > math.cos(math.radians(45.0)))
+
+
+def is_forward_facing(scene: Scene) -> bool:
+    """convert's `scene_type` when present, else `cameras_face_forward` on the scene's cameras."""
+    if scene.extra.get("scene_type") in ("object", "360", "forward"):
+        return scene.extra["scene_type"] == "forward"
+    return cameras_face_forward(np.stack([f.world_from_cam for f in scene.frames]))

@@ -20,13 +20,13 @@ ray through x (the direction from which the scene was seen).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from radiance.camera import Intrinsics
+from radiance.camera import Intrinsics, generate_rays
 
 __all__ = ["NDC", "mean_pose", "fit_ndc"]
 
@@ -61,6 +61,7 @@ class NDC:
     a: float  # -2 fx / W
     b: float  # -2 fy / H
     near: float  # n > 0, scene units: the plane z = -n of the reference frame maps to z' = -1
+    ref_from_world: np.ndarray = field(init=False, repr=False, compare=False)  # [4, 4] inverse, derived once
 
     def __post_init__(self) -> None:
         w = np.asarray(self.world_from_ref, dtype=np.float64)
@@ -69,6 +70,7 @@ class NDC:
         if not (self.near > 0 and math.isfinite(self.near)) or not (self.a < 0 and self.b < 0):
             raise ValueError(f"expected near > 0 and a, b < 0, got near={self.near}, a={self.a}, b={self.b}")
         object.__setattr__(self, "world_from_ref", w)
+        object.__setattr__(self, "ref_from_world", np.linalg.inv(w))
 
     # ---------------------------------------------------------------- (de)serialisation
 
@@ -83,10 +85,18 @@ class NDC:
     # ---------------------------------------------------------------- frames
 
     def _ref_from_world(self, like: Tensor) -> tuple[Tensor, Tensor]:
-        inv = np.linalg.inv(self.world_from_ref)
-        r = torch.as_tensor(inv[:3, :3], dtype=like.dtype, device=like.device)
-        t = torch.as_tensor(inv[:3, 3], dtype=like.dtype, device=like.device)
+        r = torch.as_tensor(self.ref_from_world[:3, :3], dtype=like.dtype, device=like.device)
+        t = torch.as_tensor(self.ref_from_world[:3, 3], dtype=like.dtype, device=like.device)
         return r, t
+
+    def _to_ref(self, x: Tensor) -> Tensor:
+        """World points [..., 3] -> reference-frame points [..., 3]."""
+        r, t = self._ref_from_world(x)
+        return x @ r.T + t
+
+    def _ref_to_ndc(self, q: Tensor) -> Tensor:
+        inv_z = 1.0 / q[..., 2]
+        return torch.stack([self.a * q[..., 0] * inv_z, self.b * q[..., 1] * inv_z, 1.0 + 2.0 * self.near * inv_z], -1)
 
     def _world_from_ref(self, like: Tensor) -> tuple[Tensor, Tensor]:
         r = torch.as_tensor(self.world_from_ref[:3, :3], dtype=like.dtype, device=like.device)
@@ -98,16 +108,11 @@ class NDC:
     def points_to_ndc(self, x: Tensor) -> Tensor:
         """World points [..., 3] -> NDC [..., 3]. Points on or behind the reference plane z >= 0 have no image
         (x' = y' = z' = inf there); callers mask them with `in_front`."""
-        r, t = self._ref_from_world(x)
-        p = x @ r.T + t
-        z = p[..., 2]
-        inv_z = 1.0 / z
-        return torch.stack([self.a * p[..., 0] * inv_z, self.b * p[..., 1] * inv_z, 1.0 + 2.0 * self.near * inv_z], -1)
+        return self._ref_to_ndc(self._to_ref(x))
 
     def in_front(self, x: Tensor) -> Tensor:
         """World points [..., 3] -> bool [...]: beyond the near plane (z < -near in the reference frame)."""
-        r, t = self._ref_from_world(x)
-        return (x @ r[2] + t[2]) < -self.near
+        return self._to_ref(x)[..., 2] < -self.near
 
     def points_from_ndc(self, p: Tensor) -> Tensor:
         """NDC points [..., 3] with z' < 1 -> world points [..., 3] (z' -> 1 is infinitely far: inf)."""
@@ -175,25 +180,35 @@ class NDC:
         v = self._jacobian_times(x @ r.T + t, d @ r.T)
         return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True)
 
+    def _density_scale_ref(self, q: Tensor) -> Tensor:
+        u = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
+        return torch.linalg.vector_norm(self._jacobian_times(q, u), dim=-1)
+
     def world_density_scale(self, x: Tensor) -> Tensor:
         """x [..., 3] world points in front of the near plane -> |J u| [...]: NDC length per world length
         along the reference camera's ray u through x (multiply an NDC density by it for a world density)."""
-        r, t = self._ref_from_world(x)
-        q = x @ r.T + t
-        u = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
-        return torch.linalg.vector_norm(self._jacobian_times(q, u), dim=-1)
+        return self._density_scale_ref(self._to_ref(x))
+
+    def density_query(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """World points x [N, 3] -> (NDC points [N, 3], density scale [N], in front [N] bool), with one
+        change of frame. Points on or before the near plane get the NDC point (0, 0, 0) and scale 0 (they
+        are outside the modelled frustum: world density 0)."""
+        q = self._to_ref(x)
+        front = q[..., 2] < -self.near
+        stand_in = torch.tensor([0.0, 0.0, -2.0 * self.near], dtype=q.dtype, device=q.device)  # maps to z' = 0
+        q = torch.where(front[..., None], q, stand_in)
+        scale = torch.where(front, self._density_scale_ref(q), torch.zeros_like(q[..., 0]))
+        return self._ref_to_ndc(q), scale, front
 
     def box(self, world_from_cam: np.ndarray, intrinsics: list[Intrinsics], margin: float = 0.05) -> np.ndarray:
         """The NDC box [2, 3] that holds every training camera's frustum beyond the near plane: x', y' of the
         image corners at the near plane and at infinity, plus `margin`; z' in [-1, 1]."""
         o, d = [], []
         for w, intr in zip(world_from_cam, intrinsics, strict=True):
-            uv = torch.tensor([[0, 0], [intr.w, 0], [0, intr.h], [intr.w, intr.h]], dtype=torch.float64)
-            x = (uv[:, 0] - intr.cx) / intr.fx
-            y = -(uv[:, 1] - intr.cy) / intr.fy  # OpenGL: y up, looking down -z
-            dirs = torch.stack([x, y, -torch.ones_like(x)], -1) @ torch.as_tensor(w[:3, :3]).T
-            d.append(dirs / torch.linalg.vector_norm(dirs, dim=-1, keepdim=True))
-            o.append(torch.as_tensor(w[:3, 3]).expand(4, 3))
+            corners = torch.tensor([[0, 0], [intr.w, 0], [0, intr.h], [intr.w, intr.h]], dtype=torch.float64)
+            o_w, d_w = generate_rays(intr, torch.as_tensor(w, dtype=torch.float64), uv=corners)
+            o.append(o_w)
+            d.append(d_w)
         o_n, d_n, valid = self.rays_to_ndc(torch.cat(o), torch.cat(d))
         if not bool(valid.all()):
             raise ValueError("a training camera's image corner looks away from the NDC reference view")

@@ -21,7 +21,6 @@ val = test when the source has no val. Frames whose image file is missing are sk
 from __future__ import annotations
 
 import logging
-import math
 import os
 import shutil
 import time
@@ -36,7 +35,7 @@ from data.atomic import atomic_path, write_bytes
 from data.errors import UserError
 from data.importers import Source, SourceFrame, load_source
 from data.rundir import config_to_json, write_manifest
-from data.transforms import Frame, Scene, read_scene, write_scene
+from data.transforms import Frame, Scene, cameras_face_forward, read_scene, write_scene
 from stages.normalize import Normalization, normalize
 
 __all__ = ["Config", "Outputs", "run", "holdout_splits"]
@@ -112,11 +111,7 @@ def _scene_type(source: Source, frames: list[SourceFrame]) -> str:
     """The importer's, else 'forward' when every camera looks within 45 degrees of the mean view, else '360'."""
     if source.scene_type is not None:
         return source.scene_type
-    fwd = -np.stack([f.world_from_cam[:3, 2] for f in frames])
-    mean = fwd.mean(0)
-    if np.linalg.norm(mean) < 1e-9:
-        return "360"
-    return "forward" if (fwd @ (mean / np.linalg.norm(mean))).min() > math.cos(math.radians(45)) else "360"
+    return "forward" if cameras_face_forward(np.stack([f.world_from_cam for f in frames])) else "360"
 
 
 def _compose(norm: Normalization, source_from_original: np.ndarray | None) -> tuple[np.ndarray, float]:

@@ -726,11 +726,9 @@ class Trained:
             if self.ndc is None:
                 out.append(self.field.density(xi))
                 continue
-            front = self.ndc.in_front(xi)
-            inside = self.ndc.points_from_ndc(torch.zeros(1, 3, dtype=xi.dtype, device=xi.device))  # z' = 0
-            xs = torch.where(front[:, None], xi, inside)  # points before the near plane: a harmless stand-in
-            sigma = self.field.density(self.ndc.points_to_ndc(xs).clamp(-2.0, 2.0))
-            out.append(torch.where(front, sigma * self.ndc.world_density_scale(xs), torch.zeros_like(sigma)))
+            p, scale, front = self.ndc.density_query(xi)
+            sigma = self.field.density(p.clamp(-2.0, 2.0))
+            out.append(torch.where(front, sigma * scale, torch.zeros_like(sigma)))
         return torch.cat(out) if out else x.new_zeros(0)
 
     @torch.no_grad()

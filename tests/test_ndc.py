@@ -126,3 +126,16 @@ def test_box_holds_every_camera_frustum_and_bad_input_raises():
     again = NDC.from_dict(ndc.to_dict())
     assert (again.a, again.b, again.near) == (ndc.a, ndc.b, ndc.near)
     np.testing.assert_array_equal(again.world_from_ref, ndc.world_from_ref)
+
+
+def test_density_query_matches_its_parts_and_zeroes_points_before_the_near_plane():
+    ndc = _ndc()
+    ref = torch.as_tensor(ndc.world_from_ref)
+    q = torch.tensor([[0.2, -0.1, -2.5], [-0.5, 0.3, -7.0], [0.1, 0.1, -1.0], [0.0, 0.0, 0.0], [0.3, 0.0, 2.0]],
+                     dtype=torch.float64)  # fmt: skip
+    x = q @ ref[:3, :3].T + ref[:3, 3]
+    p, scale, front = ndc.density_query(x)
+    assert front.tolist() == [True, True, False, False, False]  # near = 1.5
+    np.testing.assert_allclose(p[:2], ndc.points_to_ndc(x[:2]), rtol=1e-12)
+    np.testing.assert_allclose(scale[:2], ndc.world_density_scale(x[:2]), rtol=1e-12)
+    assert bool(torch.isfinite(p).all()) and scale[2:].tolist() == [0.0, 0.0, 0.0]
