@@ -1,22 +1,386 @@
-"""nerfpipe command line: one typer command per stage. Commands only build a stage's Config and call `run`.
+"""nerfpipe command line: one command per stage, generated from the stage's `Config`.
+
+Each command is one line in `STAGES` (module, one-line help, optional summary of the outputs). Its arguments
+and options are read from the stage's frozen `Config` dataclass, so a default, a choice or a help text is
+written once, in the Config:
+- required fields (no default) are positional arguments, in declaration order; a required `tuple[X, ...]`
+  is variadic (report: `RUN_DIR... OUT_DIR`);
+- every other field is an option with the field's default; help is the first sentence of the field's
+  docstring (read with `ast` from the class source);
+- `Literal[...]` -> a choice; `bool` -> `--x/--no-x`; `X | None` -> optional (default None);
+  `tuple[int, ...]`, `tuple[float, float]`, ... -> comma-separated text (`--downscales 2,4,8`);
+  `D | None` with D a dataclass and a non-None default -> `--x/--no-x` (`--no-x` passes None: mesh cleanup);
+- the few fields a rule cannot read from text use the stage's own parser (`PARSERS`);
+- anything else (callables, nested dataclasses) has no option and keeps its Config default.
+
+Lazy commands (decision): importing a stage imports torch (seconds), so `nerfpipe --help` must not import any.
+`_StageGroup` is a TyperGroup whose command table is a lazy mapping: a command is built (its stage module
+imported, its Config read) only when it is invoked or asked for `--help`; the top-level listing uses the help
+line in `STAGES`. Reading the Config with `ast` from its source instead would make `nerfpipe CMD --help` fast
+too, but it means a second, partial evaluator of defaults (`1 << 18`, `field(default_factory=Cleanup)`) and
+annotations that can drift from the class; importing the real class cannot.
+
+Progress: the CLI owns the one live display, a `rich.progress.Progress(transient=True)` on stderr, created only
+when stderr is a terminal (logs, pipes and tests get `progress=None`, i.e. silent stages); it is passed as
+`progress=` to every stage `run` whose signature has that parameter.
 
 Errors: a user error (`data.errors.UserError`) prints one line `error: ...` and exits 2; any other failure
-prints one line and exits 1; `nerfpipe --debug ...` shows the traceback instead.
+prints one line and exits 1; Ctrl-C prints one line and exits 130; `nerfpipe --debug ...` re-raises (traceback).
+Usage errors (bad option, bad choice, missing argument) are typer's own `Error:` lines, exit 2.
 """
 
 from __future__ import annotations
 
+import ast
+import contextlib
+import dataclasses
+import functools
+import importlib
+import inspect
 import sys
-from enum import Enum
+import textwrap
+import types
+import typing
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
-from typing import Annotated, Literal, get_args
+from typing import Annotated, Any, Literal, get_args, get_origin
 
 import typer
+from typer.core import TyperCommand, TyperGroup
 
 from data.errors import UserError
 
+__all__ = ["PARSERS", "STAGES", "Stage", "app", "config_from_args", "main", "skipped_fields"]
+
+
+# ---------------------------------------------------------------------------------------------- summaries
+def _scene(out: Any) -> str:
+    return f"{len(out.images)} images, ground truth and manifest -> {out.out_dir}"
+
+
+def _poses(out: Any) -> str:
+    return (
+        f"{out.registered}/{out.total} images registered, mean reprojection error "
+        f"{out.mean_reprojection_error:.2f} px -> {out.sparse}"
+    )
+
+
+def _convert(out: Any) -> str:
+    return f"{out.num_frames} frames ({out.kind}) -> {out.transforms}; splits {out.splits}"
+
+
+def _train(out: Any) -> str:
+    psnr = "n/a" if out.test_psnr is None else f"{out.test_psnr:.2f} dB"
+    return f"{out.steps} steps in {out.seconds:.1f} s, test PSNR {psnr} -> {out.run_dir}"
+
+
+def _render(out: Any) -> str:
+    return f"{out.n_frames} frames {out.size[0]}x{out.size[1]} -> {out.video}"
+
+
+def _depth(out: Any) -> str:
+    lo, hi = out.depth_range
+    return f"{len(out.names)} depth maps (range {lo:.3g}..{hi:.3g}) -> {out.out_dir}"
+
+
+def _eval(out: Any) -> str:
+    return f"PSNR {out.result.get('psnr')}  SSIM {out.result.get('ssim')}  -> {out.out}"
+
+
+def _report(out: Any) -> str:
+    return f"report -> {out.markdown}, {out.plot}"
+
+
+def _mesh(out: Any) -> str:
+    return (
+        f"{out.vertices} vertices, {out.faces} faces (level {out.threshold:.4g}, watertight {out.watertight}) "
+        f"-> {out.mesh}"
+    )
+
+
+def _done(out: Any) -> str:
+    """Summary for a stage without its own: the first path among its outputs."""
+    values = [getattr(out, f.name) for f in dataclasses.fields(out)] if dataclasses.is_dataclass(out) else []
+    paths = [v for v in values if isinstance(v, Path)]
+    return f"done -> {paths[0]}" if paths else "done"
+
+
+# ---------------------------------------------------------------------------------------------- registry
+@dataclasses.dataclass(frozen=True)
+class Stage:
+    """One command: the stage module (with `Config` and `run`), its one-line help, the success line."""
+
+    module: str
+    help: str
+    summary: Callable[[Any], str] = _done
+
+
+STAGES: dict[str, Stage] = {
+    "scene": Stage("stages.scene", "A procedural textured scene with exact cameras, depth and mesh.", _scene),
+    "poses": Stage("stages.poses", "Camera poses with COLMAP (pycolmap): features, matching, mapping.", _poses),
+    "convert": Stage("stages.convert", "Convert a posed source into SCENE_DIR/transforms.json.", _convert),
+    "train": Stage("stages.train", "Train a radiance field; logs held-out PSNR against wall-clock time.", _train),
+    "render": Stage("stages.render", "Render a turntable, spiral or dataset-camera video of a run.", _render),
+    "depth": Stage("stages.depth", "Depth maps in your units (.npy, 16-bit mm PNG), previews, opacity.", _depth),
+    "eval": Stage("stages.eval", "PSNR, SSIM, render speed (and depth error) on test views, to JSON.", _eval),
+    "report": Stage("stages.report", "Compare runs: held-out PSNR against wall-clock time, and a table.", _report),
+    "mesh": Stage("stages.mesh", "Mesh the density field: marching cubes, cleanup, vertex colours.", _mesh),
+}
+
+# (command, field) -> name of the stage module's `parse(text)` for fields no rule reads from text.
+PARSERS: dict[tuple[str, str], tuple[str, str]] = {
+    ("render", "outputs"): ("parse_outputs", "<name,...>"),
+    ("mesh", "threshold"): ("parse_threshold", "<auto|float>"),
+    ("mesh", "bbox"): ("parse_bbox", "<auto|x0,y0,z0,x1,y1,z1>"),
+}
+
+
+# ---------------------------------------------------------------------------------------------- Config -> params
+_KEEP = object()  # a converted value meaning "leave the Config default"
+_SCALARS = (int, float, str, bool, Path)
+_NOUNS = {int: "integers", float: "numbers", str: "names", Path: "paths"}
+
+
+@dataclasses.dataclass(frozen=True)
+class _Param:
+    """One typer parameter made from one Config field, and how its value becomes the field's."""
+
+    name: str
+    annotation: Any  # Annotated[type, typer.Option(...) | typer.Argument(...)]
+    default: Any = inspect.Parameter.empty
+    to_config: Callable[[Any], Any] = lambda value: value
+
+    def parameter(self) -> inspect.Parameter:
+        return inspect.Parameter(
+            self.name, inspect.Parameter.KEYWORD_ONLY, default=self.default, annotation=self.annotation
+        )
+
+
+def _field_docs(cls: type) -> dict[str, str]:
+    """Field name -> the docstring literal under it, read from the class source."""
+    try:
+        tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    except (OSError, TypeError):
+        return {}
+    body = tree.body[0].body
+    docs = {}
+    for node, doc in zip(body, body[1:], strict=False):
+        if (
+            isinstance(node, ast.AnnAssign)
+            and isinstance(node.target, ast.Name)
+            and isinstance(doc, ast.Expr)
+            and isinstance(doc.value, ast.Constant)
+            and isinstance(doc.value.value, str)
+        ):
+            docs[node.target.id] = doc.value.value
+    return docs
+
+
+def _first_sentence(doc: str) -> str:
+    """Up to the first '. ' outside parentheses (not after 'e.g'/'i.e'), whitespace collapsed."""
+    text = " ".join(doc.split())
+    depth = 0
+    for i, ch in enumerate(text):
+        depth += (ch == "(") - (ch == ")")
+        if (
+            ch == "."
+            and depth == 0
+            and text[i + 1 : i + 2] in ("", " ")
+            and text[max(0, i - 3) : i] not in ("e.g", "i.e")
+        ):
+            return text[: i + 1]
+    return text
+
+
+def _default(f: dataclasses.Field) -> Any:
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    if f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
+    return dataclasses.MISSING
+
+
+def _unwrap_optional(hint: Any) -> tuple[Any, bool]:
+    """`X | None` -> (X, True); other hints -> (hint, False)."""
+    if get_origin(hint) in (typing.Union, types.UnionType):
+        args = get_args(hint)
+        rest = tuple(a for a in args if a is not type(None))
+        if len(rest) < len(args):
+            return (rest[0] if len(rest) == 1 else typing.Union[rest]), True  # noqa: UP007 - built at run time
+    return hint, False
+
+
+def _is_choice(hint: Any) -> bool:
+    return get_origin(hint) is Literal
+
+
+def _tuple_parser(hint: Any) -> tuple[Callable[[str], tuple], str] | None:
+    """`tuple[T, ...]` or `tuple[T1, T2]` of scalars -> (parse comma-separated text, metavar); else None."""
+    if get_origin(hint) is not tuple:
+        return None
+    args = get_args(hint)
+    variadic = len(args) == 2 and args[1] is Ellipsis
+    kinds = args[:1] if variadic else args
+    if not kinds or not all(k in _NOUNS for k in kinds):
+        return None
+    noun = _NOUNS[kinds[0]] if len(set(kinds)) == 1 else "values"
+
+    def parse(text: str) -> tuple:
+        items = [s.strip() for s in text.split(",") if s.strip()]
+        if not variadic and len(items) != len(kinds):
+            raise typer.BadParameter(f"expected {len(kinds)} comma-separated {noun}, got {text!r}")
+        try:
+            return tuple(kind(s) for kind, s in zip(kinds * len(items) if variadic else kinds, items, strict=True))
+        except ValueError:
+            raise typer.BadParameter(f"expected comma-separated {noun}, got {text!r}") from None
+
+    names = [k.__name__.lower() for k in kinds]
+    return parse, "<" + (f"{names[0]},..." if variadic else ",".join(names)) + ">"
+
+
+def _as_text(value: Any) -> Any:
+    """A tuple default as the text one would type (`2,4,8`); other values unchanged."""
+    return ",".join(str(v) for v in value) if isinstance(value, tuple) else value
+
+
+def _param(command: str, module: types.ModuleType, f: dataclasses.Field, hint: Any, doc: str) -> _Param | None:
+    """The typer parameter for one Config field, or None for a field with no command-line form."""
+    help_ = _first_sentence(doc)
+    default = _default(f)
+    base, optional = _unwrap_optional(hint)
+    if default is dataclasses.MISSING:  # a positional argument
+        if get_origin(base) is tuple and len(get_args(base)) == 2 and get_args(base)[1] is Ellipsis:
+            return _Param(f.name, Annotated[list[get_args(base)[0]], typer.Argument(help=help_)], to_config=tuple)
+        return _Param(f.name, Annotated[base, typer.Argument(help=help_)])
+    if (command, f.name) in PARSERS:
+        parser, metavar = PARSERS[command, f.name]
+        option = typer.Option(help=help_, parser=getattr(module, parser), metavar=metavar)
+        return _Param(f.name, Annotated[str | None, option], _as_text(default))
+    if optional and dataclasses.is_dataclass(base) and default is not None:  # a nested config: on (default) / off
+        return _Param(f.name, Annotated[bool, typer.Option(help=help_)], True, lambda on: _KEEP if on else None)
+    if tuple_parser := _tuple_parser(base):
+        parse, metavar = tuple_parser
+        option = typer.Option(help=help_, parser=parse, metavar=metavar)
+        return _Param(f.name, Annotated[str | None if optional else str, option], _as_text(default))
+    if base in _SCALARS or _is_choice(base):
+        return _Param(f.name, Annotated[base | None if optional else base, typer.Option(help=help_)], default)
+    return None  # callables, nested dataclasses, unions: not settable from the command line
+
+
+@functools.cache
+def _stage_params(command: str) -> tuple[types.ModuleType, tuple[_Param, ...]]:
+    """Import the stage and turn its Config fields into typer parameters (once per process)."""
+    module = importlib.import_module(STAGES[command].module)
+    config_cls = module.Config
+    hints, docs = typing.get_type_hints(config_cls), _field_docs(config_cls)
+    params = []
+    for f in dataclasses.fields(config_cls):
+        if f.init and (p := _param(command, module, f, hints[f.name], docs.get(f.name, ""))) is not None:
+            params.append(p)
+    return module, tuple(params)
+
+
+def skipped_fields(command: str) -> list[str]:
+    """Config fields of `command` with no option or argument (they keep their Config default)."""
+    module, params = _stage_params(command)
+    return sorted({f.name for f in dataclasses.fields(module.Config) if f.init} - {p.name for p in params})
+
+
+def _make_config(command: str, values: Mapping[str, Any]) -> Any:
+    module, params = _stage_params(command)
+    kwargs = {p.name: p.to_config(values[p.name]) for p in params}
+    return module.Config(**{k: v for k, v in kwargs.items() if v is not _KEEP})
+
+
+# ---------------------------------------------------------------------------------------------- running a stage
+@contextlib.contextmanager
+def _progress() -> Iterator[Any]:
+    """The one live progress display, on stderr; None (silent stages) when stderr is not a terminal."""
+    if not sys.stderr.isatty():
+        yield None
+        return
+    from rich.console import Console
+    from rich.progress import Progress, TimeElapsedColumn
+
+    with Progress(
+        *Progress.get_default_columns(), TimeElapsedColumn(), console=Console(stderr=True), transient=True
+    ) as p:
+        yield p
+
+
+def _run_stage(command: str, values: Mapping[str, Any]) -> None:
+    module, _ = _stage_params(command)
+    config = _make_config(command, values)
+    takes_progress = "progress" in inspect.signature(module.run).parameters
+    with _progress() as progress:
+        out = module.run(config, **({"progress": progress} if takes_progress else {}))
+    typer.echo(STAGES[command].summary(out))
+
+
+@functools.cache
+def _command(command: str) -> TyperCommand:
+    """The typer command for a stage: a callback whose signature is made from the Config."""
+    _, params = _stage_params(command)
+
+    def callback(**values: Any) -> None:
+        _run_stage(command, values)
+
+    callback.__signature__ = inspect.Signature([p.parameter() for p in params])  # what typer reads
+    single = typer.Typer(add_completion=False, rich_markup_mode=None, pretty_exceptions_enable=False)
+    single.command(name=command, help=STAGES[command].help)(callback)
+    return typer.main.get_command(single)
+
+
+def config_from_args(command: str, args: list[str]) -> Any:
+    """The stage Config that `nerfpipe COMMAND ARGS...` would run with (parsing errors raise)."""
+    ctx = _command(command).make_context(command, list(args))
+    return _make_config(command, ctx.params)
+
+
+# ---------------------------------------------------------------------------------------------- the app
+class _LazyCommands(Mapping[str, TyperCommand]):
+    """STAGES as a command table: a command is built on first lookup."""
+
+    def __getitem__(self, name: str) -> TyperCommand:
+        if name not in STAGES:
+            raise KeyError(name)
+        return _command(name)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(STAGES)
+
+    def __len__(self) -> int:
+        return len(STAGES)
+
+
+class _Interrupted(Exception):
+    """Ctrl-C inside a command, carried past typer (which would turn it into a silent exit 130)."""
+
+
+class _StageGroup(TyperGroup):
+    """The top-level group: commands from STAGES, imported only when used."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.commands = _LazyCommands()
+
+    def list_commands(self, ctx: Any) -> list[str]:
+        return list(STAGES)
+
+    def format_commands(self, ctx: Any, formatter: Any) -> None:
+        with formatter.section("Commands"):  # from STAGES: listing the commands imports no stage
+            formatter.write_dl([(name, stage.help) for name, stage in STAGES.items()])
+
+    def invoke(self, ctx: Any) -> Any:
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt as e:
+            raise _Interrupted() from e
+
+
 app = typer.Typer(
     name="nerfpipe",
+    cls=_StageGroup,
     help="Photos, video or posed datasets -> camera poses, a radiance field, turntable videos, depth maps, meshes.",
     no_args_is_help=True,
     add_completion=False,
@@ -24,6 +388,12 @@ app = typer.Typer(
     rich_markup_mode=None,
     context_settings={"help_option_names": ["-h", "--help"]},
 )
+_debug = False  # --debug, set while the arguments are parsed (before a stage is imported); read by main()
+
+
+def _debug_callback(value: bool) -> None:
+    global _debug
+    _debug = value
 
 
 def _version_callback(value: bool) -> None:
@@ -39,334 +409,13 @@ def _main(
     version: Annotated[
         bool, typer.Option("--version", callback=_version_callback, is_eager=True, help="Print the version.")
     ] = False,
-    debug: Annotated[bool, typer.Option("--debug", help="Show Python tracebacks on errors.")] = False,
+    debug: Annotated[
+        bool, typer.Option("--debug", callback=_debug_callback, is_eager=True, help="Show Python tracebacks on errors.")
+    ] = False,
 ) -> None:
     """nerfpipe: each command is one stage; stages talk only through files."""
 
 
-def _choices(name: str, literal) -> type[Enum]:
-    """A str Enum of a Literal's values, so typer shows and checks the choices."""
-    return Enum(name, {v: v for v in get_args(literal)}, type=str)
-
-
-def _csv_ints(text: str, option: str) -> tuple[int, ...]:
-    try:
-        return tuple(int(v) for v in text.split(",") if v.strip())
-    except ValueError:
-        raise UserError(f"{option}: expected comma-separated integers, got {text!r}") from None
-
-
-Device = _choices("Device", Literal["auto", "cpu", "cuda"])
-DeviceOpt = Annotated[Device, typer.Option(help="Where to run: auto uses CUDA when available.")]
-
-
-# ---------------------------------------------------------------------------------------------- scene
-SceneKind = _choices("SceneKind", Literal["photos", "posed", "rgba"])
-SceneLayout = _choices("SceneLayout", Literal["orbit", "forward"])
-
-
-@app.command()
-def scene(
-    out_dir: Annotated[Path, typer.Argument(help="Folder to write the synthetic scene into.")],
-    kind: Annotated[SceneKind, typer.Option(help="photos: bare images; posed/rgba: with transforms.json.")] = "posed",
-    size: Annotated[int, typer.Option(help="Image width and height in pixels.")] = 64,
-    views: Annotated[int, typer.Option(help="Number of camera views.")] = 24,
-    seed: Annotated[int, typer.Option(help="Random seed (the scene is deterministic for a seed).")] = 0,
-    layout: Annotated[SceneLayout, typer.Option(help="orbit: 360-degree rig; forward: LLFF-style.")] = "orbit",
-) -> None:
-    """Generate a procedural, textured scene with exact cameras, depth and surface mesh."""
-    from stages import scene as stage
-
-    out = stage.run(stage.Config(out_dir=out_dir, kind=SceneKind(kind).value, size=size, views=views, seed=seed,
-                                 layout=SceneLayout(layout).value))  # fmt: skip
-    typer.echo(f"{len(out.images)} images, ground truth and manifest -> {out.out_dir}")
-
-
-# ---------------------------------------------------------------------------------------------- poses
-Matcher = _choices("Matcher", Literal["auto", "exhaustive", "sequential"])
-CameraModel = _choices("CameraModel", Literal["SIMPLE_RADIAL", "RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE"])
-
-
-@app.command()
-def poses(
-    input: Annotated[Path, typer.Argument(help="A folder of photos or a video file.")],
-    scene_dir: Annotated[Path, typer.Argument(help="Output folder: colmap/ and poses_report.json.")],
-    max_image_size: Annotated[int, typer.Option(help="Downscale images to this long side for features.")] = 1000,
-    max_num_features: Annotated[int, typer.Option(help="SIFT features per image.")] = 2048,
-    matcher: Annotated[Matcher, typer.Option(help="auto: exhaustive for photos, sequential for video.")] = "auto",
-    single_camera: Annotated[bool, typer.Option(help="One shared camera per image size.")] = True,
-    camera_model: Annotated[CameraModel, typer.Option(help="COLMAP camera model.")] = "SIMPLE_RADIAL",
-    video_frames: Annotated[int, typer.Option(help="Frames to extract from a video (sharpest per window).")] = 150,
-    drop_blurry: Annotated[float, typer.Option(help="Drop the blurriest images: a fraction (<1) or a count.")] = 0.0,
-    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
-) -> None:
-    """Camera poses with COLMAP (in-process, pycolmap): features, matching, mapping; keeps the largest model."""
-    from stages import poses as stage
-
-    out = stage.run(
-        stage.Config(
-            input=input,
-            scene_dir=scene_dir,
-            max_image_size=max_image_size,
-            max_num_features=max_num_features,
-            matcher=Matcher(matcher).value,
-            single_camera=single_camera,
-            camera_model=CameraModel(camera_model).value,
-            video_frames=video_frames,
-            drop_blurry=drop_blurry,
-            seed=seed,
-        )  # fmt: skip
-    )
-    typer.echo(
-        f"{out.registered}/{out.total} images registered, mean reprojection error "
-        f"{out.mean_reprojection_error:.2f} px -> {out.sparse}"
-    )
-
-
-# ---------------------------------------------------------------------------------------------- convert
-ConvertKind = _choices("ConvertKind", Literal["auto", "colmap", "blender", "llff", "npz", "transforms"])
-UpAxis = _choices("UpAxis", Literal["auto", "keep", "cameras"])
-
-
-@app.command()
-def convert(
-    source: Annotated[
-        Path, typer.Argument(help="COLMAP model/folder, Blender folder, LLFF folder, .npz, or transforms.json.")
-    ],
-    scene_dir: Annotated[Path, typer.Argument(help="Output folder for transforms.json and images.")],
-    kind: Annotated[ConvertKind, typer.Option(help="Source kind; auto looks at the files.")] = "auto",
-    images: Annotated[Path | None, typer.Option(help="Image folder for COLMAP/LLFF sources (default: found).")] = None,
-    downscales: Annotated[str, typer.Option(help="Factors for downscaled copies images_F, comma-separated.")] = "2,4,8",
-    holdout_every: Annotated[int, typer.Option(help="Without the dataset's own split, every N-th frame is test.")] = 8,
-    up: Annotated[UpAxis, typer.Option(help="Up axis: keep the source z, or the cameras' mean up.")] = "auto",
-    normalize: Annotated[bool, typer.Option(help="Re-centre and scale the scene into [-1, 1]^3.")] = True,
-) -> None:
-    """Convert a posed source into SCENE_DIR/transforms.json (OpenGL, normalised, transform recorded)."""
-    from stages import convert as stage
-
-    out = stage.run(
-        stage.Config(
-            source=source,
-            scene_dir=scene_dir,
-            kind=ConvertKind(kind).value,
-            images=images,
-            downscales=_csv_ints(downscales, "--downscales"),
-            holdout_every=holdout_every,
-            up=UpAxis(up).value,
-            normalize=normalize,
-        )  # fmt: skip
-    )
-    typer.echo(f"{out.num_frames} frames ({out.kind}) -> {out.transforms}; splits {out.splits}")
-
-
-# ---------------------------------------------------------------------------------------------- train
-FieldKind = _choices("FieldKind", Literal["fast", "vanilla"])
-SceneModel = _choices("SceneModel", Literal["auto", "box", "ndc"])
-
-
-@app.command()
-def train(
-    scene_dir: Annotated[Path, typer.Argument(help="Folder with transforms.json.")],
-    run_dir: Annotated[Path, typer.Argument(help="Run directory to write (config, checkpoint, metrics).")],
-    field: Annotated[FieldKind, typer.Option(help="fast: factorised grid (default); vanilla: the NeRF paper.")] = (
-        "fast"
-    ),
-    max_steps: Annotated[int, typer.Option(help="Stop after this many steps.")] = 30000,
-    max_seconds: Annotated[float, typer.Option(help="Stop after this many seconds of training.")] = 900.0,
-    device: DeviceOpt = "auto",
-    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
-    resume: Annotated[bool, typer.Option(help="Continue from RUN_DIR/checkpoint.pt.")] = False,
-    batch_rays: Annotated[int | None, typer.Option(help="Rays per step (default: 1024 on CPU, 4096 on CUDA).")] = None,
-    lr: Annotated[float | None, typer.Option(help="Base learning rate (default: per field).")] = None,
-    eval_every: Annotated[int, typer.Option(help="Held-out PSNR every N steps (0: only at the end).")] = 250,
-    view_dependent: Annotated[
-        bool | None, typer.Option("--view-dependent/--no-view-dependent", help="Colour depends on view direction.")
-    ] = None,
-    final_eval_views: Annotated[
-        int | None, typer.Option(help="Test views rendered in full at the end (evenly spaced; default all).")
-    ] = None,
-    scene_model: Annotated[
-        SceneModel, typer.Option(help="box: the scene's aabb; ndc: forward-facing NDC; auto: from the cameras.")
-    ] = "auto",
-) -> None:
-    """Train a radiance field; logs held-out PSNR against wall-clock seconds."""
-    from stages import train as stage
-
-    out = stage.run(
-        stage.Config(
-            scene_dir=scene_dir,
-            run_dir=run_dir,
-            field=FieldKind(field).value,
-            max_steps=max_steps,
-            max_seconds=max_seconds,
-            device=Device(device).value,
-            seed=seed,
-            resume=resume,
-            batch_rays=batch_rays,
-            lr=lr,
-            eval_every=eval_every,
-            view_dependent=view_dependent,
-            final_eval_views=final_eval_views,
-            scene_model=SceneModel(scene_model).value,
-        )  # fmt: skip
-    )
-    psnr = "n/a" if out.test_psnr is None else f"{out.test_psnr:.2f} dB"
-    typer.echo(f"{out.steps} steps in {out.seconds:.1f} s, test PSNR {psnr} -> {out.run_dir}")
-
-
-# ---------------------------------------------------------------------------------------------- render
-RenderPath = _choices("RenderPath", Literal["auto", "turntable", "spiral", "test", "train"])
-
-
-@app.command()
-def render(
-    run_dir: Annotated[Path, typer.Argument(help="A trained run directory.")],
-    out: Annotated[Path, typer.Argument(help="Output video (.mp4, H.264).")],
-    path: Annotated[RenderPath, typer.Option(help="auto: spiral if forward-facing, else turntable.")] = "auto",
-    frames: Annotated[int, typer.Option(help="Frames for turntable/spiral.")] = 120,
-    fps: Annotated[float, typer.Option(help="Frames per second.")] = 30.0,
-    downscale: Annotated[float, typer.Option(help="Divide the training image size by this.")] = 1.0,
-    elevation: Annotated[float | None, typer.Option(help="Turntable elevation in degrees (default: cameras').")] = None,
-    radius: Annotated[float | None, typer.Option(help="Orbit radius in your units (default: cameras').")] = None,
-    outputs: Annotated[str, typer.Option(help="Panels side by side: rgb,depth,accumulation.")] = "rgb",
-    frames_dir: Annotated[Path | None, typer.Option(help="Also write PNG frames here.")] = None,
-    device: DeviceOpt = "auto",
-) -> None:
-    """Render a turntable, spiral or dataset-camera video of a trained run."""
-    from stages import render as stage
-
-    out_ = stage.run(
-        stage.Config(
-            run_dir=run_dir,
-            out=out,
-            path=RenderPath(path).value,
-            frames=frames,
-            fps=fps,
-            downscale=downscale,
-            elevation=elevation,
-            radius=radius,
-            outputs=stage.parse_outputs(outputs),
-            frames_dir=frames_dir,
-            device=Device(device).value,
-        )  # fmt: skip
-    )
-    typer.echo(f"{out_.n_frames} frames {out_.size[0]}x{out_.size[1]} -> {out_.video}")
-
-
-# ---------------------------------------------------------------------------------------------- depth
-DepthViews = _choices("DepthViews", Literal["test", "train", "turntable"])
-DepthKind = _choices("DepthKind", Literal["expected", "median"])
-
-
-@app.command()
-def depth(
-    run_dir: Annotated[Path, typer.Argument(help="A trained run directory.")],
-    out_dir: Annotated[Path, typer.Argument(help="Output folder for depth maps.")],
-    views: Annotated[DepthViews, typer.Option(help="Which cameras.")] = "test",
-    kind: Annotated[DepthKind, typer.Option(help="Expected or median ray-termination depth.")] = "expected",
-    frames: Annotated[int, typer.Option(help="Frames for --views turntable.")] = 120,
-    downscale: Annotated[float, typer.Option(help="Divide the image size by this.")] = 1.0,
-    video: Annotated[bool, typer.Option(help="Also write depth.mp4.")] = False,
-    device: DeviceOpt = "auto",
-) -> None:
-    """Depth maps in your units (.npy), 16-bit millimetre PNGs, coloured previews and opacity."""
-    from stages import depth as stage
-
-    out = stage.run(
-        stage.Config(
-            run_dir=run_dir,
-            out_dir=out_dir,
-            views=DepthViews(views).value,
-            kind=DepthKind(kind).value,
-            frames=frames,
-            downscale=downscale,
-            video=video,
-            device=Device(device).value,
-        )  # fmt: skip
-    )
-    lo, hi = out.depth_range
-    typer.echo(f"{len(out.names)} depth maps (range {lo:.3g}..{hi:.3g}) -> {out.out_dir}")
-
-
-# ---------------------------------------------------------------------------------------------- eval
-@app.command(name="eval")
-def eval_(
-    run_dir: Annotated[Path, typer.Argument(help="A trained run directory.")],
-    out: Annotated[Path, typer.Argument(help="Output JSON.")],
-    ground_truth: Annotated[Path | None, typer.Option(help="A synthetic scene's ground_truth/ folder.")] = None,
-    device: DeviceOpt = "auto",
-) -> None:
-    """PSNR, SSIM, render speed (and depth error with ground truth) on the test views, to JSON."""
-    from stages import eval as stage
-
-    res = stage.run(stage.Config(run_dir=run_dir, out=out, ground_truth=ground_truth, device=Device(device).value))
-    r = res.result
-    typer.echo(f"PSNR {r.get('psnr')}  SSIM {r.get('ssim')}  -> {res.out}")
-
-
-# ---------------------------------------------------------------------------------------------- report
-@app.command()
-def report(
-    runs_and_out: Annotated[list[Path], typer.Argument(help="RUN_DIR... OUT_DIR")],
-    levels: Annotated[str, typer.Option(help="PSNR levels (dB) for time-to-reach, comma-separated.")] = "20,25,30",
-) -> None:
-    """Compare runs: held-out PSNR against wall-clock seconds (PNG) and a table (markdown + CSV)."""
-    from stages import report as stage
-
-    if len(runs_and_out) < 2:
-        raise UserError("report: expected at least one RUN_DIR and an OUT_DIR")
-    try:
-        lv = tuple(float(v) for v in levels.split(",") if v.strip())
-    except ValueError:
-        raise UserError(f"--levels: expected comma-separated numbers, got {levels!r}") from None
-    out = stage.run(stage.Config(runs=tuple(runs_and_out[:-1]), out_dir=runs_and_out[-1], levels=lv))
-    typer.echo(f"report -> {out.markdown}, {out.plot}")
-
-
-# ---------------------------------------------------------------------------------------------- mesh
-MeshFrame = _choices("MeshFrame", Literal["user", "normalized"])
-
-
-@app.command()
-def mesh(
-    run_dir: Annotated[Path, typer.Argument(help="A trained run directory.")],
-    out: Annotated[Path, typer.Argument(help="Output mesh: .ply, .obj or .glb.")],
-    resolution: Annotated[int, typer.Option(help="Grid cells along the box's longest side.")] = 256,
-    threshold: Annotated[str, typer.Option(help="Density iso-level, or auto (from training rays).")] = "auto",
-    bbox: Annotated[str, typer.Option(help="auto, or x0,y0,z0,x1,y1,z1 in the chosen frame.")] = "auto",
-    frame: Annotated[MeshFrame, typer.Option(help="user: your source frame and units; normalized: training.")] = (
-        "user"
-    ),
-    target_faces: Annotated[int | None, typer.Option(help="Decimate to about this many faces.")] = None,
-    cleanup: Annotated[bool, typer.Option(help="Remove floaters, repair, smooth (pymeshlab).")] = True,
-    colors: Annotated[bool, typer.Option(help="Vertex colours from the field.")] = True,
-    device: DeviceOpt = "auto",
-) -> None:
-    """Mesh the density field: marching cubes, cleanup, colours, exported in your coordinates."""
-    from stages import mesh as stage
-
-    kwargs = {} if cleanup else {"cleanup": None}
-    out_ = stage.run(
-        stage.Config(
-            run_dir=run_dir,
-            out=out,
-            resolution=resolution,
-            threshold=stage.parse_threshold(threshold),
-            bbox=stage.parse_bbox(bbox),
-            frame=MeshFrame(frame).value,
-            target_faces=target_faces,
-            colors=colors,
-            device=Device(device).value,
-            **kwargs,
-        )  # fmt: skip
-    )
-    typer.echo(
-        f"{out_.vertices} vertices, {out_.faces} faces (level {out_.threshold:.4g}, watertight {out_.watertight}) "
-        f"-> {out_.mesh}"
-    )
-
-
-# ---------------------------------------------------------------------------------------------- entry
 def _one_line(text: str) -> str:
     lines = [ln.strip() for ln in str(text).strip().splitlines() if ln.strip()]
     return lines[0] if lines else ""
@@ -374,20 +423,22 @@ def _one_line(text: str) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     """Console entry point: runs the app and turns errors into one line and an exit code."""
-    args = list(sys.argv[1:] if argv is None else argv)
-    debug = "--debug" in args
+    global _debug
+    _debug = False
     try:
-        app(args=args, prog_name="nerfpipe")  # standalone: --help, usage errors and typer.Exit end here
-    except KeyboardInterrupt:
+        app(args=list(sys.argv[1:] if argv is None else argv), prog_name="nerfpipe")  # usage errors end here
+    except _Interrupted as e:
+        if _debug:
+            raise e.__cause__ from None
         print("error: interrupted", file=sys.stderr)
         sys.exit(130)
     except UserError as e:
-        if debug:
+        if _debug:
             raise
         print(f"error: {_one_line(str(e))}", file=sys.stderr)
         sys.exit(2)
     except Exception as e:  # noqa: BLE001 - the CLI boundary: one line, traceback only with --debug
-        if debug:
+        if _debug:
             raise
         print(f"error: {type(e).__name__}: {_one_line(str(e))} (rerun with --debug for details)", file=sys.stderr)
         sys.exit(1)

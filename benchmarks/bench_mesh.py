@@ -5,14 +5,14 @@ Run: .venv/bin/python -m benchmarks.bench_mesh --out runs/bench/mesh [--resoluti
 
 Two fields, each meshed by `stages.mesh` at every resolution in a fresh process (so the peak RSS is that
 resolution's), Chamfer measured in the source (user) frame without any re-alignment:
-- the analytic stand-in (`stages.mesh_fixtures`: sphere U box, applied_scale 0.25 and a rotation), against its
+- the analytic stand-in (`benchmarks.standin`: sphere U box, applied_scale 0.25 and a rotation), against its
   exact surface; with the auto threshold and with the exact level sigma_max / 2;
 - a field trained on the synthetic `posed` scene (`stages.scene` -> `stages.convert` -> `stages.train`),
   against `ground_truth/mesh.ply` (metres). Only surface a training camera can see counts, on both sides:
   a point counts when, from some training camera, it lies in the image and the exact scene's first hit along
   the ray to it is not nearer than the point minus 1 cm (hidden faces: the slab's underside, the parts of
   objects sunk into the slab, the inside of the predicted slab are dropped; floaters in free space count).
-Chamfer = symmetric mean of nearest-neighbour distances (`stages.mesh.chamfer_distance`), 200k points per
+Chamfer = symmetric mean of nearest-neighbour distances (`benchmarks.mesh_metrics.chamfer_distance`), 200k points per
 side sampled uniformly by area; reported absolutely and as % of the ground truth's bounding-box diagonal.
 """
 
@@ -36,7 +36,7 @@ POINTS = 200_000
 def _mesh_points(path: Path, n: int) -> np.ndarray:
     import trimesh
 
-    from stages.mesh import surface_points
+    from benchmarks.mesh_metrics import surface_points
 
     m = trimesh.load(path, force="mesh", process=False)
     return surface_points(np.asarray(m.vertices), np.asarray(m.faces), n, seed=1)
@@ -46,15 +46,16 @@ def measure(spec: dict) -> dict:
     """One meshing run (called in a fresh process): returns figures as a dict."""
     import trimesh
 
+    from benchmarks.mesh_metrics import chamfer_distance
+    from benchmarks.standin import visible_points
     from stages import mesh
-    from stages.mesh_fixtures import visible_points
 
     out = Path(spec["out"])
     cfg = mesh.Config(run_dir=Path(spec.get("run_dir", out.parent)), out=out, resolution=spec["resolution"],
                       threshold=spec.get("threshold", "auto"))  # fmt: skip
     t0 = time.perf_counter()
     if spec["kind"] == "standin":
-        from stages.mesh_fixtures import StandIn
+        from benchmarks.standin import StandIn
 
         standin = StandIn(out.parent)
         result = mesh.extract(standin, cfg)
@@ -66,7 +67,7 @@ def measure(spec: dict) -> dict:
         seconds = time.perf_counter() - t0
         src = Path(spec["scene_src"])
         gt_mesh = trimesh.load(src / "ground_truth" / "mesh.ply", force="mesh", process=False)
-        from stages.mesh import surface_points
+        from benchmarks.mesh_metrics import surface_points
 
         gt = surface_points(np.asarray(gt_mesh.vertices), np.asarray(gt_mesh.faces), 2 * POINTS, seed=2)
         gt = gt[visible_points(gt, src)]
@@ -74,7 +75,7 @@ def measure(spec: dict) -> dict:
         pred = pred[visible_points(pred, src)]
     report = json.loads(result.report.read_text())
     diag = float(np.linalg.norm(gt.max(0) - gt.min(0)))
-    chamfer = mesh.chamfer_distance(pred, gt)
+    chamfer = chamfer_distance(pred, gt)
     return {
         "kind": spec["kind"], "resolution": spec["resolution"], "threshold": result.threshold,
         "threshold_rule": spec.get("threshold", "auto"), "chamfer": chamfer, "chamfer_pct_diag": 100 * chamfer / diag,

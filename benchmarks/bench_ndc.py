@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from model import load_trained
 from radiance.camera import generate_rays, z_depth_from_t
 from stages import scene as scene_stage
 from stages import train
@@ -27,7 +28,7 @@ __all__ = ["main"]
 
 def _depth_error(run_dir: Path, scene_dir: Path) -> float:
     """Median |z - z_gt| / z_gt over the test views' pixels that are opaque in the render and the truth."""
-    trained = train.load_trained(run_dir, "cpu")
+    trained = load_trained(run_dir, "cpu")
     errors = []
     for view in trained.scene.split("test"):
         frame = trained.scene.frames[view]

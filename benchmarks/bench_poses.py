@@ -24,14 +24,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from data.ground_truth import read_ground_truth  # noqa: E402
+from data.importers.colmap import read_world_from_cam  # noqa: E402
+from data.transforms import read_scene  # noqa: E402
+from radiance.align import pose_errors  # noqa: E402
 from stages import poses  # noqa: E402
-from stages.poses_eval import (  # noqa: E402
-    OPENGL_FROM_OPENCV,
-    pose_errors,
-    read_colmap_world_from_cam,
-    read_scene_cameras,
-    read_transforms_world_from_cam,
-)
 
 FOX = ROOT.parent / "shared" / "data" / "fox"
 
@@ -53,12 +50,9 @@ def bench(name: str, images: Path, reference: dict[str, np.ndarray], out: Path, 
     cpu0, t0 = _cpu_seconds(), time.perf_counter()
     result = poses.run(config)
     wall, cpu = time.perf_counter() - t0, _cpu_seconds() - cpu0
-    est = read_colmap_world_from_cam(result.sparse)
+    est = read_world_from_cam(result.sparse)  # OpenGL axes, like both references
     common = sorted(set(est) & set(reference))
-    err = pose_errors(
-        np.stack([est[n] @ OPENGL_FROM_OPENCV for n in common]),  # COLMAP OpenCV axes -> OpenGL
-        np.stack([reference[n] for n in common]),
-    )
+    err = pose_errors(np.stack([est[n] for n in common]), np.stack([reference[n] for n in common]))
     line = {
         "scene": name,
         "registered": f"{result.registered}/{result.total}",
@@ -89,14 +83,15 @@ def main(argv: list[str] | None = None) -> None:
             if not (FOX / "images").is_dir():
                 print(f"fox: skipped, {FOX} not found")
             else:
-                ref = read_transforms_world_from_cam(FOX / "transforms.json")
+                frames = read_scene(FOX / "transforms.json").frames  # OpenGL, instant-ngp's world frame
+                ref = {Path(f.file_path).name: f.world_from_cam for f in frames}
                 bench("fox", FOX / "images", ref, out / "fox", args)
         if args.only in (None, "synthetic"):
             from stages import scene
 
             scene_dir = out / "synthetic_scene"
             scene.run(scene.Config(out_dir=scene_dir, kind="photos", size=256, views=40, seed=args.seed))
-            ref = read_scene_cameras(scene_dir / "ground_truth" / "cameras.json")
+            ref = read_ground_truth(scene_dir).by_file_name()
             bench("synthetic", scene_dir / "images", ref, out / "synthetic", args)
 
 

@@ -22,10 +22,25 @@ from typing import Any
 
 from data.atomic import write_json, write_text
 
-__all__ = ["config_to_json", "write_config", "write_manifest", "sha256_file", "versions", "MetricsLog", "Stopwatch"]
+__all__ = [
+    "config_to_json",
+    "write_config",
+    "write_manifest",
+    "sha256_file",
+    "versions",
+    "sidecar",
+    "MetricsLog",
+    "Stopwatch",
+]
 
 _PACKAGES = ("nerfpipe", "torch", "numpy", "pycolmap", "opencv-contrib-python-headless", "scikit-image", "trimesh",
              "pymeshlab")  # fmt: skip
+
+
+def sidecar(out: str | os.PathLike, what: str) -> Path:
+    """`dir/name.mp4` -> `dir/name.<what>` (the manifest / metrics files written next to a file output)."""
+    out = Path(out)
+    return out.with_name(f"{out.stem}.{what}")
 
 
 def versions() -> dict[str, str]:

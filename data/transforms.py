@@ -113,6 +113,12 @@ class Scene:
     def source_from_scene(self) -> np.ndarray:  # [4, 4]
         return np.linalg.inv(self.scene_from_source())
 
+    def source_world_from_cam(self, world_from_cam: np.ndarray) -> np.ndarray:  # [4, 4] -> [4, 4]
+        """A scene-frame camera in the source frame (rigid: the scale goes into the centre only)."""
+        m = self.source_from_scene() @ np.asarray(world_from_cam, dtype=np.float64)
+        m[:3, :3] /= np.linalg.norm(m[:3, :3], axis=0, keepdims=True)
+        return m
+
     def replace(self, **changes: Any) -> Scene:
         return dataclasses.replace(self, **changes)
 

@@ -6,7 +6,7 @@ DEMO_TRAIN_ARGS := --max-seconds 120
 # ~30k rays/s on 2 CPU cores: 60 frames at half size keep the demo within its 6 minutes
 DEMO_RENDER_ARGS := --frames 60 --downscale 2
 
-$(DEMO_INPUT)/manifest.json: pipelines/demo.mk stages/scene.py $(wildcard stages/scene_*.py) | $(INSTALLED)
+$(DEMO_INPUT)/manifest.json: pipelines/demo.mk $(call stage_code,scene) | $(INSTALLED)
 	$(NERFPIPE) scene $(DEMO_INPUT) $(DEMO_SCENE_ARGS)
 
 .PHONY: demo

@@ -38,6 +38,7 @@ __all__ = [
     "median_depth",
     "composite",
     "beer_lambert",
+    "over_background",
 ]
 
 
@@ -300,3 +301,12 @@ def beer_lambert(
         "optical_depth": total.to(mus.dtype),
         "transmittance": trans.to(mus.dtype),
     }
+
+
+def over_background(rgb, alpha, background):
+    """Straight-alpha colour over a background: rgb * alpha + (1 - alpha) * background.
+
+    rgb [..., 3], alpha [..., 1] (or broadcastable), background [3] or [..., 3]; torch tensors or numpy arrays
+    (plain arithmetic). The one place photos with alpha meet a background, in training targets and evaluation.
+    """
+    return rgb * alpha + (1 - alpha) * background

@@ -9,7 +9,7 @@ Writes, in this order:
   the source frame);
 - `transforms.json` (atomic, `data.transforms.write_scene`): OpenGL camera-to-world in the scene frame,
   intrinsics with their distortion kept (rays are undistorted, images are not resampled), `applied_transform`
-  + `applied_scale` (source -> scene, see `stages.normalize` for how they are chosen), `aabb`, `near`, `far`,
+  + `applied_scale` (source -> scene, see `radiance.normalize` for how they are chosen), `aabb`, `near`, `far`,
   `has_alpha`, `train/val/test_filenames`, and `scene_type` ('object', 'forward' or '360');
 - `convert_manifest.json` last.
 
@@ -36,7 +36,7 @@ from data.errors import UserError
 from data.importers import Source, SourceFrame, load_source
 from data.rundir import config_to_json, write_manifest
 from data.transforms import Frame, Scene, cameras_face_forward, read_scene, write_scene
-from stages.normalize import Normalization, normalize
+from radiance.normalize import Normalization, normalize
 
 __all__ = ["Config", "Outputs", "run", "holdout_splits"]
 

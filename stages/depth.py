@@ -25,18 +25,18 @@ import contextlib
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
 from data.atomic import atomic_path, write_json
 from data.errors import UserError
+from data.progress import NO_PROGRESS, Progress
 from data.rundir import MetricsLog, Stopwatch, config_to_json, write_manifest
-from data.transforms import Scene
 from data.video import colorize, depth_legend_png, to_uint8, video_writer, write_png
-from stages import render as render_stage
+from model import camera_path, load_trained, render_view, resolve_device
 
-__all__ = ["Config", "Outputs", "VIEWS", "KINDS", "run", "source_world_from_cam", "depth_mm"]
+__all__ = ["Config", "Outputs", "VIEWS", "KINDS", "run", "depth_mm"]
 
 VIEWS = ("test", "train", "turntable")
 KINDS = ("expected", "median")
@@ -48,9 +48,9 @@ class Config:
     """Trained run directory."""
     out_dir: Path
     """Folder for the depth maps (created)."""
-    views: str = "test"
+    views: Literal["test", "train", "turntable"] = "test"
     """Which cameras: test (the held-out split; val if there is no test split) | train | turntable."""
-    kind: str = "expected"
+    kind: Literal["expected", "median"] = "expected"
     """expected (weight-averaged distance) | median (distance at half the accumulated weight)."""
     frames: int = 120
     """Turntable frames (views=turntable only)."""
@@ -82,13 +82,6 @@ class Outputs:
     manifest: Path
 
 
-def source_world_from_cam(scene: Scene, world_from_cam: np.ndarray) -> np.ndarray:
-    """Scene-frame camera [4, 4] -> the same camera in the source frame (rigid: the scale goes into the centre)."""
-    m = scene.source_from_scene() @ np.asarray(world_from_cam, dtype=np.float64)
-    m[:3, :3] /= np.linalg.norm(m[:3, :3], axis=0, keepdims=True)
-    return m
-
-
 def depth_mm(depth_user: np.ndarray) -> np.ndarray:
     """Depth in metres [H, W] -> uint16 millimetres (0 stays 0 = no depth; clipped to 65535)."""
     mm = np.rint(np.nan_to_num(np.asarray(depth_user, np.float64), nan=0.0, posinf=0.0, neginf=0.0) * 1000.0)
@@ -117,7 +110,7 @@ def _global_range(paths: list[Path], max_samples: int = 1_000_000) -> tuple[floa
     return (lo, hi) if hi > lo else (lo, lo + max(1e-6, abs(lo) * 1e-3))
 
 
-def run(config: Config, progress: Any | None = None) -> Outputs:
+def run(config: Config, progress: Progress | None = None) -> Outputs:
     started = time.time()
     if config.views not in VIEWS:
         raise UserError(f"--views: expected one of {', '.join(VIEWS)}, got {config.views!r}")
@@ -126,10 +119,10 @@ def run(config: Config, progress: Any | None = None) -> Outputs:
     if not 0 <= config.acc_threshold <= 1:
         raise UserError(f"--acc-threshold: expected a value in [0, 1], got {config.acc_threshold}")
     out_dir = Path(config.out_dir)
-    device = render_stage.resolve_device(config.device)
-    trained = render_stage.load_run(config.run_dir, device)
+    device = resolve_device(config.device)
+    trained = load_trained(config.run_dir, device)
     scene = trained.scene
-    cams = render_stage.camera_path(scene, config.views, frames=config.frames, downscale=config.downscale)
+    cams = camera_path(scene, config.views, frames=config.frames, downscale=config.downscale)
     scale = float(scene.applied_scale)
     key = "depth" if config.kind == "expected" else "depth_median"
 
@@ -137,49 +130,40 @@ def run(config: Config, progress: Any | None = None) -> Outputs:
     clock = Stopwatch()
     files: dict[str, list[Path]] = {"depth": [], "depth_mm": [], "accumulation": []}
     cameras_doc: dict[str, Any] = {}
-    owns_progress = progress is None
-    if owns_progress:
-        from rich.progress import Progress
+    progress = progress or NO_PROGRESS
+    task = progress.add_task(f"depth {config.views}", total=2 * len(cams.names))
+    for k, name in enumerate(cams.names):
+        intr, pose = cams.intrinsics[k], cams.world_from_cams[k]
+        t0 = time.perf_counter()
+        view = render_view(trained, intr, pose, device)
+        seconds = time.perf_counter() - t0
+        valid = (view["acc"] >= config.acc_threshold) & np.isfinite(view[key]) & (view[key] > 0)
+        depth = np.where(valid, view[key] / scale, 0.0).astype(np.float32)
+        files["depth"].append(_write_npy(out_dir / "depth" / f"{name}.npy", depth))
+        files["depth_mm"].append(write_png(out_dir / "depth_mm" / f"{name}.png", depth_mm(depth)))
+        files["accumulation"].append(write_png(out_dir / "accumulation" / f"{name}.png", to_uint8(view["acc"])))
+        cameras_doc[name] = {
+            "world_from_cam": scene.source_world_from_cam(pose).tolist(),
+            "w": intr.w, "h": intr.h, "fl_x": intr.fx, "fl_y": intr.fy, "cx": intr.cx, "cy": intr.cy,
+            "k1": intr.k1, "k2": intr.k2, "k3": intr.k3, "p1": intr.p1, "p2": intr.p2,
+        }  # fmt: skip
+        metrics.append(step=k, seconds=round(clock(), 4), rays_per_s=round(intr.w * intr.h / max(seconds, 1e-9)),
+                       background_fraction=round(float(1 - valid.mean()), 6))  # fmt: skip
+        progress.advance(task)
 
-        progress = Progress(transient=True)
-        progress.start()
-    try:
-        task = progress.add_task(f"depth {config.views}", total=2 * len(cams.names))
+    lo, hi = _global_range(files["depth"])
+    color_paths: list[Path] = []
+    video_path = out_dir / "depth.mp4" if config.video else None
+    with _maybe_video(video_path, config.fps) as video:
         for k, name in enumerate(cams.names):
-            intr, pose = cams.intrinsics[k], cams.world_from_cams[k]
-            t0 = time.perf_counter()
-            view = render_stage.render_view(trained, intr, pose, device)
-            seconds = time.perf_counter() - t0
-            valid = (view["acc"] >= config.acc_threshold) & np.isfinite(view[key]) & (view[key] > 0)
-            depth = np.where(valid, view[key] / scale, 0.0).astype(np.float32)
-            files["depth"].append(_write_npy(out_dir / "depth" / f"{name}.npy", depth))
-            files["depth_mm"].append(write_png(out_dir / "depth_mm" / f"{name}.png", depth_mm(depth)))
-            files["accumulation"].append(write_png(out_dir / "accumulation" / f"{name}.png", to_uint8(view["acc"])))
-            cameras_doc[name] = {
-                "world_from_cam": source_world_from_cam(scene, pose).tolist(),
-                "w": intr.w, "h": intr.h, "fl_x": intr.fx, "fl_y": intr.fy, "cx": intr.cx, "cy": intr.cy,
-                "k1": intr.k1, "k2": intr.k2, "k3": intr.k3, "p1": intr.p1, "p2": intr.p2,
-            }  # fmt: skip
-            metrics.append(step=k, seconds=round(clock(), 4), rays_per_s=round(intr.w * intr.h / max(seconds, 1e-9)),
-                           background_fraction=round(float(1 - valid.mean()), 6))  # fmt: skip
+            depth = np.load(files["depth"][k])
+            rgb = colorize(depth, lo, hi, valid=depth > 0)
+            color_paths.append(
+                depth_legend_png(out_dir / "depth_color" / f"{name}.png", rgb, lo, hi, "z-depth (user units)")
+            )
+            if video is not None:
+                video.write(to_uint8(rgb))
             progress.advance(task)
-
-        lo, hi = _global_range(files["depth"])
-        color_paths: list[Path] = []
-        video_path = out_dir / "depth.mp4" if config.video else None
-        with _maybe_video(video_path, config.fps) as video:
-            for k, name in enumerate(cams.names):
-                depth = np.load(files["depth"][k])
-                rgb = colorize(depth, lo, hi, valid=depth > 0)
-                color_paths.append(
-                    depth_legend_png(out_dir / "depth_color" / f"{name}.png", rgb, lo, hi, "z-depth (user units)")
-                )
-                if video is not None:
-                    video.write(to_uint8(rgb))
-                progress.advance(task)
-    finally:
-        if owns_progress:
-            progress.stop()
 
     cameras_path = write_json(out_dir / "cameras.json", {
         "convention": "world_from_cam 4x4 in the source (user) frame, OpenGL camera axes (x right, y up, looking "

@@ -21,7 +21,6 @@ Writes OUT.json, OUT.metrics.csv (per view: step, seconds, psnr, ssim, depth_mae
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass
@@ -33,10 +32,14 @@ import torch
 
 from data.atomic import write_json
 from data.errors import UserError
-from data.rundir import MetricsLog, Stopwatch, config_to_json, write_manifest
+from data.ground_truth import GroundTruth, read_ground_truth
+from data.progress import NO_PROGRESS, Progress
+from data.rundir import MetricsLog, Stopwatch, config_to_json, sidecar, write_manifest
 from data.transforms import Scene, load_image
-from stages import render as render_stage
-from stages.depth import source_world_from_cam
+from model import OPAQUE, load_trained, render_view, resolve_device
+from radiance.align import umeyama
+from radiance.compositing import over_background
+from radiance.metrics import psnr
 
 __all__ = ["Config", "Outputs", "run", "ssim", "lpips_status", "GroundTruth", "read_ground_truth", "align_to"]
 
@@ -102,46 +105,16 @@ def lpips_status() -> tuple[Any | None, str | None]:
     return score, None
 
 
-@dataclass(frozen=True, kw_only=True)
-class GroundTruth:
-    folder: Path
-    world_from_cam: dict[str, np.ndarray]
-    """Image stem (file name without extension) -> [4, 4] OpenGL camera, ground-truth frame."""
-
-
-def read_ground_truth(path: Path) -> GroundTruth:
-    path = Path(path)
-    folder = path / "ground_truth" if (path / "ground_truth" / "cameras.json").is_file() else path
-    cams = folder / "cameras.json"
-    if not cams.is_file():
-        raise UserError(f"--ground-truth: {path} has no cameras.json (nor ground_truth/cameras.json)")
-    try:
-        doc = json.loads(cams.read_text(encoding="utf-8"))
-        frames = {}
-        for key, value in doc["frames"].items():
-            if isinstance(value, dict):  # {file_path, world_from_cam (or transform_matrix), intrinsics...}
-                value = value.get("world_from_cam", value.get("transform_matrix"))
-            frames[Path(str(key)).stem] = np.asarray(value, dtype=np.float64)
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError) as exc:
-        raise UserError(f"{cams}: expected {{'frames': {{image name: 4x4 matrix}}}} ({type(exc).__name__})") from None
-    bad = [k for k, m in frames.items() if m.shape != (4, 4) or not np.isfinite(m).all()]
-    if bad:
-        raise UserError(f"{cams}: frames[{bad[0]!r}] is not a finite 4x4 matrix")
-    return GroundTruth(folder=folder, world_from_cam=frames)
-
-
 def align_to(scene: Scene, gt: GroundTruth) -> dict[str, Any]:
     """How the run's source frame maps onto the ground-truth frame, from camera centres matched by file name.
 
     Returns {method: none | similarity, scale (GT units per user unit), matched, rms_centre_error, ...}.
     """
-    from stages.poses_eval import umeyama
-
     src, dst = [], []
     for f in scene.frames:
         name = Path(f.file_path).stem
         if name in gt.world_from_cam:
-            src.append(source_world_from_cam(scene, f.world_from_cam)[:3, 3])
+            src.append(scene.source_world_from_cam(f.world_from_cam)[:3, 3])
             dst.append(gt.world_from_cam[name][:3, 3])
     if not src:
         raise UserError(f"--ground-truth: no image name of the run's scene appears in {gt.folder / 'cameras.json'}")
@@ -168,14 +141,14 @@ def _mean(values: list[float | None]) -> float | None:
     return float(np.mean(v)) if v else None
 
 
-def run(config: Config, progress: Any | None = None) -> Outputs:
+def run(config: Config, progress: Progress | None = None) -> Outputs:
     started = time.time()
     out = Path(config.out)
     if out.suffix.lower() != ".json":
         raise UserError(f"{out}: expected a .json output path")
     gt = read_ground_truth(config.ground_truth) if config.ground_truth is not None else None
-    device = render_stage.resolve_device(config.device)
-    trained = render_stage.load_run(config.run_dir, device)
+    device = resolve_device(config.device)
+    trained = load_trained(config.run_dir, device)
     scene = trained.scene
     split = "test" if scene.split("test") else "val"
     idx = scene.split(split)
@@ -186,50 +159,41 @@ def run(config: Config, progress: Any | None = None) -> Outputs:
     background = trained.background.detach().float().cpu().numpy().reshape(3)
     scale = float(scene.applied_scale)
 
-    metrics = MetricsLog(render_stage.sidecar(out, "metrics.csv"), ["step", "seconds", "psnr", "ssim", "depth_mae"])
+    metrics = MetricsLog(sidecar(out, "metrics.csv"), ["step", "seconds", "psnr", "ssim", "depth_mae"])
     clock = Stopwatch()
     views: list[dict[str, Any]] = []
     render_seconds, rendered_px = 0.0, 0
     abs_errors: list[np.ndarray] = []
     covered = gt_pixels = 0
-    owns_progress = progress is None
-    if owns_progress:
-        from rich.progress import Progress
-
-        progress = Progress(transient=True)
-        progress.start()
-    try:
-        task = progress.add_task(f"eval {split}", total=len(idx))
-        for k, i in enumerate(idx):
-            photo = load_image(scene.image_path(i))
-            if photo.shape[2] == 4:
-                photo = photo[..., :3] * photo[..., 3:] + background * (1 - photo[..., 3:])
-            intr = scene.frame_intrinsics(i)
-            h, w = photo.shape[:2]
-            if (intr.w, intr.h) != (w, h):
-                intr = intr.scaled(w / intr.w)
-            pose = scene.frames[i].world_from_cam
-            t0 = time.perf_counter()
-            view = render_stage.render_view(trained, intr, pose, device)
-            render_seconds += time.perf_counter() - t0
-            rendered_px += w * h
-            pred = np.clip(view["rgb"], 0.0, 1.0)
-            row: dict[str, Any] = {"name": Path(scene.frames[i].file_path).name,
-                                   "psnr": render_stage.psnr(pred, photo), "ssim": ssim(pred, photo),
-                                   "lpips": lpips_fn(pred, photo) if lpips_fn else None}  # fmt: skip
-            if gt is not None:
-                err, n_cov, n_gt = _depth_errors(trained, view, intr, pose, row["name"], gt, alignment, scale, device)
-                if err is not None:
-                    abs_errors.append(err)
-                    covered, gt_pixels = covered + n_cov, gt_pixels + n_gt
-                    row["depth_mae"] = float(err.mean()) if err.size else None
-            views.append(row)
-            metrics.append(step=k, seconds=round(clock(), 4), psnr=round(row["psnr"], 4), ssim=round(row["ssim"], 5),
-                           depth_mae="" if row.get("depth_mae") is None else round(row["depth_mae"], 6))  # fmt: skip
-            progress.advance(task)
-    finally:
-        if owns_progress:
-            progress.stop()
+    progress = progress or NO_PROGRESS
+    task = progress.add_task(f"eval {split}", total=len(idx))
+    for k, i in enumerate(idx):
+        photo = load_image(scene.image_path(i))
+        if photo.shape[2] == 4:
+            photo = over_background(photo[..., :3], photo[..., 3:], background)
+        intr = scene.frame_intrinsics(i)
+        h, w = photo.shape[:2]
+        if (intr.w, intr.h) != (w, h):
+            intr = intr.scaled(w / intr.w)
+        pose = scene.frames[i].world_from_cam
+        t0 = time.perf_counter()
+        view = render_view(trained, intr, pose, device)
+        render_seconds += time.perf_counter() - t0
+        rendered_px += w * h
+        pred = np.clip(view["rgb"], 0.0, 1.0)
+        row: dict[str, Any] = {"name": Path(scene.frames[i].file_path).name,
+                               "psnr": psnr(pred, photo), "ssim": ssim(pred, photo),
+                               "lpips": lpips_fn(pred, photo) if lpips_fn else None}  # fmt: skip
+        if gt is not None:
+            err, n_cov, n_gt = _depth_errors(trained, view, intr, pose, row["name"], gt, alignment, scale, device)
+            if err is not None:
+                abs_errors.append(err)
+                covered, gt_pixels = covered + n_cov, gt_pixels + n_gt
+                row["depth_mae"] = float(err.mean()) if err.size else None
+        views.append(row)
+        metrics.append(step=k, seconds=round(clock(), 4), psnr=round(row["psnr"], 4), ssim=round(row["ssim"], 5),
+                       depth_mae="" if row.get("depth_mae") is None else round(row["depth_mae"], 6))  # fmt: skip
+        progress.advance(task)
 
     result: dict[str, Any] = {
         "run_dir": str(config.run_dir), "split": split, "n_views": len(views),
@@ -242,7 +206,7 @@ def run(config: Config, progress: Any | None = None) -> Outputs:
     write_json(out, result)
     metrics.save()
     manifest = write_manifest(
-        out.parent, stage="eval", started=started, name=render_stage.sidecar(out, "manifest.json").name,
+        out.parent, stage="eval", started=started, name=sidecar(out, "manifest.json").name,
         inputs=[Path(config.run_dir) / "checkpoint.pt", Path(config.run_dir) / "config.json",
                 *([gt.folder / "cameras.json"] if gt else [])],
         outputs=[out, metrics.path], used={"split": split, "views": len(views), "device": str(device),
@@ -261,11 +225,11 @@ def _depth_errors(trained, view, intr, pose, name, gt, alignment, scale, device)
         return None, 0, 0
     gt_depth = np.load(path).astype(np.float64)
     if gt_depth.shape != view["depth"].shape:  # ground truth at another resolution: render at its size
-        view = render_stage.render_view(trained, intr.scaled(gt_depth.shape[1] / intr.w), pose, device)
+        view = render_view(trained, intr.scaled(gt_depth.shape[1] / intr.w), pose, device)
     pred = view["depth"].astype(np.float64) / scale * alignment["scale"]
     has_gt = np.isfinite(gt_depth) & (gt_depth > 0)
     ok = has_gt & np.isfinite(pred)
-    covered = int((has_gt & (view["acc"] >= render_stage.OPAQUE)).sum())
+    covered = int((has_gt & (view["acc"] >= OPAQUE)).sum())
     return np.abs(pred[ok] - gt_depth[ok]), covered, int(has_gt.sum())
 
 

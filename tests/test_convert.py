@@ -212,7 +212,7 @@ def test_no_normalize_keeps_source_frame(tmp_path):
 
 
 def test_look_at_point_converging_and_parallel():
-    from stages.normalize import look_at_point
+    from radiance.normalize import look_at_point
 
     centres = np.array([[4.0, 0, 0], [0, 4.0, 0], [-4.0, 0, 1]])
     target = np.array([0.5, -0.2, 0.3])

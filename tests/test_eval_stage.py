@@ -12,10 +12,9 @@ import pytest
 import torch
 
 import stages.eval as eval_stage
-import stages.render as render_stage
 from data.atomic import write_json
 from data.errors import UserError
-from stages.depth import source_world_from_cam
+from model import render_view
 
 try:  # the analytic stand-in lives with the render tests
     from test_render_stage import sphere_run  # noqa: F401  (fixture)
@@ -42,12 +41,12 @@ def _write_ground_truth(folder: Path, fake, gt_from_src: tuple[float, np.ndarray
     scene = fake.scene
     frames = {}
     for i, f in enumerate(scene.frames):
-        src = source_world_from_cam(scene, f.world_from_cam)
+        src = scene.source_world_from_cam(f.world_from_cam)
         gt = np.eye(4)
         gt[:3, :3], gt[:3, 3] = rot @ src[:3, :3], s * rot @ src[:3, 3] + t
         stem = Path(f.file_path).stem
         frames[stem] = {"file_path": f.file_path, "world_from_cam": gt.tolist()}
-        view = render_stage.render_view(fake, scene.frame_intrinsics(i), f.world_from_cam, torch.device("cpu"))
+        view = render_view(fake, scene.frame_intrinsics(i), f.world_from_cam, torch.device("cpu"))
         depth = np.where(view["acc"] > 0.5, view["depth"] / scene.applied_scale * s, 0.0).astype(np.float32)
         (folder / "depth").mkdir(parents=True, exist_ok=True)
         np.save(folder / "depth" / f"{stem}.npy", depth)

@@ -1,4 +1,5 @@
-"""The Makefile chain on a tiny posed scene: every output is built, and a rerun has nothing to rebuild."""
+"""The Makefile chain on a tiny posed scene: every output is built, a rerun has nothing to rebuild, and a change
+re-runs exactly the stages whose code (their own, or the core packages) or inputs changed."""
 
 import os
 import shutil
@@ -38,6 +39,15 @@ def test_posed_chain_builds_everything_then_nothing(tmp_path):
         assert (out / rel).is_file(), rel
     again = _make("-n", "all", *args)
     assert again.returncode == 0 and "Nothing to be done" in again.stdout, again.stdout
+    # each stage depends on the code it runs, nothing else; `-W FILE` (what if FILE changed) touches nothing
+    core = _make("-n", "-W", "radiance/render.py", "all", *args)  # the core: every stage re-runs
+    assert core.returncode == 0, core.stderr[-2000:]
+    for stage in ("convert", "train", "render", "depth", "eval", "mesh"):
+        assert f"nerfpipe {stage} " in core.stdout, (stage, core.stdout)
+    own = _make("-n", "-W", "stages/mesh/grid.py", "all", *args)  # a stage package's own module: that stage
+    assert "nerfpipe mesh " in own.stdout and "nerfpipe train " not in own.stdout, own.stdout
+    helper = _make("-n", "-W", "benchmarks/standin.py", "all", *args)  # benchmark support: nothing
+    assert helper.returncode == 0 and "Nothing to be done" in helper.stdout, helper.stdout
     # a changed input re-runs the chain from convert on
     (src / "transforms.json").touch()
     stale = _make("-n", "all", *args)

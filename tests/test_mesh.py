@@ -1,4 +1,4 @@
-"""Stage `mesh` on the analytic stand-in (`stages.mesh_fixtures`) and on a short real training run."""
+"""Stage `mesh` on the analytic stand-in (`benchmarks.standin`) and on a short real training run."""
 
 from __future__ import annotations
 
@@ -11,10 +11,11 @@ import pytest
 import torch
 import trimesh
 
+from benchmarks.mesh_metrics import chamfer_distance, surface_points
+from benchmarks.standin import StandIn
 from data.errors import UserError
 from stages import mesh
-from stages.mesh_cleanup import mesh_stats
-from stages.mesh_fixtures import StandIn
+from stages.mesh.cleanup import mesh_stats
 
 
 def _load(path: Path) -> trimesh.Trimesh:
@@ -36,10 +37,10 @@ def _files(folder: Path) -> list[str]:
 def test_chamfer_distance_of_shifted_points():
     rng = np.random.default_rng(0)
     a = rng.normal(size=(500, 3))
-    assert mesh.chamfer_distance(a, a) == 0.0
-    assert mesh.chamfer_distance(a, a + [0.0, 0.0, 1e-3]) == pytest.approx(1e-3, rel=1e-6)
+    assert chamfer_distance(a, a) == 0.0
+    assert chamfer_distance(a, a + [0.0, 0.0, 1e-3]) == pytest.approx(1e-3, rel=1e-6)
     with pytest.raises(ValueError):
-        mesh.chamfer_distance(a, np.zeros((0, 3)))
+        chamfer_distance(a, np.zeros((0, 3)))
 
 
 def test_auto_threshold_finds_the_half_opacity_density(tmp_path):
@@ -55,7 +56,7 @@ def test_standin_meshes_to_its_exact_surface_in_the_source_frame(tmp_path):
     out = mesh.extract(s, mesh.Config(run_dir=tmp_path, out=tmp_path / "m.ply", resolution=96))
     m = _load(out.mesh)
     gt = _gt_source(s)
-    err = mesh.chamfer_distance(mesh.surface_points(m.vertices, m.faces, 60_000), gt)
+    err = chamfer_distance(surface_points(m.vertices, m.faces, 60_000), gt)
     assert err < 0.005 * _diag(gt), err  # no re-alignment: the export is in the source frame
     stats = mesh_stats(np.asarray(m.vertices), np.asarray(m.faces))
     assert stats["watertight"] and stats["components"] == 1 and stats["signed_volume"] > 0  # outward
@@ -74,7 +75,7 @@ def test_mirroring_transform_keeps_faces_outward(tmp_path):
     m = _load(out.mesh)
     assert mesh_stats(np.asarray(m.vertices), np.asarray(m.faces))["signed_volume"] > 0
     gt = _gt_source(s, 20_000)
-    assert mesh.chamfer_distance(mesh.surface_points(m.vertices, m.faces, 20_000), gt) < 0.01 * _diag(gt)
+    assert chamfer_distance(surface_points(m.vertices, m.faces, 20_000), gt) < 0.01 * _diag(gt)
 
 
 @pytest.mark.parametrize("suffix", [".ply", ".obj", ".glb"])
@@ -182,7 +183,7 @@ def test_coarse_to_fine_sampling_matches_dense_sampling():
     """The fast path (coarse pass, refine near the surface) against its plain twin (every sample)."""
     from skimage.measure import marching_cubes
 
-    from stages.mesh_grid import make_grid, sample_volume
+    from stages.mesh.grid import make_grid, sample_volume
 
     s = StandIn(floater=True)
     fn, cpu = mesh.density_function(s), torch.device("cpu")
@@ -201,9 +202,9 @@ TRAIN_STEPS, TRAINED_CHAMFER = 80, 0.06  # fraction of the ground truth's boundi
 
 def test_short_training_meshes_near_the_ground_truth(tmp_path):
     """scene (posed) -> convert (non-trivial applied transform) -> train -> mesh, compared in metres."""
+    from benchmarks.standin import visible_points
     from stages import convert, train
     from stages import scene as scene_stage
-    from stages.mesh_fixtures import visible_points
 
     src = scene_stage.run(scene_stage.Config(out_dir=tmp_path / "src", kind="posed", size=32, views=16, seed=1))
     convert.run(convert.Config(source=tmp_path / "src", scene_dir=tmp_path / "scene"))
@@ -216,16 +217,16 @@ def test_short_training_meshes_near_the_ground_truth(tmp_path):
     assert not report["threshold"]["fallback"] and report["frame"] == "user"
     assert report["inputs"] and all(len(h) == 64 for h in report["inputs"].values())  # sha256 of the run
     gt_mesh = _load(src.mesh)
-    gt = mesh.surface_points(np.asarray(gt_mesh.vertices), np.asarray(gt_mesh.faces), 40_000)
+    gt = surface_points(np.asarray(gt_mesh.vertices), np.asarray(gt_mesh.faces), 40_000)
     gt = gt[visible_points(gt, src.out_dir)]
     m = _load(out.mesh)
-    pred = mesh.surface_points(np.asarray(m.vertices), np.asarray(m.faces), 40_000)
+    pred = surface_points(np.asarray(m.vertices), np.asarray(m.faces), 40_000)
     pred = pred[visible_points(pred, src.out_dir)]
-    assert mesh.chamfer_distance(pred, gt) < TRAINED_CHAMFER * _diag(gt)
+    assert chamfer_distance(pred, gt) < TRAINED_CHAMFER * _diag(gt)
 
 
 def test_volume_sampling_refuses_nan_density_and_caps_inf():
-    from stages.mesh_grid import make_grid, sample_volume
+    from stages.mesh.grid import make_grid, sample_volume
 
     grid = make_grid(np.array([-1.0] * 3), np.array([1.0] * 3), 16, stride=1)
 

@@ -13,10 +13,13 @@ import pytest
 from PIL import Image
 
 from data.errors import UserError
+from data.ground_truth import read_ground_truth
+from data.importers.colmap import read_world_from_cam
+from radiance.align import pose_errors, umeyama
 from stages import poses
-from stages.poses_eval import OPENGL_FROM_OPENCV, pose_errors, read_colmap_world_from_cam, read_scene_cameras, umeyama
-from stages.poses_images import blurriest, near_duplicates, screen_image
-from stages.poses_video import extract_frames
+from stages.poses.images import blurriest, near_duplicates, screen_image
+from stages.poses.report import RunState
+from stages.poses.video import extract_frames
 
 SIZE, VIEWS = 256, 24
 
@@ -68,13 +71,13 @@ def synthetic(tmp_path_factory) -> dict:
 def test_synthetic_all_registered_and_accurate(synthetic):
     out = synthetic["out"]
     assert (out.registered, out.total) == (VIEWS, VIEWS)
-    est = read_colmap_world_from_cam(out.sparse)
-    gt = read_scene_cameras(synthetic["root"] / "scene" / "ground_truth" / "cameras.json")
+    est = read_world_from_cam(out.sparse)  # OpenGL axes, like the ground truth
+    gt = read_ground_truth(synthetic["root"] / "scene").by_file_name()
     gt["frame 0005 é.png"] = gt.pop("frame_0005.png")
     gt["frame_0007.jpg"] = gt.pop("frame_0007.png")
     assert sorted(est) == sorted(gt)
     names = sorted(gt)
-    err = pose_errors(np.stack([est[n] @ OPENGL_FROM_OPENCV for n in names]), np.stack([gt[n] for n in names]))
+    err = pose_errors(np.stack([est[n] for n in names]), np.stack([gt[n] for n in names]))
     # Measured 0.087 deg median (0.080 with seed 1), max 0.2-0.4 deg. With COLMAP's default 2x SIFT
     # upsampling instead of 4x + affine shape on tiny images, the median was ~0.15-0.25 deg. A sideways image
     # (EXIF ignored) is off by 90 deg.
@@ -222,7 +225,7 @@ def test_screening_scores():
 
 
 def test_mixed_sizes_get_one_camera_per_size():
-    state = poses._Run(started=0.0)
+    state = RunState(started=0.0)
     state.sizes = {"a.jpg": (100, 80), "b.jpg": (80, 100), "c.jpg": (100, 80)}
     config = poses.Config(input=Path("x"), scene_dir=Path("y"))
     assert poses._camera_groups(config, list(state.sizes), state) == [["a.jpg", "c.jpg"], ["b.jpg"]]

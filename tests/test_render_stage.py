@@ -1,7 +1,7 @@
 """Stage `render`: mp4 decodes back with the right frames/size, outputs stack, bad inputs are one-line errors.
 
-Fast tests use `SphereRun`, an analytic stand-in for `stages.train.load_trained` (an opaque sphere: exact depth
-and opacity) patched into `stages.render.load_run`; the depth and eval tests import it from here.
+Fast tests use `SphereRun`, an analytic stand-in for `model.load_trained` (an opaque sphere: exact depth
+and opacity) patched into the render, depth and eval stages; the depth and eval tests import it from here.
 """
 
 from __future__ import annotations
@@ -19,8 +19,10 @@ import stages.render as render_stage
 from data.errors import UserError
 from data.transforms import Frame, Scene, write_scene
 from data.video import to_uint8, write_png
+from model import camera_path, render_view
 from radiance import paths
 from radiance.camera import Intrinsics
+from radiance.metrics import psnr
 
 SPHERE_RADIUS = 0.5  # scene units
 BACKGROUND = (1.0, 1.0, 1.0)
@@ -60,7 +62,7 @@ def sphere_scene(root: Path, *, views: int = 8, w: int = 33, h: int = 25, applie
     )  # fmt: skip
     fake = SphereRun(scene=scene)
     for i, p in enumerate(poses):
-        view = render_stage.render_view(fake, intr, p, torch.device("cpu"))
+        view = render_view(fake, intr, p, torch.device("cpu"))
         write_png(root / frames[i].file_path, to_uint8(view["rgb"]))
     write_scene(scene)
     return scene
@@ -68,12 +70,16 @@ def sphere_scene(root: Path, *, views: int = 8, w: int = 33, h: int = 25, applie
 
 @pytest.fixture
 def sphere_run(tmp_path, monkeypatch):
-    """A run dir (empty but present) whose `load_run` yields the analytic sphere."""
+    """A run dir (empty but present) whose `load_trained` yields the analytic sphere."""
     scene = sphere_scene(tmp_path / "scene")
     run_dir = tmp_path / "run"
     run_dir.mkdir()
     fake = SphereRun(scene=scene)
-    monkeypatch.setattr(render_stage, "load_run", lambda run_dir, device: fake)
+    import stages.depth
+    import stages.eval
+
+    for stage in (render_stage, stages.depth, stages.eval):
+        monkeypatch.setattr(stage, "load_trained", lambda run_dir, device: fake)
     return run_dir, fake
 
 
@@ -110,8 +116,8 @@ def test_accumulation_panel_matches_sphere_silhouette(sphere_run, tmp_path):
     render_stage.run(render_stage.Config(run_dir=run_dir, out=out, frames=2, outputs=("accumulation",),
                                          frames_dir=tmp_path / "f"))  # fmt: skip
     frame = iio.imread(tmp_path / "f" / "frame_00000.png")
-    cams = render_stage.camera_path(fake.scene, "turntable", frames=2)
-    acc = render_stage.render_view(fake, cams.intrinsics[0], cams.world_from_cams[0], torch.device("cpu"))["acc"]
+    cams = camera_path(fake.scene, "turntable", frames=2)
+    acc = render_view(fake, cams.intrinsics[0], cams.world_from_cams[0], torch.device("cpu"))["acc"]
     assert np.array_equal(frame[..., 0] > 127, acc > 0.5)
 
 
@@ -126,10 +132,10 @@ def test_test_path_replays_dataset_cameras_with_psnr(sphere_run, tmp_path):
 
 def test_turntable_uses_training_median_radius_unless_given(sphere_run):
     _, fake = sphere_run
-    cams = render_stage.camera_path(fake.scene, "turntable", frames=6)
+    cams = camera_path(fake.scene, "turntable", frames=6)
     dist = np.linalg.norm(cams.world_from_cams[:, :3, 3], axis=1)
     assert np.allclose(dist, 3.0) and cams.used["elevation_deg"] == pytest.approx(20.0)
-    cams = render_stage.camera_path(fake.scene, "turntable", frames=6, radius=2.0, elevation=45.0, downscale=2)
+    cams = camera_path(fake.scene, "turntable", frames=6, radius=2.0, elevation=45.0, downscale=2)
     rel = cams.world_from_cams[:, :3, 3]
     assert np.allclose(np.linalg.norm(rel, axis=1), 4.0)  # user units * applied_scale (2)
     assert np.allclose(np.degrees(np.arcsin(rel[:, 2] / 4.0)), 45.0)
@@ -180,9 +186,9 @@ def test_parse_outputs():
 
 def test_psnr_is_capped_for_identical_images():
     a = np.random.default_rng(0).random((4, 4, 3))
-    assert render_stage.psnr(a, a) == pytest.approx(100.0)
-    assert render_stage.psnr(a, a + 0.1) == pytest.approx(20.0, abs=1e-6)
-    assert math.isfinite(render_stage.psnr(a, 1 - a))
+    assert psnr(a, a) == pytest.approx(100.0)
+    assert psnr(a, a + 0.1) == pytest.approx(20.0, abs=1e-6)
+    assert math.isfinite(psnr(a, 1 - a))
 
 
 # --- integration: a real (2-step) training run -------------------------------------------------------------

@@ -15,7 +15,7 @@ from scipy.spatial import cKDTree
 from data.transforms import load_image, read_scene
 from radiance.camera import generate_rays, project
 from stages import scene
-from stages.scene_objects import default_primitives
+from stages.scene.objects import default_primitives
 
 
 @pytest.fixture(scope="module")

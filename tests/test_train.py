@@ -11,8 +11,10 @@ import pytest
 import torch
 
 from data.errors import UserError
+from model import load_trained
 from stages import scene as scene_stage
 from stages import train
+from stages.train.loop import make_optimizer
 
 
 @pytest.fixture(scope="module")
@@ -70,7 +72,7 @@ def test_resume_continues_the_step_count(rgba_scene, tmp_path):
 
 def test_load_trained_renders(rgba_scene, tmp_path):
     train.run(_config(rgba_scene, tmp_path / "run", max_steps=2, final_eval_views=1))
-    trained = train.load_trained(tmp_path / "run", "cpu")
+    trained = load_trained(tmp_path / "run", "cpu")
     assert trained.aabb.shape == (2, 3) and trained.background.tolist() == [1.0, 1.0, 1.0]
     assert trained.occupancy is not None and len(trained.scene.frames) == 10
     o = torch.tensor([[0.0, -3.0, 0.3]]).expand(5, 3)
@@ -100,7 +102,7 @@ def test_user_errors(rgba_scene, tmp_path):
     with pytest.raises(UserError, match="cannot read checkpoint"):
         train.run(_config(rgba_scene, tmp_path / "bad", resume=True))
     with pytest.raises(UserError, match="not a train run"):
-        train.load_trained(tmp_path / "nowhere", "cpu")
+        load_trained(tmp_path / "nowhere", "cpu")
 
 
 STEPS, PSNR_FLOOR = 300, 20.0
@@ -124,7 +126,7 @@ def test_fused_adam_matches_its_plain_twin():
     fields = [TensoRF(aabb=[[-1.0] * 3, [1.0] * 3], resolution=8, density_rank=2, app_rank=4, hidden=8)]
     fields.append(TensoRF(**{k: v for k, v in fields[0].config().items() if k != "kind"}))
     fields[1].load_state_dict(fields[0].state_dict())
-    opts = [train._make_optimizer(fields[0], 0.03), train._make_optimizer(fields[1], 0.03, fused=False)]
+    opts = [make_optimizer(fields[0], 0.03), make_optimizer(fields[1], 0.03, fused=False)]
     g = torch.Generator().manual_seed(1)
     x, d = torch.rand(64, 3, generator=g) * 2 - 1, torch.nn.functional.normalize(torch.randn(64, 3, generator=g))
     for _ in range(5):
@@ -159,7 +161,7 @@ def test_forward_facing_scene_trains_in_ndc_and_depth_maps_back(tmp_path):
     # Measured 24.6 dB (the same 400 steps in the scene's box: 22.9 dB).
     assert out.test_psnr is not None and out.test_psnr > 22.0, out.test_psnr
 
-    trained = train.load_trained(tmp_path / "run", "cpu")
+    trained = load_trained(tmp_path / "run", "cpu")
     assert trained.ndc is not None and trained.occupancy is None
     np.testing.assert_allclose(trained.aabb.numpy(), trained.scene.aabb, rtol=1e-6)  # scene frame, not NDC
     view = trained.scene.split("test")[0]

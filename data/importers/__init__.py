@@ -55,7 +55,7 @@ class Source:
     has_alpha: bool = False
     """Images are RGBA (object on a transparent background)."""
     up: str = "cameras"
-    """Default up policy for `stages.normalize`: 'keep' (z-up source) or 'cameras'."""
+    """Default up policy for `radiance.normalize`: 'keep' (z-up source) or 'cameras'."""
     scene_type: str | None = None
     """'object', 'forward' or None (let convert classify)."""
     points: np.ndarray | None = None

@@ -7,6 +7,7 @@ Images: the `images` override, else the first of <model>/../images, <model>/../.
 SOURCE/colmap/images that holds at least one of the model's images.
 Cameras: COLMAP `cam_from_world` is world -> camera in OpenCV axes; we invert it and flip to OpenGL axes.
 Supported models: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV (distortion kept as k1 k2 p1 p2).
+`read_world_from_cam`: only the poses of one model folder, by image name (pose-accuracy checks).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from data.errors import UserError
 from data.importers import Source, SourceFrame, flat_name
 from radiance.camera import Intrinsics
 
-__all__ = ["find_models", "load", "intrinsics_from_camera"]
+__all__ = ["find_models", "load", "intrinsics_from_camera", "read_world_from_cam"]
 
 _MODEL_FILES = ("cameras", "images")
 
@@ -73,6 +74,24 @@ def _read(folder: Path):
         raise UserError(f"{folder}: cannot read the COLMAP model ({msg})") from None
 
 
+def _world_from_cam_gl(image) -> np.ndarray:
+    """A registered pycolmap.Image's pose -> world_from_cam [4, 4], OpenGL axes, the model's world frame."""
+    import torch
+
+    from radiance.camera import opengl_from_opencv
+
+    cam_from_world_cv = np.eye(4)
+    cam_from_world_cv[:3] = image.cam_from_world().matrix()
+    world_from_cam_cv = torch.from_numpy(np.linalg.inv(cam_from_world_cv))
+    return opengl_from_opencv(world_from_cam_cv).numpy()  # OpenCV -> OpenGL camera axes
+
+
+def read_world_from_cam(model: str | Path) -> dict[str, np.ndarray]:
+    """The registered images of one model folder: COLMAP image name -> world_from_cam [4, 4] (OpenGL axes)."""
+    rec = _read(Path(model))
+    return {im.name: _world_from_cam_gl(im) for im in rec.images.values() if im.has_pose}
+
+
 def _image_dir(model: Path, source: Path, names: list[str], override: Path | None) -> Path:
     if override is not None:
         if not Path(override).is_dir():
@@ -90,10 +109,6 @@ def _image_dir(model: Path, source: Path, names: list[str], override: Path | Non
 
 
 def load(source: Path, *, images: Path | None = None) -> Source:
-    import torch
-
-    from radiance.camera import opengl_from_opencv
-
     source = Path(source)
     models = find_models(source)
     if not models:
@@ -115,14 +130,10 @@ def load(source: Path, *, images: Path | None = None) -> Source:
     cams = {cid: intrinsics_from_camera(cam) for cid, cam in rec.cameras.items()}
     frames = []
     for im in posed:
-        cam_from_world_cv = np.eye(4)
-        cam_from_world_cv[:3] = im.cam_from_world().matrix()
-        world_from_cam_cv = torch.from_numpy(np.linalg.inv(cam_from_world_cv))
-        world_from_cam_gl = opengl_from_opencv(world_from_cam_cv).numpy()  # OpenCV -> OpenGL camera axes
         frames.append(
             SourceFrame(
                 name=flat_name(im.name),
-                world_from_cam=world_from_cam_gl,
+                world_from_cam=_world_from_cam_gl(im),
                 intrinsics=cams[im.camera_id],
                 image=image_dir / im.name,
             )  # fmt: skip

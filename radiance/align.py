@@ -1,30 +1,22 @@
-"""Pose accuracy after a similarity alignment (used by tests and benchmarks).
+"""Similarity alignment of two sets of cameras, and the pose error left after it (maths only, no file I/O).
 
-Conventions: poses are `world_from_cam` 4x4 matrices; both sets must use the same camera axes
-(both OpenCV or both OpenGL, see `radiance.camera.OPENGL_FROM_OPENCV`). The estimate's world frame is
-arbitrary up to a similarity, so we fit `ref ≈ scale * R @ est + t` on the camera centres (Umeyama 1991),
-then compare centres in the reference's units and rotations as the angle of `R_ref^T R R_est`.
+Conventions:
+- Poses are `world_from_cam` 4x4 camera-to-world matrices; both sets must use the same camera axes (both
+  OpenGL: x right, y up, looking down -z, or both OpenCV; `radiance.camera.opengl_from_opencv` converts).
+- An estimate's world frame is arbitrary up to a similarity (COLMAP: any rotation, translation and scale), so
+  `umeyama` fits `dst ≈ scale * R @ src + t` to the camera centres by least squares (Umeyama 1991, with the
+  reflection guard: R is always a proper rotation).
+- `pose_errors` then compares, per camera, centres in the reference's units (metres for a synthetic scene)
+  and rotations as the angle (degrees) of `R_ref^T R R_est`, the rotation left after alignment.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-__all__ = [
-    "OPENGL_FROM_OPENCV",
-    "PoseErrors",
-    "umeyama",
-    "pose_errors",
-    "read_colmap_world_from_cam",
-    "read_transforms_world_from_cam",
-    "read_scene_cameras",
-]
-
-OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
-"""Right-multiply a `world_from_cam` to switch camera axes OpenCV <-> OpenGL (its own inverse)."""
+__all__ = ["PoseErrors", "umeyama", "pose_errors"]
 
 
 def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -52,6 +44,8 @@ def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.nda
 
 @dataclass(frozen=True, kw_only=True)
 class PoseErrors:
+    """Per-camera errors of an estimate against a reference, after `umeyama` on the camera centres."""
+
     rotation_deg: np.ndarray  # [N] angle between aligned estimate and reference rotations
     centre_error: np.ndarray  # [N] centre distance after alignment, reference units
     scene_size: float  # diagonal of the reference camera centres' bounding box
@@ -89,40 +83,3 @@ def pose_errors(est_world_from_cam: np.ndarray, ref_world_from_cam: np.ndarray) 
         rotation=rot,
         translation=t,
     )
-
-
-def read_colmap_world_from_cam(sparse_dir: str | Path) -> dict[str, np.ndarray]:
-    """Registered images of a COLMAP model: image name -> world_from_cam [4, 4] (OpenCV axes)."""
-    import pycolmap
-
-    rec = pycolmap.Reconstruction(str(sparse_dir))
-    out = {}
-    for image in rec.images.values():
-        if not image.has_pose:
-            continue
-        cam_from_world = np.eye(4)
-        cam_from_world[:3, :4] = image.cam_from_world().matrix()
-        out[image.name] = np.linalg.inv(cam_from_world)
-    return out
-
-
-def read_transforms_world_from_cam(path: str | Path) -> dict[str, np.ndarray]:
-    """A nerfstudio / instant-ngp transforms.json: image file name -> world_from_cam [4, 4] (OpenGL axes)."""
-    import json
-
-    data = json.loads(Path(path).read_text())
-    return {
-        Path(frame["file_path"]).name: np.asarray(frame["transform_matrix"], dtype=np.float64)
-        for frame in data["frames"]
-    }
-
-
-def read_scene_cameras(path: str | Path) -> dict[str, np.ndarray]:
-    """`stages.scene`'s ground_truth/cameras.json: image file name -> world_from_cam [4, 4] (OpenGL axes)."""
-    import json
-
-    data = json.loads(Path(path).read_text())
-    return {
-        Path(frame["file_path"]).name: np.asarray(frame["world_from_cam"], dtype=np.float64)
-        for frame in data["frames"].values()
-    }

@@ -6,17 +6,18 @@
 Steps:
 1. Box: `--bbox` (in the chosen frame), else the occupied cells of the run's occupancy grid (one cell of
    margin), else the run's aabb. Voxels are cubes with `resolution` cells along the box's longest side.
-2. Iso-level (`--threshold auto`, see `auto_threshold`): march training-view rays through the field; on each
-   ray take the density where the accumulated opacity 1 - exp(-integral sigma dt) first reaches 0.5 (the
-   ray's median-depth point: where the rendered surface is); the level is the median over the rays that
-   reach 0.5 inside the box. So the mesh sits where depth maps put the surface, and the level does not
-   depend on the grid resolution. Fewer than max(16, 1 %) of the rays reaching 0.5: the level falls back
-   to ln 2 / (1 % of the aabb diagonal), the density at which 1 % of the box diagonal is half opaque.
-3. Density on the grid (`stages.mesh_grid`: coarse-to-fine, cells of the run's occupancy grid marked empty
+2. Iso-level (`--threshold auto`, `stages.mesh.threshold`): march training-view rays through the field; on
+   each ray take the density where the accumulated opacity 1 - exp(-integral sigma dt) first reaches 0.5 (the
+   ray's median depth, `radiance.compositing.median_depth`: where the rendered surface is); the level is the
+   median over the rays that reach 0.5 inside the box. So the mesh sits where depth maps put the surface, and
+   the level does not depend on the grid resolution. Fewer than max(16, 1 %) of the rays reaching 0.5: the
+   level falls back to ln 2 / (1 % of the aabb diagonal), the density at which 1 % of the box diagonal is half
+   opaque.
+3. Density on the grid (`stages.mesh.grid`: coarse-to-fine, cells of the run's occupancy grid marked empty
    are zero without querying the field), zero-padded so the surface is closed where it meets the box.
 4. Marching cubes (scikit-image, Lewiner) at the level; faces wind counter-clockwise seen from outside
    (the side of lower density).
-5. Cleanup (`stages.mesh_cleanup`, pymeshlab) and optional quadric decimation to `--target-faces`.
+5. Cleanup (`stages.mesh.cleanup`, pymeshlab) and optional quadric decimation to `--target-faces`.
 6. Vertex colours: `trained.color(x, -n)`, the colour a camera looking straight at the surface along the
    inward normal sees (a view-independent field ignores the direction).
 7. Export in the output frame: `scene.source_from_scene()` for `--frame user` (winding reversed if it
@@ -37,13 +38,22 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-import torch
 
 from data.atomic import atomic_path
 from data.errors import UserError
 from data.rundir import config_to_json, write_manifest
-from stages.mesh_cleanup import Cleanup, cleanup_mesh, mesh_stats, transform_mesh, vertex_normals
-from stages.mesh_grid import DensityFn, Grid, make_grid, sample_volume
+from stages.mesh.cleanup import Cleanup, cleanup_mesh, mesh_stats, transform_mesh
+from stages.mesh.field_access import (
+    as_np,
+    density_function,
+    field_device,
+    has_color,
+    occupancy_binary,
+    occupied_box,
+    vertex_colors,
+)
+from stages.mesh.grid import Grid, make_grid, sample_volume
+from stages.mesh.threshold import auto_threshold
 
 __all__ = [
     "Config",
@@ -52,8 +62,7 @@ __all__ = [
     "run",
     "extract",
     "auto_threshold",
-    "chamfer_distance",
-    "surface_points",
+    "density_function",
     "parse_threshold",
     "parse_bbox",
     "FORMATS",
@@ -61,7 +70,6 @@ __all__ = [
 
 VERSION = "1"
 FORMATS = (".ply", ".obj", ".glb")
-LN2 = math.log(2.0)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -157,201 +165,6 @@ def _validate(config: Config) -> None:
         raise UserError(f"--target-faces: expected at least 4, got {config.target_faces}")
 
 
-# ---------------------------------------------------------------------------------------------- field access
-
-
-def _np(x: Any) -> np.ndarray:
-    return x.detach().cpu().double().numpy() if isinstance(x, torch.Tensor) else np.asarray(x, np.float64)
-
-
-def _field_device(trained: Any) -> torch.device:
-    dev = getattr(trained, "device", None)
-    return torch.device(dev) if dev is not None else torch.device("cpu")
-
-
-def _has_color(trained: Any) -> bool:
-    f = getattr(trained, "field", None)
-    return bool(getattr(f if f is not None else trained, "has_color", True))
-
-
-def _occupancy_binary(trained: Any) -> tuple[np.ndarray, np.ndarray] | None:
-    """(binary [G, G, G] bool, aabb [2, 3]) of the run's occupancy grid, or None (absent / never updated)."""
-    occ = getattr(trained, "occupancy", None)
-    if occ is None or getattr(occ, "binary", None) is None:
-        return None
-    binary = occ.binary.detach().cpu().numpy().astype(bool)
-    if binary.all():  # before its first update every cell counts as occupied: no information
-        return None
-    return binary, _np(occ.aabb)
-
-
-def density_function(trained: Any) -> DensityFn:
-    """The field's density, zero without a query in cells the run's occupancy grid marks empty.
-
-    Calls the run's `Field.density` directly when there is one and the field lives in the scene frame:
-    `Trained.density` splits queries into small render-sized chunks, several times slower on a CPU than the
-    large chunks meshing sends. NDC runs go through `Trained.density`, which maps points into NDC.
-    """
-    occ = getattr(trained, "occupancy", None)
-    field = getattr(trained, "field", None)
-    direct = isinstance(field, torch.nn.Module) and hasattr(field, "density") and getattr(trained, "ndc", None) is None
-    query = field.density if direct else trained.density
-    device = _field_device(trained)
-
-    @torch.inference_mode()
-    def plain(x: torch.Tensor) -> torch.Tensor:
-        return query(x.to(device, torch.float32)).reshape(-1).float().to(x.device)
-
-    if _occupancy_binary(trained) is None:
-        return plain
-
-    @torch.inference_mode()
-    def skipping(x: torch.Tensor) -> torch.Tensor:
-        keep = occ.query(x.to(occ.binary.device)).to(x.device)
-        out = torch.zeros(x.shape[0], dtype=torch.float32, device=x.device)
-        if bool(keep.any()):
-            out[keep] = plain(x[keep])
-        return out
-
-    return skipping
-
-
-def _occupied_box(trained: Any) -> tuple[np.ndarray, np.ndarray, str]:
-    """Scene-frame box to mesh: occupied cells of the occupancy grid (+1 cell), within the aabb; else the aabb."""
-    aabb = _np(trained.aabb).reshape(2, 3)
-    box = trained.occupancy.occupied_aabb() if _occupancy_binary(trained) is not None else None
-    if box is None:
-        return aabb[0], aabb[1], "aabb"
-    box = _np(box)
-    return np.maximum(box[0], aabb[0]), np.minimum(box[1], aabb[1]), "occupancy grid"
-
-
-# ---------------------------------------------------------------------------------------------- threshold
-
-
-def _training_rays(scene: Any, n_rays: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """About n_rays rays on a regular pixel lattice over the training views (deterministic). [R, 3] x 2."""
-    from radiance.camera import generate_rays
-
-    frames = scene.split("train") or tuple(range(len(scene.frames)))
-    per_frame = max(1, n_rays // len(frames))
-    origins, dirs = [], []
-    for i in frames:
-        intr = scene.frame_intrinsics(i)
-        stride = max(1, int(math.sqrt(intr.w * intr.h / per_frame)))
-        u = torch.arange(stride / 2, intr.w, stride, dtype=torch.float64)
-        v = torch.arange(stride / 2, intr.h, stride, dtype=torch.float64)
-        vv, uu = torch.meshgrid(v, u, indexing="ij")
-        uv = torch.stack([uu.reshape(-1), vv.reshape(-1)], dim=-1)
-        o, d = generate_rays(intr, torch.as_tensor(scene.frames[i].world_from_cam, dtype=torch.float64), uv)
-        origins.append(o)
-        dirs.append(d)
-    return torch.cat(origins), torch.cat(dirs)
-
-
-def auto_threshold(
-    density: DensityFn,
-    scene: Any,
-    aabb: np.ndarray,
-    *,
-    n_rays: int = 2048,
-    samples: int = 512,
-    device: torch.device | str = "cpu",
-    chunk: int = 1 << 18,
-) -> tuple[float, dict]:
-    """Iso-level from the field: the median, over training rays that become half opaque inside `aabb`, of the
-    density where the accumulated opacity first reaches 0.5 (rule and fallback: module doc).
-
-    Rays step `diag(aabb) / samples` from max(near, box entry) to min(far, box exit) (midpoint rule); the
-    crossing is located within its step by linear interpolation of the optical depth, and the density there
-    by linear interpolation between samples. Returns (level, info for the report).
-    """
-    from radiance.aabb import ray_aabb_intersect
-
-    device = torch.device(device)
-    aabb = np.asarray(aabb, np.float64).reshape(2, 3)
-    diag = float(np.linalg.norm(aabb[1] - aabb[0]))
-    step = diag / samples
-    o, d = _training_rays(scene, n_rays)
-    t_near, t_far, hit = ray_aabb_intersect(o, d, torch.as_tensor(aabb))
-    t0 = torch.clamp(t_near, min=float(scene.near))
-    t1 = torch.clamp(t_far, max=float(scene.far))
-    valid = hit & (t1 > t0)
-    o, d, t0, t1 = o[valid], d[valid], t0[valid], t1[valid]
-    levels: list[torch.Tensor] = []
-    depths: list[torch.Tensor] = []
-    k = torch.arange(samples, dtype=torch.float64)
-    rays_per_chunk = max(1, chunk // samples)
-    for a in range(0, o.shape[0], rays_per_chunk):
-        oc, dc, t0c, t1c = (v[a : a + rays_per_chunk] for v in (o, d, t0, t1))
-        t = t0c[:, None] + (k + 0.5) * step  # [r, S] sample midpoints
-        inside = t < t1c[:, None]
-        x = (oc[:, None, :] + t[..., None] * dc[:, None, :])[inside]  # [M, 3]
-        sigma = torch.zeros_like(t)
-        if x.shape[0]:
-            sigma[inside] = density(x.to(device, torch.float32)).double().cpu()
-        tau = torch.cumsum(sigma * step, dim=1)  # optical depth after each step
-        crossed = tau[:, -1] >= LN2
-        if not bool(crossed.any()):
-            continue
-        tau, sigma, t = tau[crossed], sigma[crossed], t[crossed]
-        j = torch.argmax((tau >= LN2).to(torch.int8), dim=1)  # first step reaching ln 2
-        rows = torch.arange(len(j))
-        tau_before = torch.where(j > 0, tau[rows, (j - 1).clamp(min=0)], torch.zeros_like(j, dtype=tau.dtype))
-        frac = (LN2 - tau_before) / (tau[rows, j] - tau_before).clamp(min=1e-300)  # position within step j
-        pos = j.double() - 0.5 + frac  # in sample-index units (sample i at i)
-        i0 = pos.floor().long().clamp(0, samples - 1)
-        i1 = (i0 + 1).clamp(max=samples - 1)
-        w = (pos - i0.double()).clamp(0, 1)
-        levels.append((1 - w) * sigma[rows, i0] + w * sigma[rows, i1])
-        depths.append(t[rows, 0] - 0.5 * step + (pos + 0.5) * step)
-    n_valid = int(o.shape[0])
-    lv = torch.cat(levels) if levels else torch.zeros(0, dtype=torch.float64)
-    info: dict[str, Any] = {
-        "rule": "median over training rays of the density where accumulated opacity first reaches 0.5",
-        "rays": n_valid,
-        "rays_reaching_half_opacity": int(lv.numel()),
-        "step": step,
-    }
-    if lv.numel() < max(16, int(0.01 * n_valid)):
-        level = LN2 / (0.01 * diag)
-        info.update(rule="fallback: ln 2 / (1 % of the aabb diagonal): too few training rays reach 0.5 opacity",
-                    fallback=True)  # fmt: skip
-        return level, info
-    q = torch.quantile(lv, torch.tensor([0.25, 0.5, 0.75], dtype=torch.float64)).tolist()
-    info.update(fallback=False, quartiles=q)
-    return float(q[1]), info
-
-
-# ---------------------------------------------------------------------------------------------- metrics
-
-
-def chamfer_distance(a_points: np.ndarray, b_points: np.ndarray) -> float:
-    """Symmetric mean Chamfer distance: (mean_a min_b |a - b| + mean_b min_a |b - a|) / 2 (not squared),
-    in the points' units. a_points [N, 3], b_points [M, 3]."""
-    from scipy.spatial import cKDTree
-
-    a = np.asarray(a_points, np.float64).reshape(-1, 3)
-    b = np.asarray(b_points, np.float64).reshape(-1, 3)
-    if len(a) == 0 or len(b) == 0:
-        raise ValueError(f"expected two non-empty point sets, got {len(a)} and {len(b)} points")
-    d_ab = cKDTree(b).query(a, workers=-1)[0]
-    d_ba = cKDTree(a).query(b, workers=-1)[0]
-    return float(0.5 * (d_ab.mean() + d_ba.mean()))
-
-
-def surface_points(verts: np.ndarray, faces: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
-    """n points uniformly distributed by area on a triangle mesh (deterministic for a seed). [n, 3]."""
-    rng = np.random.default_rng(seed)
-    tri = np.asarray(verts, np.float64)[np.asarray(faces)]  # [F, 3, 3]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    f = rng.choice(len(tri), size=n, p=area / area.sum())
-    r1, r2 = rng.random(n), rng.random(n)
-    s = np.sqrt(r1)
-    w = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)  # barycentric, uniform on the triangle
-    return np.einsum("nk,nkd->nd", w, tri[f])
-
-
 # ---------------------------------------------------------------------------------------------- the stage
 
 
@@ -367,7 +180,7 @@ def _grid_for(config: Config, trained: Any, out_from_scene: np.ndarray) -> tuple
         b = np.asarray(config.bbox, np.float64)
         scene_from_out = np.linalg.inv(out_from_scene)
         return make_grid(b[:3], b[3:], config.resolution, stride, scene_from_out), f"--bbox ({config.frame} frame)"
-    lo, hi, how = _occupied_box(trained)
+    lo, hi, how = occupied_box(trained)
     return make_grid(lo, hi, config.resolution, stride), how
 
 
@@ -378,22 +191,6 @@ def _marching_cubes(vol: np.ndarray, level: float, grid: Grid) -> tuple[np.ndarr
     verts, faces, _, _ = marching_cubes(vol, level=level, gradient_direction="ascent", allow_degenerate=False)
     verts = grid.lo + (verts.astype(np.float64) - 1.0) * grid.h  # volume index -> grid frame (pad offset)
     return verts, faces.astype(np.int64)
-
-
-def _vertex_colors(trained: Any, verts_scene: np.ndarray, faces_scene: np.ndarray, chunk: int) -> np.ndarray:
-    """RGBA uint8 [V, 4]: the field's colour seen along the inward normal."""
-    normals = vertex_normals(verts_scene, faces_scene)
-    device = _field_device(trained)
-    out = []
-    with torch.inference_mode():
-        for a in range(0, len(verts_scene), chunk):
-            x = torch.as_tensor(verts_scene[a : a + chunk], dtype=torch.float32, device=device)
-            d = -torch.as_tensor(normals[a : a + chunk], dtype=torch.float32, device=device)
-            d = torch.where(d.norm(dim=1, keepdim=True) > 0, d, torch.tensor([0.0, 0.0, -1.0], device=device))
-            out.append(trained.color(x, d).float().clamp(0, 1).cpu().numpy())  # chunks as the run likes
-    rgb = np.concatenate(out) if out else np.zeros((0, 3), np.float32)
-    rgba = np.concatenate([np.rint(rgb * 255), np.full((len(rgb), 1), 255.0)], axis=1)
-    return rgba.astype(np.uint8)
 
 
 def _export(path: Path, verts: np.ndarray, faces: np.ndarray, colors: np.ndarray | None) -> None:
@@ -445,14 +242,14 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
 
     scene = trained.scene
     out_from_scene = scene.source_from_scene() if config.frame == "user" else np.eye(4)
-    device = _field_device(trained)
+    device = field_device(trained)
     density = density_function(trained)
     grid, how = _grid_for(config, trained, out_from_scene)
     t = time.perf_counter()
 
     if config.threshold == "auto":
         level, threshold_info = auto_threshold(
-            density, scene, _np(trained.aabb).reshape(2, 3), n_rays=config.threshold_rays, device=device,
+            density, scene, as_np(trained.aabb).reshape(2, 3), n_rays=config.threshold_rays, device=device,
             chunk=config.chunk,
         )  # fmt: skip
     else:
@@ -478,9 +275,9 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
 
     colors = None
     left_out: dict[str, str] = {}
-    if config.colors and _has_color(trained):
+    if config.colors and has_color(trained):
         v_scene, f_scene = transform_mesh(verts, faces, np.linalg.inv(out_from_scene))
-        colors = _vertex_colors(trained, v_scene, f_scene, 1 << 16)
+        colors = vertex_colors(trained, v_scene, f_scene, 1 << 16)
     elif config.colors:
         left_out["colors"] = "the field is density-only"
     else:
@@ -500,7 +297,7 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
         threshold={"value": level, **threshold_info},
         grid={"crop": how, "frame": "scene" if np.allclose(grid.scene_from_grid, np.eye(4)) else config.frame,
               "lo": grid.lo.tolist(), "hi": grid.hi.tolist(), "voxel": grid.h, "samples_per_axis": list(grid.shape),
-              "coarse_stride": grid.stride, "occupancy_skipping": _occupancy_binary(trained) is not None,
+              "coarse_stride": grid.stride, "occupancy_skipping": occupancy_binary(trained) is not None,
               **{k: v for k, v in sample_stats.items()}},
         steps=steps, final={"vertices": len(verts), "faces": len(faces), **stats},
         frame=config.frame, out_from_scene=out_from_scene.tolist(),
@@ -512,12 +309,12 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
 
 
 def run(config: Config, progress: Any | None = None) -> Outputs:
-    """Load RUN_DIR with `stages.train.load_trained` and mesh it (see the module doc)."""
+    """Load RUN_DIR with `model.load_trained` and mesh it (see the module doc)."""
     _validate(config)
     run_dir = Path(config.run_dir)
     if not run_dir.is_dir():
         raise UserError(f"{run_dir}: no such run directory (expected the output folder of `nerfpipe train`)")
-    from stages.train import load_trained
+    from model import load_trained
 
     trained = load_trained(run_dir, config.device)
     inputs = tuple(p for p in (run_dir / "config.json", run_dir / "checkpoint.pt") if p.is_file())

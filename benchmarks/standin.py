@@ -1,9 +1,10 @@
-"""Fixtures for the tests and benchmark of `stages.mesh`: an analytic stand-in for a trained run, and the
-visibility of points in the synthetic scene (`stages.scene`) for fair Chamfer distances.
+"""Test and benchmark support for `stages.mesh` (tests/test_mesh.py, benchmarks/bench_mesh.py; never imported by
+product code): an analytic stand-in for a trained run, and the visibility of points in the synthetic scene
+(`stages.scene`) for fair Chamfer distances.
 
-It has the attributes `stages.mesh.extract` reads from `stages.train.Trained`: `density`, `color`, `aabb`,
-`occupancy` (None), `scene`, `device`. The object is a union of a sphere and a box (optionally plus a small
-floating ball) given by a signed distance `sdf` in the scene frame; the density is
+`StandIn` has the attributes `stages.mesh.extract` reads from a trained run (`model.Trained`): `density`,
+`color`, `aabb`, `occupancy` (None), `scene`, `device`. The object is a union of a sphere and a box
+(optionally plus a small floating ball) given by a signed distance `sdf` in the scene frame; the density is
     sigma(x) = sigma_max * sigmoid(-sdf(x) / eps),   sigma_max = 1 / eps,
 so a ray hitting the surface head-on accumulates optical depth ln 2 (opacity 0.5) exactly at sdf = 0, where
 sigma = sigma_max / 2: the auto threshold should find ~sigma_max / 2 and the iso-surface is the exact surface.
@@ -146,7 +147,7 @@ def visible_points(points: np.ndarray, scene_src: Path, tol: float = VISIBILITY_
     import json
 
     from data.transforms import read_scene
-    from stages.scene_objects import default_primitives
+    from stages.scene.objects import default_primitives
 
     scene = read_scene(scene_src)
     manifest = json.loads((Path(scene_src) / "manifest.json").read_text())

@@ -46,11 +46,11 @@ def cleanup_mesh(
 
     Returns (verts [V', 3] float64, faces [F', 3] int64, steps: [{step, vertices, faces}, ...]).
     """
-    import pymeshlab
-
     steps: list[dict] = []
     if cleanup is None and target_faces is None:
         return verts, faces, steps
+    import pymeshlab  # only here: `--no-cleanup` without decimation never loads it
+
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.asarray(verts, np.float64), face_matrix=np.asarray(faces, np.int32)))
     if cleanup is not None:

@@ -1,7 +1,7 @@
 """`scene` stage: a synthetic, analytically rendered scene with exact cameras, depth and mesh.
 
 The project's fixture for every later stage and its built-in demo. A textured ground slab and five
-high-texture objects (spheres, boxes, a cylinder; `stages.scene_objects`) are ray cast exactly from cameras on
+high-texture objects (spheres, boxes, a cylinder; `stages.scene.objects`) are ray cast exactly from cameras on
 a hemisphere around them.
 
 Conventions (docs/DESIGN.md):
@@ -34,15 +34,16 @@ from typing import Literal
 
 import cv2
 import numpy as np
+import torch
 import trimesh
 
 from data.atomic import atomic_path, write_bytes, write_json
 from data.errors import UserError
 from data.rundir import config_to_json, write_manifest
 from data.transforms import Frame, Scene, write_scene
-from radiance.camera import Intrinsics
+from radiance.camera import Intrinsics, generate_rays, pixel_centers
 from radiance.paths import look_at
-from stages.scene_objects import Primitive, backdrop, default_primitives, shade, solid_texture
+from stages.scene.objects import Primitive, backdrop, default_primitives, shade, solid_texture
 
 __all__ = ["Config", "Outputs", "run", "cameras", "render_view", "scene_mesh", "SUPERSAMPLE", "BACKGROUND"]
 
@@ -148,18 +149,12 @@ def _forward_cameras(views: int, seed: int) -> np.ndarray:
 
 
 def _rays(intr: Intrinsics, world_from_cam: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rays through (col + ox, row + oy) for every pixel and each offset [S, 2]: o, d [H * W * S, 3] float64,
-    ordered (row, col, sample)."""
-    v, u = np.meshgrid(np.arange(intr.h, dtype=np.float64), np.arange(intr.w, dtype=np.float64), indexing="ij")
-    uu = (u[..., None] + offsets[:, 0]).reshape(-1)
-    vv = (v[..., None] + offsets[:, 1]).reshape(-1)
-    # OpenCV normalised (x, y, 1) -> OpenGL camera (x, -y, -1), then to world.
-    dirs = np.stack([(uu - intr.cx) / intr.fx, -(vv - intr.cy) / intr.fy, -np.ones_like(uu)], axis=-1)
-    r = world_from_cam[:3, :3]
-    d = dirs[:, :1] * r[:, 0] + dirs[:, 1:2] * r[:, 1] + dirs[:, 2:3] * r[:, 2]  # dirs @ r.T
-    d /= np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2 + d[:, 2] ** 2)[:, None]
-    o = np.broadcast_to(world_from_cam[:3, 3], d.shape)
-    return o, d
+    """Rays through (col + ox, row + oy) for every pixel and each offset [S, 2] (`radiance.camera.generate_rays`):
+    o, d [H * W * S, 3] float64, ordered (row, col, sample)."""
+    corners = pixel_centers(intr, torch.float64) - 0.5  # [H * W, 2] (col, row), row-major
+    uv = (corners[:, None, :] + torch.from_numpy(offsets)).reshape(-1, 2)  # [H * W * S, 2]
+    o, d = generate_rays(intr, torch.from_numpy(world_from_cam), uv)
+    return o.numpy(), d.numpy()
 
 
 def _cast(prims: tuple[Primitive, ...], o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,144 @@
+"""Cameras over a trained run: camera paths (turntable, spiral, a split's cameras) and rendering one camera.
+
+Cameras are world_from_cam [4, 4] in the scene frame, OpenGL axes (x right, y up, looking down -z);
+`render_view` returns z-depth (along the optical axis) in scene units. Paths come from `radiance.paths`:
+`turntable` orbits the point the training cameras look at, `spiral` is LLFF's forward-facing path,
+`test` / `train` replay a split's cameras with their own intrinsics (distortion included). Synthetic paths use
+the first training camera's intrinsics without distortion, scaled by 1/downscale.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+
+from data.errors import UserError
+from data.transforms import Scene, is_forward_facing
+from radiance import paths
+from radiance.camera import Intrinsics, generate_rays
+
+__all__ = ["PATHS", "OPAQUE", "Renderable", "render_view", "training_intrinsics", "CameraPath", "camera_path"]
+
+PATHS = ("auto", "turntable", "spiral", "test", "train")
+OPAQUE = 0.5
+"""Pixels with accumulated opacity below this count as background for depth ranges and depth exports."""
+
+
+class Renderable(Protocol):
+    """What rendering needs of a trained run (`model.load_trained(...)`; see docs/DESIGN.md)."""
+
+    scene: Scene
+    background: torch.Tensor
+
+    def render_rays(self, rays_o: torch.Tensor, rays_d: torch.Tensor) -> dict[str, torch.Tensor]: ...
+
+
+@torch.no_grad()
+def render_view(trained: Renderable, intr: Intrinsics, world_from_cam: np.ndarray, device: torch.device):
+    """Render one camera (scene frame, OpenGL axes). Returns numpy float32 arrays:
+    rgb [H, W, 3], depth [H, W] (z-depth of the expected t, scene units), depth_median [H, W] (z-depth of the
+    median t), acc [H, W]. Memory: `trained.render_rays` works through the rays in chunks."""
+    pose = torch.as_tensor(np.asarray(world_from_cam, dtype=np.float64))
+    rays_o, rays_d = generate_rays(intr, pose)  # float64 [R, 3]
+    forward = -pose[:3, 2]
+    cos = (rays_d @ forward).to(torch.float32)  # t -> z-depth factor
+    out = trained.render_rays(rays_o.to(device, torch.float32), rays_d.to(device, torch.float32))
+    h, w = intr.h, intr.w
+
+    def grab(key: str, shape: tuple[int, ...]) -> np.ndarray:
+        return out[key].detach().float().cpu().reshape(shape).numpy()
+
+    cos_np = cos.reshape(h, w).numpy()
+    return {
+        "rgb": grab("rgb", (h, w, 3)),
+        "depth": grab("depth", (h, w)) * cos_np,
+        "depth_median": grab("depth_median", (h, w)) * cos_np,
+        "acc": grab("acc", (h, w)),
+    }
+
+
+def training_intrinsics(scene: Scene) -> Intrinsics:
+    """The first training camera's intrinsics (what synthetic paths render with, before downscale)."""
+    train = scene.split("train") or tuple(range(len(scene.frames)))
+    return scene.frame_intrinsics(train[0])
+
+
+def _scaled(intr: Intrinsics, downscale: float, keep_distortion: bool) -> Intrinsics:
+    out = intr.scaled(1.0 / downscale) if downscale != 1 else intr
+    if not keep_distortion and out.has_distortion:
+        out = Intrinsics(w=out.w, h=out.h, fx=out.fx, fy=out.fy, cx=out.cx, cy=out.cy)
+    return out
+
+
+@dataclass(frozen=True, kw_only=True)
+class CameraPath:
+    world_from_cams: np.ndarray
+    """[N, 4, 4] scene frame, OpenGL axes."""
+    intrinsics: tuple[Intrinsics, ...]
+    """One per camera."""
+    names: tuple[str, ...]
+    """A file-name stem per camera."""
+    frame_indices: tuple[int, ...] | None
+    """Dataset frame index per camera for test/train replays (None for synthetic paths)."""
+    used: dict[str, Any]
+    """How the path was derived (for the manifest)."""
+
+
+def camera_path(
+    scene: Scene, kind: str, *, frames: int = 120, downscale: float = 1.0, elevation: float | None = None,
+    radius: float | None = None,
+) -> CameraPath:  # fmt: skip
+    """Cameras of a path over a trained run's scene. radius in the user's units (scaled into the scene frame)."""
+    if kind not in PATHS:
+        raise UserError(f"--path: unknown path {kind!r}; expected one of {', '.join(PATHS)}")
+    if kind == "auto":
+        kind = "spiral" if is_forward_facing(scene) else "turntable"
+    if not downscale > 0:
+        raise UserError(f"--downscale: expected > 0, got {downscale}")
+    if kind in ("test", "train"):
+        idx = scene.split(kind) or (scene.split("val") if kind == "test" else ())
+        if not idx:
+            raise UserError(f"--path {kind}: the run's scene ({scene.root}) has no {kind} split")
+        poses = np.stack([scene.frames[i].world_from_cam for i in idx])
+        intr = tuple(_scaled(scene.frame_intrinsics(i), downscale, keep_distortion=True) for i in idx)
+        names = tuple(Path(scene.frames[i].file_path).stem for i in idx)
+        split = kind if scene.split(kind) else "val"
+        return CameraPath(world_from_cams=poses, intrinsics=intr, names=names, frame_indices=tuple(idx),
+                          used={"path": kind, "split": split})  # fmt: skip
+    if frames < 1:
+        raise UserError(f"--frames: expected >= 1, got {frames}")
+    train_idx = scene.split("train") or tuple(range(len(scene.frames)))
+    train_poses = np.stack([scene.frames[i].world_from_cam for i in train_idx])
+    intr = _scaled(training_intrinsics(scene), downscale, keep_distortion=False)
+    used: dict[str, Any] = {"path": kind, "intrinsics": "first training camera, no distortion"}
+    if kind == "turntable":
+        orbit = paths.orbit_from_cameras(train_poses)
+        if radius is not None:
+            if not radius > 0:
+                raise UserError(f"--radius: expected > 0, got {radius}")
+            orbit = dataclasses.replace(orbit, radius=radius * scene.applied_scale)
+        if elevation is not None:
+            if not -90 < elevation < 90:
+                raise UserError(f"--elevation: expected degrees in (-90, 90), got {elevation}")
+            orbit = dataclasses.replace(orbit, elevation_deg=float(elevation))
+        poses = paths.turntable(orbit, frames)
+        defaults = [name for name, value in (("radius", radius), ("elevation", elevation)) if value is None]
+        used.update(
+            centre_scene=orbit.centre.tolist(), up=orbit.up.tolist(), up_reason=paths.up_axis(train_poses)[1],
+            radius_scene=orbit.radius, radius_user=orbit.radius / scene.applied_scale,
+            elevation_deg=orbit.elevation_deg, from_training_cameras=defaults,
+        )  # fmt: skip
+    else:
+        try:
+            poses = paths.spiral(train_poses, frames)
+        except ValueError as exc:
+            raise UserError(f"--path spiral: {exc}; use --path turntable") from None
+        used.update(focus_scene=paths.focus_point(train_poses).tolist(), rotations=2, radii_percentile=90)
+    names = tuple(f"frame_{k:05d}" for k in range(len(poses)))
+    return CameraPath(world_from_cams=poses, intrinsics=(intr,) * len(poses), names=names, frame_indices=None,
+                      used=used)  # fmt: skip

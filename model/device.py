@@ -1,0 +1,26 @@
+"""One device resolver for every stage: "auto" | "cpu" | "cuda" | "cuda:N" -> torch.device, or a UserError."""
+
+from __future__ import annotations
+
+import torch
+
+from data.errors import UserError
+
+__all__ = ["resolve_device"]
+
+
+def resolve_device(name: str | torch.device) -> torch.device:
+    """ "auto": CUDA when torch sees a GPU, else the CPU. A CUDA device without CUDA is a UserError."""
+    if isinstance(name, torch.device):
+        return name
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(name)
+    except RuntimeError:
+        raise UserError(f"--device: unknown device {name!r} (expected auto, cpu, cuda, cuda:N)") from None
+    if dev.type not in ("cpu", "cuda"):
+        raise UserError(f"--device: unknown device {name!r} (expected auto, cpu, cuda, cuda:N)")
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise UserError(f"--device: {name} requested but torch sees no CUDA device")
+    return dev

@@ -1,0 +1,209 @@
+"""A field with what it needs to be rendered: occupancy grid, box, near/far, marching step, NDC wrapping.
+
+`FieldModel.render(o, d, background, train=...)` takes world rays (scene frame, unit directions, t = Euclidean
+distance; `radiance.camera`) and returns dict(rgb, depth, depth_median, acc, samples, ...) through the
+model-free renderers of `radiance.render`, given callbacks over the field: `fast` fields march the occupancy
+grid (`render_marched`), `vanilla` fields use the paper's stratified + importance sampling
+(`render_rays_hierarchical`). With an NDC map (forward-facing captures) the field lives in NDC of the mean
+camera and depths come back as distances along the world rays.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from data.errors import UserError
+from data.transforms import Scene, is_forward_facing
+from radiance.aabb import ray_aabb_segment
+from radiance.fields import Field, TensoRF, VanillaNeRF, make_field
+from radiance.ndc import NDC, fit_ndc
+from radiance.occupancy import OccupancyGrid
+from radiance.render import StratifiedSampler, render_marched, render_rays_hierarchical
+
+__all__ = ["ModelSettings", "FieldModel", "build_model", "scene_ndc", "uses_ndc"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class ModelSettings:
+    """What a field model is built from: the subset of train's Config that rendering needs (config.json)."""
+
+    field: str
+    """"fast" or "vanilla"."""
+    resolution: tuple[int, int]
+    """fast: grid resolution at the start and at the end of training."""
+    step_ratio: float
+    """fast: marching step in voxels of the final grid."""
+    occupancy_resolution: int
+    """fast: occupancy grid cells per axis."""
+    render_step_factor: float
+    """fast: inference marches at this fraction of the training step."""
+    view_dependent: bool | None
+    """Colour depends on view direction (None: on)."""
+
+    @classmethod
+    def from_config(cls, doc: dict[str, Any], where: str) -> ModelSettings:
+        """From a run's config.json (train's resolved Config); UserError naming a missing key."""
+        try:
+            return cls(field=str(doc["field"]), resolution=(int(doc["resolution"][0]), int(doc["resolution"][1])),
+                       step_ratio=float(doc["step_ratio"]), occupancy_resolution=int(doc["occupancy_resolution"]),
+                       render_step_factor=float(doc["render_step_factor"]),
+                       view_dependent=doc.get("view_dependent"))  # fmt: skip
+        except (KeyError, TypeError, ValueError, IndexError) as exc:
+            raise UserError(
+                f"{where}: config.json lacks a valid {exc} (written by another nerfpipe version?)"
+            ) from None
+
+
+def _render_fast(
+    field: TensoRF,
+    grid: OccupancyGrid,
+    rays_o: Tensor,  # [R, 3]
+    rays_d: Tensor,  # [R, 3] unit
+    *,
+    near: float,
+    far: float,
+    step_size: float,
+    background: Tensor,  # [3] or [R, 3]
+    jitter: bool = False,
+    with_median: bool = False,
+) -> dict[str, Tensor]:
+    """TensoRF + occupancy grid: radiance.render.render_marched over the field's density and colour."""
+    rgb_fn = None
+    if field.has_color:
+        rgb_fn = lambda x, d: field.color(x, d if field.view_dependent else None)  # noqa: E731
+    out = render_marched(
+        rays_o, rays_d, grid=grid, sigma_fn=field.density, rgb_fn=rgb_fn, near=near, far=far, step_size=step_size,
+        background=background, jitter=jitter, with_median=with_median,
+    )  # fmt: skip
+    out["samples"] = torch.tensor(float(out["ray_indices"].numel()))
+    return out
+
+
+def _rgb_sigma(net, view_dependent: bool):
+    """A NeRF MLP (x, d) -> (sigma, rgb | None) as render_rays' rgb_sigma_fn (rgb 0 for density-only)."""
+
+    def fn(x: Tensor, d: Tensor) -> tuple[Tensor, Tensor]:
+        sigma, rgb = net(x, d if view_dependent else None)
+        if rgb is None:
+            rgb = torch.zeros(*sigma.shape, 3, dtype=sigma.dtype, device=sigma.device)
+        return rgb, sigma
+
+    return fn
+
+
+def _render_vanilla(
+    field: VanillaNeRF,
+    rays_o: Tensor,  # [R, 3]
+    rays_d: Tensor,  # [R, 3] unit
+    *,
+    aabb: Tensor,  # [2, 3]
+    near: float,
+    far: float,
+    background: Tensor,  # [3] or [R, 3]
+    jitter: bool,
+    generator: torch.Generator | None = None,
+) -> dict[str, Tensor]:
+    """NeRF: n_coarse stratified samples in the box, n_fine importance samples, the fine net on all of them
+    (radiance.render.render_rays_hierarchical)."""
+    t_near, t_far = ray_aabb_segment(rays_o, rays_d, aabb, near, far)
+    out = render_rays_hierarchical(
+        rays_o, rays_d, near=t_near, far=t_far, n_fine=field.n_fine, background=background,
+        coarse_sampler=StratifiedSampler(n_samples=field.n_coarse, jitter=jitter, generator=generator),
+        coarse_fn=_rgb_sigma(field.coarse, field.view_dependent), fine_fn=_rgb_sigma(field.fine, field.view_dependent),
+        jitter=jitter, generator=generator,
+    )  # fmt: skip
+    out["rgb_coarse"] = out["coarse"]["rgb"]
+    out["samples"] = torch.tensor(float(out["coarse"]["t_starts"].numel() + out["t_starts"].numel()))
+    return out
+
+
+@dataclass
+class FieldModel:
+    field: Field
+    grid: OccupancyGrid | None
+    kind: str
+    step_size: float  # training march step (inference: step_size * render_step_factor)
+    near: float
+    far: float
+    aabb: Tensor  # [2, 3] the field's box: scene frame, or NDC space when ndc is set
+    ndc: NDC | None = None
+    render_step_factor: float = 1.0
+
+    @property
+    def chunk(self) -> int:
+        """Rays per evaluation chunk (vanilla: 256 samples x 256 activations per ray)."""
+        return 8192 if self.kind == "fast" else 1024
+
+    def render(self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, gen=None, median=False):
+        """World rays o, d [R, 3] (unit d) -> dict(rgb, depth, depth_median, acc, ...); depths are distances
+        along the world rays whatever space the field lives in."""
+        if self.ndc is None:
+            return self._render(o, d, background, train=train, gen=gen, median=median)
+        o_n, d_n, valid = self.ndc.rays_to_ndc(o, d)
+        out = self._render(o_n, d_n, background, train=train, gen=gen, median=median)
+        for key in ("depth", "depth_median"):
+            if key in out:
+                out[key] = self.ndc.world_t(o, d, o_n, d_n, out[key])
+        if not bool(valid.all()):  # rays away from the reference view see nothing (the dummy ray misses)
+            out["depth"] = torch.where(valid, out["depth"], torch.zeros_like(out["depth"]))
+        return out
+
+    def _render(self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, gen=None, median=False):
+        if self.kind == "fast":
+            step = self.step_size if train else self.step_size * self.render_step_factor
+            return _render_fast(self.field, self.grid, o, d, near=self.near, far=self.far, step_size=step,
+                               background=background, jitter=train, with_median=median)  # fmt: skip
+        return _render_vanilla(self.field, o, d, aabb=self.aabb, near=self.near, far=self.far, background=background,
+                              jitter=train, generator=gen)  # fmt: skip
+
+
+def _step_size(aabb: Tensor, resolution: int, ratio: float) -> float:
+    return float((aabb[1] - aabb[0]).mean()) / resolution * ratio
+
+
+def uses_ndc(scene_model: str, scene: Scene) -> bool:
+    """scene_model "auto": NDC when the cameras are forward-facing; "ndc" / "box" as asked."""
+    if scene_model == "auto":
+        return is_forward_facing(scene)
+    return scene_model == "ndc"
+
+
+def scene_ndc(scene: Scene) -> NDC:
+    """NDC of the scene's mean camera; its near plane is the scene's near bound."""
+    if not (scene.near > 0 and math.isfinite(scene.near)):
+        raise UserError(f"{scene.root}: NDC needs a near bound > 0 in transforms.json, got near={scene.near}")
+    return fit_ndc(np.stack([f.world_from_cam for f in scene.frames]), scene.frame_intrinsics(0), scene.near)
+
+
+def build_model(settings: ModelSettings, scene: Scene, device: torch.device, field_cfg: dict | None,
+                ndc: NDC | None = None) -> FieldModel:  # fmt: skip
+    """The field, its occupancy grid (fast) and render settings. With `ndc`, the field's box is the NDC box
+    of the training cameras (near 0, far: the box's end at infinity); otherwise the scene's aabb.
+    `field_cfg` (a checkpoint's) rebuilds a saved field; None makes a new one from `settings`."""
+    if ndc is None:
+        aabb = torch.as_tensor(scene.aabb, dtype=torch.float32).reshape(2, 3)
+        near, far = float(scene.near), (scene.far if math.isfinite(scene.far) else 1e10)
+    else:
+        poses = np.stack([f.world_from_cam for f in scene.frames])
+        intr = [scene.frame_intrinsics(i) for i in range(len(scene.frames))]
+        aabb = torch.as_tensor(ndc.box(poses, intr), dtype=torch.float32)
+        near, far = 0.0, 1e10
+    view_dep = True if settings.view_dependent is None else settings.view_dependent
+    if field_cfg is None:
+        if settings.field == "fast":
+            field_cfg = TensoRF(aabb=aabb, resolution=settings.resolution[0], view_dependent=view_dep).config()
+        else:
+            field_cfg = VanillaNeRF(view_dependent=view_dep).config()
+    field = make_field(field_cfg).to(device)
+    grid = None
+    if field_cfg["kind"] == "fast":
+        grid = OccupancyGrid(aabb, settings.occupancy_resolution).to(device)
+    step = _step_size(aabb, settings.resolution[1], settings.step_ratio)
+    return FieldModel(field, grid, field_cfg["kind"], step, near, float(far), aabb.to(device), ndc,
+                      settings.render_step_factor)  # fmt: skip

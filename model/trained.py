@@ -1,0 +1,147 @@
+"""A trained run, ready for rendering and queries: `load_trained(run_dir)` -> `Trained`.
+
+Everything outside works in the scene frame (transforms.json's normalised frame): `render_rays` returns world
+distances, `density(x)` takes scene points, `aabb` is the scene's box. NDC runs (forward-facing) map to and
+from NDC inside; their `occupancy` is None (the grid lives in NDC).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from data.errors import UserError
+from data.transforms import Scene, read_scene
+from model.checkpoint import read_checkpoint
+from model.device import resolve_device
+from model.field_model import FieldModel, ModelSettings, build_model
+from radiance.fields import Field
+from radiance.ndc import NDC
+from radiance.occupancy import OccupancyGrid
+
+__all__ = ["WHITE", "Trained", "load_trained"]
+
+WHITE = (1.0, 1.0, 1.0)
+"""Evaluation background of runs trained on images with alpha."""
+
+
+@dataclass
+class Trained:
+    """A trained run, ready for rendering and queries (no grad, chunked)."""
+
+    scene: Scene
+    field: Field
+    occupancy: OccupancyGrid | None
+    aabb: Tensor  # [2, 3] scene frame (NDC runs: the scene's aabb, not the field's NDC box)
+    background: Tensor  # [3] evaluation background
+    device: torch.device
+    model: FieldModel
+
+    @property
+    def chunk(self) -> int:
+        return self.model.chunk
+
+    @torch.no_grad()
+    def render_rays(self, rays_o: Tensor, rays_d: Tensor) -> dict[str, Tensor]:
+        """rays_o, rays_d [R, 3] (unit) -> dict(rgb [R, 3], depth [R] (expected t), depth_median [R], acc [R]).
+
+        depth is sum(w t) / acc; depth_median the t where the accumulated weight reaches 0.5 (inf when the
+        ray never reaches it). Missing colour (density-only field) gives rgb = background.
+        """
+        if rays_o.shape != rays_d.shape or rays_o.ndim != 2 or rays_o.shape[-1] != 3:
+            raise ValueError(f"expected rays_o, rays_d [R, 3], got {tuple(rays_o.shape)}, {tuple(rays_d.shape)}")
+        parts: dict[str, list[Tensor]] = {k: [] for k in ("rgb", "depth", "depth_median", "acc")}
+        for i in range(0, rays_o.shape[0], self.chunk):
+            o = rays_o[i : i + self.chunk].to(self.device, torch.float32)
+            d = rays_d[i : i + self.chunk].to(self.device, torch.float32)
+            out = self.model.render(o, d, self.background, train=False, median=True)
+            if "rgb" not in out:
+                out["rgb"] = self.background.expand(o.shape[0], 3)
+            for k in parts:
+                parts[k].append(out[k])
+        return {k: torch.cat(v) if v else torch.zeros(0, device=self.device) for k, v in parts.items()}
+
+    @property
+    def ndc(self) -> NDC | None:
+        """The NDC map when the field lives in NDC (forward-facing runs), else None."""
+        return self.model.ndc
+
+    @torch.no_grad()
+    def density(self, x: Tensor) -> Tensor:
+        """x [N, 3] scene frame -> sigma [N] >= 0 per scene unit.
+
+        NDC runs: the NDC density times NDC length per scene length along the mean camera's ray through x
+        (`radiance.ndc`); 0 before the near plane.
+        """
+        out = []
+        for i in range(0, x.shape[0], self.chunk):
+            xi = x[i : i + self.chunk].to(self.device, torch.float32)
+            if self.ndc is None:
+                out.append(self.field.density(xi))
+                continue
+            p, scale, front = self.ndc.density_query(xi)
+            sigma = self.field.density(p.clamp(-2.0, 2.0))
+            out.append(torch.where(front, sigma * scale, torch.zeros_like(sigma)))
+        return torch.cat(out) if out else x.new_zeros(0)
+
+    @torch.no_grad()
+    def color(self, x: Tensor, d: Tensor | None) -> Tensor:
+        """x [N, 3], d [N, 3] unit or None -> rgb [N, 3] in [0, 1].
+
+        A view-dependent field given d = None is asked along (0, 0, -1) (looking straight down the up axis).
+        """
+        if not self.field.has_color:
+            raise ValueError("this run's field is density-only: no colour")
+        out = []
+        for i in range(0, x.shape[0], self.chunk):
+            xi = x[i : i + self.chunk].to(self.device, torch.float32)
+            di = None
+            if self.field.view_dependent:
+                di = (
+                    d[i : i + self.chunk].to(xi)
+                    if d is not None
+                    else torch.tensor([0.0, 0.0, -1.0]).to(xi).expand_as(xi)
+                )
+            if self.ndc is not None:
+                if di is not None:
+                    di = self.ndc.directions_to_ndc(xi, di)
+                xi = self.ndc.points_to_ndc(xi)
+            out.append(self.field.color(xi, di))
+        return torch.cat(out) if out else x.new_zeros(0, 3)
+
+
+def load_trained(run_dir: str | Path, device: str | torch.device = "auto") -> Trained:
+    """Load RUN_DIR (config.json + checkpoint.pt) for rendering; UserError when it is not a finished run."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise UserError(f"{run_dir}: run directory not found (not a train run directory)")
+    if not (run_dir / "checkpoint.pt").is_file():
+        raise UserError(f"{run_dir}: no checkpoint.pt (not a finished training run?)")
+    cfg_path = run_dir / "config.json"
+    if not cfg_path.is_file():
+        raise UserError(f"{run_dir}: not a train run directory (no config.json)")
+    doc = json.loads(cfg_path.read_text())
+    dev = resolve_device(device)
+    state = read_checkpoint(run_dir / "checkpoint.pt", dev)
+    settings = ModelSettings.from_config(doc, str(cfg_path))
+    try:
+        scene = read_scene(Path(doc["scene_dir"]))
+    except UserError as exc:
+        raise UserError(f"{run_dir}: the run's scene cannot be read: {exc}") from None
+    ndc = NDC.from_dict(state["ndc"]) if state.get("ndc") is not None else None
+    model = build_model(settings, scene, dev, state["field_config"], ndc)
+    model.field.load_state_dict(state["field"])
+    if model.grid is not None and state["occupancy"] is not None:
+        model.grid.load_state_dict(state["occupancy"])
+    model.field.eval()
+    background = torch.tensor(WHITE, device=dev)
+    if ndc is None:
+        occupancy, aabb = model.grid, model.aabb
+    else:  # the grid and box are in NDC; consumers (mesh) work in the scene frame
+        occupancy, aabb = None, torch.as_tensor(scene.aabb, dtype=torch.float32, device=dev).reshape(2, 3)
+    return Trained(scene=scene, field=model.field, occupancy=occupancy, aabb=aabb, background=background,
+                   device=dev, model=model)  # fmt: skip

@@ -1,0 +1,216 @@
+"""The poses stage's bookkeeping: run state, registration checks, phase timer, poses_report.json, summary.
+
+`RunState` collects what one run saw (copies, screening, timings, SfM statistics, the chosen model);
+`build_report` turns it into poses_report.json (also written on failure); `check_features` and
+`check_registered` turn too few textured or registered images into one-line UserErrors that say why.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import pycolmap
+from rich.console import Console
+from rich.progress import Progress
+
+from data.errors import UserError
+from data.rundir import MetricsLog, config_to_json
+from stages.poses.colmap import DatabaseStats
+from stages.poses.images import Screen
+
+if TYPE_CHECKING:
+    from stages.poses import Config
+
+__all__ = [
+    "MIN_REGISTERED", "FAIL_FRACTION", "WARN_FRACTION", "MIN_FEATURES", "RunState", "PhaseTimer",
+    "check_features", "check_registered", "build_report", "print_summary",
+]  # fmt: skip
+
+MIN_REGISTERED = 3
+FAIL_FRACTION = 0.4
+"""Fewer registered images than this fraction is an error (no model is written)."""
+WARN_FRACTION = 0.8
+"""Fewer registered images than this fraction prints a warning."""
+MIN_FEATURES = 100
+"""An image with fewer SIFT features than this is reported as texture-less."""
+
+
+@dataclass(kw_only=True)
+class RunState:
+    """Mutable state of one run, turned into poses_report.json."""
+
+    started: float
+    source: str = ""
+    names: dict[str, str] = field(default_factory=dict)  # copy name -> original
+    skipped: dict[str, str] = field(default_factory=dict)  # original name -> why (undecodable, dropped)
+    screens: dict[str, Screen] = field(default_factory=dict)
+    sizes: dict[str, tuple[int, int]] = field(default_factory=dict)  # copy name -> (w, h)
+    duplicates: dict[str, str] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    video: dict[str, Any] | None = None
+    stats: DatabaseStats | None = None
+    models: list[int] = field(default_factory=list)  # registered images per model found
+    model: pycolmap.Reconstruction | None = None
+    all_models: dict[int, pycolmap.Reconstruction] = field(default_factory=dict)
+    principal_point: str = ""
+
+
+def check_features(stats: DatabaseStats) -> None:
+    textured = [n for n, k in stats.features.items() if k >= MIN_FEATURES]
+    if len(textured) < MIN_REGISTERED:
+        raise UserError(
+            f"only {len(textured)} of {len(stats.features)} images have {MIN_FEATURES}+ SIFT features: the images "
+            "look blank or texture-less; photograph a scene with visible texture (not plain walls, sky or blur)"
+        )
+
+
+def check_registered(state: RunState, matcher: str) -> None:
+    total = len(state.stats.features)
+    reg = state.model.num_reg_images() if state.model is not None else 0
+    if reg < MIN_REGISTERED or reg < FAIL_FRACTION * total:
+        few = sum(k < MIN_FEATURES for k in state.stats.features.values())
+        unmatched = sum(p == 0 for p in state.stats.verified_pairs.values())
+        if few > total // 2:
+            cause = f"{few} images have under {MIN_FEATURES} features (texture-less or blurry)"
+        elif unmatched > total // 2:
+            cause = f"{unmatched} images share no verified matches (too little overlap between views)"
+        elif len(state.models) > 1:
+            cause = f"the scene split into {len(state.models)} separate models {state.models}"
+        else:
+            cause = "the views could not be chained together"
+        also = "matcher=exhaustive or " if matcher != "exhaustive" else ""
+        raise UserError(
+            f"only {reg} of {total} images registered: {cause}; take more overlapping photos (60-80% overlap, "
+            f"small steps around the subject) or try {also}a larger max_image_size / max_num_features"
+        )
+    if reg < WARN_FRACTION * total:
+        state.warnings.append(f"only {reg} of {total} images registered; see poses_report.json for why")
+
+
+def _why_not_registered(name: str, stats: DatabaseStats, models: dict[int, pycolmap.Reconstruction]) -> str:
+    if stats.features.get(name, 0) < MIN_FEATURES:
+        return f"few features ({stats.features.get(name, 0)}): blank, blurry or texture-less"
+    if stats.verified_pairs.get(name, 0) == 0:
+        return "no verified matches with any other image (no overlap?)"
+    for rec in models.values():
+        if rec.find_image_with_name(name) is not None and rec.find_image_with_name(name).has_pose:
+            return f"registered only in a smaller, separate model ({rec.num_reg_images()} images)"
+    return f"matched ({stats.verified_pairs[name]} verified pairs) but the mapper could not register it"
+
+
+def _per_image(state: RunState) -> dict[str, Any]:
+    rec, stats = state.model, state.stats
+    per_image: dict[str, Any] = {}
+    for name, original in state.names.items():
+        entry: dict[str, Any] = {"original": original}
+        if name in state.skipped:
+            entry["left_out"] = state.skipped[name]
+        if name in state.sizes:
+            entry["size"] = list(state.sizes[name])
+        sc = state.screens.get(name)
+        if sc is not None:
+            entry.update(blur=round(sc.blur, 2), overexposed=round(sc.overexposed, 4),
+                         underexposed=round(sc.underexposed, 4), flags=sc.flags())  # fmt: skip
+        if name in state.duplicates:
+            entry["near_duplicate_of"] = state.duplicates[name]
+        if stats is not None and name in stats.features:
+            entry.update(features=stats.features[name], verified_pairs=stats.verified_pairs[name],
+                         matches=stats.matches[name])  # fmt: skip
+            image = rec.find_image_with_name(name) if rec is not None else None
+            entry["registered"] = bool(image is not None and image.has_pose)
+            entry["observations"] = int(image.num_points3D) if entry["registered"] else 0
+            if not entry["registered"]:
+                entry["why"] = _why_not_registered(name, stats, state.all_models)
+        per_image[name] = entry
+    return per_image
+
+
+def build_report(config: Config, state: RunState, status: str, error: str | None) -> dict[str, Any]:
+    """poses_report.json: counts, per-image screening / features / matches, why images were left out."""
+    rec, stats = state.model, state.stats
+    per_image = _per_image(state)
+    registered = rec.num_reg_images() if rec is not None else 0
+    total = len(stats.features) if stats is not None else len(state.sizes)
+    blur = sorted(state.screens[n].blur for n in state.screens)
+    return {
+        "status": status,
+        "error": error,
+        "input": str(config.input),
+        "registered": registered,
+        "total": total,
+        "registered_fraction": round(registered / total, 4) if total else 0.0,
+        "not_registered": {n: e["why"] for n, e in per_image.items() if "why" in e},
+        "left_out": {Path(n).name: why for n, why in state.skipped.items()},
+        "models_found": state.models,
+        "mean_reprojection_error_px": round(rec.compute_mean_reprojection_error(), 4) if rec is not None else None,
+        "points3D": rec.num_points3D() if rec is not None else 0,
+        "cameras": {
+            str(c): {
+                "model": cam.model.name,
+                "width": cam.width,
+                "height": cam.height,
+                "params": [round(float(v), 6) for v in cam.params],
+            }
+            for c, cam in (rec.cameras.items() if rec is not None else [])
+        },  # fmt: skip
+        "principal_point": state.principal_point,
+        "timings_s": {k: round(v, 3) for k, v in state.timings.items()},
+        "warnings": state.warnings,
+        "screening": {
+            "blur_median": round(blur[len(blur) // 2], 2) if blur else None,
+            "blur_min": round(blur[0], 2) if blur else None,
+            "near_duplicates": state.duplicates,
+            "exposure_flags": {n: f for n, sc in state.screens.items() if (f := sc.flags())},
+        },
+        "video": state.video,
+        "images": per_image,
+        "config": config_to_json(config),
+    }
+
+
+def print_summary(console: Console, report: dict[str, Any]) -> None:
+    reg, tot = report["registered"], report["total"]
+    colour = "green" if tot and reg / tot >= WARN_FRACTION else "yellow"
+    err = report["mean_reprojection_error_px"]
+    t = sum(report["timings_s"].values())
+    console.print(
+        f"poses: [{colour}]{reg}/{tot} registered[/{colour}], {report['points3D']} points, "
+        f"reprojection {err:.2f} px, {t:.1f} s"
+        if err is not None
+        else f"poses: {reg}/{tot} registered"
+    )
+    for w in report["warnings"]:
+        console.print(f"[yellow]warning:[/yellow] {w}")
+
+
+class PhaseTimer:
+    """`with timer("features"): ...` times a phase into the state, the progress bar and metrics.csv."""
+
+    def __init__(self, state: RunState, metrics: MetricsLog, progress: Progress | None):
+        self.state, self.metrics, self.progress = state, metrics, progress
+        self.task = progress.add_task("poses", total=None) if progress is not None else None
+
+    def __call__(self, phase: str):
+        timer = self
+
+        class _Phase:
+            def __enter__(self):
+                if timer.progress is not None:
+                    timer.progress.update(timer.task, description=f"poses: {phase}")
+                self.t0 = time.perf_counter()
+
+            def __exit__(self, *exc):
+                state = timer.state
+                state.timings[phase] = time.perf_counter() - self.t0
+                if exc[0] is None:
+                    registered = state.model.num_reg_images() if state.model is not None else ""
+                    timer.metrics.append(step=len(timer.metrics.rows), seconds=round(time.time() - state.started, 3),
+                                         phase=phase, images=len(state.sizes) or len(state.names),
+                                         registered=registered)  # fmt: skip
+                return False
+
+        return _Phase()
