@@ -48,6 +48,8 @@ include pipelines/photos.mk
 include pipelines/posed.mk
 include pipelines/demo.mk
 include pipelines/bench.mk
+include pipelines/study.mk
+include pipelines/xray.mk
 
 .PHONY: all
 all: $(INSTALLED)
@@ -55,9 +57,11 @@ ifneq ($(PHOTOS),)
 all: $(PIPELINE_OUTPUTS)
 else ifneq ($(POSED),)
 all: $(PIPELINE_OUTPUTS)
+else ifneq ($(XRAY),)
+all: $(XRAY_OUTPUTS)
 else
 all:
-	@echo "nothing to do: give PHOTOS=dir|video.mp4 or POSED=dataset (and OUT=runs/name), or run 'make demo'"
+	@echo "nothing to do: give PHOTOS=dir|video.mp4, POSED=dataset or XRAY=volume (and OUT=runs/name), or run 'make demo'"
 endif
 
 .PHONY: clean-runs

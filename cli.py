@@ -98,6 +98,25 @@ def _mesh(out: Any) -> str:
     )
 
 
+def _fit_image(out: Any) -> str:
+    scores = ", ".join(f"{m.label} {m.psnr:.1f} dB in {m.seconds:.0f} s" for m in out.models)
+    return f"{scores} -> {out.montage}"
+
+
+def _xray(out: Any) -> str:
+    """The X-ray stages' success line: their headline figures, then the main output."""
+    if hasattr(out, "max_line_integral"):  # xray-simulate
+        return f"{out.n_views} training views on a {out.detector[0]}x{out.detector[1]} detector -> {out.scene}"
+    if hasattr(out, "steps"):  # xray-train
+        figs = f"3-D PSNR {out.psnr_3d:.2f} dB, SSIM {out.ssim_3d:.3f}" if out.psnr_3d is not None else "no GT"
+        return f"{out.steps} steps in {out.seconds:.1f} s, {figs} -> {out.run_dir}"
+    if hasattr(out, "result"):  # xray-eval
+        r = out.result
+        fdk = r.get("fdk", {}).get("psnr_3d")
+        return f"PSNR 3-D {r.get('psnr_3d')}  SSIM 3-D {r.get('ssim_3d')}  FDK PSNR 3-D {fdk} -> {out.out}"
+    return _done(out)
+
+
 def _done(out: Any) -> str:
     """Summary for a stage without its own: the first path among its outputs."""
     values = [getattr(out, f.name) for f in dataclasses.fields(out)] if dataclasses.is_dataclass(out) else []
@@ -125,6 +144,11 @@ STAGES: dict[str, Stage] = {
     "eval": Stage("stages.eval", "PSNR, SSIM, render speed (and depth error) on test views, to JSON.", _eval),
     "report": Stage("stages.report", "Compare runs: held-out PSNR against wall-clock time, and a table.", _report),
     "mesh": Stage("stages.mesh", "Mesh the density field: marching cubes, cleanup, vertex colours.", _mesh),
+    "fit-image": Stage("stages.fit_image", "Fit one image with Fourier-feature MLPs and the fast grid.", _fit_image),
+    "xray-simulate": Stage("stages.xray_simulate", "X-ray projections of a CT volume -> a projection scene.", _xray),
+    "xray-train": Stage("stages.xray_train", "Fit an attenuation field to X-ray projections; 3-D PSNR vs time.", _xray),
+    "xray-eval": Stage("stages.xray_eval", "3-D PSNR/SSIM, projection PSNR/SSIM, FDK baseline, to JSON.", _xray),
+    "xray-export": Stage("stages.xray_export", "Slice montages, a rotating DRR/MIP video and an iso-surface mesh."),
 }
 
 # (command, field) -> name of the stage module's `parse(text)` for fields no rule reads from text.
@@ -132,6 +156,7 @@ PARSERS: dict[tuple[str, str], tuple[str, str]] = {
     ("render", "outputs"): ("parse_outputs", "<name,...>"),
     ("mesh", "threshold"): ("parse_threshold", "<auto|float>"),
     ("mesh", "bbox"): ("parse_bbox", "<auto|x0,y0,z0,x1,y1,z1>"),
+    ("xray-export", "iso"): ("parse_iso", "<auto|float>"),
 }
 
 

@@ -1,15 +1,21 @@
-"""Cameras over a trained run: camera paths (turntable, spiral, a split's cameras) and rendering one camera.
+"""Cameras over a trained run: camera paths (turntable, arc, trajectory, spiral, a split's cameras) and rendering
+one camera.
 
 Cameras are world_from_cam [4, 4] in the scene frame, OpenGL axes (x right, y up, looking down -z);
 `render_view` returns z-depth (along the optical axis) in scene units. Paths come from `radiance.paths`:
-`turntable` orbits the point the training cameras look at, `spiral` is LLFF's forward-facing path,
-`test` / `train` replay a split's cameras with their own intrinsics (distortion included). Synthetic paths use
-the first training camera's intrinsics without distortion, scaled by 1/downscale.
+`turntable` orbits the point the training cameras look at, `arc` is the part of that orbit the training cameras
+cover, `trajectory` follows the training cameras (capture order, or azimuth order when the capture order wanders)
+smoothed and resampled, `spiral` is LLFF's forward-facing path, `test` / `train` replay a split's cameras with
+their own intrinsics (distortion included). `auto` picks spiral for a forward-facing capture, turntable when the
+training cameras go round the object (largest azimuth gap <= `MAX_TURNTABLE_GAP_DEG`), trajectory otherwise, and
+says why in `CameraPath.used`. Synthetic paths use the first training camera's intrinsics without distortion,
+scaled by 1/downscale.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -24,7 +30,13 @@ from radiance.camera import Intrinsics, generate_rays
 
 __all__ = ["PATHS", "OPAQUE", "Renderable", "render_view", "training_intrinsics", "CameraPath", "camera_path"]
 
-PATHS = ("auto", "turntable", "spiral", "test", "train")
+PATHS = ("auto", "turntable", "arc", "trajectory", "spiral", "test", "train")
+MAX_TURNTABLE_GAP_DEG = 90.0
+"""`auto` orbits all the way round only when no gap between the training cameras' azimuths exceeds this."""
+TRAJECTORY_SIGMA = 2.0
+"""Gaussian smoothing of the trajectory's keyframes (training camera centres), in keyframes (hand shake)."""
+CAPTURE_ORDER_SLACK = 1.5
+"""`trajectory` follows the capture (file-name) order unless that path is this much longer than azimuth order."""
 OPAQUE = 0.5
 """Pixels with accumulated opacity below this count as background for depth ranges and depth exports."""
 
@@ -89,15 +101,44 @@ class CameraPath:
     """How the path was derived (for the manifest)."""
 
 
+def _natural_key(name: str) -> list:
+    """'img10.jpg' after 'img9.jpg': digit runs compare as numbers."""
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", name)]
+
+
+def _auto_kind(scene: Scene, train_poses: np.ndarray) -> tuple[str, str, paths.Coverage | None]:
+    """(kind, reason, coverage) for `--path auto`."""
+    if is_forward_facing(scene):
+        return "spiral", "forward-facing capture (the cameras saw the scene from one side)", None
+    cover = paths.azimuth_coverage(train_poses, paths.orbit_from_cameras(train_poses))
+    span = f"the training cameras cover {cover.covered_deg:.0f} degrees of azimuth about the orbit axis"
+    gap = f"largest gap {cover.largest_gap_deg:.0f} degrees"
+    if cover.largest_gap_deg <= MAX_TURNTABLE_GAP_DEG + 1e-6:
+        return "turntable", f"{span} ({gap} <= {MAX_TURNTABLE_GAP_DEG:.0f}): they go round the object", cover
+    reason = f"{span} ({gap} > {MAX_TURNTABLE_GAP_DEG:.0f}): following the captured trajectory"
+    return "trajectory", reason, cover
+
+
+def _path_order(scene: Scene, train_idx: tuple[int, ...], train_poses: np.ndarray, cover: paths.Coverage):
+    """Order of the training cameras along a trajectory -> (indices into train_idx, reason)."""
+    by_name = np.array(sorted(range(len(train_idx)), key=lambda k: _natural_key(scene.frames[train_idx[k]].file_path)))
+    by_azimuth = paths.azimuth_order(cover)
+    centres = paths.camera_centres(train_poses)
+    named, swept = paths.path_length(centres[by_name]), paths.path_length(centres[by_azimuth])
+    if named <= CAPTURE_ORDER_SLACK * swept:
+        return by_name, f"capture order (file names; path {named:.3g} vs {swept:.3g} scene units in azimuth order)"
+    why = f"the file-name order wanders: path {named:.3g} vs {swept:.3g} scene units"
+    return by_azimuth, f"azimuth order ({why})"
+
+
 def camera_path(
     scene: Scene, kind: str, *, frames: int = 120, downscale: float = 1.0, elevation: float | None = None,
     radius: float | None = None,
 ) -> CameraPath:  # fmt: skip
-    """Cameras of a path over a trained run's scene. radius in the user's units (scaled into the scene frame)."""
+    """Cameras of a path over a trained run's scene. radius in the user's units (scaled into the scene frame);
+    radius and elevation shape the turntable and the arc (a trajectory keeps the cameras' own)."""
     if kind not in PATHS:
         raise UserError(f"--path: unknown path {kind!r}; expected one of {', '.join(PATHS)}")
-    if kind == "auto":
-        kind = "spiral" if is_forward_facing(scene) else "turntable"
     if not downscale > 0:
         raise UserError(f"--downscale: expected > 0, got {downscale}")
     if kind in ("test", "train"):
@@ -112,27 +153,60 @@ def camera_path(
                           used={"path": kind, "split": split})  # fmt: skip
     if frames < 1:
         raise UserError(f"--frames: expected >= 1, got {frames}")
+    if radius is not None and not radius > 0:
+        raise UserError(f"--radius: expected > 0, got {radius}")
+    if elevation is not None and not -90 < elevation < 90:
+        raise UserError(f"--elevation: expected degrees in (-90, 90), got {elevation}")
     train_idx = scene.split("train") or tuple(range(len(scene.frames)))
     train_poses = np.stack([scene.frames[i].world_from_cam for i in train_idx])
     intr = _scaled(training_intrinsics(scene), downscale, keep_distortion=False)
-    used: dict[str, Any] = {"path": kind, "intrinsics": "first training camera, no distortion"}
-    if kind == "turntable":
+    used: dict[str, Any] = {}
+    cover = None
+    if kind == "auto":
+        kind, reason, cover = _auto_kind(scene, train_poses)
+        used["auto"] = {"chose": kind, "reason": reason}
+    used.update(path=kind, intrinsics="first training camera, no distortion")
+    if kind in ("turntable", "arc", "trajectory"):
         orbit = paths.orbit_from_cameras(train_poses)
+        if cover is None:
+            cover = paths.azimuth_coverage(train_poses, orbit)
+        used["coverage"] = {
+            "covered_deg": round(cover.covered_deg, 1), "largest_gap_deg": round(cover.largest_gap_deg, 1),
+            "cameras": len(train_idx), "of": "training camera azimuths about the orbit axis through the centre",
+        }  # fmt: skip
+        used.update(centre_scene=orbit.centre.tolist(), up=orbit.up.tolist(), up_reason=paths.up_axis(train_poses)[1])
+    if kind in ("turntable", "arc"):
         if radius is not None:
-            if not radius > 0:
-                raise UserError(f"--radius: expected > 0, got {radius}")
             orbit = dataclasses.replace(orbit, radius=radius * scene.applied_scale)
         if elevation is not None:
-            if not -90 < elevation < 90:
-                raise UserError(f"--elevation: expected degrees in (-90, 90), got {elevation}")
             orbit = dataclasses.replace(orbit, elevation_deg=float(elevation))
-        poses = paths.turntable(orbit, frames)
+        if kind == "arc":
+            orbit = dataclasses.replace(orbit, start_azimuth_deg=cover.start_deg)
+            used.update(start_azimuth_deg=cover.start_deg, sweep_deg=cover.covered_deg)
+        poses = paths.turntable(orbit, frames, sweep_deg=360.0 if kind == "turntable" else cover.covered_deg)
         defaults = [name for name, value in (("radius", radius), ("elevation", elevation)) if value is None]
         used.update(
-            centre_scene=orbit.centre.tolist(), up=orbit.up.tolist(), up_reason=paths.up_axis(train_poses)[1],
             radius_scene=orbit.radius, radius_user=orbit.radius / scene.applied_scale,
             elevation_deg=orbit.elevation_deg, from_training_cameras=defaults,
         )  # fmt: skip
+    elif kind == "trajectory":
+        order, why = _path_order(scene, train_idx, train_poses, cover)
+        sigma = TRAJECTORY_SIGMA if len(order) > 2 else 0.0
+        try:
+            poses = paths.trajectory(train_poses[order], frames, centre=orbit.centre, up=orbit.up, sigma=sigma)
+        except ValueError as exc:  # a path through the point it looks at
+            raise UserError(f"--path trajectory: {exc}; use --path turntable") from None
+        used.update(
+            order=why, keyframes=len(order), smoothing_sigma_keyframes=sigma,
+            length_scene=round(paths.path_length(poses[:, :3, 3]), 4),
+            orientation="looks at the centre, image up towards `up`",
+            spline="centripetal Catmull-Rom through the smoothed keyframes, resampled at equal arc length",
+        )  # fmt: skip
+        ignored = [name for name, value in (("radius", radius), ("elevation", elevation)) if value is not None]
+        if ignored:
+            used["ignored"] = {
+                name: "a trajectory keeps the training cameras' distances and heights" for name in ignored
+            }
     else:
         try:
             poses = paths.spiral(train_poses, frames)

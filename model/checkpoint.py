@@ -2,7 +2,9 @@
 
 The file holds tensors and primitive containers only, so it loads with `torch.load(weights_only=True)`:
 format, field_config (the field's constructor arguments), field (state dict), occupancy (state dict or None),
-ndc (`radiance.ndc.NDC.to_dict()` or None), optimizer (state dict), step, seconds, lr_factor, rng.
+ndc (`radiance.ndc.NDC.to_dict()` or None), contraction (`radiance.contraction.Contraction.to_dict()` or None),
+background ({mode, state}: `model.background.Background`), optimizer (state dict), step, seconds, lr_factor, rng.
+Checkpoints without contraction/background (older runs) load as box runs on white.
 """
 
 from __future__ import annotations
@@ -15,8 +17,10 @@ from torch import Tensor
 
 from data.atomic import atomic_path
 from data.errors import UserError
+from model.background import Background
+from radiance.contraction import Contraction
 
-__all__ = ["CHECKPOINT_FORMAT", "save_checkpoint", "read_checkpoint"]
+__all__ = ["CHECKPOINT_FORMAT", "save_checkpoint", "read_checkpoint", "restore_background", "restore_contraction"]
 
 CHECKPOINT_FORMAT = 1
 
@@ -31,6 +35,8 @@ def save_checkpoint(
         "field": model.field.state_dict(),
         "occupancy": model.grid.state_dict() if model.grid is not None else None,
         "ndc": model.ndc.to_dict() if model.ndc is not None else None,
+        "contraction": model.contraction.to_dict() if model.contraction is not None else None,
+        "background": {"mode": model.background.mode, "state": model.background.state_dict()},
         "optimizer": opt.state_dict(),
         "step": step,
         "seconds": seconds,
@@ -52,3 +58,18 @@ def read_checkpoint(path: Path, device: torch.device | str) -> dict:
     if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
         raise UserError(f"{path}: not a nerfpipe train checkpoint (format {CHECKPOINT_FORMAT})")
     return state
+
+
+def restore_background(state: dict, device: torch.device | str) -> Background:
+    """The checkpoint's background model (white, fixed, for checkpoints that predate it)."""
+    doc = state.get("background")
+    if doc is None:
+        return Background("fixed").to(device)
+    bg = Background(doc["mode"])
+    bg.load_state_dict(doc["state"])
+    return bg.to(device)
+
+
+def restore_contraction(state: dict) -> Contraction | None:
+    doc = state.get("contraction")
+    return Contraction.from_dict(doc) if doc is not None else None

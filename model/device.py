@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
+
 import torch
 
 from data.errors import UserError
 
-__all__ = ["resolve_device"]
+__all__ = ["resolve_device", "cpu_threads"]
 
 
 def resolve_device(name: str | torch.device) -> torch.device:
@@ -24,3 +27,15 @@ def resolve_device(name: str | torch.device) -> torch.device:
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise UserError(f"--device: {name} requested but torch sees no CUDA device")
     return dev
+
+
+@contextlib.contextmanager
+def cpu_threads(n: int | None) -> Iterator[None]:
+    """torch's intra-op CPU threads set to n inside the block (None: unchanged), restored afterwards."""
+    before = torch.get_num_threads()
+    if n:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)

@@ -20,13 +20,15 @@ from torch import Tensor
 
 from data.errors import UserError
 from data.transforms import Scene, is_forward_facing
+from model.background import Background
 from radiance.aabb import ray_aabb_segment
+from radiance.contraction import CONTRACTED_BOX, Contraction
 from radiance.fields import Field, TensoRF, VanillaNeRF, make_field
 from radiance.ndc import NDC, fit_ndc
 from radiance.occupancy import OccupancyGrid
-from radiance.render import StratifiedSampler, render_marched, render_rays_hierarchical
+from radiance.render import StratifiedSampler, render_contracted, render_marched, render_rays_hierarchical
 
-__all__ = ["ModelSettings", "FieldModel", "build_model", "scene_ndc", "uses_ndc"]
+__all__ = ["ModelSettings", "FieldModel", "build_model", "scene_ndc", "choose_scene_model"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -74,15 +76,49 @@ def _render_fast(
     with_median: bool = False,
 ) -> dict[str, Tensor]:
     """TensoRF + occupancy grid: radiance.render.render_marched over the field's density and colour."""
-    rgb_fn = None
-    if field.has_color:
-        rgb_fn = lambda x, d: field.color(x, d if field.view_dependent else None)  # noqa: E731
     out = render_marched(
-        rays_o, rays_d, grid=grid, sigma_fn=field.density, rgb_fn=rgb_fn, near=near, far=far, step_size=step_size,
-        background=background, jitter=jitter, with_median=with_median,
+        rays_o, rays_d, grid=grid, sigma_fn=field.density, rgb_fn=_rgb_fn(field), near=near, far=far,
+        step_size=step_size, background=background, jitter=jitter, with_median=with_median,
+        color_threshold=_color_threshold(jitter),
     )  # fmt: skip
-    out["samples"] = torch.tensor(float(out["ray_indices"].numel()))
-    return out
+    return {**out, "samples": torch.tensor(float(out["ray_indices"].numel()))}
+
+
+def _color_threshold(training: bool) -> float:
+    """Weight above which a sample's colour is evaluated. Inference: 1e-4 (TensoRF's rule). Training: 0, so the
+    renderer's budget (the largest color_per_ray x R weights) decides: at initialisation every weight is ~1e-5,
+    and with a threshold no colour would be evaluated, so no gradient would reach the density except through
+    the background term -- none at all on a black background (tiny-NeRF's npz trained to 12.3 dB and stayed)."""
+    return 0.0 if training else 1e-4
+
+
+def _rgb_fn(field: TensoRF):
+    """The field's colour as the renderers' rgb_fn (None for a density-only field)."""
+    if not field.has_color:
+        return None
+    return lambda x, d: field.color(x, d if field.view_dependent else None)
+
+
+def _render_fast_contracted(
+    field: TensoRF,
+    grid: OccupancyGrid,
+    contraction: Contraction,
+    rays_o: Tensor,  # [R, 3]
+    rays_d: Tensor,  # [R, 3] unit
+    *,
+    near: float,
+    step_size: float,  # world units inside the inner box
+    background: Tensor,
+    jitter: bool = False,
+    with_median: bool = False,
+) -> dict[str, Tensor]:
+    """TensoRF in contracted space (unbounded scenes): radiance.render.render_contracted."""
+    out = render_contracted(
+        rays_o, rays_d, grid=grid, contraction=contraction, sigma_fn=field.density, rgb_fn=_rgb_fn(field),
+        near=near, step_size=step_size, background=background, jitter=jitter, with_median=with_median,
+        color_threshold=_color_threshold(jitter),
+    )  # fmt: skip
+    return {**out, "samples": torch.tensor(float(out["ray_indices"].numel()))}
 
 
 def _rgb_sigma(net, view_dependent: bool):
@@ -134,6 +170,8 @@ class FieldModel:
     aabb: Tensor  # [2, 3] the field's box: scene frame, or NDC space when ndc is set
     ndc: NDC | None = None
     render_step_factor: float = 1.0
+    contraction: Contraction | None = None
+    background: Background | None = None
 
     @property
     def chunk(self) -> int:
@@ -155,6 +193,11 @@ class FieldModel:
         return out
 
     def _render(self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, gen=None, median=False):
+        if self.kind == "fast" and self.contraction is not None:
+            step = self.step_size if train else self.step_size * self.render_step_factor
+            return _render_fast_contracted(self.field, self.grid, self.contraction, o, d, near=self.near,
+                                           step_size=step, background=background, jitter=train,
+                                           with_median=median)  # fmt: skip
         if self.kind == "fast":
             step = self.step_size if train else self.step_size * self.render_step_factor
             return _render_fast(self.field, self.grid, o, d, near=self.near, far=self.far, step_size=step,
@@ -167,11 +210,17 @@ def _step_size(aabb: Tensor, resolution: int, ratio: float) -> float:
     return float((aabb[1] - aabb[0]).mean()) / resolution * ratio
 
 
-def uses_ndc(scene_model: str, scene: Scene) -> bool:
-    """scene_model "auto": NDC when the cameras are forward-facing; "ndc" / "box" as asked."""
-    if scene_model == "auto":
-        return is_forward_facing(scene)
-    return scene_model == "ndc"
+def choose_scene_model(scene_model: str, scene: Scene, *, plain_background: bool) -> tuple[str, str]:
+    """(box | ndc | contract, why). "auto": ndc when the cameras are forward-facing (all within 45 degrees of
+    their mean direction); box when the photos have alpha or a plain background colour (nothing to model
+    outside the object's box); contract otherwise (real photos see a background beyond the box)."""
+    if scene_model != "auto":
+        return scene_model, f"asked for (scene_model={scene_model})"
+    if is_forward_facing(scene):
+        return "ndc", "forward-facing cameras (all within 45 degrees of their mean direction)"
+    if plain_background:
+        return "box", "images with alpha or a plain background colour: nothing to model outside the box"
+    return "contract", "opaque photos whose background is not a plain colour: space beyond the box is contracted"
 
 
 def scene_ndc(scene: Scene) -> NDC:
@@ -181,19 +230,34 @@ def scene_ndc(scene: Scene) -> NDC:
     return fit_ndc(np.stack([f.world_from_cam for f in scene.frames]), scene.frame_intrinsics(0), scene.near)
 
 
-def build_model(settings: ModelSettings, scene: Scene, device: torch.device, field_cfg: dict | None,
-                ndc: NDC | None = None) -> FieldModel:  # fmt: skip
+def build_model(
+    settings: ModelSettings,
+    scene: Scene,
+    device: torch.device,
+    field_cfg: dict | None,
+    ndc: NDC | None = None,
+    contraction: Contraction | None = None,
+    background: Background | None = None,
+) -> FieldModel:
     """The field, its occupancy grid (fast) and render settings. With `ndc`, the field's box is the NDC box
-    of the training cameras (near 0, far: the box's end at infinity); otherwise the scene's aabb.
-    `field_cfg` (a checkpoint's) rebuilds a saved field; None makes a new one from `settings`."""
-    if ndc is None:
-        aabb = torch.as_tensor(scene.aabb, dtype=torch.float32).reshape(2, 3)
-        near, far = float(scene.near), (scene.far if math.isfinite(scene.far) else 1e10)
-    else:
+    of the training cameras (near 0, far: the box's end at infinity); with `contraction`, the contracted cube
+    [-2, 2]^3 around the scene's box; otherwise the scene's aabb. `field_cfg` (a checkpoint's) rebuilds a saved
+    field; None makes a new one from `settings`."""
+    if ndc is not None and contraction is not None:
+        raise ValueError("expected at most one of ndc and contraction")
+    if contraction is not None and settings.field != "fast":
+        raise UserError("scene_model contract needs the fast field (vanilla samples the box only)")
+    if ndc is not None:
         poses = np.stack([f.world_from_cam for f in scene.frames])
         intr = [scene.frame_intrinsics(i) for i in range(len(scene.frames))]
         aabb = torch.as_tensor(ndc.box(poses, intr), dtype=torch.float32)
         near, far = 0.0, 1e10
+    elif contraction is not None:
+        aabb = torch.tensor(CONTRACTED_BOX, dtype=torch.float32)
+        near, far = float(scene.near), 1e10
+    else:
+        aabb = torch.as_tensor(scene.aabb, dtype=torch.float32).reshape(2, 3)
+        near, far = float(scene.near), (scene.far if math.isfinite(scene.far) else 1e10)
     view_dep = True if settings.view_dependent is None else settings.view_dependent
     if field_cfg is None:
         if settings.field == "fast":
@@ -205,5 +269,8 @@ def build_model(settings: ModelSettings, scene: Scene, device: torch.device, fie
     if field_cfg["kind"] == "fast":
         grid = OccupancyGrid(aabb, settings.occupancy_resolution).to(device)
     step = _step_size(aabb, settings.resolution[1], settings.step_ratio)
+    if contraction is not None:  # contracted units -> scene units inside the inner box
+        step *= float(contraction.half.mean())
+    background = background if background is not None else Background("fixed")
     return FieldModel(field, grid, field_cfg["kind"], step, near, float(far), aabb.to(device), ndc,
-                      settings.render_step_factor)  # fmt: skip
+                      settings.render_step_factor, contraction, background.to(device))  # fmt: skip

@@ -7,6 +7,7 @@ from NDC inside; their `occupancy` is None (the grid lives in NDC).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,7 +17,7 @@ from torch import Tensor
 
 from data.errors import UserError
 from data.transforms import Scene, read_scene
-from model.checkpoint import read_checkpoint
+from model.checkpoint import read_checkpoint, restore_background, restore_contraction
 from model.device import resolve_device
 from model.field_model import FieldModel, ModelSettings, build_model
 from radiance.fields import Field
@@ -40,6 +41,8 @@ class Trained:
     background: Tensor  # [3] evaluation background
     device: torch.device
     model: FieldModel
+    run_config: dict = dataclasses.field(default_factory=dict)
+    """The run's resolved config.json (train's Config as JSON)."""
 
     @property
     def chunk(self) -> int:
@@ -75,11 +78,16 @@ class Trained:
         """x [N, 3] scene frame -> sigma [N] >= 0 per scene unit.
 
         NDC runs: the NDC density times NDC length per scene length along the mean camera's ray through x
-        (`radiance.ndc`); 0 before the near plane.
+        (`radiance.ndc`); 0 before the near plane. Contracted runs: the contracted-space density times
+        contracted length per scene length (radial; exact inside the scene's box).
         """
         out = []
         for i in range(0, x.shape[0], self.chunk):
             xi = x[i : i + self.chunk].to(self.device, torch.float32)
+            if self.model.contraction is not None:
+                c = self.model.contraction
+                out.append(self.field.density(c.contract(xi)) * c.density_scale(xi))
+                continue
             if self.ndc is None:
                 out.append(self.field.density(xi))
                 continue
@@ -110,6 +118,8 @@ class Trained:
                 if di is not None:
                     di = self.ndc.directions_to_ndc(xi, di)
                 xi = self.ndc.points_to_ndc(xi)
+            elif self.model.contraction is not None:
+                xi = self.model.contraction.contract(xi)
             out.append(self.field.color(xi, di))
         return torch.cat(out) if out else x.new_zeros(0, 3)
 
@@ -133,15 +143,16 @@ def load_trained(run_dir: str | Path, device: str | torch.device = "auto") -> Tr
     except UserError as exc:
         raise UserError(f"{run_dir}: the run's scene cannot be read: {exc}") from None
     ndc = NDC.from_dict(state["ndc"]) if state.get("ndc") is not None else None
-    model = build_model(settings, scene, dev, state["field_config"], ndc)
+    contraction = restore_contraction(state)
+    model = build_model(settings, scene, dev, state["field_config"], ndc, contraction, restore_background(state, dev))
     model.field.load_state_dict(state["field"])
     if model.grid is not None and state["occupancy"] is not None:
         model.grid.load_state_dict(state["occupancy"])
     model.field.eval()
-    background = torch.tensor(WHITE, device=dev)
-    if ndc is None:
+    background = model.background.eval_colour().detach()
+    if ndc is None and contraction is None:
         occupancy, aabb = model.grid, model.aabb
-    else:  # the grid and box are in NDC; consumers (mesh) work in the scene frame
+    else:  # the grid and box are in NDC or contracted space; consumers (mesh) work in the scene frame
         occupancy, aabb = None, torch.as_tensor(scene.aabb, dtype=torch.float32, device=dev).reshape(2, 3)
     return Trained(scene=scene, field=model.field, occupancy=occupancy, aabb=aabb, background=background,
-                   device=dev, model=model)  # fmt: skip
+                   device=dev, model=model, run_config=doc)  # fmt: skip

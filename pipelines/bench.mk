@@ -6,8 +6,11 @@ bench: bench-poses bench-train bench-ndc bench-mesh
 bench-poses: $(INSTALLED)
 	$(VENV)/bin/python -m benchmarks.bench_poses --out $(BENCH_OUT)/poses
 
+# through the CLI on the files as distributed: tiny npz (120 s), the small-scale Blender scene (2 x 120 s), lego_400 (900 s)
 bench-train: $(INSTALLED)
-	$(VENV)/bin/python -m benchmarks.bench_train --out $(BENCH_OUT)/train
+	$(VENV)/bin/python -m benchmarks.bench_train --dataset tiny --out $(BENCH_OUT)/train
+	$(VENV)/bin/python -m benchmarks.bench_train --dataset small --out $(BENCH_OUT)/train
+	$(VENV)/bin/python -m benchmarks.bench_train --dataset lego_400 --seconds 900 --out $(BENCH_OUT)/train
 
 bench-ndc: $(INSTALLED)
 	$(VENV)/bin/python -m benchmarks.bench_ndc --out $(BENCH_OUT)/ndc

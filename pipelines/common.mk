@@ -17,19 +17,42 @@ stage_code = stages/__init__.py $(wildcard stages/$(1).py) \
 	$(if $(wildcard stages/$(1)/.),$(sort $(shell find stages/$(1) -name '*.py' -not -path '*/__pycache__/*'))) \
 	$(CORE_CODE)
 
+# The plan: the first stage recipe that runs in a make invocation prints the stages that will run, the time budget
+# or estimate of each and the total (pipelines/plan.py, also kept in OUT/plan.txt). A make with nothing to do prints
+# nothing and `make -n` only lists the line. PLAN_TOKEN tells one make invocation from the next; PLAN_MAKE hides
+# $(MAKE) from the recipe text, or `make -n` would run the line.
+PLAN := $(VENV)/bin/python pipelines/plan.py
+PLAN_TOKEN := $(shell echo "$$PPID-$$RANDOM")
+PLAN_MAKE := $(MAKE)
+PLAN_GOALS := $(if $(filter undefined,$(origin MAKECMDGOALS)),all,$(or $(MAKECMDGOALS),all))
+shquote = '$(subst ','"'"',$(1))'
+show_plan = -@$(PLAN) show $(1) --token $(PLAN_TOKEN) --out $(call shquote,$(OUT)) --make $(call shquote,$(PLAN_MAKE)) \
+	--makefile $(call shquote,$(firstword $(MAKEFILE_LIST))) --goals $(call shquote,$(PLAN_GOALS)) \
+	--photos $(call shquote,$(PHOTOS)) --posed $(call shquote,$(POSED)) --poses-args $(call shquote,$(POSES_ARGS)) \
+	--train-args $(call shquote,$(TRAIN_ARGS)) --render-args $(call shquote,$(RENDER_ARGS)) \
+	--depth-args $(call shquote,$(DEPTH_ARGS)) --mesh-args $(call shquote,$(MESH_ARGS))
+
 $(RUN_DIR)/manifest.json: $(SCENE_DIR)/transforms.json $(call stage_code,train) | $(INSTALLED)
+	$(call show_plan,train)
 	$(NERFPIPE) train $(SCENE_DIR) $(RUN_DIR) $(TRAIN_ARGS)
 
+# The default video costs about what training did: --max-seconds is the training run's time (its manifest's
+# used.train_seconds, at least 60 s); render shrinks, then thins, the frames to fit. RENDER_ARGS come after it,
+# so RENDER_ARGS='--max-seconds 3600' (or --frames, --downscale) asks for more.
 $(OUT)/video.mp4: $(RUN_DIR)/manifest.json $(call stage_code,render) | $(INSTALLED)
-	$(NERFPIPE) render $(RUN_DIR) $@ --path auto $(RENDER_ARGS)
+	$(call show_plan,render)
+	$(NERFPIPE) render $(RUN_DIR) $@ --path auto --max-seconds $$($(PLAN) render-seconds $(RUN_DIR)) $(RENDER_ARGS)
 
 $(OUT)/depth/manifest.json: $(RUN_DIR)/manifest.json $(call stage_code,depth) | $(INSTALLED)
+	$(call show_plan,depth)
 	$(NERFPIPE) depth $(RUN_DIR) $(OUT)/depth $(DEPTH_ARGS)
 
 $(OUT)/eval.json: $(RUN_DIR)/manifest.json $(call stage_code,eval) | $(INSTALLED)
+	$(call show_plan,eval)
 	$(NERFPIPE) eval $(RUN_DIR) $@ $(EVAL_ARGS)
 
 $(OUT)/mesh.ply: $(RUN_DIR)/manifest.json $(call stage_code,mesh) | $(INSTALLED)
+	$(call show_plan,mesh)
 	$(NERFPIPE) mesh $(RUN_DIR) $@ $(MESH_ARGS)
 
 COMMON_OUTPUTS := $(RUN_DIR)/manifest.json $(OUT)/video.mp4 $(OUT)/depth/manifest.json $(OUT)/eval.json \

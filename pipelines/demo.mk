@@ -18,7 +18,7 @@ demo: $(DEMO_INPUT)/manifest.json
 	@echo "  poses report   $(DEMO_OUT)/scene/poses_report.json"
 	@echo "  transforms     $(DEMO_OUT)/scene/transforms.json"
 	@echo "  trained run    $(DEMO_OUT)/run (metrics.csv, psnr_vs_time.png, checkpoint.pt)"
-	@echo "  video          $(DEMO_OUT)/video.mp4 (turntable; a spiral for forward-facing scenes)"
+	@echo "  video          $(DEMO_OUT)/video.mp4 (turntable; the captured trajectory when the photos do not go round)"
 	@echo "  depth maps     $(DEMO_OUT)/depth/"
 	@echo "  metrics        $(DEMO_OUT)/eval.json"
 	@echo "  mesh           $(DEMO_OUT)/mesh.ply"

@@ -3,6 +3,7 @@ ifneq ($(POSED),)
 POSED_FILES := $(if $(wildcard $(POSED)/.),$(wildcard $(POSED)/*.json $(POSED)/*.npy $(POSED)/*.npz),$(POSED))
 
 $(SCENE_DIR)/transforms.json: $(POSED_FILES) $(call stage_code,convert) | $(INSTALLED)
+	$(call show_plan,convert)
 	$(NERFPIPE) convert $(POSED) $(SCENE_DIR)
 
 PIPELINE_OUTPUTS := $(SCENE_DIR)/transforms.json $(COMMON_OUTPUTS)

@@ -31,6 +31,7 @@ from radiance.compositing import (
     median_depth,
     render_weights,
 )
+from radiance.contraction import Contraction, contraction_chord_scale, march_contracted
 from radiance.occupancy import OccupancyGrid, march_rays
 from radiance.safe import safe_div
 from radiance.samplers import resample_intervals, stratified_intervals
@@ -44,6 +45,7 @@ __all__ = [
     "render_rays",
     "render_rays_hierarchical",
     "render_marched",
+    "render_contracted",
     "render_depth",
     "render_attenuation",
     "chunked",
@@ -244,6 +246,50 @@ def render_marched(
     t_mid = 0.5 * (t0 + t1)
     x = rays_o[ray_idx] + rays_d[ray_idx] * t_mid[:, None]  # [N, 3]
     sigma = sigma_fn(x)  # [N]
+    shade = dict(color_threshold=color_threshold, color_per_ray=color_per_ray, with_median=with_median)
+    return _shade_packed(rays_o, rays_d, ray_idx, t0, t1, x, sigma, rgb_fn=rgb_fn, background=background, **shade)
+
+
+def render_contracted(
+    rays_o: Tensor,  # [R, 3]
+    rays_d: Tensor,  # [R, 3] unit
+    *,
+    grid: OccupancyGrid,  # over radiance.contraction.CONTRACTED_BOX
+    contraction: Contraction,
+    sigma_fn: PositionSigmaFn,  # contracted x' [N, 3] -> sigma' [N] per contracted length
+    rgb_fn: RgbFn | None,  # (contracted x' [K, 3], world d [K, 3]) -> rgb [K, 3]
+    near: float | Tensor,
+    step_size: float,
+    background: Tensor | None = None,  # [3] or [R, 3]
+    color_threshold: float = 1e-4,
+    color_per_ray: float = 16.0,
+    jitter: bool = False,
+    generator: torch.Generator | None = None,
+    with_median: bool = False,
+) -> dict:
+    """`render_marched` for unbounded scenes: the field lives in contracted space (radiance.contraction).
+
+    Samples come from `march_contracted` (warped steps, occupancy in contracted space); the field is queried at
+    contracted midpoints and its density turned into a world density by the interval's contracted chord per
+    world length, so weights, depths (world t) and the median are computed exactly as in `render_marched`.
+    """
+    _check_rays(rays_o, rays_d)
+    n = rays_o.shape[0]
+    u = torch.rand(n, generator=generator, dtype=rays_o.dtype, device=rays_o.device) if jitter else None
+    ray_idx, t0, t1 = march_contracted(grid, contraction, rays_o, rays_d, near=near, step_size=step_size, jitter=u)
+    x = contraction.contract(rays_o[ray_idx] + rays_d[ray_idx] * (0.5 * (t0 + t1))[:, None])  # [N, 3]
+    scale = contraction_chord_scale(contraction, rays_o[ray_idx], rays_d[ray_idx], t0, t1)  # [N]
+    sigma = sigma_fn(x) * scale  # [N] per world length
+    shade = dict(color_threshold=color_threshold, color_per_ray=color_per_ray, with_median=with_median)
+    return _shade_packed(rays_o, rays_d, ray_idx, t0, t1, x, sigma, rgb_fn=rgb_fn, background=background, **shade)
+
+
+def _shade_packed(
+    rays_o, rays_d, ray_idx, t0, t1, x, sigma, *, rgb_fn, background, color_threshold, color_per_ray, with_median
+) -> dict:
+    """Weights from packed densities; colour only where the weight counts (see render_marched)."""
+    n = rays_o.shape[0]
+    t_mid = 0.5 * (t0 + t1)
     weights, _, _ = render_weights(sigma, t0, t1, ray_idx, n)
     acc = accumulate(weights, None, ray_idx, n)  # [R]
     out = {"acc": acc}

@@ -11,7 +11,9 @@ Writes, in this order:
   intrinsics with their distortion kept (rays are undistorted, images are not resampled), `applied_transform`
   + `applied_scale` (source -> scene, see `radiance.normalize` for how they are chosen), `aabb`, `near`, `far`,
   `has_alpha`, `train/val/test_filenames`, and `scene_type` ('object', 'forward' or '360');
-- `convert_manifest.json` last.
+- `convert_manifest.json` last; `used.roi` / `used.roi_from` say where the box came from (`--aabb`, a box the
+  source states, or the data by `radiance.normalize`'s rule) and `used.aabb_source_frame` gives it back in
+  source units.
 
 Splits: the dataset's own where it has them (Blender files, the tiny-NeRF npz convention, a transforms.json's
 `*_filenames`), else every `holdout_every`-th frame (indices 0, 8, 16, ... as in LLFF's `llffhold`) is test;
@@ -67,6 +69,9 @@ class Config:
     """Sparse points outside the [p, 100 - p] percentile range per axis are left out of the region of interest."""
     roi_margin: float = 0.1
     """Padding of the points' box on each side, as a fraction of its longest half side."""
+    aabb: tuple[float, float, float, float, float, float] | None = None
+    """x0,y0,z0,x1,y1,z1 in the source frame and units: the scene box, replacing the one derived from the data
+    (and any the source states). For a transforms.json source: that file's frame."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -123,6 +128,24 @@ def _compose(norm: Normalization, source_from_original: np.ndarray | None) -> tu
     return total[:3] / scale, scale
 
 
+def _given_box(aabb) -> np.ndarray | None:
+    """`--aabb` as [2, 3] (None when not given); UserError unless finite with x0 < x1, y0 < y1, z0 < z1."""
+    if aabb is None:
+        return None
+    box = np.asarray(aabb, dtype=np.float64)
+    if box.shape != (6,) or not np.isfinite(box).all() or not (box[3:] > box[:3]).all():
+        raise UserError(f"--aabb: expected x0,y0,z0,x1,y1,z1 (finite, x0 < x1, y0 < y1, z0 < z1), got {aabb!r}")
+    return box.reshape(2, 3)
+
+
+def _source_box(norm: Normalization, scene_from_source: np.ndarray) -> list[list[float]]:
+    """The axis-aligned box round `aabb`'s corners mapped back to the source frame (a rotated `up` tilts it)."""
+    lo, hi = norm.aabb
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    src = (corners - scene_from_source[:3, 3]) @ np.linalg.inv(scene_from_source[:3, :3]).T
+    return [src.min(0).tolist(), src.max(0).tolist()]
+
+
 def _write_image(frame: SourceFrame, pixels, dest: Path, factors: list[int]) -> None:
     """Copy / encode one image into images/ and its downscaled copies into images_F/."""
     import cv2
@@ -174,6 +197,7 @@ def _write_ply(path: Path, points: np.ndarray, colors: np.ndarray | None) -> Non
 
 def run(config: Config) -> Outputs:
     started = time.time()
+    given = _given_box(config.aabb)
     source = load_source(Path(config.source), config.kind, images=config.images)
     scene_dir = Path(config.scene_dir)
     for inp in source.inputs:
@@ -190,10 +214,19 @@ def run(config: Config) -> Outputs:
         dup = next(n for n in names if names.count(n) > 1)
         raise UserError(f"{config.source}: two images map to the same output name {dup!r}")
 
+    left_out = dict(source.left_out)
+    if given is not None:  # the region of interest: --aabb, else the source's stated box, else the data's
+        box, roi_from = given, f"--aabb {given.tolist()} (given, source frame)"
+        if source.box is not None:
+            left_out["source aabb"] = f"{np.asarray(source.box).tolist()} (stated by the source): replaced by --aabb"
+    elif source.box is not None:
+        box, roi_from = source.box, "the aabb the source states"
+    else:
+        box, roi_from = None, "the data: sparse points, stated depth bounds or the cameras (radiance.normalize)"
     up = config.up if config.up != "auto" else source.up
     norm = normalize(
         np.stack([f.world_from_cam for f in frames]), [f.intrinsics for f in frames],
-        up=up, points=source.points, box=source.box,  # type: ignore[arg-type]
+        up=up, points=source.points, box=box,  # type: ignore[arg-type]
         depth_bounds=source.depth_bounds[keep] if source.depth_bounds is not None else None,
         percentile=config.roi_percentile, margin=config.roi_margin, rescale=config.normalize,
     )  # fmt: skip
@@ -250,7 +283,6 @@ def run(config: Config) -> Outputs:
     read_scene(transforms)  # what we wrote must parse
     outputs.insert(0, transforms)
 
-    left_out = dict(source.left_out)
     if missing:
         left_out["missing images"] = f"{missing} of {len(source.frames)} frames skipped: image file not found"
     skipped = sorted(set(config.downscales) - set(factors))
@@ -260,6 +292,7 @@ def run(config: Config) -> Outputs:
         scene_dir, name="convert_manifest.json", stage="convert", started=started, inputs=source.inputs,
         outputs=outputs,
         used={**source.used, "kind": source.kind, "up": norm.up_method, "roi": norm.roi_method,
+              "roi_from": roi_from, "aabb_source_frame": _source_box(norm, scene_from_source),
               "scene_type": extra["scene_type"], "frames": len(frames), "downscales": factors},
         left_out=left_out, config=config_to_json(config),
     )  # fmt: skip

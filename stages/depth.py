@@ -54,8 +54,9 @@ class Config:
     """expected (weight-averaged distance) | median (distance at half the accumulated weight)."""
     frames: int = 120
     """Turntable frames (views=turntable only)."""
-    downscale: float = 1.0
-    """Render at 1/downscale of each camera's resolution."""
+    downscale: float | None = None
+    """Render at 1/downscale of each camera's resolution (None: the factor the run trained at, 1 for runs that
+    kept full-size images; `--downscale 1` renders full size)."""
     acc_threshold: float = 0.5
     """Pixels with accumulated opacity below this are background: depth 0."""
     video: bool = False
@@ -122,7 +123,10 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     device = resolve_device(config.device)
     trained = load_trained(config.run_dir, device)
     scene = trained.scene
-    cams = camera_path(scene, config.views, frames=config.frames, downscale=config.downscale)
+    if config.downscale is not None and not config.downscale > 0:
+        raise UserError(f"--downscale: expected > 0, got {config.downscale}")
+    downscale = config.downscale or float(getattr(trained, "run_config", {}).get("downscale") or 1.0)
+    cams = camera_path(scene, config.views, frames=config.frames, downscale=downscale)
     scale = float(scene.applied_scale)
     key = "depth" if config.kind == "expected" else "depth_median"
 
@@ -176,7 +180,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         inputs=[Path(config.run_dir) / "checkpoint.pt", Path(config.run_dir) / "config.json"],
         outputs=[*files["depth"], *files["depth_mm"], *color_paths, *files["accumulation"], cameras_path,
                  metrics.path, *([video_path] if video_path else [])],
-        used={**cams.used, "kind": config.kind, "device": str(device), "views": len(cams.names),
+        used={**cams.used, "kind": config.kind, "downscale": downscale, "device": str(device), "views": len(cams.names),
               "units": "user (source) units: scene depth / applied_scale", "applied_scale": scale,
               "background": f"accumulation < {config.acc_threshold} -> depth 0",
               "depth_mm": "round(depth * 1000), clipped to 65535 (assumes the user's units are metres)",

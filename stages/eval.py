@@ -55,6 +55,11 @@ class Config:
     """Trained run directory."""
     out: Path
     """Output JSON file."""
+    views: int | None = None
+    """Score this many test views, evenly spaced over the split (None: all of them)."""
+    downscale: float | None = None
+    """Evaluate on the photos shrunk by this factor (area filter). None: the factor the run trained at
+    (train's downscale; 1 for runs that kept full-size images). `eval --downscale 1` scores full size."""
     ground_truth: Path | None = None
     """Ground-truth folder (cameras.json, depth/*.npy in metres) or the scene folder holding ground_truth/."""
     device: str = "auto"
@@ -154,6 +159,10 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     idx = scene.split(split)
     if not idx:
         raise UserError(f"{config.run_dir}: the run's scene has no test or val split to evaluate on")
+    if config.views is not None:
+        if config.views < 1:
+            raise UserError(f"--views: expected >= 1, got {config.views}")
+        idx = tuple(idx[k] for k in sorted({round(float(v)) for v in np.linspace(0, len(idx) - 1, config.views)}))
     alignment = align_to(scene, gt) if gt is not None else None
     lpips_fn, lpips_reason = lpips_status()
     background = trained.background.detach().float().cpu().numpy().reshape(3)
@@ -167,8 +176,16 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     covered = gt_pixels = 0
     progress = progress or NO_PROGRESS
     task = progress.add_task(f"eval {split}", total=len(idx))
+    if config.downscale is not None and not config.downscale >= 1:
+        raise UserError(f"--downscale: expected >= 1, got {config.downscale}")
+    downscale = config.downscale or float(getattr(trained, "run_config", {}).get("downscale") or 1.0)
     for k, i in enumerate(idx):
         photo = load_image(scene.image_path(i))
+        if downscale != 1.0:
+            import cv2
+
+            small = scene.frame_intrinsics(i).scaled(1.0 / downscale)
+            photo = cv2.resize(photo, (small.w, small.h), interpolation=cv2.INTER_AREA)
         if photo.shape[2] == 4:
             photo = over_background(photo[..., :3], photo[..., 3:], background)
         intr = scene.frame_intrinsics(i)
@@ -200,7 +217,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         "psnr": _mean([v["psnr"] for v in views]), "ssim": _mean([v["ssim"] for v in views]),
         "lpips": _mean([v["lpips"] for v in views]) if lpips_fn else None, "lpips_unavailable": lpips_reason,
         "rays_per_second": rendered_px / max(render_seconds, 1e-9), "render_seconds": render_seconds,
-        "device": str(device), "views": views,
+        "device": str(device), "downscale": downscale, "views": views,
     }  # fmt: skip
     result.update(_depth_summary(gt, alignment, abs_errors, covered, gt_pixels))
     write_json(out, result)

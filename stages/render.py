@@ -1,14 +1,26 @@
 """Stage `render`: a trained run -> an H.264 mp4 along a camera path (and optionally the PNG frames).
 
-    nerfpipe render RUN_DIR OUT.mp4 [--path auto|turntable|spiral|test|train] [--frames 120] [--fps 30]
-        [--downscale 1] [--elevation DEG] [--radius R] [--outputs rgb,depth,accumulation] [--frames-dir DIR]
+    nerfpipe render RUN_DIR OUT.mp4 [--path auto|turntable|arc|trajectory|spiral|test|train] [--frames 120]
+        [--fps 30] [--downscale 1] [--max-seconds S] [--elevation DEG] [--radius R]
+        [--outputs rgb,depth,accumulation] [--frames-dir DIR]
 
-Paths (`radiance.paths`): `turntable` orbits the point the training cameras look at (least-squares intersection
-of their optical axes) around the scene's +z (or the mean camera up when that disagrees, see
-`radiance.paths.up_axis`), radius/elevation = the training cameras' medians unless given; `spiral` is LLFF's
-forward-facing path; `test` / `train` replay that split's cameras (their own intrinsics, distortion included,
-and a PSNR against the photo per frame in the metrics log). Synthetic paths use the first training camera's
+Paths (`model.camera_path`, maths in `radiance.paths`): `turntable` orbits the point the training cameras look
+at (least-squares intersection of their optical axes) around the scene's +z (or the mean camera up when that
+disagrees, see `radiance.paths.up_axis`), radius/elevation = the training cameras' medians unless given; `arc`
+is the part of that orbit the training cameras cover; `trajectory` follows the training cameras (capture order,
+smoothed, splined, resampled at equal arc length) looking at that point; `spiral` is LLFF's forward-facing path;
+`test` / `train` replay that split's cameras (their own intrinsics, distortion included, and a PSNR against the
+photo per frame in the metrics log). `auto`: spiral for a forward-facing capture, turntable when the training
+cameras go round the object (no gap over 90 degrees between their azimuths), trajectory otherwise; the manifest
+says which and why (coverage in degrees, largest gap). Synthetic paths use the first training camera's
 intrinsics without distortion, scaled by 1/downscale.
+
+Time budget (`max_seconds`): rays/s is measured on a small preview (`PREVIEW_VIEWS` path cameras at about
+`PREVIEW_RAYS` pixels each; a video with no more pixels than that is rendered as asked, unmeasured); when the
+requested frames at the requested size would take longer than what is left of the budget, frames are rendered
+smaller (down to `MIN_SHORT_SIDE` pixels on the short side), then fewer (down to `MIN_FRAMES`; a test/train
+replay keeps every camera). The manifest's `used.budget` records the measurement, what was asked, what was
+chosen and why.
 
 Outputs stack side by side: rgb | depth (z-depth, turbo over one range for the whole video, from a 1/8-resolution
 preview pass: 1st-99th percentile over pixels with opacity >= 0.5) | accumulation (grey).
@@ -18,6 +30,7 @@ Cameras and rendering come from the trained-run library (`model`).
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,9 +48,16 @@ from model import OPAQUE, PATHS, CameraPath, Renderable, camera_path, load_train
 from radiance.compositing import over_background
 from radiance.metrics import psnr
 
-__all__ = ["Config", "Outputs", "OUTPUT_KINDS", "parse_outputs", "run"]
+__all__ = ["Config", "Outputs", "OUTPUT_KINDS", "parse_outputs", "fit_budget", "run"]
 
 OUTPUT_KINDS = ("rgb", "depth", "accumulation")
+MIN_SHORT_SIDE = 240
+"""A time budget shrinks frames down to this many pixels on their short side (never up) before dropping frames."""
+MIN_FRAMES = 24
+"""A time budget keeps at least this many frames of a synthetic path (fewer only when fewer were asked for)."""
+PREVIEW_RAYS = 16384
+"""Pixels per preview view for the rays/s measurement (two chunks of the fast field)."""
+PREVIEW_VIEWS = 3
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -46,19 +66,25 @@ class Config:
     """Trained run directory (config.json, checkpoint.pt, ...)."""
     out: Path
     """Output video, `.mp4`."""
-    path: Literal["auto", "turntable", "spiral", "test", "train"] = "auto"
-    """Camera path: turntable | spiral | test | train; auto: spiral for a forward-facing scene (the cameras
-    only saw it from one side), turntable otherwise."""
+    path: Literal["auto", "turntable", "arc", "trajectory", "spiral", "test", "train"] = "auto"
+    """Camera path: turntable (all the way round) | arc (the part of the orbit the photos cover) | trajectory
+    (follows the training cameras, smoothed) | spiral | test | train; auto: spiral for a forward-facing scene,
+    turntable when the photos go round the object (no azimuth gap over 90 degrees), trajectory otherwise."""
     frames: int = 120
-    """Number of frames of a turntable / spiral (test / train replay every camera of the split)."""
+    """Number of frames of a synthetic path (test / train replay every camera of the split)."""
     fps: float = 30.0
     """Frames per second of the video."""
     downscale: float = 1.0
     """Render at 1/downscale of the training camera's resolution."""
+    max_seconds: float | None = None
+    """Time budget in seconds (about): if the frames at this size would take longer, by rays/s measured on a
+    small preview render, render them smaller (down to 240 px on the short side), then fewer (down to 24);
+    the manifest says what was chosen and why. None: no limit. `make` passes the training run's time."""
     elevation: float | None = None
-    """Turntable elevation in degrees above the horizontal plane through the centre (default: training median)."""
+    """Turntable / arc elevation in degrees above the horizontal plane through the centre (default: training
+    median)."""
     radius: float | None = None
-    """Turntable radius in the user's (source) units (default: the training cameras' median distance)."""
+    """Turntable / arc radius in the user's (source) units (default: the training cameras' median distance)."""
     outputs: tuple[str, ...] = ("rgb",)
     """What to show, side by side: any of rgb, depth, accumulation."""
     frames_dir: Path | None = None
@@ -111,6 +137,56 @@ def _depth_range(trained: Renderable, cams: CameraPath, device: torch.device, sc
     return (lo, hi) if hi > lo else (lo, lo + 1e-6 + abs(lo) * 1e-3)
 
 
+def _rays_per_second(trained: Renderable, cams: CameraPath, device: torch.device) -> tuple[float, int, float]:
+    """Measured on `PREVIEW_VIEWS` cameras spread along the path, each scaled to about `PREVIEW_RAYS` pixels,
+    after one untimed tiny render (warm-up). Returns (rays/s, rays rendered, seconds)."""
+    n = len(cams.names)
+    picks = np.unique(np.linspace(0, n - 1, min(PREVIEW_VIEWS, n)).round().astype(int))
+    tiny = cams.intrinsics[0].scaled(min(1.0, 8 / max(cams.intrinsics[0].w, cams.intrinsics[0].h)))
+    render_view(trained, tiny, cams.world_from_cams[0], device)
+    rays, seconds = 0, 0.0
+    for k in picks:
+        intr = cams.intrinsics[k]
+        small = intr.scaled(min(1.0, math.sqrt(PREVIEW_RAYS / (intr.w * intr.h))))
+        t0 = time.perf_counter()
+        render_view(trained, small, cams.world_from_cams[k], device)
+        seconds += time.perf_counter() - t0
+        rays += small.w * small.h
+    return rays / max(seconds, 1e-9), rays, seconds
+
+
+def fit_budget(
+    *, seconds: float, rays_per_s: float, rays_per_frame: float, frames: int, short_side: int, drop_frames: bool,
+) -> tuple[float, int, str]:  # fmt: skip
+    """What fits in `seconds` at `rays_per_s`: (linear image scale <= 1, frames, reason).
+
+    The image shrinks first, to the scale that fits but not below `MIN_SHORT_SIDE` pixels on its short side;
+    then (when `drop_frames`) frames go, down to `MIN_FRAMES` (or `frames` if fewer were asked for). What still
+    does not fit is rendered anyway, and the reason says so.
+    """
+    if not seconds > 0 or not rays_per_s > 0:
+        raise ValueError(f"expected seconds > 0 and rays_per_s > 0, got {seconds}, {rays_per_s}")
+    need = frames * rays_per_frame / rays_per_s
+    if need <= seconds:
+        return 1.0, frames, f"fits: about {need:.0f} s for {seconds:.0f} s"
+    floor = min(1.0, MIN_SHORT_SIDE / max(short_side, 1))
+    scale = max(math.sqrt(seconds / need), floor)
+    per_frame = rays_per_frame * scale * scale / rays_per_s
+    keep = frames
+    if drop_frames and per_frame * frames > seconds * (1 + 1e-9):
+        keep = max(min(frames, MIN_FRAMES), min(frames, int(seconds / per_frame)))
+    shrunk = f"about {need:.0f} s asked for, {seconds:.0f} s budget"
+    if scale == 1:
+        how = f"size kept (short side {short_side} px <= {MIN_SHORT_SIDE})"
+    else:
+        how = f"images scaled by {scale:.3g}" + (f" (short side floor {MIN_SHORT_SIDE} px)" if scale == floor else "")
+    if keep < frames:
+        how += f", {keep} of {frames} frames"
+    over = per_frame * keep - seconds
+    tail = f"; still about {over:.0f} s over (floors reached)" if over > 0.05 * seconds else ""
+    return scale, keep, f"{shrunk}: {how}{tail}"
+
+
 def _photo(scene: Scene, i: int, background: np.ndarray, size: tuple[int, int]) -> np.ndarray | None:
     """The dataset image composited on `background`, or None when its size differs from the render's."""
     img = load_image(scene.image_path(i))
@@ -119,6 +195,36 @@ def _photo(scene: Scene, i: int, background: np.ndarray, size: tuple[int, int]) 
     if img.shape[2] == 4:
         img = over_background(img[..., :3], img[..., 3:], background)
     return img
+
+
+def _within_budget(trained: Renderable, cams: CameraPath, config: Config, device: torch.device, started: float):
+    """The path re-made to fit what is left of `config.max_seconds` (see `fit_budget`) -> (cams, budget record)."""
+    total = sum(i.w * i.h for i in cams.intrinsics)
+    if total <= PREVIEW_VIEWS * PREVIEW_RAYS:
+        reason = "rendered as asked: the whole video has no more pixels than the speed preview would"
+        return cams, {"max_seconds": config.max_seconds, "rays": total, "reason": reason}
+    rate, rays, seconds = _rays_per_second(trained, cams, device)
+    left = config.max_seconds - (time.time() - started)
+    per_frame = sum(i.w * i.h for i in cams.intrinsics) / len(cams.intrinsics)
+    replay = cams.frame_indices is not None
+    scale, frames, reason = fit_budget(
+        seconds=max(left, 1e-3), rays_per_s=rate, rays_per_frame=per_frame, frames=len(cams.names),
+        short_side=min(min(i.w, i.h) for i in cams.intrinsics), drop_frames=not replay,
+    )  # fmt: skip
+    asked = {"frames": len(cams.names), "size_hw": [cams.intrinsics[0].h, cams.intrinsics[0].w],
+             "downscale": config.downscale}  # fmt: skip
+    if scale < 1 or frames < len(cams.names):
+        cams = camera_path(trained.scene, config.path, frames=frames, downscale=config.downscale / scale,
+                           elevation=config.elevation, radius=config.radius)  # fmt: skip
+    chosen = {"frames": len(cams.names), "size_hw": [cams.intrinsics[0].h, cams.intrinsics[0].w],
+              "downscale": round(config.downscale / scale, 4)}  # fmt: skip
+    estimate = sum(i.w * i.h for i in cams.intrinsics) / rate
+    return cams, {
+        "max_seconds": config.max_seconds, "seconds_left_after_preview": round(left, 2),
+        "preview": {"rays_per_s": round(rate), "rays": rays, "seconds": round(seconds, 3),
+                    "views": min(PREVIEW_VIEWS, asked["frames"])},
+        "asked": asked, "chosen": chosen, "estimated_render_seconds": round(estimate, 1), "reason": reason,
+    }  # fmt: skip
 
 
 def run(config: Config, progress: Progress | None = None) -> Outputs:
@@ -131,11 +237,16 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         raise UserError(f"--path: unknown path {config.path!r}; expected one of {', '.join(PATHS)}")
     if not config.fps > 0:
         raise UserError(f"--fps: expected > 0, got {config.fps}")
+    if config.max_seconds is not None and not config.max_seconds > 0:
+        raise UserError(f"--max-seconds: expected > 0, got {config.max_seconds}")
     device = resolve_device(config.device)
     trained = load_trained(config.run_dir, device)
     scene = trained.scene
     cams = camera_path(scene, config.path, frames=config.frames, downscale=config.downscale,
                        elevation=config.elevation, radius=config.radius)  # fmt: skip
+    budget: dict = {"max_seconds": config.max_seconds}
+    if config.max_seconds is not None:
+        cams, budget = _within_budget(trained, cams, config, device, started)
     scale = float(scene.applied_scale)
     lo, hi = _depth_range(trained, cams, device, scale) if "depth" in outputs else (0.0, 1.0)
     background = trained.background.detach().float().cpu().numpy().reshape(3)
@@ -177,7 +288,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         out.parent, stage="render", started=started, name=sidecar(out, "manifest.json").name,
         inputs=[Path(config.run_dir) / "checkpoint.pt", Path(config.run_dir) / "config.json"],
         outputs=[out, metrics.path, *frame_paths],
-        used={**cams.used, "outputs": list(outputs), "device": str(device), "frames": len(cams.names),
+        used={**cams.used, "budget": budget, "outputs": list(outputs), "device": str(device), "frames": len(cams.names),
               "fps": config.fps, "size_hw": list(size), "codec": "h264 yuv420p crf 18 (odd sizes padded by edge)",
               **({"depth_range_user_units": [lo, hi], "depth_colormap": "turbo", "depth_background":
                   f"black where accumulation < {OPAQUE}"} if "depth" in outputs else {})},

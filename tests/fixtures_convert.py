@@ -58,8 +58,9 @@ def write_png(path: Path, h: int, w: int, channels: int = 3, i: int = 0) -> None
     assert cv2.imwrite(str(path), _image(h, w, channels, i))
 
 
-def make_blender(root: Path, counts=(4, 2, 3), size=40) -> dict[str, np.ndarray]:
-    poses = orbit(sum(counts), seed=1)
+def make_blender(root: Path, counts=(4, 2, 3), size=40, scale: float = 1.0) -> dict[str, np.ndarray]:
+    """NeRF-synthetic layout; cameras ~4 units from the origin times `scale` (the same scene, resized)."""
+    poses = [similarity(p, np.eye(3), np.zeros(3), scale) for p in orbit(sum(counts), seed=1)]
     expected, k = {}, 0
     for split, n in zip(("train", "val", "test"), counts, strict=True):
         frames = []

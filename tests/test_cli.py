@@ -18,7 +18,7 @@ import cli
 from data.errors import UserError
 
 ROOT = Path(__file__).resolve().parents[1]
-COMMANDS = ["scene", "poses", "convert", "train", "render", "depth", "eval", "report", "mesh"]
+COMMANDS = ["scene", "poses", "convert", "train", "render", "depth", "eval", "report", "mesh", "fit-image"]
 # Positional arguments that make each command parse (nothing is run by config_from_args).
 ARGS = {
     "scene": ["s"],
@@ -30,6 +30,7 @@ ARGS = {
     "eval": ["r", "e.json"],
     "report": ["r1", "r2", "out"],
     "mesh": ["r", "m.ply"],
+    "fit-image": ["image.png", "o"],
 }
 
 
@@ -121,7 +122,7 @@ def test_option_defaults_are_the_config_defaults(name):
         help_text = p.get_help_record(ctx)[1]
         if default is None:
             assert "[default:" not in help_text
-        elif not isinstance(shown, bool):
+        elif not isinstance(shown, bool) and shown != "":  # an empty tuple shows no default
             assert f"[default: {shown}]" in help_text, help_text
 
 
@@ -229,6 +230,7 @@ def _bad_path_args(tmp_path):
         "eval": [str(missing), str(tmp_path / "e.json")],
         "report": [str(missing), str(tmp_path / "r")],
         "mesh": [str(missing), str(tmp_path / "m.ply")],
+        "fit-image": [str(missing), str(tmp_path / "o")],
     }
 
 
@@ -324,10 +326,10 @@ def test_new_stage_is_one_registration(capsys, monkeypatch, tmp_path):
         ''')
     )
     monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setitem(cli.STAGES, "fit-image", cli.Stage("fake_fit_image", "Fit one image."))
-    code, out, _ = _run(capsys, "fit-image", "--help")
+    monkeypatch.setitem(cli.STAGES, "fake-stage", cli.Stage("fake_fit_image", "Fit one image."))
+    code, out, _ = _run(capsys, "fake-stage", "--help")
     assert code == 0 and "--mode <grid|mlp>" in out and "[default: 1,2]" in out
-    code, out, _ = _run(capsys, "fit-image", "o", "--mode", "mlp")
+    code, out, _ = _run(capsys, "fake-stage", "o", "--mode", "mlp")
     assert code == 0 and out.strip() == "done -> o"
 
 

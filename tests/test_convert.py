@@ -32,6 +32,10 @@ def assert_round_trip(scene_dir: Path, expected: dict[str, np.ndarray], tol: flo
     return scene
 
 
+def _manifest(scene_dir: Path) -> dict:
+    return json.loads((scene_dir / "convert_manifest.json").read_text())
+
+
 def _split_names(scene, name):
     return [Path(scene.frames[i].file_path).name for i in scene.splits[name]]
 
@@ -43,11 +47,64 @@ def test_blender_round_trip_splits_alpha(tmp_path):
     assert out.kind == "blender" and scene.has_alpha and scene.extra["scene_type"] == "object"
     assert {s: len(i) for s, i in scene.splits.items()} == {"train": 4, "val": 2, "test": 3}
     assert _split_names(scene, "val") == ["val_r_0.png", "val_r_1.png"]
-    np.testing.assert_allclose(scene.applied_scale, 1 / 1.5)  # the [-1.5, 1.5]^3 object box -> [-1, 1]^3
+    # no stated bounds: the cube the cameras (~4 units away, 0.69 rad field of view) see at their target
+    assert 1 / scene.applied_scale == pytest.approx(4 * np.tan(0.69 / 2), rel=0.03)
     np.testing.assert_allclose(scene.aabb, [[-1] * 3, [1] * 3])
+    assert _manifest(tmp_path / "scene")["used"]["roi"] == "look_at"
     assert out.downscales == ()  # 40 px / 2 < 32 px
     assert load_image(scene.image_path(0)).shape == (40, 40, 4)
     assert 0 < scene.near < scene.far
+
+
+def test_blender_box_follows_the_cameras_at_any_scale(tmp_path):
+    """The same Blender scene 100x smaller or larger normalises to the same scene: the box scales with it."""
+    scenes = {}
+    for s in (0.01, 1.0, 100.0):
+        expected = fx.make_blender(tmp_path / f"src{s}", counts=(3, 1, 1), size=16, scale=s)
+        run(Config(source=tmp_path / f"src{s}", scene_dir=tmp_path / f"scene{s}"))
+        scenes[s] = assert_round_trip(tmp_path / f"scene{s}", expected, tol=1e-6 * s)
+        box = np.array(_manifest(tmp_path / f"scene{s}")["used"]["aabb_source_frame"])
+        assert np.ptp(box, axis=0).max() == pytest.approx(2 * 4 * s * np.tan(0.69 / 2), rel=0.03)
+    ref = scenes[1.0]
+    for s, scene in scenes.items():
+        np.testing.assert_allclose(scene.aabb, ref.aabb, rtol=1e-6, atol=1e-12)
+        assert scene.applied_scale * s == pytest.approx(ref.applied_scale, rel=1e-6)
+        assert (scene.near, scene.far) == pytest.approx((ref.near, ref.far), rel=1e-6)
+        for f, g in zip(scene.frames, ref.frames, strict=True):
+            np.testing.assert_allclose(f.world_from_cam, g.world_from_cam, rtol=1e-6, atol=1e-9)
+
+
+def test_aabb_override_applied_and_recorded(tmp_path):
+    given = (-0.5, -1.0, -0.25, 0.5, 1.0, 0.75)
+    expected = fx.make_blender(tmp_path / "src", counts=(3, 1, 1), size=16)
+    run(Config(source=tmp_path / "src", scene_dir=tmp_path / "scene", aabb=given))
+    scene = assert_round_trip(tmp_path / "scene", expected)
+    corners = np.concatenate([scene.aabb, np.ones((2, 1))], axis=1) @ scene.source_from_scene().T
+    np.testing.assert_allclose(corners[:, :3], np.reshape(given, (2, 3)), atol=1e-12)  # Blender: up kept
+    assert np.abs(scene.aabb).max() == pytest.approx(1.0)  # rescaled: the longest side fills [-1, 1]
+    used = _manifest(tmp_path / "scene")["used"]
+    assert used["roi"] == "box" and used["roi_from"].startswith("--aabb")
+    np.testing.assert_allclose(used["aabb_source_frame"], np.reshape(given, (2, 3)), atol=1e-12)
+
+    # a transforms.json's own aabb is used as stated, and --aabb replaces it (recorded as left out)
+    stated = [[-2.0, -2.0, -1.0], [2.0, 2.0, 3.0]]
+    fx.make_transforms(tmp_path / "tf", missing=(), doc_extra={"aabb": stated})
+    run(Config(source=tmp_path / "tf", scene_dir=tmp_path / "tf_stated"))
+    used = _manifest(tmp_path / "tf_stated")["used"]
+    assert used["roi_from"] == "the aabb the source states"
+    np.testing.assert_allclose(used["aabb_source_frame"], stated, atol=1e-12)
+    run(Config(source=tmp_path / "tf", scene_dir=tmp_path / "tf_given", aabb=given))
+    manifest = _manifest(tmp_path / "tf_given")
+    np.testing.assert_allclose(manifest["used"]["aabb_source_frame"], np.reshape(given, (2, 3)), atol=1e-12)
+    assert "replaced by --aabb" in manifest["left_out"]["source aabb"]
+
+
+def test_aabb_option_parsed_from_comma_text():
+    import cli
+
+    config = cli.config_from_args("convert", ["src", "s", "--aabb", "-0.5,-1,-0.25,0.5,1,0.75"])
+    assert config.aabb == (-0.5, -1.0, -0.25, 0.5, 1.0, 0.75)
+    assert cli.config_from_args("convert", ["src", "s"]).aabb is None
 
 
 def test_llff_round_trip_forward(tmp_path):
@@ -193,6 +250,8 @@ def test_bad_inputs(tmp_path):
     fx.make_llff(tmp_path / "llff", n=5)
     (tmp_path / "llff" / "images" / "img_004.png").unlink()
     _fails("4 images but poses_bounds.npy has 5 poses", source=tmp_path / "llff", scene_dir=scene)
+
+    _fails(r"--aabb: expected x0,y0,z0,x1,y1,z1", source=tmp_path / "empty", scene_dir=scene, aabb=(0, 0, 0, 1, -1, 1))
 
     fx.make_blender(tmp_path / "bl", counts=(2, 0, 0))
     (tmp_path / "bl" / "transforms_train.json").write_text(json.dumps({"frames": []}))

@@ -1,6 +1,9 @@
 """The Makefile chain on a tiny posed scene: every output is built, a rerun has nothing to rebuild, and a change
-re-runs exactly the stages whose code (their own, or the core packages) or inputs changed."""
+re-runs exactly the stages whose code (their own, or the core packages) or inputs changed. The plan is printed
+once, first; the video gets the training run's time as its budget."""
 
+import json
+import math
 import os
 import shutil
 import subprocess
@@ -8,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from pipelines import plan
 from stages import scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -34,6 +38,14 @@ def test_posed_chain_builds_everything_then_nothing(tmp_path):
     ]  # fmt: skip
     first = _make("all", *args)
     assert first.returncode == 0, first.stderr[-2000:]
+    assert first.stdout.count("nerfpipe plan:") == 1, first.stdout  # once, before the first stage
+    assert first.stdout.index("nerfpipe plan:") < first.stdout.index("nerfpipe convert ")
+    for line in ("convert", "train", "--max-steps 150", "render", "depth", "eval", "mesh", "total"):
+        assert line in first.stdout, line
+    assert (out / "plan.txt").read_text().count("nerfpipe plan:") == 1
+    trained = json.loads((out / "run" / "manifest.json").read_text())["used"]["train_seconds"]
+    budget = json.loads((out / "video.manifest.json").read_text())["used"]["budget"]
+    assert budget["max_seconds"] == max(60, math.ceil(trained)), budget  # as long as training took
     for rel in ("scene/transforms.json", "run/manifest.json", "run/checkpoint.pt", "video.mp4",
                 "depth/manifest.json", "eval.json", "mesh.ply"):  # fmt: skip
         assert (out / rel).is_file(), rel
@@ -52,3 +64,18 @@ def test_posed_chain_builds_everything_then_nothing(tmp_path):
     (src / "transforms.json").touch()
     stale = _make("-n", "all", *args)
     assert "nerfpipe convert" in stale.stdout and "nerfpipe train" in stale.stdout
+
+
+def test_plan_reads_options_and_the_render_budget(tmp_path):
+    assert plan.option("--max-steps 5 --max-seconds 120", "--max-seconds") == "120"
+    assert plan.option("--max-seconds=30 --max-seconds 40", "--max-seconds") == "40"  # the last one wins
+    assert plan.option("", "--max-seconds", "900") == "900"
+    assert plan.render_seconds(tmp_path) == plan.TRAIN_SECONDS  # no run yet: train's default budget
+    (tmp_path / "manifest.json").write_text(json.dumps({"wall_seconds": 20, "used": {"train_seconds": 412.3}}))
+    assert plan.render_seconds(tmp_path) == 413
+    (tmp_path / "manifest.json").write_text(json.dumps({"wall_seconds": 20, "used": {"train_seconds": 2.0}}))
+    assert plan.render_seconds(tmp_path) == plan.MIN_RENDER_SECONDS
+    fox = plan.Facts(photos=50, size_wh=(1080, 1920), test_views=7, source="50 photos")
+    args = {"poses": "", "train": "--max-seconds 300", "render": "", "depth": "", "mesh": ""}
+    assert plan.estimate("train", fox, args)[0] == 300 and plan.estimate("render", fox, args)[:2] == (300, "<=")
+    assert 40 < plan.estimate("eval", fox, args)[0] < 150  # 7 x 270 x 480 rays (train's downscale 4) at ~13k/s

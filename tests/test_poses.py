@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
 
-import cv2
+import cv2  # before pycolmap (imported by stages.poses): the other order crashes cv2's PNG writer
 import imageio_ffmpeg
 import numpy as np
+import pycolmap
 import pytest
 from PIL import Image
 
@@ -17,6 +19,8 @@ from data.ground_truth import read_ground_truth
 from data.importers.colmap import read_world_from_cam
 from radiance.align import pose_errors, umeyama
 from stages import poses
+from stages.poses import colmap as sfm
+from stages.poses.attempts import ladder
 from stages.poses.images import blurriest, near_duplicates, screen_image
 from stages.poses.report import RunState
 from stages.poses.video import extract_frames
@@ -110,6 +114,124 @@ def test_synthetic_outputs_and_report(synthetic):
     assert entry["blur"] > 0 and "overexposed" in entry
     assert report["mean_reprojection_error_px"] < 1.0
     assert {"images", "features", "matching", "mapping"} <= set(report["timings_s"])
+    # 256 px photos: the working size is their own size (no probe), and all register at the first attempt
+    assert out.working_size == SIZE and report["working_size"]["size"] == SIZE
+    assert [a["name"] for a in report["attempts"]] == ["as configured"] and report["attempts"][0]["kept"]
+    assert len(out.attempts) == 1
+
+
+# ---------------------------------------------------------------- retries
+
+
+def _pycolmap_defaults_registered(images: Path, work: Path) -> int:
+    """Registered images of pycolmap's own defaults (the largest model) on a photo folder."""
+    pycolmap.set_random_seed(0)
+    work.mkdir()
+    db = work / "database.db"
+    pycolmap.extract_features(db, images, device=pycolmap.Device.cpu)
+    pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
+    models = pycolmap.incremental_mapping(db, images, work / "sparse")
+    return max((m.num_reg_images() for m in models.values()), default=0)
+
+
+def test_retry_recovers_a_starved_first_attempt(tmp_path):
+    """100 px and 100 features register nothing on 160 px photos; the retry registers at least as many as
+    pycolmap's defaults (measured: starved 0/12, retry 12/12, pycolmap's defaults 2/12)."""
+    scene = pytest.importorskip("stages.scene")
+    scene.run(scene.Config(out_dir=tmp_path / "scene", kind="photos", size=160, views=12, seed=0))
+    photos = tmp_path / "scene" / "images"
+    starved = {"max_image_size": 100, "max_num_features": 100, "num_threads": 2}
+    with pytest.raises(UserError) as e:  # no retry: today's failure, which now says retries exist
+        poses.run(poses.Config(input=photos, scene_dir=tmp_path / "once", max_attempts=1, **starved))
+    assert "max_attempts" in _one_line_error(e)
+
+    out = poses.run(poses.Config(input=photos, scene_dir=tmp_path / "s", **starved))
+    report = json.loads(out.report.read_text())
+    first, *retries = report["attempts"]
+    assert first["name"] == "as configured" and retries[0]["name"] == "more features"
+    assert not retries[0]["options"]["guided_matching"]  # pycolmap's defaults: the retry that sufficed here
+    assert first["registered"] < out.registered == max(a["registered"] for a in report["attempts"])
+    assert out.registered >= 0.8 * out.total  # so the ladder stopped there
+    assert [a["kept"] for a in report["attempts"]].count(True) == 1
+    assert "100 px, 100 features" in first["settings"] and "8192 features" in retries[0]["settings"]
+    assert out.registered >= _pycolmap_defaults_registered(photos, tmp_path / "pycolmap")
+    assert len(out.attempts) == len(report["attempts"]) and "(kept)" in out.attempts[-1]
+    manifest = json.loads((out.colmap_dir / "manifest.json").read_text())
+    assert [a["registered"] for a in manifest["used"]["attempts"]] == [a["registered"] for a in report["attempts"]]
+    assert "mapping (attempt 2)" in (out.colmap_dir / "metrics.csv").read_text()
+    assert not list(out.colmap_dir.glob("database.*.db"))  # only the kept attempt's database.db
+
+
+def _settings(**kw) -> sfm.SfmSettings:
+    base = dict(max_image_size=1000, max_num_features=8192, camera_model="SIMPLE_RADIAL", single_camera=True,
+                matcher="exhaustive", sequential_overlap=10, num_threads=2, seed=0)  # fmt: skip
+    return sfm.SfmSettings(**{**base, **kw})
+
+
+def test_attempt_ladder_escalates():
+    first = _settings(max_image_size=1000, max_num_features=2048)
+    plan = ladder(first, 4, long_side=4000)
+    assert [a.name for a in plan] == ["as configured", "more features", "relaxed mapper", "guided matching"]
+    assert [a.reuse for a in plan] == ["nothing", "nothing", "matches", "features"]
+    one, more, relaxed, guided = (a.settings for a in plan)
+    assert one == first
+    # 2: pycolmap's defaults: its working size and feature cap, plain matching, its mapper thresholds
+    assert (more.max_image_size, more.max_num_features) == (3200, 8192)
+    assert not more.guided_matching and more.mapper == sfm.MapperThresholds()
+    assert more.min_verified_inliers == sfm.PYCOLMAP_MIN_VERIFIED_INLIERS
+    # 3: the same features and matches, every mapper threshold relaxed
+    assert relaxed == dataclasses.replace(more, mapper=sfm.RELAXED_MAPPER)
+    for name, default in vars(sfm.MapperThresholds()).items():
+        relaxed_value = getattr(sfm.RELAXED_MAPPER, name)
+        assert relaxed_value > default if name == "max_reg_trials" else relaxed_value < default, name
+    # 4: the same features matched again, guided, keeping pairs as weak as the relaxed mapper uses
+    assert guided == dataclasses.replace(relaxed, guided_matching=True, min_verified_inliers=8)
+    assert sfm.RELAXED_MAPPER.min_num_matches == 8
+
+    # an extraction attempt 1 already made (pycolmap's size, or the photos' own size, and cap) doubles the cap
+    assert ladder(_settings(max_image_size=3200), 2, long_side=4000)[1].settings.max_num_features == 16384
+    assert ladder(_settings(max_image_size=1920), 2, long_side=1920)[1].settings.max_num_features == 16384
+    assert ladder(_settings(max_image_size=1000), 2, long_side=1920)[1].settings.max_num_features == 8192
+    larger = ladder(_settings(max_image_size=4000, max_num_features=10000), 2, long_side=6000)[1].settings
+    assert (larger.max_image_size, larger.max_num_features) == (4000, 20000)
+    assert [a.name for a in ladder(first, 1, long_side=4000)] == ["as configured"]
+    with pytest.raises(ValueError):
+        ladder(first, 0, long_side=4000)
+
+
+def test_defaults_named_pycolmap_are_pycolmap_defaults():
+    """The constants and thresholds the stage calls "pycolmap's defaults" are, in the installed pycolmap."""
+    extraction = pycolmap.FeatureExtractionOptions()
+    assert sfm.PYCOLMAP_MAX_IMAGE_SIZE == extraction.eff_max_image_size()
+    assert sfm.PYCOLMAP_MAX_NUM_FEATURES == extraction.sift.max_num_features == poses.Config.max_num_features
+    assert sfm.PYCOLMAP_MIN_VERIFIED_INLIERS == pycolmap.TwoViewGeometryOptions().min_num_inliers
+    assert not pycolmap.FeatureMatchingOptions().guided_matching
+    pipeline = pycolmap.IncrementalPipelineOptions()
+    defaults = sfm.MapperThresholds()
+    assert defaults.min_num_matches == pipeline.min_num_matches
+    for name in ("init_min_num_inliers", "init_min_tri_angle", "abs_pose_min_num_inliers",
+                 "abs_pose_min_inlier_ratio", "max_reg_trials"):  # fmt: skip
+        assert getattr(defaults, name) == pytest.approx(getattr(pipeline.mapper, name)), name
+
+
+def test_working_size_is_the_smallest_with_enough_features():
+    asked: list[int] = []
+
+    def counts(table):
+        def at(size):
+            asked.append(size)
+            return table[size]
+
+        return at
+
+    assert sfm.choose_working_size(1920, counts({1000: 1446})) == (1000, {1000: 1446})  # fox-like
+    assert sfm.choose_working_size(4000, counts({1000: 600, 1600: 1100})) == (1600, {1000: 600, 1600: 1100})
+    asked.clear()
+    size, counted = sfm.choose_working_size(4000, counts({1000: 300, 1600: 500}))
+    assert size == 3200 and asked == [1000, 1600]  # the largest candidate is taken without counting
+    asked.clear()
+    assert sfm.choose_working_size(1200, counts({1000: 10})) == (1200, {1000: 10})  # never above the photos
+    assert sfm.choose_working_size(256, counts({})) == (256, {}) and asked == [1000]
 
 
 # ---------------------------------------------------------------- bad input
@@ -178,6 +300,12 @@ def test_unrelated_images_fail_with_report(tmp_path):
     _assert_nothing_complete(tmp_path / "s")
     report = json.loads((tmp_path / "s" / "poses_report.json").read_text())
     assert report["status"] == "failed" and report["images"]["n0.png"]["features"] > 100
+    # every retry was made (so each way of reusing a database ran) and the error says so
+    attempts = report["attempts"]
+    assert [a["name"] for a in attempts] == ["as configured", "more features", "relaxed mapper", "guided matching"]
+    assert [a["reused"] for a in attempts] == ["nothing", "nothing", "matches", "features"]
+    assert attempts[3]["features_median"] == attempts[1]["features_median"]  # attempt 2's features, copied
+    assert "tried as configured 0/6" in msg
 
 
 def test_failed_rerun_sets_the_earlier_model_aside(tmp_path):

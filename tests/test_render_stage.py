@@ -6,6 +6,8 @@ and opacity) patched into the render, depth and eval stages; the depth and eval 
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -149,6 +151,80 @@ def test_spiral_path_renders(sphere_run, tmp_path):
     assert _read_video(res.video).shape[0] == 4
 
 
+def ring_scene(root: Path, azimuths_deg, *, names=None, elevation: float = 20.0) -> Scene:
+    """A Scene (nothing on disk) whose cameras sit at these azimuths round the origin, 3 units away, looking at
+    it; `names` are their file names (default: in azimuth order)."""
+    intr = Intrinsics(w=33, h=25, fx=30.0, fy=30.0, cx=16.5, cy=12.5)
+    orbit = paths.Orbit(centre=np.zeros(3), up=np.array([0.0, 0, 1]), radius=3.0, elevation_deg=elevation,
+                        start_azimuth_deg=0.0)  # fmt: skip
+    poses = [paths.turntable(dataclasses.replace(orbit, start_azimuth_deg=a), 1)[0] for a in azimuths_deg]
+    names = names or [f"images/IMG_{i + 1}.jpg" for i in range(len(poses))]
+    frames = tuple(Frame(file_path=n, world_from_cam=p) for n, p in zip(names, poses, strict=True))
+    return Scene(root=root, frames=frames, intrinsics=intr)
+
+
+def test_auto_path_follows_a_half_circle_capture_and_orbits_a_full_one(tmp_path):
+    half = camera_path(ring_scene(tmp_path, np.linspace(-90, 90, 19)), "auto", frames=40)
+    assert half.used["path"] == "trajectory" and half.used["auto"]["chose"] == "trajectory"
+    assert half.used["coverage"]["covered_deg"] == pytest.approx(180.0)
+    assert half.used["coverage"]["largest_gap_deg"] == pytest.approx(180.0)
+    assert "180 degrees" in half.used["auto"]["reason"] and "capture order" in half.used["order"]
+    rel = half.world_from_cams[:, :3, 3]
+    az = np.degrees(np.arctan2(rel[:, 1], rel[:, 0]))
+    assert az.min() > -91 and az.max() < 91  # never leaves what was photographed
+    assert az[0] == pytest.approx(-90, abs=1) and az[-1] == pytest.approx(90, abs=1)  # end to end, in order
+    assert np.allclose(np.linalg.norm(rel, axis=1), 3.0, atol=0.05)
+    full = camera_path(ring_scene(tmp_path, np.arange(0, 360, 30)), "auto", frames=40)
+    assert full.used["path"] == "turntable" and full.used["coverage"]["largest_gap_deg"] == pytest.approx(30.0)
+    assert "radius_scene" in full.used
+
+
+def test_trajectory_sorts_shuffled_file_names_by_azimuth_and_arc_spans_the_coverage(tmp_path):
+    order = np.random.default_rng(0).permutation(19)  # file names say nothing about where the photo was taken
+    scene = ring_scene(tmp_path, np.linspace(-90, 90, 19), names=[f"images/{k:02d}.jpg" for k in order])
+    cams = camera_path(scene, "trajectory", frames=30, radius=9.0)
+    assert cams.used["order"].startswith("azimuth order") and "radius" in cams.used["ignored"]
+    rel = cams.world_from_cams[:, :3, 3]
+    az = np.unwrap(np.arctan2(rel[:, 1], rel[:, 0]))
+    assert (np.diff(az) > 0).all() or (np.diff(az) < 0).all()  # one sweep, no back and forth
+    arc = camera_path(scene, "arc", frames=7)
+    rel = arc.world_from_cams[:, :3, 3]
+    assert np.allclose(np.degrees(np.arctan2(rel[:, 1], rel[:, 0])), np.linspace(-90, 90, 7))
+    assert arc.used["sweep_deg"] == pytest.approx(180.0)
+
+
+def test_fit_budget_shrinks_images_then_drops_frames():
+    fox = {"rays_per_frame": 1080 * 1920, "frames": 120, "short_side": 1080, "drop_frames": True}
+    assert render_stage.fit_budget(seconds=1e6, rays_per_s=13_000, **fox)[:2] == (1.0, 120)
+    scale, frames, reason = render_stage.fit_budget(seconds=1200, rays_per_s=13_000, **fox)  # 5.3 h asked for
+    assert frames == 120 and 1080 * scale >= render_stage.MIN_SHORT_SIDE
+    assert 120 * 1080 * 1920 * scale**2 / 13_000 == pytest.approx(1200, rel=1e-6) and "scaled" in reason
+    scale, frames, reason = render_stage.fit_budget(seconds=200, rays_per_s=13_000, **fox)
+    assert 1080 * scale == pytest.approx(render_stage.MIN_SHORT_SIDE) and render_stage.MIN_FRAMES <= frames < 120
+    assert frames * 1080 * 1920 * scale**2 / 13_000 <= 200 and "frames" in reason
+    _, frames, reason = render_stage.fit_budget(seconds=1, rays_per_s=13_000, **fox)
+    assert frames == render_stage.MIN_FRAMES and "over" in reason
+    replay = {**fox, "drop_frames": False}
+    assert render_stage.fit_budget(seconds=1, rays_per_s=13_000, **replay)[1] == 120
+
+
+def test_time_budget_bounds_the_video_and_is_recorded(sphere_run, tmp_path):
+    run_dir, _ = sphere_run
+    assert 80 * 33 * 25 > render_stage.PREVIEW_VIEWS * render_stage.PREVIEW_RAYS  # worth measuring
+    roomy = render_stage.run(render_stage.Config(run_dir=run_dir, out=tmp_path / "a.mp4", frames=80, max_seconds=600))
+    assert roomy.n_frames == 80
+    budget = json.loads((tmp_path / "a.manifest.json").read_text())["used"]["budget"]
+    assert budget["reason"].startswith("fits") and budget["preview"]["rays_per_s"] > 0
+    tight = render_stage.run(render_stage.Config(run_dir=run_dir, out=tmp_path / "b.mp4", frames=80, max_seconds=1e-3))
+    assert tight.n_frames == render_stage.MIN_FRAMES == _read_video(tight.video).shape[0]
+    budget = json.loads((tmp_path / "b.manifest.json").read_text())["used"]["budget"]
+    assert budget["asked"]["frames"] == 80 and budget["chosen"]["frames"] == render_stage.MIN_FRAMES
+    assert budget["chosen"]["size_hw"] == [25, 33]  # already under the short-side floor: not shrunk
+    small = render_stage.run(render_stage.Config(run_dir=run_dir, out=tmp_path / "c.mp4", frames=5, max_seconds=1e-3))
+    assert small.n_frames == 5  # fewer pixels than the speed preview: rendered as asked
+    assert "as asked" in json.loads((tmp_path / "c.manifest.json").read_text())["used"]["budget"]["reason"]
+
+
 @pytest.mark.parametrize(
     ("changes", "match"),
     [
@@ -158,6 +234,7 @@ def test_spiral_path_renders(sphere_run, tmp_path):
         ({"frames": 0}, "--frames"),
         ({"elevation": 95.0}, "--elevation"),
         ({"fps": 0}, "--fps"),
+        ({"max_seconds": 0.0}, "--max-seconds"),
     ],
 )
 def test_bad_inputs_are_one_line_user_errors(sphere_run, tmp_path, changes, match):
@@ -214,4 +291,4 @@ def test_render_from_a_real_training_run(tmp_path):
     video = _read_video(out.video)
     assert video.shape == (3, 24, 72, 3)
     manifest = (tmp_path / "v.manifest.json").read_text()
-    assert '"stage": "render"' in manifest and '"radius_scene"' in manifest
+    assert '"stage": "render"' in manifest and '"radius_scene"' in manifest and '"largest_gap_deg"' in manifest

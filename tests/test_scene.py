@@ -153,3 +153,44 @@ def test_photos_is_bare(tmp_path):
     assert sorted(p.name for p in (tmp_path / "images").iterdir()) == [f"frame_{i:04d}.png" for i in range(3)]
     assert load_image(out.images[0]).shape == (16, 16, 3)
     assert (tmp_path / "manifest.json").is_file() and out.mesh.is_file()
+
+
+def test_blender_kind_at_any_scale_round_trips_through_convert(tmp_path):
+    """kind=blender at scale 0.1: the NeRF-synthetic layout, the same images as at scale 1, lengths x 0.1, and
+    `convert` gets the poses back in the source frame and a box that the small scene fills."""
+    from data.ground_truth import read_ground_truth
+    from stages import convert
+
+    small = scene.run(scene.Config(out_dir=tmp_path / "small", kind="blender", size=16, views=10, scale=0.1))
+    unit = scene.run(scene.Config(out_dir=tmp_path / "unit", kind="blender", size=16, views=10))
+    assert [p.name for p in small.split_files] == [f"transforms_{s}.json" for s in ("train", "val", "test")]
+    assert small.transforms is None and not (tmp_path / "small" / "transforms.json").exists()
+    doc = json.loads((tmp_path / "small" / "transforms_val.json").read_text())
+    assert doc["camera_angle_x"] == pytest.approx(np.radians(scene.FOV_X_DEG))
+    assert [f["file_path"] for f in doc["frames"]] == ["./val/r_0"]  # no extension, as NeRF synthetic
+    assert load_image(tmp_path / "small" / "val" / "r_0.png").shape == (16, 16, 4)
+
+    # a similarity changes no pixel; every length scales
+    assert _bytes(small.images) == _bytes(unit.images)
+    for a, b in zip(small.depths, unit.depths, strict=True):
+        np.testing.assert_allclose(np.load(a), np.float32(0.1) * np.load(b), rtol=1e-6)
+    small_mesh, unit_mesh = trimesh.load(small.mesh, force="mesh"), trimesh.load(unit.mesh, force="mesh")
+    np.testing.assert_allclose(small_mesh.vertices, 0.1 * unit_mesh.vertices, rtol=1e-6, atol=1e-9)  # float32 PLY
+    gt, gt_unit = read_ground_truth(small.out_dir), read_ground_truth(unit.out_dir)
+    for stem, m in gt.world_from_cam.items():
+        np.testing.assert_allclose(m[:3, :3], gt_unit.world_from_cam[stem][:3, :3], atol=1e-15)
+        np.testing.assert_allclose(m[:3, 3], 0.1 * gt_unit.world_from_cam[stem][:3, 3], rtol=1e-12)
+
+    convert.run(convert.Config(source=small.out_dir, scene_dir=tmp_path / "conv"))
+    s = read_scene(tmp_path / "conv")
+    assert {Path(f.file_path).stem for f in s.frames} == set(gt.world_from_cam)  # eval --ground-truth matches
+    assert {k: len(v) for k, v in s.splits.items()} == {"train": 7, "val": 1, "test": 2}
+    for f in s.frames:
+        back = s.source_from_scene() @ f.world_from_cam
+        back[:3, :3] *= s.applied_scale
+        np.testing.assert_allclose(back, gt.world_from_cam[Path(f.file_path).stem], atol=1e-6)
+    # the box follows the cameras: the 0.15 m scene sits inside it and fills most of it
+    corners = np.concatenate([s.aabb, np.ones((2, 1))], axis=1) @ s.source_from_scene().T
+    lo, hi = corners[:, :3]
+    assert (lo <= small_mesh.bounds[0]).all() and (small_mesh.bounds[1] <= hi).all()
+    assert np.ptp(small_mesh.bounds, axis=0).max() > 0.6 * (hi - lo).max()

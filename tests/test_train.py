@@ -51,7 +51,7 @@ def test_two_steps_write_every_file(rgba_scene, tmp_path, field):
     assert rows[-1]["test_psnr"] != ""  # full test images at the end
     manifest = json.loads(out.manifest.read_text())
     assert manifest["stage"] == "train" and "ndc" in manifest["left_out"]
-    assert manifest["used"]["background"].startswith("random")
+    assert manifest["used"]["background"]["mode"] == "random"
     assert out.manifest.stat().st_mtime_ns >= out.checkpoint.stat().st_mtime_ns
     if field == "fast":
         assert "occupancy_skip_fraction" in manifest["used"]

@@ -63,9 +63,10 @@ class Source:
     colors: np.ndarray | None = None
     """[M, 3] uint8 point colours."""
     box: np.ndarray | None = None
-    """[2, 3] known region of interest, source frame."""
+    """[2, 3] region of interest the dataset states (an input transforms.json's `aabb`), source frame; None:
+    `radiance.normalize` derives it from the points, depth bounds or cameras. Never a dataset convention."""
     depth_bounds: np.ndarray | None = None
-    """[N, 2] per-image near/far z-depth, source units (LLFF)."""
+    """[N, 2] per-image near/far z-depth the dataset states, source units (LLFF)."""
     pixels: Callable[[int], np.ndarray] | None = None
     """Frame index -> uint8 [H, W, 3|4] RGB(A), for sources holding arrays (npz)."""
     source_from_original: np.ndarray | None = None

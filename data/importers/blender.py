@@ -2,7 +2,10 @@
 
 Poses are already OpenGL camera-to-world in Blender's z-up world, so the up axis is kept. `file_path` is
 written without extension (`./train/r_0`): `.png` is added when the bare path does not exist. Splits come from
-the files. The object is known to lie in [-1.5, 1.5]^3 (the NeRF synthetic scenes' box).
+the files. The layout states no scene bounds, so no box is returned: `radiance.normalize` takes the region of
+interest from the cameras (its `look_at` rule), which follows the scene at any scale (the NeRF synthetic
+scenes, cameras ~4 units away, get about [-1.45, 1.45]^3; the same scene 10x smaller, cameras included, gets
+a box 10x smaller). A fixed box would leave a small object a few voxels wide.
 """
 
 from __future__ import annotations
@@ -17,9 +20,7 @@ from data.errors import UserError
 from data.importers import Source, SourceFrame, flat_name, image_shape
 from radiance.camera import Intrinsics
 
-__all__ = ["load", "OBJECT_BOX"]
-
-OBJECT_BOX = np.array([[-1.5] * 3, [1.5] * 3])
+__all__ = ["load"]
 
 
 def _resolve(root: Path, rel: str) -> Path:
@@ -81,6 +82,5 @@ def load(source: Path) -> Source:
         out.append(SourceFrame(name=name, world_from_cam=m, intrinsics=intr, image=img))
     return Source(
         kind="blender", frames=tuple(out), splits=splits, has_alpha=channels == 4, up="keep", scene_type="object",
-        box=OBJECT_BOX, inputs=tuple(files.values()),
-        used={"splits": {s: len(i) for s, i in splits.items()}, "object_box": OBJECT_BOX.tolist()},
+        inputs=tuple(files.values()), used={"splits": {s: len(i) for s, i in splits.items()}},
     )  # fmt: skip

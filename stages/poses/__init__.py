@@ -2,27 +2,33 @@
 
 Steps: upright copies of the photos (EXIF orientation applied; COLMAP ignores it) or the sharpest frame per
 window of a video -> screening (blur, exposure, near-duplicates; `drop_blurry` removes the blurriest) ->
-SIFT on images downscaled to `max_image_size` -> exhaustive or sequential matching -> incremental mapping ->
-the LARGEST model (most registered images), never blindly model 0 -> with a shared camera, one last bundle
-adjustment that also refines the principal point.
+the SIFT working size (`max_image_size`, or the smallest of 1000 / 1600 / 3200 px where SIFT finds enough
+features) -> SIFT -> exhaustive or sequential matching -> incremental mapping -> the LARGEST model (most
+registered images), never blindly model 0 -> under 80 % registered, retries with pycolmap's size and
+feature cap, then a relaxed mapper, then guided matching (`attempts`), keeping the attempt that registered
+most -> with a shared camera, one last bundle adjustment that also refines the principal point.
 
 Outputs (COLMAP conventions: OpenCV camera axes, `cam_from_world` poses, binary model):
   SCENE_DIR/colmap/images/          upright copies / video frames: the image folder of the model
   SCENE_DIR/colmap/names.json       {copy name: original path} (video frames: {name: "video.mp4#frame=N"})
-  SCENE_DIR/colmap/database.db      features and matches
+  SCENE_DIR/colmap/database.db      features and matches of the attempt kept
   SCENE_DIR/colmap/sparse/          the chosen model (cameras.bin, images.bin, points3D.bin, ...)
-  SCENE_DIR/colmap/metrics.csv      step, seconds, phase, images, registered
-  SCENE_DIR/colmap/manifest.json    provenance; the folder is built under a temporary name and renamed
-                                    into place complete, so colmap/ exists only after a success
+  SCENE_DIR/colmap/metrics.csv      step, seconds, phase ("mapping (attempt 2)" when retrying), images,
+                                    registered
+  SCENE_DIR/colmap/manifest.json    provenance (also the working size and the attempts); the folder is built
+                                    under a temporary name and renamed into place complete, so colmap/
+                                    exists only after a success
   SCENE_DIR/poses_report.json       also on failure (status "failed" and the error): counts, per-image
-                                    features / matches / observations / screening, why images were left out
+                                    features / matches / observations / screening, why images were left out,
+                                    how the working size was chosen, each attempt's settings and result
 
 A rerun first moves an earlier colmap/ (with its poses_report.json inside) to SCENE_DIR/colmap.previous/: a
 failed rerun leaves no colmap/ that looks current, yet loses nothing (the error says where the old model is);
 a successful one deletes colmap.previous/.
 
-Modules: `images` (upright copies, screening), `video` (frame picking), `colmap` (the pycolmap steps and the
-principal-point refinement), `report` (run state, registration checks, poses_report.json, phase timer).
+Modules: `images` (upright copies, screening), `video` (frame picking), `colmap` (the pycolmap steps, the
+working size and the principal-point refinement), `attempts` (the retry ladder), `report` (run state,
+registration checks, poses_report.json, phase timer).
 """
 
 from __future__ import annotations
@@ -31,7 +37,7 @@ import os
 import shutil
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal, get_args
 
@@ -44,6 +50,7 @@ from data.atomic import write_json
 from data.errors import UserError
 from data.rundir import MetricsLog, config_to_json, write_manifest
 from stages.poses import colmap as sfm
+from stages.poses.attempts import ladder, run_attempts
 from stages.poses.images import (
     IMAGE_SUFFIXES,
     blurriest,
@@ -67,7 +74,7 @@ from stages.poses.video import extract_frames
 
 __all__ = ["Config", "Outputs", "run", "MIN_REGISTERED", "FAIL_FRACTION", "WARN_FRACTION"]
 
-VERSION = "1"
+VERSION = "2"
 CameraModel = Literal["SIMPLE_RADIAL", "RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE"]
 CAMERA_MODELS = get_args(CameraModel)
 """The models `convert` (data.importers.colmap) reads."""
@@ -75,15 +82,40 @@ CAMERA_MODELS = get_args(CameraModel)
 
 @dataclass(frozen=True, kw_only=True)
 class Config:
+    """Where the stage departs from pycolmap's defaults (pycolmap 4.x), and why:
+
+    - SIFT working size: pycolmap downscales to 3200 px. Here the smallest of 1000 / 1600 / 3200 px (never
+      above the photos' size) at which SIFT finds ENOUGH_FEATURES (1000) per image on probe photos; with too
+      few registered, the first retry uses 3200. fox (50 photos, 1080x1920, 2 cores, 2048-feature cap):
+      1000 px: 50/50 registered, 0.20 deg median rotation error, 65-75 CPU-s (~35-45 s wall); 1280 px:
+      0.23 deg, 95 CPU-s; 1600 px: 0.20 deg, 137 CPU-s; 1920 (its full size, what 3200 gives): 0.22 deg,
+      136 CPU-s. More pixels buy fox no accuracy and break its 60 s budget: matching and mapping time
+      follow the number of features, which grows with the working size.
+    - first_octave: pycolmap -1 (SIFT upsamples 2x). Here 0 at working sizes >= 1000 px (~3x faster; under
+      a feature cap the upsampled octave is the finest and is dropped first anyway) and -2 with affine
+      shape under 500 px (colmap.TINY_IMAGE).
+    - min_model_size: pycolmap 10, here 3 (colmap.MIN_MODEL_SIZE): small separate models are reported.
+    - Random seeds (RANSAC, mapper) are set from `seed`, so runs repeat.
+    - Retries (`max_attempts`): pycolmap has none; see stages.poses.attempts.
+    Feature cap, matcher and verification options, and mapper thresholds are pycolmap's in the first two
+    attempts; bundle adjustment options are pycolmap's throughout.
+    """
+
     input: Path
     """A folder of photos (.jpg .png .tif .bmp .webp; not recursive) or a video file."""
     scene_dir: Path
     """Output folder: colmap/ (images, database.db, sparse/), poses_report.json."""
-    max_image_size: int = 1000
-    """SIFT runs on images downscaled so that the long side is at most this many pixels (the model keeps
-    full-resolution intrinsics)."""
-    max_num_features: int = 2048
-    """SIFT features kept per image (matching time grows with its square)."""
+    max_image_size: int | None = None
+    """SIFT working size, the long side in pixels that images are downscaled to; unset: the smallest of 1000,
+    1600 and 3200 px (pycolmap's size) at which SIFT finds 1000 features per image on 3 probe photos. The
+    model keeps full-resolution intrinsics."""
+    max_num_features: int = sfm.PYCOLMAP_MAX_NUM_FEATURES
+    """SIFT features kept per image, the coarsest scales first (pycolmap's 8192; matching time grows with its
+    square; fox at 1000 px finds 942-1812, so the cap only binds on larger working sizes)."""
+    max_attempts: int = 4
+    """Settings to try while under 80 % of the images register: 1 = no retry, 2 = also pycolmap's 3200 px
+    and 8192 features, 3 = also relaxed mapper thresholds, 4 = also guided matching (see
+    stages.poses.attempts)."""
     matcher: Literal["auto", "exhaustive", "sequential"] = "auto"
     """Image pairs to match: 'auto' = exhaustive for photo folders, sequential for video."""
     single_camera: bool = True
@@ -119,6 +151,10 @@ class Outputs:
     registered: int
     total: int
     mean_reprojection_error: float
+    working_size: int
+    """SIFT working size of the first attempt (long side, px)."""
+    attempts: tuple[str, ...]
+    """One line per attempt: name, registered, settings; the kept one is marked."""
 
 
 def _check(config: Config) -> str:
@@ -129,8 +165,10 @@ def _check(config: Config) -> str:
         raise UserError(f"camera_model must be one of {', '.join(CAMERA_MODELS)}; got {config.camera_model!r}")
     if config.drop_blurry < 0:
         raise UserError(f"drop_blurry must be a fraction in [0, 1) or a count >= 1, got {config.drop_blurry}")
-    if config.max_image_size < 100 or config.max_num_features < 100:
+    if (config.max_image_size is not None and config.max_image_size < 100) or config.max_num_features < 100:
         raise UserError("max_image_size and max_num_features must be at least 100")
+    if config.max_attempts < 1:
+        raise UserError(f"max_attempts must be at least 1, got {config.max_attempts}")
     src = Path(config.input)
     if not src.exists():
         raise UserError(f"input {src} does not exist (expected a folder of photos or a video file)")
@@ -233,6 +271,26 @@ def _camera_groups(config: Config, names: list[str], state: RunState) -> list[li
     return list(by_size.values())
 
 
+def _working_size(
+    config: Config, settings: sfm.SfmSettings, probe_db: Path, images: Path, names: list[str], long_side: int,
+    state: RunState,
+) -> sfm.SfmSettings:  # fmt: skip
+    """`settings` with the first attempt's SIFT working size: the Config's, or `sfm.choose_working_size`'s."""
+    if config.max_image_size is not None:
+        state.working_size = {"size": min(config.max_image_size, long_side), "rule": "max_image_size"}
+        return replace(settings, max_image_size=config.max_image_size)
+    size, counted = sfm.choose_working_size(
+        long_side, lambda s: sfm.count_features(probe_db, images, names, s, settings)
+    )
+    state.working_size = {
+        "size": size,
+        "rule": f"smallest of {list(sfm.WORKING_SIZES)} px (at most the photos' {long_side}) where the probe "
+        f"photos' median SIFT features reach {sfm.ENOUGH_FEATURES}",
+        "median_features": {str(k): v for k, v in counted.items()},
+    }
+    return replace(settings, max_image_size=size)
+
+
 def _set_aside(colmap_dir: Path, report_path: Path) -> Path | None:
     """Move an earlier run's colmap/ (and its report, into it) to colmap.previous/; returns that folder, or
     None when there was no earlier colmap/ (an older colmap.previous/ is then left as it is)."""
@@ -258,14 +316,14 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     scene_dir.mkdir(parents=True, exist_ok=True)
     previous = _set_aside(colmap_dir, report_path)
     build = Path(tempfile.mkdtemp(prefix=".colmap.tmp-", dir=scene_dir))
-    images, db = build / "images", build / "database.db"
+    images = build / "images"
     images.mkdir()
     state = RunState(started=time.time())
     metrics = MetricsLog(build / "metrics.csv", ["step", "seconds", "phase", "images", "registered"])
     phase = PhaseTimer(state, metrics, progress)
     matcher = config.matcher if config.matcher != "auto" else ("sequential" if kind == "video" else "exhaustive")
-    settings = sfm.SfmSettings(
-        max_image_size=config.max_image_size, max_num_features=config.max_num_features,
+    settings = sfm.SfmSettings(  # max_image_size: a placeholder until _working_size, after screening
+        max_image_size=sfm.PYCOLMAP_MAX_IMAGE_SIZE, max_num_features=config.max_num_features,
         camera_model=config.camera_model, single_camera=config.single_camera, matcher=matcher,
         sequential_overlap=config.sequential_overlap, num_threads=config.num_threads, seed=config.seed,
     )  # fmt: skip
@@ -279,19 +337,12 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         with phase("screening"):
             names = _screen(config, images, state)
             groups = _camera_groups(config, names, state)
-        with phase("features"):
-            long_sides = [max(max(state.sizes[n]) for n in g) for g in groups]
-            sfm.extract(db, images, groups, long_sides, settings)
-            state.stats = sfm.database_stats(db)
-            check_features(state.stats)
-        with phase("matching"):
-            sfm.match(db, settings)
-            state.stats = sfm.database_stats(db)
-        with phase("mapping"):
-            models = state.all_models = sfm.reconstruct(db, images, build / "models", settings)
-            state.models = sorted((m.num_reg_images() for m in models.values()), reverse=True)
-            if models:
-                state.model = max(models.values(), key=lambda m: (m.num_reg_images(), m.num_points3D()))
+        long_sides = [max(max(state.sizes[n]) for n in g) for g in groups]
+        with phase("working_size"):
+            settings = _working_size(config, settings, build / "probe.db", images, names, max(long_sides), state)
+        plan = ladder(settings, config.max_attempts, max(long_sides))
+        run_attempts(plan, build, images, groups, long_sides, state, phase)
+        check_features(state.stats)
         check_registered(state, matcher)
         if config.single_camera:
             with phase("principal_point"):
@@ -307,7 +358,10 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
             build, stage="poses", started=state.started, inputs=[config.input],
             outputs=["images/", "names.json", "database.db", "sparse/", "metrics.csv", "../poses_report.json"],
             used={"matcher": matcher, "principal_point": state.principal_point,
-                  "camera_groups": [len(g) for g in groups], "pycolmap": pycolmap.__version__},
+                  "camera_groups": [len(g) for g in groups], "pycolmap": pycolmap.__version__,
+                  "working_size": state.working_size,
+                  "attempts": [{k: a[k] for k in ("name", "registered", "total", "kept", "settings")}
+                               for a in state.attempts]},
             left_out={**state.skipped, **report["not_registered"]}, version=VERSION,
             config=config_to_json(config),
         )  # fmt: skip
@@ -329,4 +383,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         colmap_dir=colmap_dir, sparse=colmap_dir / "sparse", images=colmap_dir / "images",
         database=colmap_dir / "database.db", report=report_path, registered=report["registered"],
         total=report["total"], mean_reprojection_error=float(report["mean_reprojection_error_px"]),
+        working_size=state.working_size["size"],
+        attempts=tuple(f"{a['name']}: {a['registered']}/{a['total']} registered{' (kept)' if a['kept'] else ''}; "
+                       f"{a['settings']}" for a in state.attempts),
     )  # fmt: skip

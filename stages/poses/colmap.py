@@ -1,26 +1,51 @@
 """pycolmap steps of the poses stage: SIFT extraction, matching, incremental mapping, database statistics,
 and the final bundle adjustment that refines a shared camera's principal point.
 
-Speed settings (2 CPU cores, 50 photos of 1080x1920 in well under a minute) are chosen in
-`benchmarks/bench_poses.py`; the values here are the ones it found. COLMAP logs go to glog (stderr).
+Every pycolmap option is COLMAP's default unless set here, and each one set here says why (the stage's Config
+docstring lists them). Speed figures are from `benchmarks/bench_poses.py` (fox: 50 photos of 1080x1920 on 2
+CPU cores). COLMAP logs go to glog (stderr).
+
+How the SIFT feature cap works (COLMAP's CPU extractor, VLFeat): every scale level of the image is detected
+and described, then the COARSEST levels are kept until their count passes `max_num_features` (the level
+that crosses the cap is kept whole, and a keypoint can have 2 orientations, so up to ~1.4x the cap come
+out). A larger working size under a cap that binds therefore costs more extraction time but adds no finer
+features: only a larger cap does.
 """
 
 from __future__ import annotations
 
 from collections import Counter, defaultdict
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 
 __all__ = [
-    "SfmSettings", "extract", "match", "reconstruct", "database_stats", "DatabaseStats", "refine_principal_point",
+    "SfmSettings", "MapperThresholds", "RELAXED_MAPPER", "PYCOLMAP_MAX_IMAGE_SIZE", "PYCOLMAP_MAX_NUM_FEATURES",
+    "WORKING_SIZES", "ENOUGH_FEATURES", "choose_working_size", "count_features", "extract", "match",
+    "reconstruct", "database_stats", "DatabaseStats", "refine_principal_point",
 ]  # fmt: skip
 
 
-BA_GLOBAL_MAX_ITERATIONS = 100
-BA_LOCAL_MAX_ITERATIONS = 25
+PYCOLMAP_MAX_IMAGE_SIZE = 3200
+"""pycolmap's SIFT working size (`FeatureExtractionOptions().eff_max_image_size()`; tested)."""
+PYCOLMAP_MAX_NUM_FEATURES = 8192
+"""pycolmap's SIFT feature cap (`SiftExtractionOptions().max_num_features`; tested)."""
+PYCOLMAP_MIN_VERIFIED_INLIERS = 15
+"""pycolmap's two-view verification threshold (`TwoViewGeometryOptions().min_num_inliers`; tested)."""
+WORKING_SIZES = (1000, 1600, PYCOLMAP_MAX_IMAGE_SIZE)
+"""Candidate SIFT working sizes (long side, px), smallest first; see `choose_working_size`."""
+ENOUGH_FEATURES = 1000
+"""SIFT features per image that make a working size large enough: the mapper's initial pair needs 100
+inlier matches (init_min_num_inliers) and neighbouring views typically turn 10-30 % of their features into
+inliers. fox at 1000 px: 942-1812 features per image (median 1446), 50/50 registered."""
+PROBE_IMAGES = 3
+"""Photos (evenly spread over the set) on which `choose_working_size` counts features."""
+MIN_MODEL_SIZE = 3
+"""Keep models of 3+ images (pycolmap: 10): the report names every model found, and a set of 6-20 photos
+that splits still shows where (the stage fails under 40 % registered in any case)."""
 PP_REFINE_MIN_IMAGES = 10
 """The final bundle adjustment refines a camera's principal point only if it is shared by this many images."""
 PP_MAX_SHIFT = 0.1
@@ -45,10 +70,38 @@ def sift_octave_and_affine(long_side: int) -> tuple[int, bool]:
 
 
 @dataclass(frozen=True, kw_only=True)
+class MapperThresholds:
+    """Incremental-mapper thresholds; the defaults are pycolmap's (tested against
+    `IncrementalPipelineOptions()`), `RELAXED_MAPPER` is the last retry's."""
+
+    min_num_matches: int = 15
+    """Verified inlier matches for an image pair to be used at all."""
+    init_min_num_inliers: int = 100
+    """Inliers of the initial image pair."""
+    init_min_tri_angle: float = 16.0
+    """Median triangulation angle (deg) of the initial pair."""
+    abs_pose_min_num_inliers: int = 30
+    """2D-3D inliers to register an image."""
+    abs_pose_min_inlier_ratio: float = 0.25
+    """... and their fraction of the image's 2D-3D correspondences."""
+    max_reg_trials: int = 3
+    """Times the mapper tries to register an image before giving up on it."""
+
+
+RELAXED_MAPPER = MapperThresholds(
+    min_num_matches=8, init_min_num_inliers=50, init_min_tri_angle=8.0, abs_pose_min_num_inliers=15,
+    abs_pose_min_inlier_ratio=0.15, max_reg_trials=6,
+)  # fmt: skip
+"""About half of each default (twice the registration trials): less evidence to start a model and to register
+an image. The reprojection-error filters (4 px) that every registered image and point must pass are unchanged."""
+
+
+@dataclass(frozen=True, kw_only=True)
 class SfmSettings:
-    """The pycolmap knobs the poses stage exposes (see `stages.poses.Config` for the meaning)."""
+    """The pycolmap knobs one attempt of the poses stage uses (see `stages.poses.Config` for the meaning)."""
 
     max_image_size: int
+    """SIFT working size (long side, px; images are never upsampled)."""
     max_num_features: int
     camera_model: str
     single_camera: bool
@@ -56,8 +109,38 @@ class SfmSettings:
     sequential_overlap: int
     num_threads: int
     seed: int
-    ba_global_max_num_iterations: int = BA_GLOBAL_MAX_ITERATIONS
-    ba_local_max_num_iterations: int = BA_LOCAL_MAX_ITERATIONS
+    guided_matching: bool = False
+    """Re-match each verified pair under its estimated geometry (more inliers; pycolmap's default: off)."""
+    min_verified_inliers: int = PYCOLMAP_MIN_VERIFIED_INLIERS
+    """Two-view verification keeps pairs with this many inliers (the mapper then uses min_num_matches)."""
+    mapper: MapperThresholds = field(default_factory=MapperThresholds)
+
+
+def choose_working_size(long_side: int, median_features_at: Callable[[int], float]) -> tuple[int, dict[int, float]]:
+    """The smallest of WORKING_SIZES (never above `long_side`: COLMAP does not upsample) at which
+    `median_features_at(size)` reaches ENOUGH_FEATURES; the largest candidate needs no count.
+
+    Returns (size, {size: median features} for each size counted).
+    """
+    candidates = sorted({min(s, long_side) for s in WORKING_SIZES})
+    counted: dict[int, float] = {}
+    for size in candidates[:-1]:
+        counted[size] = median_features_at(size)
+        if counted[size] >= ENOUGH_FEATURES:
+            return size, counted
+    return candidates[-1], counted
+
+
+def count_features(db: Path, image_dir: Path, names: Sequence[str], size: int, s: SfmSettings) -> float:
+    """Median SIFT features of `names` at working size `size` (a scratch database `db`, deleted after)."""
+    probe_names = [names[round(i * (len(names) - 1) / max(PROBE_IMAGES - 1, 1))] for i in range(PROBE_IMAGES)]
+    probe_names = list(dict.fromkeys(probe_names))
+    try:
+        extract(db, image_dir, [probe_names], [size], replace(s, max_image_size=size))
+        counts = database_stats(db).features
+    finally:
+        db.unlink(missing_ok=True)
+    return float(np.median(list(counts.values())))
 
 
 def extract(db: Path, image_dir: Path, groups: list[list[str]], long_sides: list[int], s: SfmSettings) -> None:
@@ -90,8 +173,9 @@ def extract(db: Path, image_dir: Path, groups: list[list[str]], long_sides: list
 def match(db: Path, s: SfmSettings) -> None:
     opts = pycolmap.FeatureMatchingOptions()
     opts.num_threads = s.num_threads
-    opts.guided_matching = False
+    opts.guided_matching = s.guided_matching
     verify = pycolmap.TwoViewGeometryOptions()
+    verify.min_num_inliers = s.min_verified_inliers
     verify.ransac.random_seed = s.seed
     if s.matcher == "sequential":
         pairing = pycolmap.SequentialPairingOptions()
@@ -111,10 +195,14 @@ def reconstruct(db: Path, image_dir: Path, out_dir: Path, s: SfmSettings) -> dic
     opts = pycolmap.IncrementalPipelineOptions()
     opts.num_threads = s.num_threads
     opts.random_seed = s.seed
-    opts.extract_colors = True
-    opts.min_model_size = 3
-    opts.ba_global_max_num_iterations = s.ba_global_max_num_iterations
-    opts.ba_local_max_num_iterations = s.ba_local_max_num_iterations
+    opts.min_model_size = MIN_MODEL_SIZE
+    t = s.mapper
+    opts.min_num_matches = t.min_num_matches
+    opts.mapper.init_min_num_inliers = t.init_min_num_inliers
+    opts.mapper.init_min_tri_angle = t.init_min_tri_angle
+    opts.mapper.abs_pose_min_num_inliers = t.abs_pose_min_num_inliers
+    opts.mapper.abs_pose_min_inlier_ratio = t.abs_pose_min_inlier_ratio
+    opts.mapper.max_reg_trials = t.max_reg_trials
     out_dir.mkdir(parents=True, exist_ok=True)
     return pycolmap.incremental_mapping(db, image_dir, out_dir, options=opts)
 

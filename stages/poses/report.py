@@ -1,6 +1,7 @@
 """The poses stage's bookkeeping: run state, registration checks, phase timer, poses_report.json, summary.
 
-`RunState` collects what one run saw (copies, screening, timings, SfM statistics, the chosen model);
+`RunState` collects what one run saw (copies, screening, timings, the attempts, SfM statistics and the
+chosen model: those of the attempt being run, then of the attempt kept);
 `build_report` turns it into poses_report.json (also written on failure); `check_features` and
 `check_registered` turn too few textured or registered images into one-line UserErrors that say why.
 """
@@ -26,14 +27,14 @@ if TYPE_CHECKING:
 
 __all__ = [
     "MIN_REGISTERED", "FAIL_FRACTION", "WARN_FRACTION", "MIN_FEATURES", "RunState", "PhaseTimer",
-    "check_features", "check_registered", "build_report", "print_summary",
+    "textured", "check_features", "check_registered", "build_report", "print_summary",
 ]  # fmt: skip
 
 MIN_REGISTERED = 3
 FAIL_FRACTION = 0.4
 """Fewer registered images than this fraction is an error (no model is written)."""
 WARN_FRACTION = 0.8
-"""Fewer registered images than this fraction prints a warning."""
+"""Fewer registered images than this fraction prints a warning, after retrying with other settings."""
 MIN_FEATURES = 100
 """An image with fewer SIFT features than this is reported as texture-less."""
 
@@ -57,13 +58,20 @@ class RunState:
     model: pycolmap.Reconstruction | None = None
     all_models: dict[int, pycolmap.Reconstruction] = field(default_factory=dict)
     principal_point: str = ""
+    working_size: dict[str, Any] = field(default_factory=dict)  # how the SIFT working size was chosen
+    attempts: list[dict[str, Any]] = field(default_factory=list)  # one record per attempt (stages.poses.attempts)
+
+
+def textured(stats: DatabaseStats) -> bool:
+    """Enough images with MIN_FEATURES+ features that a model is possible at all."""
+    return sum(k >= MIN_FEATURES for k in stats.features.values()) >= MIN_REGISTERED
 
 
 def check_features(stats: DatabaseStats) -> None:
-    textured = [n for n, k in stats.features.items() if k >= MIN_FEATURES]
-    if len(textured) < MIN_REGISTERED:
+    if not textured(stats):
+        n = sum(k >= MIN_FEATURES for k in stats.features.values())
         raise UserError(
-            f"only {len(textured)} of {len(stats.features)} images have {MIN_FEATURES}+ SIFT features: the images "
+            f"only {n} of {len(stats.features)} images have {MIN_FEATURES}+ SIFT features: the images "
             "look blank or texture-less; photograph a scene with visible texture (not plain walls, sky or blur)"
         )
 
@@ -82,13 +90,24 @@ def check_registered(state: RunState, matcher: str) -> None:
             cause = f"the scene split into {len(state.models)} separate models {state.models}"
         else:
             cause = "the views could not be chained together"
-        also = "matcher=exhaustive or " if matcher != "exhaustive" else ""
+        also = "; or try matcher=exhaustive" if matcher != "exhaustive" else ""
+        if len(state.attempts) < 2:
+            also += "; or allow retries (max_attempts) or a larger max_image_size / max_num_features"
         raise UserError(
-            f"only {reg} of {total} images registered: {cause}; take more overlapping photos (60-80% overlap, "
-            f"small steps around the subject) or try {also}a larger max_image_size / max_num_features"
+            f"only {reg} of {total} images registered{attempts_line(state.attempts)}: {cause}; take more "
+            f"overlapping photos (60-80% overlap, small steps around the subject){also}"
         )
     if reg < WARN_FRACTION * total:
         state.warnings.append(f"only {reg} of {total} images registered; see poses_report.json for why")
+
+
+def attempts_line(attempts: list[dict[str, Any]]) -> str:
+    """' (tried as configured 11/22, more features 15/22; kept more features)'; '' after a single attempt."""
+    if len(attempts) < 2:
+        return ""
+    tried = ", ".join(f"{a['name']} {a['registered']}/{a['total']}" for a in attempts)
+    kept = [a["name"] for a in attempts if a["kept"]]
+    return f" (tried {tried}; kept {kept[0] if kept else 'none'})"
 
 
 def _why_not_registered(name: str, stats: DatabaseStats, models: dict[int, pycolmap.Reconstruction]) -> str:
@@ -158,6 +177,8 @@ def build_report(config: Config, state: RunState, status: str, error: str | None
             for c, cam in (rec.cameras.items() if rec is not None else [])
         },  # fmt: skip
         "principal_point": state.principal_point,
+        "working_size": state.working_size,
+        "attempts": state.attempts,
         "timings_s": {k: round(v, 3) for k, v in state.timings.items()},
         "warnings": state.warnings,
         "screening": {
@@ -177,39 +198,46 @@ def print_summary(console: Console, report: dict[str, Any]) -> None:
     colour = "green" if tot and reg / tot >= WARN_FRACTION else "yellow"
     err = report["mean_reprojection_error_px"]
     t = sum(report["timings_s"].values())
+    tried = attempts_line(report["attempts"])
     console.print(
-        f"poses: [{colour}]{reg}/{tot} registered[/{colour}], {report['points3D']} points, "
+        f"poses: [{colour}]{reg}/{tot} registered[/{colour}]{tried}, {report['points3D']} points, "
         f"reprojection {err:.2f} px, {t:.1f} s"
         if err is not None
-        else f"poses: {reg}/{tot} registered"
+        else f"poses: {reg}/{tot} registered{tried}"
     )
     for w in report["warnings"]:
         console.print(f"[yellow]warning:[/yellow] {w}")
 
 
 class PhaseTimer:
-    """`with timer("features"): ...` times a phase into the state, the progress bar and metrics.csv."""
+    """`with timer("features"): ...` times a phase into the state, the progress bar and metrics.csv.
+
+    Set `attempt` (> 1) while retrying: metrics.csv then names the phase "features (attempt 2)"; the report's
+    timings_s add up each phase over all attempts.
+    """
 
     def __init__(self, state: RunState, metrics: MetricsLog, progress: Progress | None):
         self.state, self.metrics, self.progress = state, metrics, progress
+        self.attempt = 1
         self.task = progress.add_task("poses", total=None) if progress is not None else None
 
     def __call__(self, phase: str):
         timer = self
+        label = phase if self.attempt == 1 else f"{phase} (attempt {self.attempt})"
 
         class _Phase:
             def __enter__(self):
                 if timer.progress is not None:
-                    timer.progress.update(timer.task, description=f"poses: {phase}")
+                    timer.progress.update(timer.task, description=f"poses: {label}")
                 self.t0 = time.perf_counter()
 
             def __exit__(self, *exc):
                 state = timer.state
-                state.timings[phase] = time.perf_counter() - self.t0
+                state.timings[phase] = state.timings.get(phase, 0.0) + time.perf_counter() - self.t0
                 if exc[0] is None:
                     registered = state.model.num_reg_images() if state.model is not None else ""
                     timer.metrics.append(step=len(timer.metrics.rows), seconds=round(time.time() - state.started, 3),
-                                         phase=phase, images=len(state.sizes) or len(state.names),
+                                         phase=label, images=len(state.sizes) or len(state.names),
                                          registered=registered)  # fmt: skip
                 return False
 

@@ -5,23 +5,34 @@ high-texture objects (spheres, boxes, a cylinder; `stages.scene.objects`) are ra
 a hemisphere around them.
 
 Conventions (docs/DESIGN.md):
-- World frame = scene frame: metres, right-handed, up +z, ground top at z = 0; `applied_transform` is the
-  identity and `applied_scale` 1.
+- World frame = scene frame: metres times `scale` (every length: objects, cameras, depth, mesh, aabb, near,
+  far), right-handed, up +z, ground top at z = 0; `applied_transform` is the identity and `applied_scale` 1.
+  The images do not depend on `scale` (a similarity changes no pixel): they are rendered at scale 1 and only
+  the lengths written are multiplied, so they are byte-identical at any scale.
 - Cameras: `world_from_cam` 4x4 in OpenGL axes (x right, y up, looking down -z); pinhole, no distortion,
   principal point at the image centre (w / 2, h / 2; pixel centres at +0.5).
 - Colour: each pixel averages `SUPERSAMPLE x SUPERSAMPLE` stratified rays (box filter). Opaque kinds composite
-  the background colour `BACKGROUND`; `rgba` stores straight (unpremultiplied) colour and alpha = the fraction
-  of the pixel's rays that hit the scene, so compositing it on `BACKGROUND` gives the `posed` image.
-- Depth (`ground_truth/depth/*.npy`, float32 [H, W]): z-depth along the optical axis in metres of the ray
-  through the pixel centre; 0 where that ray hits nothing (background).
+  the background colour `BACKGROUND`; `rgba` and `blender` store straight (unpremultiplied) colour and alpha =
+  the fraction of the pixel's rays that hit the scene, so compositing it on `BACKGROUND` gives the `posed` image.
+- Depth (`ground_truth/depth/*.npy`, float32 [H, W]): z-depth along the optical axis (metres x `scale`) of the
+  ray through the pixel centre; 0 where that ray hits nothing (background).
 
 Outputs under `out_dir`:
   images/frame_0000.png ...              RGB (photos, posed) or RGBA (rgba)
   transforms.json                        posed and rgba only (data.transforms format)
-  ground_truth/cameras.json              exact intrinsics, world_from_cam (OpenGL) per image name, background
-  ground_truth/depth/frame_0000.npy ...  z-depth, metres, 0 = background
-  ground_truth/mesh.ply                  the rendered surface (concatenated closed primitives)
+  transforms_{train,val,test}.json       blender only: the NeRF-synthetic layout (see below)
+  {train,val,test}/r_0.png ...           blender only: RGBA images
+  ground_truth/cameras.json              exact intrinsics, world_from_cam (OpenGL) per image stem, background
+  ground_truth/depth/frame_0000.npy ...  z-depth, metres x scale, 0 = background
+  ground_truth/mesh.ply                  the rendered surface (concatenated closed primitives), metres x scale
   manifest.json                          written last
+
+kind=blender writes what the NeRF synthetic datasets hold (and `data.importers.blender` reads): per split a
+`transforms_<split>.json` = {"camera_angle_x": horizontal field of view in radians, "frames": [{"file_path":
+"./<split>/r_<j>" (no extension), "transform_matrix": world_from_cam 4x4}]} and RGBA PNGs <split>/r_<j>.png.
+No scene bounds are stated (as in NeRF synthetic). Views i % 8 == 0 are test, i % 8 == 4 val, the rest train; a
+split without views gets no file. Ground truth is keyed by the name `convert` gives each image (`train_r_0`),
+so `eval --ground-truth` finds it after conversion.
 """
 
 from __future__ import annotations
@@ -37,15 +48,27 @@ import numpy as np
 import torch
 import trimesh
 
-from data.atomic import atomic_path, write_bytes, write_json
+from data.atomic import write_bytes, write_json
 from data.errors import UserError
 from data.rundir import config_to_json, write_manifest
-from data.transforms import Frame, Scene, write_scene
 from radiance.camera import Intrinsics, generate_rays, pixel_centers
 from radiance.paths import look_at
-from stages.scene.objects import Primitive, backdrop, default_primitives, shade, solid_texture
+from stages.scene.files import (
+    TEST_EVERY,
+    blender_split,
+    write_blender,
+    write_mesh,
+    write_npy,
+    write_transforms,
+)
+from stages.scene.files import (
+    views as view_files,
+)
+from stages.scene.objects import Primitive, backdrop, default_primitives, room, shade, solid_texture
 
-__all__ = ["Config", "Outputs", "run", "cameras", "render_view", "scene_mesh", "SUPERSAMPLE", "BACKGROUND"]
+__all__ = [
+    "Config", "Outputs", "run", "cameras", "render_view", "scene_mesh", "blender_split", "SUPERSAMPLE", "BACKGROUND",
+]  # fmt: skip
 
 VERSION = "1"
 SUPERSAMPLE = 2
@@ -61,25 +84,29 @@ ELEVATION_DEG = (15.0, 50.0)
 FORWARD_SPREAD = (0.9, 0.5)
 """layout=forward: camera centres spread over this width x height (metres) of a plane facing the scene."""
 FORWARD_ELEVATION_DEG = 20.0
-TEST_EVERY = 8
 
 
 @dataclass(frozen=True, kw_only=True)
 class Config:
     out_dir: Path
     """Folder to write the scene into (created; existing files of the same names are replaced)."""
-    kind: Literal["photos", "posed", "rgba"] = "posed"
-    """photos: bare images for COLMAP; posed: images + transforms.json; rgba: transparent background + alpha."""
+    kind: Literal["photos", "posed", "rgba", "blender"] = "posed"
+    """photos: bare images for COLMAP; posed: images + transforms.json; rgba: transparent background + alpha;
+    blender: the NeRF-synthetic layout (transforms_{train,val,test}.json, RGBA PNGs in train/ val/ test/)."""
     size: int = 64
     """Image width = height, pixels."""
     views: int = 24
     """Number of cameras."""
     seed: int = 0
     """Picks the textures and the camera jitter; same seed, byte-identical output."""
-    layout: Literal["orbit", "forward"] = "orbit"
-    """orbit: cameras all round the scene on a hemisphere (a 360-degree capture). forward: cameras on a
+    layout: Literal["orbit", "forward", "room"] = "orbit"
+    """orbit, forward or room. orbit: cameras all round the scene on a hemisphere (a 360-degree capture).
+    room: the orbit inside a textured room (floor and walls 4 m away; transforms.json's aabb is the objects'
+    box, so the room lies beyond it: an unbounded capture). forward: cameras on a
     jittered grid in one plane, all looking the same way at the scene, with a textured wall 4 m behind it (an
     LLFF-style forward-facing capture: content from ~1.5 m to ~7 m)."""
+    scale: float = 1.0
+    """Multiply every length (objects, cameras, depth, mesh) by this; the images do not change."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -89,7 +116,9 @@ class Outputs:
     images: tuple[Path, ...]
     """The rendered images, in view order."""
     transforms: Path | None
-    """transforms.json (None for kind=photos)."""
+    """transforms.json (None for kind=photos and blender)."""
+    split_files: tuple[Path, ...]
+    """kind=blender: the transforms_<split>.json written; empty otherwise."""
     cameras: Path
     """ground_truth/cameras.json."""
     depths: tuple[Path, ...]
@@ -220,70 +249,46 @@ def _png(rgb: np.ndarray, alpha: np.ndarray | None) -> bytes:
     return buf.tobytes()
 
 
-# ---------------------------------------------------------------- files
-
-
-def _write_npy(path: Path, arr: np.ndarray) -> None:
-    with atomic_path(path) as tmp:
-        np.save(tmp, arr)
-
-
-def _write_mesh(path: Path, mesh: trimesh.Trimesh) -> None:
-    with atomic_path(path) as tmp:
-        mesh.export(tmp, file_type="ply", encoding="binary")
-
-
-def _write_transforms(
-    out_dir: Path, names: list[str], world_from_cam: np.ndarray, intr: Intrinsics, aabb, near, far, rgba: bool
-) -> Path:
-    """transforms.json in the scene frame (= this generator's world: identity applied_transform, scale 1)."""
-    test = tuple(range(0, len(names), TEST_EVERY))
-    train = tuple(i for i in range(len(names)) if i % TEST_EVERY)
-    frames = tuple(
-        Frame(file_path=f"images/{n}", world_from_cam=w, intrinsics=None)
-        for n, w in zip(names, world_from_cam, strict=True)
-    )
-    scene = Scene(
-        root=out_dir, frames=frames, intrinsics=intr, applied_transform=np.eye(4)[:3], applied_scale=1.0,
-        aabb=aabb, near=near, far=far, splits={"train": train, "val": test, "test": test}, has_alpha=rgba,
-    )  # fmt: skip
-    return Path(write_scene(scene, out_dir / "transforms.json"))
-
-
 def run(config: Config) -> Outputs:
     """Render the scene described by `config` into `config.out_dir`; see the module docstring for the files."""
     if config.size < 8 or config.views < 1:
         raise UserError(f"scene: expected --size >= 8 and --views >= 1, got size={config.size}, views={config.views}")
-    if config.kind not in ("photos", "posed", "rgba"):
-        raise UserError(f"scene: expected --kind photos|posed|rgba, got {config.kind!r}")
-    if config.layout not in ("orbit", "forward"):
-        raise UserError(f"scene: expected --layout orbit|forward, got {config.layout!r}")
+    if config.kind not in ("photos", "posed", "rgba", "blender"):
+        raise UserError(f"scene: expected --kind photos|posed|rgba|blender, got {config.kind!r}")
+    if config.layout not in ("orbit", "forward", "room"):
+        raise UserError(f"scene: expected --layout orbit|forward|room, got {config.layout!r}")
+    scale = float(config.scale)
+    if not (math.isfinite(scale) and scale > 0):
+        raise UserError(f"scene: expected --scale > 0 (finite), got {config.scale!r}")
     started = time.time()
     out = Path(config.out_dir)
     prims = default_primitives(config.seed)
+    objects = prims
     if config.layout == "forward":
         prims = (*prims, backdrop(config.seed))
+    elif config.layout == "room":
+        prims = (*prims, *room(config.seed))
     intr = intrinsics(config.size)
-    world_from_cam = cameras(config.views, config.seed, config.layout)
-    names = [f"frame_{i:04d}.png" for i in range(config.views)]
-    rgba = config.kind == "rgba"
+    world_from_cam = cameras(config.views, config.seed, config.layout)  # rendered at scale 1
+    scaled_from_cam = world_from_cam.copy()
+    scaled_from_cam[:, :3, 3] *= scale  # the scene at `scale`: rotations unchanged, centres scaled
+    views = view_files(config.kind, config.views)
+    rgba = config.kind in ("rgba", "blender")
     bg = np.array(BACKGROUND)
 
     images, depths, z_min = [], [], np.inf
-    for name, w in zip(names, world_from_cam, strict=True):
+    for (rel, stem), w in zip(views, world_from_cam, strict=True):
         colour, alpha, z = render_view(prims, intr, w)
         z_min = min(z_min, float(z[z > 0].min(initial=np.inf)))
         if not rgba:
             colour = alpha[..., None] * colour + (1 - alpha[..., None]) * bg
-        images.append(write_bytes(out / "images" / name, _png(colour, alpha if rgba else None)))
-        depth_path = out / "ground_truth" / "depth" / name.replace(".png", ".npy")
-        _write_npy(depth_path, z.astype(np.float32))
+        images.append(write_bytes(out / rel, _png(colour, alpha if rgba else None)))
+        depth_path = out / "ground_truth" / "depth" / f"{stem}.npy"
+        write_npy(depth_path, (z * scale).astype(np.float32))
         depths.append(depth_path)
 
     mesh = scene_mesh(prims)
-    mesh_path = out / "ground_truth" / "mesh.ply"
-    _write_mesh(mesh_path, mesh)
-    aabb = mesh.bounds + np.array([[-0.05], [0.05]])
+    aabb = (mesh if config.layout != "room" else scene_mesh(objects)).bounds + np.array([[-0.05], [0.05]])
     dist = np.linalg.norm(world_from_cam[:, :3, 3] - LOOK_AT, axis=-1)
     r_bound = float(np.max(np.linalg.norm(mesh.vertices - LOOK_AT, axis=-1)))
     near, far = float(max(0.05, 0.9 * (dist.min() - r_bound))), float(1.1 * (dist.max() + r_bound))
@@ -291,40 +296,52 @@ def run(config: Config) -> Outputs:
         # The wall makes the bounding-sphere bound useless (0.05 m); a forward-facing near bound is the closest
         # content actually seen (as LLFF's poses_bounds.npy has it), and NDC puts its near plane there.
         near = 0.9 * z_min
+    aabb, near, far = aabb * scale, near * scale, far * scale
+    if scale != 1.0:
+        mesh.apply_scale(scale)
+    mesh_path = out / "ground_truth" / "mesh.ply"
+    write_mesh(mesh_path, mesh)
 
     intr_doc = {"w": intr.w, "h": intr.h, "fl_x": intr.fx, "fl_y": intr.fy, "cx": intr.cx, "cy": intr.cy}
     cams_doc = {
-        "convention": "world_from_cam 4x4, OpenGL camera axes (x right, y up, looking down -z); metres; up +z; "
-        "frames keyed by image stem",
-        "depth": "depth/<stem>.npy: float32 [H, W] z-depth along the optical axis, metres, of the ray through "
-        "the pixel centre; 0 = background",
+        "convention": "world_from_cam 4x4, OpenGL camera axes (x right, y up, looking down -z); metres x scale; "
+        "up +z; frames keyed by image stem",
+        "depth": "depth/<stem>.npy: float32 [H, W] z-depth along the optical axis, metres x scale, of the ray "
+        "through the pixel centre; 0 = background",
         "mesh": "mesh.ply: the rendered surface, closed primitives concatenated (hidden faces where objects sink "
-        "into the ground slab), metres",
+        "into the ground slab), metres x scale",
+        "scale": scale,
         "camera_model": "PINHOLE",
         **intr_doc,
         "background": list(BACKGROUND) if not rgba else None,
         "aabb": aabb.tolist(), "near": near, "far": far,
         "frames": {
-            Path(n).stem: {"file_path": f"images/{n}", "world_from_cam": w.tolist(), **intr_doc}
-            for n, w in zip(names, world_from_cam, strict=True)
+            stem: {"file_path": rel, "world_from_cam": w.tolist(), **intr_doc}
+            for (rel, stem), w in zip(views, scaled_from_cam, strict=True)
         },
     }  # fmt: skip
     cams_path = write_json(out / "ground_truth" / "cameras.json", cams_doc)
-    transforms = None
-    if config.kind != "photos":
-        transforms = _write_transforms(out, names, world_from_cam, intr, aabb, near, far, rgba)
+    transforms, split_files = None, ()
+    rel = [r for r, _ in views]
+    if config.kind == "blender":
+        split_files = write_blender(out, rel, scaled_from_cam, FOV_X_DEG)
+    elif config.kind != "photos":
+        names = [Path(r).name for r in rel]
+        transforms = write_transforms(out, names, scaled_from_cam, intr, aabb, near, far, rgba)
 
-    outputs = [*images, *depths, mesh_path, cams_path, *([transforms] if transforms else [])]
+    outputs = [*images, *depths, mesh_path, cams_path, *([transforms] if transforms else []), *split_files]
     manifest_path = write_manifest(
         out, stage="scene", started=started, outputs=[p.relative_to(out) for p in outputs],
         used={"supersample": f"{SUPERSAMPLE}x{SUPERSAMPLE} rays per pixel, box filter", "fov_x_deg": FOV_X_DEG,
               "background": "transparent" if rgba else list(BACKGROUND), "camera_radius_m": CAMERA_RADIUS,
-              "layout": config.layout, "test_split": f"every {TEST_EVERY}th view",
+              "scale": scale, "layout": config.layout,
+              "test_split": f"every {TEST_EVERY}th view" + (f", val every {TEST_EVERY}th from {TEST_EVERY // 2}"
+                                                            if config.kind == "blender" else ""),
               **({"elevation_deg": list(ELEVATION_DEG)} if config.layout == "orbit" else
                  {"forward_spread_m": list(FORWARD_SPREAD), "elevation_deg": FORWARD_ELEVATION_DEG})},
         config=config_to_json(config),
     )  # fmt: skip
     return Outputs(
-        out_dir=out, images=tuple(images), transforms=transforms, cameras=cams_path, depths=tuple(depths),
-        mesh=mesh_path, manifest=manifest_path,
+        out_dir=out, images=tuple(images), transforms=transforms, split_files=split_files, cameras=cams_path,
+        depths=tuple(depths), mesh=mesh_path, manifest=manifest_path,
     )  # fmt: skip

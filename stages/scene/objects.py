@@ -27,6 +27,7 @@ __all__ = [
     "shade",
     "default_primitives",
     "backdrop",
+    "room",
 ]
 
 _MASK32 = np.uint64(0xFFFFFFFF)
@@ -333,6 +334,25 @@ def default_primitives(seed: int) -> tuple[Primitive, ...]:
         Sphere(center=np.array([0.4, -0.2, 0.12 - sink]), radius=0.12,
                material=_material(rng, int(keys[5]), 0.06, 0.02)),
     )  # fmt: skip
+
+
+def room(seed: int) -> tuple[Primitive, ...]:
+    """A textured room round the objects: a floor 0.25 m below the slab's top and four walls 4 m from the
+    centre, 3.25 m tall (8 m x 8 m): the unbounded background a phone capture of an object in a room sees."""
+    rng = np.random.default_rng([seed, 20261123])
+    keys = [int(k) for k in rng.integers(0, 2**31, size=5)]
+    floor = Box(center=np.array([0.0, 0.0, -0.3]), half=np.array([4.0, 4.0, 0.05]), yaw=0.0,
+                material=_material(rng, keys[0], 0.45, 0.2))  # fmt: skip
+    walls = [
+        Box(center=np.array(c), half=np.array(h), yaw=0.0, material=_material(rng, k, 0.55, 0.2))
+        for c, h, k in (
+            ((0.0, 4.05, 1.375), (4.1, 0.05, 1.625), keys[1]),
+            ((0.0, -4.05, 1.375), (4.1, 0.05, 1.625), keys[2]),
+            ((4.05, 0.0, 1.375), (0.05, 4.1, 1.625), keys[3]),
+            ((-4.05, 0.0, 1.375), (0.05, 4.1, 1.625), keys[4]),
+        )
+    ]
+    return (floor, *walls)
 
 
 def backdrop(seed: int) -> Primitive:

@@ -37,11 +37,16 @@ class TrainingDiverged(RuntimeError):
     """The loss went non-finite repeatedly, even after restoring the last good state with a lower LR."""
 
 
-def make_optimizer(field: Field, lr: float, *, fused: bool = True) -> torch.optim.Adam:
-    """Adam; `fused` (one kernel per group, the same update up to float rounding) is the fast path: the plain
-    per-tensor loop took half of a fast-field step on CPU (lego_100, 2 cores: 14.6 -> 23.4 steps/s at the final
-    grid; 1599 -> 1989 steps in 120 s). fused=False is its plain twin (tests)."""
-    return torch.optim.Adam(field.param_groups(lr), betas=(0.9, 0.99), fused=fused)
+def make_optimizer(model: FieldModel | Field, lr: float, *, fused: bool = True) -> torch.optim.Adam:
+    """Adam over the field (and a learned background colour, at lr); `fused` (one kernel per group, the
+    same update up to float rounding) is the fast path: the plain per-tensor loop took half of a fast-field
+    step on CPU (lego_100, 2 cores: 14.6 -> 23.4 steps/s at the final grid; 1599 -> 1989 steps in 120 s).
+    fused=False is its plain twin (tests)."""
+    field, extra = (model.field, model.background.params()) if isinstance(model, FieldModel) else (model, [])
+    groups = field.param_groups(lr)
+    if extra:
+        groups.append({"params": extra, "lr": lr, "lr_scale": 1.0})
+    return torch.optim.Adam(groups, betas=(0.9, 0.99), fused=fused)
 
 
 def _set_lr(opt: torch.optim.Optimizer, base: float) -> None:
@@ -82,7 +87,6 @@ class Loop:
     train: Views
     test: Views | None
     eval_px: Tensor | None  # [K] held-out rays for the periodic test PSNR
-    rgba: bool  # photos have alpha: a random background per ray in training
     batch_rays: int
     gen: torch.Generator
     device: torch.device
@@ -94,6 +98,7 @@ class Loop:
     lr_factor: float = 1.0
     samples_per_ray: float = 0.0
     skip_fraction: float = 0.0
+    eval_rays_per_second: float | None = None
     _paused: float = 0.0
     _t_start: float = 0.0
     _losses: list[float] = field(default_factory=list)
@@ -107,7 +112,6 @@ class Loop:
         cfg = self.config
         schedule = upsample_schedule(cfg.resolution, cfg.upsample_at)
         self._t_start = time.perf_counter()
-        white = torch.ones(3, device=self.device)
         good = self._snapshot()
         failures = 0
         task = self.progress.add_task("train", total=cfg.max_seconds)
@@ -121,13 +125,13 @@ class Loop:
                     _, res = schedule.pop(0)
                     if res > self.model.field.resolution:
                         self.model.field.upsample(res)
-                        self.opt = make_optimizer(self.model.field, self.base_lr)
+                        self.opt = make_optimizer(self.model, self.base_lr)
                         good = self._snapshot()
                 self.model.grid.update(self.model.field.density, self.step, every=cfg.occupancy_every,
                                        warmup_steps=64)  # fmt: skip
             lr = self.base_lr * self.lr_factor * cfg.lr_decay**frac
             _set_lr(self.opt, lr)
-            if not self._step(white):
+            if not self._step():
                 failures += 1
                 good = self._recover(good, failures)
                 continue
@@ -145,13 +149,13 @@ class Loop:
         self._checkpoint(seconds)
         return seconds
 
-    def _step(self, white: Tensor) -> bool:
+    def _step(self) -> bool:
         """One optimiser step on a random batch of rays; False (and no update) when the loss is not finite."""
         cfg, model = self.config, self.model
         idx = torch.randint(self.train.dirs.shape[0], (self.batch_rays,), generator=self.gen)
         o, d, rgb, alpha = self.train.batch(idx, self.device)
-        bg = torch.rand(o.shape[0], 3, generator=self.gen).to(self.device) if self.rgba else white
-        target = over_background(rgb, alpha[:, None], bg)
+        bg = model.background.train_colour(o.shape[0], self.gen)  # [B, 3] or [3]
+        target = over_background(rgb, alpha[:, None], bg.detach())
         out = model.render(o, d, bg, train=True, gen=None)
         loss = torch.mean((out["rgb"] - target) ** 2)
         mse = float(loss.detach())
@@ -200,9 +204,11 @@ class Loop:
                "skip_fraction": f"{self.skip_fraction:.4f}"}  # fmt: skip
         if evaluate:
             t_eval = time.perf_counter()
-            white = torch.ones(3, device=self.device)
-            row["test_psnr"] = f"{evaluate_psnr(self.model, self.test, self.eval_px, white, self.device):.3f}"
-            self._paused += time.perf_counter() - t_eval
+            bg = self.model.background.eval_colour().detach()
+            row["test_psnr"] = f"{evaluate_psnr(self.model, self.test, self.eval_px, bg, self.device):.3f}"
+            spent = time.perf_counter() - t_eval
+            self._paused += spent
+            self.eval_rays_per_second = self.eval_px.numel() / max(spent, 1e-6)
         self.model.field.train()
         self.metrics.append(**row)
         self._losses = []

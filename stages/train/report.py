@@ -39,7 +39,7 @@ def plot_psnr(path: Path, rows: list[dict], title: str) -> None:
 
 def used_and_left_out(
     *, scene: Scene, model: FieldModel, device: torch.device, batch_rays: int, steps: int, seconds: float,
-    samples_per_ray: float, rgba: bool, train_idx: tuple[int, ...], test_idx: tuple[int, ...],
+    samples_per_ray: float, train_idx: tuple[int, ...], test_idx: tuple[int, ...],
     chosen: list[int], test_psnr: float | None,
 ) -> tuple[dict[str, Any], dict[str, str]]:  # fmt: skip
     """The manifest's record of what the run used and what it left out (and why)."""
@@ -56,7 +56,7 @@ def used_and_left_out(
         "test_views": len(test_idx),
         "test_psnr_full_images": test_psnr,
         "test_views_full_eval": [test_idx[v] for v in chosen],
-        "background": "random per ray in training, white for eval" if rgba else "none (opaque RGB images)",
+        "background": model.background.describe(),
         "view_dependent": model.field.view_dependent,
         "scene_type": "forward-facing" if is_forward_facing(scene) else "bounded / 360",
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
@@ -66,7 +66,11 @@ def used_and_left_out(
         used["occupancy_skip_fraction"] = round(model.grid.skip_fraction, 4)
         used["samples_per_ray"] = round(samples_per_ray, 2)
         used["march_step"] = {"train": model.step_size, "render": model.step_size * model.render_step_factor}
-    used["scene_model"] = "ndc" if ndc is not None else "box"
+    used["scene_model"] = "ndc" if ndc is not None else ("contract" if model.contraction is not None else "box")
+    if model.contraction is not None:
+        used["contraction"] = {**model.contraction.to_dict(), "field_box": model.aabb.tolist(),
+                               "note": "field and occupancy grid live in contracted space; the scene's box "
+                                       "maps to [-1, 1]^3 and everything beyond it into the shell up to 2"}  # fmt: skip
     if ndc is not None:
         used["ndc"] = {**ndc.to_dict(), "box": model.aabb.tolist(),
                        "note": "field and occupancy grid live in NDC of the mean camera (radiance.ndc); depths "
@@ -75,11 +79,11 @@ def used_and_left_out(
     if ndc is not None:
         left_out["aabb"] = "forward-facing: the field spans the NDC frustum (near plane to infinity), not the aabb"
     elif is_forward_facing(scene):
-        left_out["ndc"] = "forward-facing scene trained in its aabb because scene_model=box was asked for"
+        left_out["ndc"] = "forward-facing scene trained in its box or contracted because that was asked for"
     else:
-        left_out["ndc"] = "bounded 360-degree scene: NDC only applies to forward-facing captures"
-    if not rgba:
-        left_out["background_model"] = "images are opaque: no background compositing"
+        left_out["ndc"] = "360-degree scene: NDC only applies to forward-facing captures"
+    if ndc is None and model.contraction is None:
+        left_out["contraction"] = "the scene's box holds everything the photos show (alpha or a plain background)"
     if not test_idx:
         left_out["test_psnr"] = "scene has no test or val split"
     if model.grid is None:

@@ -16,7 +16,7 @@ from data.errors import UserError
 from data.transforms import Scene, load_image
 from radiance.camera import generate_rays
 
-__all__ = ["Views", "load_views", "evenly_spaced"]
+__all__ = ["Views", "load_views", "evenly_spaced", "auto_downscale"]
 
 
 @dataclass
@@ -43,8 +43,11 @@ class Views:
         return torch.arange(start, start + h * w)
 
 
-def load_views(scene: Scene, indices: tuple[int, ...]) -> Views:
-    """Every pixel's ray of the views `indices`; UserError when an image's size disagrees with transforms.json."""
+def load_views(scene: Scene, indices: tuple[int, ...], downscale: float = 1.0) -> Views:
+    """Every pixel's ray of the views `indices`, images shrunk by `downscale` (area filter, intrinsics scaled);
+    UserError when an image's size disagrees with transforms.json."""
+    import cv2
+
     origins, views, dirs, rgba, shapes = [], [], [], [], []
     for k, i in enumerate(indices):
         img = load_image(scene.image_path(i))
@@ -52,6 +55,9 @@ def load_views(scene: Scene, indices: tuple[int, ...]) -> Views:
         if img.shape[:2] != (intr.h, intr.w):
             raise UserError(f"{scene.image_path(i)}: image is {img.shape[1]}x{img.shape[0]}, "
                             f"transforms.json says {intr.w}x{intr.h}")  # fmt: skip
+        if downscale != 1.0:
+            intr = intr.scaled(1.0 / downscale)
+            img = cv2.resize(img, (intr.w, intr.h), interpolation=cv2.INTER_AREA)
         if img.shape[-1] == 3:
             img = np.concatenate([img, np.ones_like(img[..., :1])], axis=-1)
         world_from_cam = torch.as_tensor(scene.frames[i].world_from_cam, dtype=torch.float64)
@@ -71,3 +77,12 @@ def evenly_spaced(n: int, k: int | None) -> list[int]:
     if k < 1:
         raise ValueError(f"expected k >= 1 views, got {k}")
     return sorted({int(i) for i in np.linspace(0, n - 1, k).round()})
+
+
+def auto_downscale(scene: Scene, indices: tuple[int, ...], max_side: int) -> float:
+    """The smallest power of two that brings the largest image's long side to at most max_side pixels."""
+    side = max(max(scene.frame_intrinsics(i).w, scene.frame_intrinsics(i).h) for i in indices)
+    factor = 1
+    while side / factor > max_side:
+        factor *= 2
+    return float(factor)

@@ -1,0 +1,385 @@
+"""Stage `fit-image`: fit one image with coordinate networks, the NeRF warm-up (pixel (u, v) -> RGB).
+
+    nerfpipe fit-image IMAGE OUT_DIR [--freqs 10] [--sweep 0,2,5,10] [--encoding fourier|grid|both]
+
+Models (one per entry, trained one after another, each on its own clock):
+- fourier L: gamma(u, v) = ((u, v), sin(2^k (u, v)), cos(2^k (u, v)) for k < L) (`radiance.fields.encodings`, the
+  vanilla field's encoding; L = 0 is the bare coordinates), then an MLP (`layers` linear layers of `hidden`
+  ReLU units) and a sigmoid. One model per L in `sweep` (empty: just `freqs`).
+- grid R: the fast field itself (`radiance.fields.TensoRF`, VM planes and lines at R per axis) queried on the
+  plane z = 0: its xy plane times its z line is a dense feature plane over (u, v), and the xz / yz planes times
+  the y / x lines are rank-`GRID_RANK` products of one-dimensional functions of v and u; the same basis, small
+  MLP and sigmoid as in 3-D, the same learning rates (grids at lr, MLP at lr / 20). Bilinear lookups into
+  R x R cells instead of a deep MLP: why the fast field converges in seconds, not minutes.
+Every step draws `batch` random pixels (all of them when the image has fewer) and takes one Adam step on their
+mean squared error. PSNR is measured on the whole image every `eval_every` steps and at the end; the clock
+(`seconds`) counts training only, as `train` does.
+
+Conventions: pixel (col i, row j) has its centre at (i + 0.5, j + 0.5) (docs/DESIGN.md); u = 2 (i + 0.5) / W - 1,
+v = 2 (j + 0.5) / H - 1, both in (-1, 1). Frequencies are 2^k without pi, as `positional_encoding` writes them.
+An RGBA image is composited on white; colours are in [0, 1].
+
+Outputs under OUT_DIR:
+  NAME.png           the reconstruction of each model (NAME: fourier_L10, grid_R64, ...)
+  montage.png        ground truth and every reconstruction side by side, labelled with PSNR and seconds
+  psnr_vs_time.png   PSNR (dB) against training seconds, one line per model
+  metrics.csv        step, seconds, model, loss, psnr (blank where not evaluated)
+  summary.json       per model: encoding, L or R, parameters, steps, seconds, final PSNR; image size
+  config.json, manifest.json (written last)
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from data.atomic import atomic_path, write_json
+from data.errors import UserError
+from data.progress import NO_PROGRESS, Progress
+from data.rundir import MetricsLog, write_config, write_manifest
+from data.transforms import load_image
+from data.video import to_uint8, write_png
+from model.device import cpu_threads, resolve_device
+from radiance.compositing import over_background
+from radiance.fields import TensoRF
+from radiance.fields.encodings import encoded_size, positional_encoding
+from radiance.metrics import psnr_from_mse
+
+__all__ = ["Config", "Outputs", "ModelResult", "run", "pixel_coords", "FourierMLP", "GridImage", "MAX_FREQS"]
+
+VERSION = "1"
+ENCODINGS = ("fourier", "grid", "both")
+MAX_FREQS = 20
+"""Largest L: 2^19 (u, v) already varies by 2^19 radians across the image; fp32 keeps no more."""
+GRID_RANK = 16
+"""Grid model: VM components per axis (3 x 16 features into the basis)."""
+EVAL_CHUNK = 1 << 16
+METRICS = ["step", "seconds", "model", "loss", "psnr"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class Config:
+    image: Path
+    """Image to fit (PNG, JPEG, ...; RGBA is composited on white)."""
+    out_dir: Path
+    """Folder for the reconstructions, montage, plot, metrics and summary (created)."""
+    freqs: int = 10
+    """Frequencies L of the Fourier encoding (0: bare coordinates) when `sweep` is empty."""
+    sweep: tuple[int, ...] = ()
+    """Train one Fourier model per L in this list, e.g. 0,2,5,10 (empty: just `freqs`)."""
+    encoding: Literal["fourier", "grid", "both"] = "both"
+    """fourier: the sinusoidal-encoding MLPs; grid: the fast field's VM grid encoding; both: all side by side."""
+    grid_resolution: int | None = None
+    """Grid cells per axis of the grid model (None: the image's longer side in pixels, 8 to 512)."""
+    hidden: int = 256
+    """Fourier MLP: units per hidden layer."""
+    layers: int = 4
+    """Fourier MLP: linear layers (hidden layers + the output layer)."""
+    steps: int = 2000
+    """Optimizer steps per model (each model also stops at `max_seconds`)."""
+    max_seconds: float = 60.0
+    """Training seconds per model (evaluation excluded)."""
+    batch: int = 10000
+    """Random pixels per step (every pixel when the image has fewer)."""
+    lr: float | None = None
+    """Adam learning rate (None: 1e-3 for the Fourier MLPs, 0.02 for the grid, its MLP at lr / 20)."""
+    eval_every: int = 50
+    """Measure the whole-image PSNR every this many steps (0: only at the start and the end)."""
+    seed: int = 0
+    """Seed for initialisation and pixel batches (each model starts from it)."""
+    device: str = "auto"
+    """torch device: auto, cpu, cuda, cuda:N."""
+    threads: int | None = None
+    """CPU: torch intra-op threads during the run (None: torch's default). On a busy 2-core machine 1 thread
+    ran 150 steps of a small MLP in 0.7 s where 2 threads took 10 s."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class ModelResult:
+    name: str
+    """File-name stem: fourier_L10, grid_R64."""
+    label: str
+    """Plot label: "fourier L=10", "grid R=64"."""
+    reconstruction: Path
+    parameters: int
+    steps: int
+    seconds: float
+    psnr: float
+    """Whole-image PSNR at the end, dB."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class Outputs:
+    out_dir: Path
+    models: tuple[ModelResult, ...]
+    montage: Path
+    plot: Path
+    metrics: Path
+    summary: Path
+    manifest: Path
+
+
+# ---------------------------------------------------------------------------------------------- models
+def pixel_coords(h: int, w: int) -> Tensor:
+    """[H * W, 2] (u, v) of the pixel centres, row-major, in (-1, 1) (see the module doc)."""
+    u = (torch.arange(w, dtype=torch.float32) + 0.5) * (2.0 / w) - 1.0
+    v = (torch.arange(h, dtype=torch.float32) + 0.5) * (2.0 / h) - 1.0
+    vv, uu = torch.meshgrid(v, u, indexing="ij")
+    return torch.stack([uu.reshape(-1), vv.reshape(-1)], dim=-1)
+
+
+class FourierMLP(nn.Module):
+    """gamma(u, v) with L frequencies -> ReLU MLP -> sigmoid RGB."""
+
+    def __init__(self, freqs: int, hidden: int = 256, layers: int = 4) -> None:
+        super().__init__()
+        self.freqs = freqs
+        sizes = [encoded_size(2, freqs), *[hidden] * (layers - 1), 3]
+        mods: list[nn.Module] = []
+        for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:], strict=True)):
+            mods += [nn.Linear(a, b)] + ([nn.ReLU(inplace=True)] if i < len(sizes) - 2 else [])
+        self.mlp = nn.Sequential(*mods)
+
+    def forward(self, uv: Tensor) -> Tensor:  # uv [N, 2] -> rgb [N, 3]
+        return torch.sigmoid(self.mlp(positional_encoding(uv, self.freqs)))
+
+    def param_groups(self, lr: float) -> list[dict]:
+        return [{"params": list(self.parameters()), "lr": lr}]
+
+
+class GridImage(nn.Module):
+    """The fast field (TensoRF) on the plane z = 0, colour only, no view dependence."""
+
+    def __init__(self, resolution: int) -> None:
+        super().__init__()
+        self.field = TensoRF(aabb=[[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], resolution=resolution, density_rank=1,
+                             app_rank=GRID_RANK, view_dependent=False)  # fmt: skip
+        # Density is never queried: leave its factors out of the optimizer and the parameter count.
+        self.field.density_planes.requires_grad_(False)
+        self.field.density_lines.requires_grad_(False)
+
+    def forward(self, uv: Tensor) -> Tensor:  # uv [N, 2] -> rgb [N, 3]
+        return self.field.color(torch.cat([uv, torch.zeros_like(uv[:, :1])], dim=-1), None)
+
+    def param_groups(self, lr: float) -> list[dict]:
+        return [{**g, "params": [p for p in g["params"] if p.requires_grad]} for g in self.field.param_groups(lr)]
+
+
+def _parameters(model: nn.Module) -> int:
+    """Parameters the image depends on (of the grid's xz / yz planes and z line only what z = 0 reads)."""
+    if isinstance(model, GridImage):
+        f, r = model.field, model.field.resolution
+        rows = 1 if r % 2 else 2  # z = 0 falls on one row (odd R) or between two (even R)
+        grid = f.app_planes.shape[1] * (r * (r + 2 * rows) + 2 * r + rows)  # planes xy, xz, yz; lines x, y, z
+        return grid + sum(p.numel() for p in (*f.basis.parameters(), *f.mlp.parameters()))
+    return sum(p.numel() for p in model.parameters() if p.requires_grad)
+
+
+# ---------------------------------------------------------------------------------------------- checks
+def _validate(config: Config) -> None:
+    if config.encoding not in ENCODINGS:
+        raise UserError(f"--encoding: expected one of {', '.join(ENCODINGS)}, got {config.encoding!r}")
+    for name, values in (("--freqs", (config.freqs,)), ("--sweep", config.sweep)):
+        bad = [v for v in values if not (isinstance(v, int) and 0 <= v <= MAX_FREQS)]
+        if bad:
+            raise UserError(f"{name}: expected frequencies in 0..{MAX_FREQS}, got {bad[0]!r}")
+    if len(set(config.sweep)) != len(config.sweep):
+        raise UserError(f"--sweep: a frequency is listed twice in {','.join(map(str, config.sweep))}")
+    if config.grid_resolution is not None and not 2 <= config.grid_resolution <= 4096:
+        raise UserError(f"--grid-resolution: expected 2..4096, got {config.grid_resolution}")
+    at_least = {"--hidden": (config.hidden, 1), "--layers": (config.layers, 1), "--steps": (config.steps, 1),
+                "--batch": (config.batch, 1), "--eval-every": (config.eval_every, 0)}  # fmt: skip
+    for name, (value, lo) in at_least.items():
+        if value < lo:
+            raise UserError(f"{name}: expected an integer >= {lo}, got {value}")
+    if not config.max_seconds > 0:
+        raise UserError(f"--max-seconds: expected > 0, got {config.max_seconds}")
+    if config.threads is not None and config.threads < 1:
+        raise UserError(f"--threads: expected an integer >= 1, got {config.threads}")
+    if config.lr is not None and not (config.lr > 0 and math.isfinite(config.lr)):
+        raise UserError(f"--lr: expected a finite number > 0, got {config.lr}")
+    if Path(config.out_dir).is_file():
+        raise UserError(f"{config.out_dir}: OUT_DIR is a file; expected a folder")
+
+
+def _load(path: Path) -> np.ndarray:
+    """The image as float32 [H, W, 3] in [0, 1] (RGBA over white); UserError naming the file."""
+    img = load_image(path)  # UserError: "<path>: image not found" / "cannot decode image"
+    if img.shape[-1] == 4:
+        img = over_background(img[..., :3], img[..., 3:], np.ones(3, np.float32))
+    if min(img.shape[:2]) < 2:
+        raise UserError(f"{path}: expected an image of at least 2 x 2 pixels, got {img.shape[1]} x {img.shape[0]}")
+    return np.ascontiguousarray(img, dtype=np.float32)
+
+
+# ---------------------------------------------------------------------------------------------- training
+def _specs(config: Config, size: tuple[int, int]) -> list[tuple[str, str, int]]:
+    """(name, label, L or R) for every model to train, Fourier ones first."""
+    specs = []
+    if config.encoding in ("fourier", "both"):
+        specs += [(f"fourier_L{L}", f"fourier L={L}", L) for L in (config.sweep or (config.freqs,))]
+    if config.encoding in ("grid", "both"):
+        r = config.grid_resolution or min(max(8, max(size)), 512)
+        specs.append((f"grid_R{r}", f"grid R={r}", r))
+    return specs
+
+
+@torch.no_grad()
+def _predict(model: nn.Module, coords: Tensor) -> Tensor:
+    return torch.cat([model(c) for c in coords.split(EVAL_CHUNK)])
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _fit(model: nn.Module, lr: float, coords: Tensor, target: Tensor, config: Config, log: MetricsLog, name: str,
+         progress: Progress) -> tuple[Tensor, int, float, float]:  # fmt: skip
+    """Train one model; returns (prediction [P, 3], steps, seconds, final PSNR)."""
+    device = coords.device
+    n = coords.shape[0]
+    gen = torch.Generator(device=device).manual_seed(config.seed)
+    opt = torch.optim.Adam(model.param_groups(lr))
+    task = progress.add_task(f"fit {name}", total=config.steps)
+
+    def evaluate(step: int, seconds: float, loss: float | str) -> float:
+        model.eval()
+        pred = _predict(model, coords)
+        value = psnr_from_mse(float(torch.mean((pred - target) ** 2)))
+        model.train()
+        log.append(step=step, seconds=round(seconds, 4), model=name, loss=loss, psnr=round(value, 4))
+        return value
+
+    seconds, step, loss = 0.0, 0, math.nan
+    evaluate(0, 0.0, "")
+    while step < config.steps and seconds < config.max_seconds:
+        _sync(device)
+        t0 = time.perf_counter()
+        idx = torch.randint(n, (config.batch,), generator=gen, device=device) if n > config.batch else None
+        x, y = (coords, target) if idx is None else (coords[idx], target[idx])
+        err = torch.mean((model(x) - y) ** 2)
+        opt.zero_grad(set_to_none=True)
+        err.backward()
+        opt.step()
+        loss = float(err.detach())  # synchronises
+        seconds += time.perf_counter() - t0
+        step += 1
+        progress.advance(task)
+        if not math.isfinite(loss):
+            raise RuntimeError(f"{name}: loss is {loss} at step {step} (lower --lr)")
+        if config.eval_every and step % config.eval_every == 0 and step < config.steps:
+            evaluate(step, seconds, round(loss, 6))
+    final = evaluate(step, seconds, round(loss, 6))
+    return _predict(model, coords), step, seconds, final
+
+
+def run(config: Config, progress: Progress | None = None) -> Outputs:
+    """Fit config.image with every model the config asks for (see the module doc)."""
+    _validate(config)
+    with cpu_threads(config.threads):
+        return _run(config, progress or NO_PROGRESS)
+
+
+def _run(config: Config, progress: Progress) -> Outputs:
+    started = time.time()
+    image = _load(Path(config.image))
+    device = resolve_device(config.device)
+    h, w = image.shape[:2]
+    out_dir = Path(config.out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_config(out_dir, config)
+    coords = pixel_coords(h, w).to(device)  # [P, 2]
+    target = torch.from_numpy(image.reshape(-1, 3)).to(device)  # [P, 3]
+    log = MetricsLog(out_dir / "metrics.csv", METRICS)
+    results, recons = [], []
+    for name, label, value in _specs(config, (h, w)):
+        torch.manual_seed(config.seed)
+        fourier = name.startswith("fourier")
+        model = (FourierMLP(value, config.hidden, config.layers) if fourier else GridImage(value)).to(device)
+        lr = config.lr or (1e-3 if fourier else 0.02)
+        pred, steps, seconds, final = _fit(model, lr, coords, target, config, log, name, progress)
+        log.save()
+        recon = pred.reshape(h, w, 3).cpu().numpy()
+        path = write_png(out_dir / f"{name}.png", to_uint8(recon))
+        recons.append(recon)
+        results.append(ModelResult(name=name, label=label, reconstruction=path, parameters=_parameters(model),
+                                   steps=steps, seconds=seconds, psnr=final))  # fmt: skip
+    montage = _montage(out_dir / "montage.png", image, recons, results)
+    plot = _plot(out_dir / "psnr_vs_time.png", log.rows, results, Path(config.image).name)
+    summary = write_json(out_dir / "summary.json", {
+        "image": str(config.image), "width": w, "height": h, "device": str(device),
+        "models": [{"name": r.name, "label": r.label, "encoding": r.name.split("_")[0], "parameters": r.parameters,
+                    "steps": r.steps, "seconds": round(r.seconds, 3), "psnr": round(r.psnr, 3)} for r in results],
+    })  # fmt: skip
+    outputs = [out_dir / "config.json", log.path, montage, plot, summary, *(r.reconstruction for r in results)]
+    manifest = write_manifest(out_dir, stage="fit-image", started=started, inputs=[config.image], outputs=outputs,
+                              used={"device": str(device), "models": [r.name for r in results],
+                                    "pixels": h * w, "batch": min(config.batch, h * w),
+                                    "threads": torch.get_num_threads()},
+                              version=VERSION)  # fmt: skip
+    return Outputs(out_dir=out_dir, models=tuple(results), montage=montage, plot=plot, metrics=log.path,
+                   summary=summary, manifest=manifest)  # fmt: skip
+
+
+# ---------------------------------------------------------------------------------------------- figures
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _montage(path: Path, image: np.ndarray, recons: list[np.ndarray], results: list[ModelResult]) -> Path:
+    """Ground truth and each reconstruction in one row (wrapping after 4), titled with PSNR and seconds."""
+    plt = _pyplot()
+    panels = [(image, "ground truth")] + [
+        (img, f"{r.label}\n{r.psnr:.1f} dB, {r.seconds:.1f} s") for img, r in zip(recons, results, strict=True)
+    ]
+    cols = min(len(panels), 4)
+    rows = math.ceil(len(panels) / cols)
+    h, w = image.shape[:2]
+    side = max(2.5, min(w, 512) / 100)
+    fig, axes = plt.subplots(rows, cols, figsize=(side * cols, side * h / w * rows + 0.6 * rows), dpi=100,
+                             squeeze=False)  # fmt: skip
+    try:
+        for ax in axes.flat:
+            ax.axis("off")
+        for ax, (img, title) in zip(axes.flat, panels, strict=False):
+            ax.imshow(np.clip(img, 0, 1), interpolation="nearest")
+            ax.set_title(title, fontsize=9)
+        fig.tight_layout()
+        with atomic_path(path, suffix=".png") as tmp:
+            fig.savefig(tmp, format="png")
+    finally:
+        plt.close(fig)
+    return path
+
+
+def _plot(path: Path, rows: list[dict], results: list[ModelResult], title: str) -> Path:
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120)
+    try:
+        for r in results:
+            pts = [(row["seconds"], row["psnr"]) for row in rows if row["model"] == r.name]
+            ax.plot(*zip(*pts, strict=True), "o-", ms=3, label=f"{r.label} ({r.parameters:,} params)")
+        ax.set_xlabel("training seconds")
+        ax.set_ylabel("PSNR (dB)")
+        ax.set_title(f"fit-image {title}: PSNR vs time")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        with atomic_path(path, suffix=".png") as tmp:
+            fig.savefig(tmp, format="png")
+    finally:
+        plt.close(fig)
+    return path

@@ -1,0 +1,140 @@
+"""The retry ladder of the poses stage: which settings each attempt uses when too few images register.
+
+Attempt 1 runs the Config as given. While the best so far registers under WARN_FRACTION of the images, the
+stage tries, cheapest first:
+  2. "more features": pycolmap's defaults: SIFT at 3200 px (or the first attempt's size if larger; never
+     above the photos' own size) and a cap of 8192 features (or the first attempt's if larger; doubled when
+     that would repeat attempt 1's extraction), plain matching, the default mapper;
+  3. "relaxed mapper": attempt 2's features and matches, mapped again with `RELAXED_MAPPER`'s thresholds
+     (costs only the mapping);
+  4. "guided matching": attempt 2's features, matched again with guided matching (more inliers per pair;
+     verification also keeps pairs with as few inliers as the relaxed mapper accepts), relaxed mapper.
+The stage keeps the model with the most registered images over all attempts. Attempt 2 is pycolmap's own
+defaults (bar first_octave, see `colmap.SMALL_IMAGE`, and the seeds), so a set that ends under 80 % should
+not end with fewer images than pycolmap's defaults register (a set at 80 %+ after attempt 1 is not retried).
+tests/test_poses.py checks this on a small synthetic set; COLMAP's randomness makes it no proof.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import pycolmap
+
+from data.rundir import config_to_json
+from stages.poses import colmap as sfm
+from stages.poses.colmap import PYCOLMAP_MAX_IMAGE_SIZE, PYCOLMAP_MAX_NUM_FEATURES, RELAXED_MAPPER, SfmSettings
+from stages.poses.report import WARN_FRACTION, PhaseTimer, RunState, textured
+
+__all__ = ["Attempt", "ladder", "describe", "run_attempts"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class Attempt:
+    name: str
+    settings: SfmSettings
+    reuse: Literal["nothing", "features", "matches"] = "nothing"
+    """What to take from the last attempt that extracted features: its features (match again) or its
+    features and matches (map again)."""
+
+
+def ladder(first: SfmSettings, max_attempts: int, long_side: int) -> list[Attempt]:
+    """The attempts to make, in order, at most `max_attempts` (>= 1) of them, for photos whose long side is
+    `long_side` px (a working size above it is the same as the photos' size)."""
+    if max_attempts < 1:
+        raise ValueError(f"max_attempts must be >= 1, got {max_attempts}")
+    size = max(first.max_image_size, PYCOLMAP_MAX_IMAGE_SIZE)
+    cap = max(first.max_num_features, PYCOLMAP_MAX_NUM_FEATURES)
+    if min(size, long_side) == min(first.max_image_size, long_side) and cap == first.max_num_features:
+        cap *= 2  # the same extraction again would find the same features
+    more = replace(first, max_image_size=size, max_num_features=cap)
+    relaxed = replace(more, mapper=RELAXED_MAPPER)
+    guided = replace(relaxed, guided_matching=True, min_verified_inliers=RELAXED_MAPPER.min_num_matches)
+    return [
+        Attempt(name="as configured", settings=first),
+        Attempt(name="more features", settings=more),
+        Attempt(name="relaxed mapper", settings=relaxed, reuse="matches"),
+        Attempt(name="guided matching", settings=guided, reuse="features"),
+    ][:max_attempts]
+
+
+def describe(settings: SfmSettings, long_side: int) -> str:
+    """One line: what an attempt's settings are, for photos whose long side is `long_side` px."""
+    t = settings.mapper
+    return (
+        f"SIFT at {min(settings.max_image_size, long_side)} px, {settings.max_num_features} features, "
+        f"{'guided' if settings.guided_matching else 'plain'} {settings.matcher} matching, mapper "
+        f"min_num_matches {t.min_num_matches}, init_min_num_inliers {t.init_min_num_inliers}, "
+        f"abs_pose_min_num_inliers {t.abs_pose_min_num_inliers}"
+    )
+
+
+def run_attempts(
+    plan: list[Attempt], build: Path, images: Path, groups: list[list[str]], long_sides: list[int],
+    state: RunState, phase: PhaseTimer,
+) -> None:  # fmt: skip
+    """Run `plan` until an attempt registers WARN_FRACTION of the images. Leaves the kept attempt's (most
+    registered images, then most points) statistics and models in `state`, its database at
+    build/database.db, and one record per attempt in `state.attempts`."""
+    total = sum(len(g) for g in groups)
+    best = None  # (registered, points), index, database, statistics, models, model
+    db = extracted = build / "database.db"
+    for k, attempt in enumerate(plan, 1):
+        phase.attempt, t0, s = k, time.perf_counter(), attempt.settings
+        state.model, models = None, {}
+        if attempt.reuse != "matches":
+            db = build / f"database.{k}.db"
+            with phase("features"):
+                if attempt.reuse == "features":
+                    _copy_features(extracted, db)
+                else:
+                    sfm.extract(db, images, groups, long_sides, s)
+                    extracted = db
+                state.stats = sfm.database_stats(db)
+            if textured(state.stats):
+                with phase("matching"):
+                    sfm.match(db, s)
+                    state.stats = sfm.database_stats(db)
+        if textured(state.stats):
+            with phase("mapping"):
+                models = sfm.reconstruct(db, images, build / "models" / str(k), s)
+                if models:
+                    state.model = max(models.values(), key=lambda m: (m.num_reg_images(), m.num_points3D()))
+        reg = state.model.num_reg_images() if state.model is not None else 0
+        key = (reg, state.model.num_points3D() if state.model is not None else 0)
+        state.attempts.append({
+            "attempt": k, "name": attempt.name, "registered": reg, "total": total,
+            "models_found": sorted((m.num_reg_images() for m in models.values()), reverse=True),
+            "features_median": float(np.median(list(state.stats.features.values()))) if state.stats.features else 0,
+            "seconds": round(time.perf_counter() - t0, 3), "reused": attempt.reuse, "kept": False,
+            "settings": describe(s, max(long_sides)), "options": config_to_json(s),
+        })  # fmt: skip
+        if best is None or key > best[0]:
+            best = (key, k - 1, db, state.stats, models, state.model)
+        if reg >= WARN_FRACTION * total:
+            break
+    assert best is not None  # plan is never empty
+    _, index, kept_db, state.stats, state.all_models, state.model = best
+    state.attempts[index]["kept"] = True
+    state.models = state.attempts[index]["models_found"]
+    phase.attempt = 1
+    os.replace(kept_db, build / "database.db")
+    for other in build.glob("database.*.db"):
+        other.unlink()
+
+
+def _copy_features(src: Path, dst: Path) -> None:
+    """A copy of database `src` with its features only (matches and two-view geometries cleared)."""
+    shutil.copyfile(src, dst)
+    db = pycolmap.Database.open(dst)
+    try:
+        db.clear_matches()
+        db.clear_two_view_geometries()
+    finally:
+        db.close()

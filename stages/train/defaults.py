@@ -1,0 +1,147 @@
+"""Defaults `train` finds from the data and the device, each with its reason for the manifest.
+
+One rule, written once, for both devices:
+- **Background** (`--background auto`): photos with alpha train on a random colour per ray and are evaluated on
+  white; opaque photos whose border pixels (2-pixel frame of every training view) are >= 90 % one colour (each
+  channel within 4/255 of the median border colour) use that colour, fixed (tiny-NeRF's black, renders on
+  white); other opaque photos train on a random colour per ray too (instant-ngp's choice: the field must explain
+  every pixel, nothing can hide in the background) and are shown on the border's median colour. Decision against
+  the issue's "otherwise learn a colour", measured on the forward-facing test scene (48 px, 400 steps): fixed
+  white 24.64 dB, random 24.58 dB, learned 21.67 dB (the learned colour went dark and the field transparent).
+- **Scene model** (`--scene-model auto`, `model.field_model.choose_scene_model`): NDC for forward-facing
+  captures, the box for alpha or a plain background, contraction otherwise.
+- **Grid resolution** (`--resolution`, final size): 1.6 x the object's size in pixels (the scene box's longest
+  side projected at the median camera distance with the median focal length, at most the image's long side),
+  clamped to [96, 300]; the start size is 0.32 x that, clamped to [64, 128]. Contracted scenes double both (half
+  the grid covers the box), final at most 256 on CPU and 384 on CUDA, start at most 128; their marching step stays
+  2 voxels on CPU. Measured on CPU: lego_100 (box ~100 px) -> (64, 160) was the best of (48, 128), (64, 160), (64,
+  192) in 120 s; lego_400 (box ~400 px) -> (96, 300) gave 32.5 dB in 900 s. On CUDA the start size is at least 128
+  (issue 14's H100 measurement: (128, 300) with 8192 rays, 33.9 dB vs 28.3 dB for (64, 160) in 240 s).
+- **Marching step** (`--step-ratio`): 2 voxels of the final grid below 200 voxels, 1 voxel from there on
+  (lego_400 used 1 at 300).
+- **Batch** (`--batch-rays`): 1024 rays on CPU (more small steps beat fewer big ones in a fixed time: 22.6 vs
+  18.1 dB after 30 s on a 128 px scene), 8192 on CUDA (issue 14's H100 figure).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from data.transforms import Scene
+from model.background import Background
+from stages.train.views import Views
+
+__all__ = ["Defaults", "contracted_resolution", "detect_plain_colour", "object_size_px", "resolve_defaults"]
+
+BORDER = 2
+PLAIN_FRACTION = 0.9
+PLAIN_TOLERANCE = 4 / 255
+
+
+@dataclass(frozen=True)
+class Defaults:
+    resolution: tuple[int, int]
+    step_ratio: float
+    batch_rays: int
+    background: Background
+    plain_background: bool
+    reasons: dict[str, str]
+
+
+def _border_rgba(views: Views) -> np.ndarray:
+    """uint8 [K, 4]: the 2-pixel frame of every view."""
+    parts, start = [], 0
+    for h, w in views.shapes:
+        img = views.rgba[start : start + h * w].reshape(h, w, 4)
+        start += h * w
+        b = min(BORDER, h // 2, w // 2)
+        mask = torch.zeros(h, w, dtype=torch.bool)
+        mask[:b], mask[-b:], mask[:, :b], mask[:, -b:] = True, True, True, True
+        parts.append(img[mask].numpy())
+    return np.concatenate(parts) if parts else np.zeros((0, 4), np.uint8)
+
+
+def detect_plain_colour(rgb: np.ndarray) -> tuple[tuple[float, float, float] | None, float]:
+    """Border pixels rgb [K, 3] in [0, 1] -> (their plain colour or None, fraction within tolerance of it)."""
+    if rgb.shape[0] == 0:
+        return None, 0.0
+    median = np.median(rgb, axis=0)
+    close = (np.abs(rgb - median) <= PLAIN_TOLERANCE + 1e-9).all(axis=1)
+    frac = float(close.mean())
+    if frac < PLAIN_FRACTION:
+        return None, frac
+    colour = rgb[close].mean(axis=0)
+    return (float(colour[0]), float(colour[1]), float(colour[2])), frac
+
+
+def _background(mode: str, views: Views, has_alpha: bool) -> tuple[Background, bool, str]:
+    if mode == "black":
+        return Background("fixed", (0.0, 0.0, 0.0)), True, "asked for: black"
+    if mode == "white":
+        return Background("fixed", (1.0, 1.0, 1.0)), True, "asked for: white"
+    if mode == "random":
+        return Background("random"), has_alpha, "asked for: random per ray in training, white for evaluation"
+    border = _border_rgba(views)[:, :3].astype(np.float64) / 255.0
+    start = tuple(float(v) for v in np.median(border, axis=0)) if border.size else (0.5, 0.5, 0.5)
+    if mode == "learned":
+        return Background("learned", start), False, "asked for: a learned colour (starts at the border median)"
+    if has_alpha:
+        return Background("random"), True, "images have alpha: random per ray in training, white for evaluation"
+    colour, frac = detect_plain_colour(border)
+    if colour is not None:
+        rgb = ", ".join(f"{c:.3f}" for c in colour)
+        return Background("fixed", colour), True, f"{frac:.1%} of border pixels are one colour ({rgb}): fixed"
+    why = f"no plain border colour ({frac:.1%}): random per ray in training (the field must explain every pixel)"
+    return Background("random", start), False, why + ", the border median at evaluation"
+
+
+def object_size_px(scene: Scene, train_idx: tuple[int, ...]) -> float:
+    """The scene box's longest side in pixels at the median camera distance and median focal length, at most
+    the images' long side (a box that fills the view is seen at the image's resolution)."""
+    box = np.asarray(scene.aabb, dtype=np.float64).reshape(2, 3)
+    centre, side = box.mean(0), float((box[1] - box[0]).max())
+    dist = np.median([np.linalg.norm(np.asarray(scene.frames[i].world_from_cam)[:3, 3] - centre) for i in train_idx])
+    focal = np.median([scene.frame_intrinsics(i).fx for i in train_idx])
+    long_side = max(max(scene.frame_intrinsics(i).w, scene.frame_intrinsics(i).h) for i in train_idx)
+    return float(min(focal * side / max(dist - side / 2, side / 2), long_side))
+
+
+def resolve_defaults(config, scene: Scene, views: Views, train_idx, device: torch.device, downscale: float) -> Defaults:
+    """The Config's None / auto values resolved from the scene and the device (see the module doc)."""
+    has_alpha = scene.has_alpha or bool((views.rgba[:, 3] < 255).any())
+    background, plain, bg_reason = _background(config.background, views, has_alpha)
+    limit = 1600 if device.type == "cuda" else 800
+    why = " (asked for)" if config.downscale else f": long side <= {limit} px"
+    reasons = {"background": bg_reason, "downscale": f"{downscale:g}{why}"}
+    cuda = device.type == "cuda"
+    if config.resolution is not None:
+        resolution, reasons["resolution"] = tuple(config.resolution), "asked for"
+    else:
+        size = object_size_px(scene, train_idx) / downscale
+        r1 = int(min(300, max(96, round(1.6 * size))))
+        r0 = int(min(128, max(128 if cuda else 64, round(0.32 * r1))))
+        resolution = (r0, r1)
+        reasons["resolution"] = f"object ~{size:.0f} px across: final 1.6 x size in [96, 300], start 0.32 x"
+    if config.step_ratio is not None:
+        step_ratio, reasons["step_ratio"] = float(config.step_ratio), "asked for"
+    else:
+        step_ratio = 2.0 if resolution[1] < 200 else 1.0
+        reasons["step_ratio"] = "2 voxels below a 200 grid, 1 from there on"
+    if config.batch_rays is not None:
+        batch, reasons["batch_rays"] = int(config.batch_rays), "asked for"
+    else:
+        batch = 8192 if cuda else 1024
+        reasons["batch_rays"] = "8192 on CUDA, 1024 on CPU (more small steps in a fixed time)"
+    return Defaults(resolution=resolution, step_ratio=step_ratio, batch_rays=batch, background=background,
+                    plain_background=plain, reasons=reasons)  # fmt: skip
+
+
+def contracted_resolution(resolution: tuple[int, int], device: torch.device) -> tuple[int, int]:
+    """Contracted scenes: half the grid covers the inner box, so twice the size, at most 256 on CPU (the room
+    is full of surfaces the occupancy grid cannot skip: samples per ray, not the grid, bound a CPU step) and
+    384 on CUDA; the start at most 128."""
+    cap = 384 if device.type == "cuda" else 256
+    return min(2 * resolution[0], 128), min(2 * resolution[1], cap)

@@ -1,0 +1,98 @@
+"""train's data-driven defaults (stages.train.defaults): background detection, grid size from the object's
+size in pixels, scale invariance, and the unbounded (room) scene where contraction beats the box."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from stages import convert as convert_stage
+from stages import scene as scene_stage
+from stages import train
+from stages.train.defaults import _background, detect_plain_colour
+from stages.train.views import Views
+
+
+def _views(images: list[np.ndarray]) -> Views:
+    """Views holding only colours (rays are not needed to detect a background)."""
+    rgba = [np.concatenate([im, np.full(im.shape[:2] + (1,), 255, np.uint8)], -1).reshape(-1, 4) for im in images]
+    m = sum(len(r) for r in rgba)
+    return Views(origins=torch.zeros(len(images), 3), view=torch.zeros(m, dtype=torch.int32),
+                 dirs=torch.zeros(m, 3), rgba=torch.from_numpy(np.concatenate(rgba)),
+                 shapes=[im.shape[:2] for im in images])  # fmt: skip
+
+
+def _object_on(colour: int | None, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    img = rng.integers(0, 256, (32, 40, 3), dtype=np.uint8)  # textured everywhere (no plain colour)
+    if colour is not None:
+        img[:] = colour
+        img[8:24, 10:30] = rng.integers(0, 256, (16, 20, 3), dtype=np.uint8)  # the object in the middle
+    return img
+
+
+@pytest.mark.parametrize(("colour", "expected"), [(0, (0.0, 0.0, 0.0)), (255, (1.0, 1.0, 1.0))])
+def test_plain_border_colour_is_detected(colour, expected):
+    views = _views([_object_on(colour, s) for s in range(3)])
+    bg, plain, why = _background("auto", views, has_alpha=False)
+    assert plain and bg.mode == "fixed" and "fixed" in why
+    assert np.allclose(bg.eval_colour().numpy(), expected, atol=1e-6)
+
+
+def test_textured_border_trains_on_random_and_alpha_too():
+    views = _views([_object_on(None, s) for s in range(3)])
+    bg, plain, why = _background("auto", views, has_alpha=False)
+    assert not plain and bg.mode == "random" and "no plain border colour" in why
+    assert _background("learned", views, has_alpha=False)[0].mode == "learned"
+    assert _background("auto", views, has_alpha=True)[0].mode == "random"
+    assert _background("black", views, has_alpha=False)[0].eval_colour().tolist() == [0.0, 0.0, 0.0]
+
+
+def test_detect_plain_colour_thresholds():
+    rgb = np.zeros((100, 3))
+    rgb[:5] = 1.0  # 95 % plain
+    colour, frac = detect_plain_colour(rgb)
+    assert colour == (0.0, 0.0, 0.0) and frac == pytest.approx(0.95)
+    rgb[:20] = 1.0  # 80 %: not plain
+    assert detect_plain_colour(rgb)[0] is None
+    assert detect_plain_colour(np.zeros((0, 3))) == (None, 0.0)
+
+
+def _train(scene_dir: Path, run_dir: Path, **kw) -> train.Outputs:
+    base = dict(scene_dir=scene_dir, run_dir=run_dir, max_steps=120, max_seconds=600.0, eval_every=0,
+                final_eval_views=2, device="cpu", threads=1, seed=0)  # fmt: skip
+    base.update(kw)
+    return train.run(train.Config(**base))
+
+
+def test_scene_scale_does_not_change_training(tmp_path):
+    """The same object at 0.01 and 100 units (Blender layout, as people export them) trains alike: the box,
+    the grid and the steps follow the data, not a convention."""
+    psnr, used = {}, {}
+    for scale in (0.01, 100.0):
+        src, scene = tmp_path / f"src{scale}", tmp_path / f"scene{scale}"
+        scene_stage.run(scene_stage.Config(out_dir=src, kind="blender", size=32, views=16, seed=0, scale=scale))
+        convert_stage.run(convert_stage.Config(source=src, scene_dir=scene, downscales=()))
+        out = _train(scene, tmp_path / f"run{scale}")
+        psnr[scale] = out.test_psnr
+        used[scale] = json.loads(out.manifest.read_text())["used"]["defaults"]["resolved"]
+    assert used[0.01] == used[100.0]
+    assert abs(psnr[0.01] - psnr[100.0]) < 0.3, psnr
+    assert min(psnr.values()) > 16.0, psnr
+
+
+def test_room_scene_contraction_beats_the_box(tmp_path):
+    """An object in a textured room (the background lies beyond the box): auto picks contraction, which scores
+    above the box model with the same steps."""
+    src, scene = tmp_path / "src", tmp_path / "scene"
+    scene_stage.run(scene_stage.Config(out_dir=src, kind="posed", layout="room", size=32, views=24, seed=0))
+    convert_stage.run(convert_stage.Config(source=src, scene_dir=scene, downscales=()))
+    box = _train(scene, tmp_path / "box", scene_model="box", max_steps=250)
+    auto = _train(scene, tmp_path / "auto", max_steps=250)
+    used = json.loads(auto.manifest.read_text())["used"]
+    assert used["scene_model"] == "contract" and used["background"]["mode"] == "random"
+    assert auto.test_psnr > box.test_psnr + 0.3, (auto.test_psnr, box.test_psnr)
