@@ -6,7 +6,7 @@
    degrees, a detector of one voxel per pixel at the isocentre, 10 noise-free held-out views over 360 degrees.
 2. For each view count (50, 25, 10: every view, every 2nd, every 5th of the same 50):
    - FDK (radiance.fdk, Ram-Lak; the classical baseline) on exactly those views: 3-D PSNR / SSIM, seconds;
-   - `xray-train` (the CLI, in its own process, `--threads 2`, `--max-seconds 600`): 3-D PSNR / SSIM against
+   - `xray-train` (the CLI, in its own process, `--threads 1`, `--max-seconds 600`): 3-D PSNR / SSIM against
      training seconds (its metrics.csv), final figures, peak memory (the process's max RSS).
 3. results.json and summary.md in --out. The goal (issue 15): 3-D PSNR >= FDK + 5 dB at 50 views within 10
    minutes on 2 CPU cores, and well above FDK at 10 views.
@@ -167,7 +167,9 @@ def cli(argv: list[str] | None = None) -> None:
     p.add_argument("--out", type=Path, default=Path("runs/bench/xray"))
     p.add_argument("--views", default="50,25,10", help="comma-separated view counts (each divides 50)")
     p.add_argument("--seconds", type=float, default=600.0)
-    p.add_argument("--threads", type=int, default=2)
+    p.add_argument(
+        "--threads", type=int, default=1, help="torch threads (1: on a busy 2-core machine, 2 ran several times slower)"
+    )
     p.add_argument("--train-args", default="", help="extra xray-train options, e.g. '--tv 1e-4'")
     a = p.parse_args(argv)
     main(a.out, [int(v) for v in a.views.split(",")], a.seconds, a.threads, a.train_args.split())

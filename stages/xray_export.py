@@ -7,7 +7,8 @@ From the reconstructed volume (the field sampled on the scene grid, `model.xray.
   when the ground truth is known), one grey window [0, max of the ground truth (else of the reconstruction)];
   `slices_x.png`, `slices_y.png`, `slices_z.png`: `slices` evenly spaced slices, reconstruction over truth.
 - `drr_mip.mp4`: a full turn about the rotation axis, `frames` views with the scene's detector: the digitally
-  reconstructed radiograph exp(-p) (white = no attenuation) beside the maximum-intensity projection.
+  reconstructed radiograph (the line integral, white = most attenuation, as radiographs show bone) beside the
+  maximum-intensity projection.
 - `mesh.ply`: marching cubes (scikit-image) at the iso-attenuation `--iso` (1 / length unit; auto: Otsu's
   threshold of the volume, which separates air from tissue), vertices in the scene's world frame and length unit
   (mm; the volume centred on the rotation axis), faces wound counter-clockwise seen from outside.
@@ -129,11 +130,13 @@ def write_slices(out_dir: Path, vol: np.ndarray, gt: np.ndarray | None, n: int) 
 
 
 def write_video(path: Path, xrun: XrayRun, vol: torch.Tensor, frames: int, fps: float, progress: Progress) -> Path:
-    """DRR (exp(-p), white = air) | MIP, over one turn, with the scene's detector."""
+    """DRR (line integral over [0, the largest measured], white = most attenuation, as radiographs show bone)
+    | MIP (attenuation over [0, the volume's max]), over one turn, with the scene's detector."""
     g = xrun.geometry
     nv, nu = g.detector_shape
     task = progress.add_task("drr/mip video", total=frames)
     mip_hi = float(vol.max()) or 1.0
+    drr_hi = float(xrun.scene.projections.max()) or 1.0
     with video_writer(path, fps=fps) as writer:
         for k in range(frames):
             gk = g.with_angles([2 * math.pi * k / frames])
@@ -141,7 +144,7 @@ def write_video(path: Path, xrun: XrayRun, vol: torch.Tensor, frames: int, fps: 
             p = siddon_project(vol, xrun.grid.spacing, xrun.grid.center, o, d).reshape(nv, nu).numpy()
             m = siddon_project(vol, xrun.grid.spacing, xrun.grid.center, o, d, reduce="max").reshape(nv, nu).numpy()
             mip = to_uint8(m / mip_hi)
-            frame = np.concatenate([to_uint8(np.exp(-p)), np.full((nv, 4), 0, np.uint8), mip], axis=1)
+            frame = np.concatenate([to_uint8(p / drr_hi), np.full((nv, 4), 0, np.uint8), mip], axis=1)
             writer.write(np.repeat(frame[..., None], 3, axis=-1))
             progress.advance(task)
     return path

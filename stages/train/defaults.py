@@ -3,11 +3,11 @@
 One rule, written once, for both devices:
 - **Background** (`--background auto`): photos with alpha train on a random colour per ray and are evaluated on
   white; opaque photos whose border pixels (2-pixel frame of every training view) are >= 90 % one colour (each
-  channel within 4/255 of the median border colour) use that colour, fixed (tiny-NeRF's black, renders on
-  white); other opaque photos train on a random colour per ray too (instant-ngp's choice: the field must explain
-  every pixel, nothing can hide in the background) and are shown on the border's median colour. Decision against
-  the issue's "otherwise learn a colour", measured on the forward-facing test scene (48 px, 400 steps): fixed
-  white 24.64 dB, random 24.58 dB, learned 21.67 dB (the learned colour went dark and the field transparent).
+  channel within 4/255 of the median border colour) use that colour, fixed (tiny-NeRF's black, renders on white);
+  other opaque photos train on a random colour per ray too (instant-ngp's choice: the field must explain every
+  pixel, nothing can hide in the background) and are shown on the border's median colour. Decision against the
+  issue's "otherwise learn a colour", measured on the forward-facing test scene (48 px, 400 steps): fixed white
+  24.64 dB, random 24.58 dB, learned 21.67 dB (the learned colour went dark and the field transparent).
 - **Scene model** (`--scene-model auto`, `model.field_model.choose_scene_model`): NDC for forward-facing
   captures, the box for alpha or a plain background, contraction otherwise.
 - **Grid resolution** (`--resolution`, final size): 1.6 x the object's size in pixels (the scene box's longest

@@ -91,7 +91,9 @@ class Config:
     """adam: Adam on the loss. sart (grid field only): the same loss with SART's per-ray and per-voxel
     normalisation (ordered-subsets SART over random ray batches); `lr` is then its relaxation factor."""
     tv: float = 0.0
-    """grid: weight of the total-variation prior (mean |neighbour difference| of the grid)."""
+    """grid: weight of the total-variation prior (mean |neighbour difference| of the grid). Thorax, 50 views,
+    2000 steps: 0.1 -> SSIM 0.804 -> 0.858 but PSNR 25.78 -> 25.34 dB and 3.7x the time per step (the prior is
+    taken over the whole grid each step); 1e-4 changes nothing."""
     rank: int = 16
     """tensorf: VM components per axis."""
     eval_every: float = 30.0
