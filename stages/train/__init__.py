@@ -219,6 +219,9 @@ def _setup(config: Config, progress: Progress) -> tuple[Loop, Scene, Path, dict]
     train = load_views(scene, train_idx, downscale)
     test = load_views(scene, test_idx, downscale) if test_idx else None
     found = resolve_defaults(config, scene, train, train_idx, device, downscale)
+    if found.plain_colour is not None:
+        for views in (train, test) if test is not None else (train,):
+            views.mask_colour(found.plain_colour)
     model_kind, model_reason = choose_scene_model(config.scene_model, scene, plain_background=found.plain_background)
     if model_kind == "contract" and config.field != "fast":
         model_kind, model_reason = "box", "the vanilla field samples the box only (no contraction)"

@@ -36,6 +36,12 @@ class Views:
         c = self.rgba[idx].to(device).float() / 255.0
         return o, d, c[:, :3], c[:, 3]
 
+    def mask_colour(self, colour: tuple[float, float, float], tolerance: int = 4) -> None:
+        """Pixels within `tolerance` (of 255) of `colour` on every channel become transparent (alpha 0)."""
+        c = torch.tensor([round(v * 255) for v in colour], dtype=torch.int16)
+        close = ((self.rgba[:, :3].to(torch.int16) - c).abs() <= tolerance).all(dim=1)
+        self.rgba[close, 3] = 0
+
     def pixels_of(self, v: int) -> Tensor:
         """Ray indices [h * w] of view v."""
         start = sum(h * w for h, w in self.shapes[:v])
