@@ -20,7 +20,14 @@ from data.errors import UserError
 from model.background import Background
 from radiance.contraction import Contraction
 
-__all__ = ["CHECKPOINT_FORMAT", "save_checkpoint", "read_checkpoint", "restore_background", "restore_contraction"]
+__all__ = [
+    "CHECKPOINT_FORMAT",
+    "save_checkpoint",
+    "read_checkpoint",
+    "restore_background",
+    "restore_contraction",
+    "load_state",
+]
 
 CHECKPOINT_FORMAT = 1
 
@@ -48,15 +55,22 @@ def save_checkpoint(
 
 
 def read_checkpoint(path: Path, device: torch.device | str) -> dict:
-    """The checkpoint's dict on `device`; UserError when missing, unreadable or not ours."""
+    """The train checkpoint's dict on `device`; UserError when missing, unreadable or not ours."""
+    return load_state(path, device, fmt=CHECKPOINT_FORMAT, missing="no checkpoint to resume from",
+                      kind=f"a nerfpipe train checkpoint (format {CHECKPOINT_FORMAT})")  # fmt: skip
+
+
+def load_state(path: Path, device: torch.device | str, *, fmt: object, missing: str, kind: str) -> dict:
+    """A checkpoint dict whose "format" is `fmt` (weights_only load); UserError `missing` when there is no file,
+    and naming `kind` when it is unreadable or another format. Train and X-ray runs read through this."""
     if not path.is_file():
-        raise UserError(f"{path}: no checkpoint to resume from")
+        raise UserError(f"{path}: {missing}")
     try:
         state = torch.load(path, map_location=device, weights_only=True)
     except Exception as exc:  # corrupt or foreign file
         raise UserError(f"{path}: cannot read checkpoint ({type(exc).__name__})") from None
-    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
-        raise UserError(f"{path}: not a nerfpipe train checkpoint (format {CHECKPOINT_FORMAT})")
+    if not isinstance(state, dict) or state.get("format") != fmt:
+        raise UserError(f"{path}: not {kind}")
     return state
 
 

@@ -31,6 +31,7 @@ from torch import Tensor
 from data.atomic import atomic_path
 from data.errors import UserError
 from data.projections import ProjectionScene, read_any
+from model.checkpoint import load_state
 from model.device import resolve_device
 from radiance.aabb import ray_aabb_segment
 from radiance.fields import Field, make_field
@@ -149,15 +150,8 @@ def save_xray_checkpoint(path: Path, field: Field, opt: torch.optim.Optimizer | 
 
 
 def read_xray_checkpoint(path: Path, device: torch.device | str) -> dict:
-    if not path.is_file():
-        raise UserError(f"{path}: no checkpoint")
-    try:
-        state = torch.load(path, map_location=device, weights_only=True)
-    except Exception as exc:  # corrupt or foreign file
-        raise UserError(f"{path}: cannot read checkpoint ({type(exc).__name__})") from None
-    if not isinstance(state, dict) or state.get("format") != XRAY_CHECKPOINT_FORMAT:
-        raise UserError(f"{path}: not an X-ray run checkpoint ({XRAY_CHECKPOINT_FORMAT})")
-    return state
+    return load_state(path, device, fmt=XRAY_CHECKPOINT_FORMAT, missing="no checkpoint",
+                      kind=f"an X-ray run checkpoint ({XRAY_CHECKPOINT_FORMAT})")  # fmt: skip
 
 
 def load_field(state: dict, device: torch.device) -> Field:

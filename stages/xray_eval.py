@@ -25,6 +25,7 @@ from data.errors import UserError
 from data.progress import NO_PROGRESS, Progress
 from data.rundir import config_to_json, sidecar, write_manifest
 from data.volumes import read_volume
+from model.device import cpu_threads
 from model.xray import XrayRun, load_xray_run
 from radiance.ct_metrics import psnr_3d, psnr_projections, ssim_3d, ssim_projections
 from radiance.fdk import fdk
@@ -96,10 +97,14 @@ def _ground_truth(config: Config, run: XrayRun) -> np.ndarray | None:
 
 
 def run(config: Config, progress: Progress | None = None) -> Outputs:
+    """See the module doc; torch's CPU threads are set to config.threads for the call and restored after."""
+    with cpu_threads(config.threads):
+        return _run(config, progress)
+
+
+def _run(config: Config, progress: Progress | None) -> Outputs:
     started = time.time()
     progress = progress or NO_PROGRESS
-    if config.threads is not None:
-        torch.set_num_threads(config.threads)
     out = Path(config.out)
     if out.suffix.lower() != ".json":
         raise UserError(f"{out}: expected a .json output path")

@@ -30,6 +30,7 @@ from data.errors import UserError
 from data.progress import NO_PROGRESS, Progress
 from data.rundir import config_to_json, write_manifest
 from data.video import to_uint8, video_writer, write_png
+from model.device import cpu_threads
 from model.xray import XrayRun, load_xray_run
 from radiance.xray import detector_rays, siddon_project
 
@@ -178,12 +179,16 @@ def write_mesh(path: Path, xrun: XrayRun, vol: np.ndarray, iso: float) -> int:
 
 
 def run(config: Config, progress: Progress | None = None) -> Outputs:
+    """See the module doc; torch's CPU threads are set to config.threads for the call and restored after."""
+    with cpu_threads(config.threads):
+        return _run(config, progress)
+
+
+def _run(config: Config, progress: Progress | None) -> Outputs:
     started = time.time()
     progress = progress or NO_PROGRESS
     if config.frames < 1 or config.slices < 1:
         raise UserError(f"frames, slices: expected >= 1, got {config.frames}, {config.slices}")
-    if config.threads is not None:
-        torch.set_num_threads(config.threads)
     xrun = load_xray_run(config.run_dir, config.device)
     out_dir = Path(config.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -36,6 +36,7 @@ from data.progress import NO_PROGRESS, Progress
 from data.projections import ProjectionScene, validate_geometry, write_projection_scene
 from data.rundir import config_to_json, write_manifest
 from data.volumes import read_volume
+from model.device import cpu_threads
 from radiance.xray import (
     VoxelGrid,
     XrayGeometry,
@@ -143,12 +144,16 @@ def make_geometry(config: Config, grid: VoxelGrid) -> tuple[XrayGeometry, tuple[
 
 
 def run(config: Config, progress: Progress | None = None) -> Outputs:
+    """See the module doc; torch's CPU threads are set to config.threads for the call and restored after."""
+    with cpu_threads(config.threads):
+        return _run(config, progress)
+
+
+def _run(config: Config, progress: Progress | None) -> Outputs:
     started = time.time()
     progress = progress or NO_PROGRESS
     if config.noise is not None and not (math.isfinite(config.noise) and config.noise > 0):
         raise UserError(f"noise: expected a photon count I0 > 0, got {config.noise}")
-    if config.threads is not None:
-        torch.set_num_threads(config.threads)
     vol = read_volume(config.volume, spacing=config.voxel_size, key=config.key, shape=config.shape, dtype=config.dtype)
     grid = VoxelGrid(shape=tuple(vol.data.shape), spacing=vol.spacing)
     geometry, train, test = make_geometry(config, grid)

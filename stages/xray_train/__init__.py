@@ -35,7 +35,7 @@ from data.progress import NO_PROGRESS, Progress
 from data.projections import ProjectionScene, read_any
 from data.rundir import MetricsLog, config_to_json, write_manifest
 from data.volumes import write_npy
-from model.device import resolve_device
+from model.device import cpu_threads, resolve_device
 from model.xray import (
     attenuation_field,
     field_line_integrals,
@@ -191,11 +191,15 @@ def _evenly(ids: tuple[int, ...], k: int) -> list[int]:
 
 
 def run(config: Config, progress: Progress | None = None) -> Outputs:
+    """See the module doc; torch's CPU threads are set to config.threads for the call and restored after."""
+    with cpu_threads(config.threads):
+        return _run(config, progress)
+
+
+def _run(config: Config, progress: Progress | None) -> Outputs:
     started = time.time()
     progress = progress or NO_PROGRESS
     _validate(config)
-    if config.threads is not None:
-        torch.set_num_threads(config.threads)
     device = resolve_device(config.device)
     scene = read_any(config.scene)
     torch.manual_seed(config.seed)
