@@ -5,7 +5,11 @@ Modes (train --background; the names nerfstudio's `background_color` and instant
 - `random`: a uniform random colour per ray in training (photos with alpha: it makes empty space transparent
   whatever the colour; opaque photos: every pixel must come from the field), its colour (white unless given)
   for evaluation and rendering;
-- `learned`: sigmoid of a 3-vector optimised with the field; evaluation uses its current value.
+- `learned`: sigmoid of a 3-vector optimised with the field; evaluation uses its current value;
+- `plain`: images composited on one plain colour, whose pixels were marked transparent (alpha 0): those rays
+  get a random colour in training (empty space must be empty), every other ray the plain colour, as the image
+  was made (a partly covered edge pixel is alpha x object + (1 - alpha) x colour: the field can say so; a random
+  colour behind it would force a dark, opaque halo); evaluation on the plain colour.
 Photos with alpha are composited on the same colour the model is (radiance.compositing.over_background).
 """
 
@@ -16,7 +20,7 @@ from torch import Tensor
 
 __all__ = ["Background", "MODES"]
 
-MODES = ("fixed", "random", "learned")
+MODES = ("fixed", "random", "learned", "plain")
 
 
 class Background(torch.nn.Module):
@@ -34,9 +38,19 @@ class Background(torch.nn.Module):
     def eval_colour(self) -> Tensor:  # [3]
         return torch.sigmoid(self.colour) if self.mode == "learned" else self.fixed
 
-    def train_colour(self, n: int, generator: torch.Generator | None = None) -> Tensor:  # [n, 3] or [3]
-        if self.mode == "random":
-            return torch.rand(n, 3, generator=generator).to(self.fixed.device)
+    def train_colour(
+        self,
+        n: int,
+        generator: torch.Generator | None = None,
+        transparent: Tensor | None = None,  # [n] bool: pixels marked transparent (`plain` mode)
+    ) -> Tensor:  # [n, 3] or [3]
+        if self.mode in ("random", "plain"):
+            rand = torch.rand(n, 3, generator=generator).to(self.fixed.device)
+            if self.mode == "random":
+                return rand
+            if transparent is None or transparent.shape != (n,):
+                raise ValueError(f"plain background: expected transparent [{n}] bool, got {transparent!r:.60}")
+            return torch.where(transparent.to(rand.device)[:, None], rand, self.fixed)
         return self.eval_colour()
 
     def params(self) -> list[torch.nn.Parameter]:

@@ -206,6 +206,12 @@ class FieldModel:
                               jitter=train, generator=gen)  # fmt: skip
 
 
+EMPTY_OPACITY = 0.003
+"""Opacity of one training step below which an occupancy cell counts as empty. tiny npz, 120 s (loaded machine):
+0.01 -> 30.81 dB, 0.003 -> 30.98 dB; the NDC test scene: 0.01 empties cells before the far wall is learned (22.5 dB,
+depth off by 50 %), 0.003 -> 24.4 dB, 7.9 %."""
+
+
 def _step_size(aabb: Tensor, resolution: int, ratio: float) -> float:
     return float((aabb[1] - aabb[0]).mean()) / resolution * ratio
 
@@ -265,10 +271,13 @@ def build_model(
         else:
             field_cfg = VanillaNeRF(view_dependent=view_dep).config()
     field = make_field(field_cfg).to(device)
+    step = _step_size(aabb, settings.resolution[1], settings.step_ratio)  # in the grid's units
     grid = None
     if field_cfg["kind"] == "fast":
-        grid = OccupancyGrid(aabb, settings.occupancy_resolution).to(device)
-    step = _step_size(aabb, settings.resolution[1], settings.step_ratio)
+        # A cell is empty when one training step through it is nearly transparent (alpha < EMPTY_OPACITY): nerfacc's
+        # rule (its threshold is on sigma x step). A bare density threshold of 0.01 kept cells for ~1400 steps
+        # after the field had cleared them (tiny npz: 60 % of samples in "occupied" free space, 26.2 dB at 40 s).
+        grid = OccupancyGrid(aabb, settings.occupancy_resolution, threshold=EMPTY_OPACITY / step).to(device)
     if contraction is not None:  # contracted units -> scene units inside the inner box
         step *= float(contraction.half.mean())
     background = background if background is not None else Background("fixed")

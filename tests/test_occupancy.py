@@ -127,3 +127,21 @@ def test_nan_and_inf_densities_count_as_occupied_not_empty():
     centres = g.cell_centers().reshape(16, 16, 16, 3)
     assert g.binary[centres[..., 0] > 0.6].all() and g.binary[centres[..., 0] < -0.9].all()
     assert not g.binary[(centres.norm(dim=-1) > 0.8) & (centres[..., 0].abs() < 0.4)].any()
+
+
+def test_empty_cells_follow_the_opacity_of_one_training_step(tmp_path):
+    """build_model's grid: a cell is empty when sigma x step < EMPTY_OPACITY, whatever the scene's scale."""
+    from model.field_model import EMPTY_OPACITY, ModelSettings, build_model
+    from stages import scene as scene_stage
+    from data.transforms import read_scene
+
+    scene_stage.run(scene_stage.Config(out_dir=tmp_path / "s", kind="posed", size=16, views=4, seed=0))
+    settings = ModelSettings(field="fast", resolution=(16, 32), step_ratio=2.0, occupancy_resolution=8,
+                             view_dependent=None, render_step_factor=0.5)  # fmt: skip
+    model = build_model(settings, read_scene(tmp_path / "s"), torch.device("cpu"), None)
+    step = model.step_size
+    for opacity, occupied in ((0.5 * EMPTY_OPACITY, False), (2 * EMPTY_OPACITY, True)):
+        model.grid.density.fill_(1e3)  # mean density high: the threshold is the opacity rule's
+        model.grid.density[0, 0, 0] = opacity / step
+        model.grid.update(lambda x: model.grid.density.new_zeros(x.shape[0]), step=1, every=1)  # decay only
+        assert bool(model.grid.binary[0, 0, 0]) == occupied

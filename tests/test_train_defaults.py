@@ -13,6 +13,7 @@ import torch
 from stages import convert as convert_stage
 from stages import scene as scene_stage
 from stages import train
+from model.background import Background
 from stages.train.defaults import _background, detect_plain_colour
 from stages.train.views import Views
 
@@ -39,8 +40,18 @@ def _object_on(colour: int | None, seed: int) -> np.ndarray:
 def test_plain_border_colour_is_detected(colour, expected):
     views = _views([_object_on(colour, s) for s in range(3)])
     bg, plain, why = _background("auto", views, has_alpha=False)
-    assert plain and bg.mode == "random" and "transparent" in why  # its pixels train as alpha 0
+    assert plain and bg.mode == "plain" and "transparent" in why  # its pixels train as alpha 0
     assert np.allclose(bg.eval_colour().numpy(), expected, atol=1e-6)
+
+
+def test_plain_background_is_random_only_behind_transparent_pixels():
+    bg = Background("plain", (0.0, 0.0, 0.0))
+    transparent = torch.tensor([True, False, True, False])
+    colour = bg.train_colour(4, torch.Generator().manual_seed(0), transparent=transparent)  # [4, 3]
+    assert colour.shape == (4, 3) and (colour[~transparent] == 0).all()  # edge and object pixels: as made
+    assert (colour[transparent] > 0).all() and not torch.equal(colour[0], colour[2])
+    with pytest.raises(ValueError, match="transparent"):
+        bg.train_colour(4)
 
 
 def test_textured_border_trains_on_random_and_alpha_too():

@@ -154,7 +154,7 @@ class Loop:
         cfg, model = self.config, self.model
         idx = torch.randint(self.train.dirs.shape[0], (self.batch_rays,), generator=self.gen)
         o, d, rgb, alpha = self.train.batch(idx, self.device)
-        bg = model.background.train_colour(o.shape[0], self.gen)  # [B, 3] or [3]
+        bg = model.background.train_colour(o.shape[0], self.gen, transparent=alpha == 0)  # [B, 3] or [3]
         target = over_background(rgb, alpha[:, None], bg.detach())
         out = model.render(o, d, bg, train=True, gen=None)
         loss = torch.mean((out["rgb"] - target) ** 2)
