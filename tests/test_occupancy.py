@@ -131,9 +131,9 @@ def test_nan_and_inf_densities_count_as_occupied_not_empty():
 
 def test_empty_cells_follow_the_opacity_of_one_training_step(tmp_path):
     """build_model's grid: a cell is empty when sigma x step < EMPTY_OPACITY, whatever the scene's scale."""
+    from data.transforms import read_scene
     from model.field_model import EMPTY_OPACITY, ModelSettings, build_model
     from stages import scene as scene_stage
-    from data.transforms import read_scene
 
     scene_stage.run(scene_stage.Config(out_dir=tmp_path / "s", kind="posed", size=16, views=4, seed=0))
     settings = ModelSettings(field="fast", resolution=(16, 32), step_ratio=2.0, occupancy_resolution=8,

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 
+from model.background import Background
 from stages import convert as convert_stage
 from stages import scene as scene_stage
 from stages import train
-from model.background import Background
 from stages.train.defaults import _background, detect_plain_colour
 from stages.train.views import Views
 

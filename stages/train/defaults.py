@@ -96,8 +96,10 @@ def _background(mode: str, views: Views, has_alpha: bool) -> tuple[Background, b
     colour, frac = detect_plain_colour(border)
     if colour is not None:
         rgb = ", ".join(f"{c:.3f}" for c in colour)
-        why = (f"{frac:.1%} of border pixels are one colour ({rgb}): its pixels train as transparent (random "
-               "colour behind them), the others on that colour, as the images were made")
+        why = (
+            f"{frac:.1%} of border pixels are one colour ({rgb}): its pixels train as transparent (random "
+            "colour behind them), the others on that colour, as the images were made"
+        )
         return Background("plain", colour), True, why
     why = f"no plain border colour ({frac:.1%}): random per ray in training (the field must explain every pixel)"
     return Background("random", start), False, why + ", the border median at evaluation"
