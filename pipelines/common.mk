@@ -26,11 +26,11 @@ PLAN_TOKEN := $(shell echo "$$PPID-$$RANDOM")
 PLAN_MAKE := $(MAKE)
 PLAN_GOALS := $(if $(filter undefined,$(origin MAKECMDGOALS)),all,$(or $(MAKECMDGOALS),all))
 shquote = '$(subst ','"'"',$(1))'
-show_plan = -@$(PLAN) show $(1) --token $(PLAN_TOKEN) --out $(call shquote,$(OUT)) --make $(call shquote,$(PLAN_MAKE)) \
-	--makefile $(call shquote,$(firstword $(MAKEFILE_LIST))) --goals $(call shquote,$(PLAN_GOALS)) \
-	--photos $(call shquote,$(PHOTOS)) --posed $(call shquote,$(POSED)) --poses-args $(call shquote,$(POSES_ARGS)) \
-	--train-args $(call shquote,$(TRAIN_ARGS)) --render-args $(call shquote,$(RENDER_ARGS)) \
-	--depth-args $(call shquote,$(DEPTH_ARGS)) --mesh-args $(call shquote,$(MESH_ARGS))
+show_plan = -@$(PLAN) show $(1) --token $(PLAN_TOKEN) --out=$(call shquote,$(OUT)) --make=$(call shquote,$(PLAN_MAKE)) \
+	--makefile=$(call shquote,$(firstword $(MAKEFILE_LIST))) --goals=$(call shquote,$(PLAN_GOALS)) \
+	--photos=$(call shquote,$(PHOTOS)) --posed=$(call shquote,$(POSED)) --poses-args=$(call shquote,$(POSES_ARGS)) \
+	--train-args=$(call shquote,$(TRAIN_ARGS)) --render-args=$(call shquote,$(RENDER_ARGS)) \
+	--depth-args=$(call shquote,$(DEPTH_ARGS)) --mesh-args=$(call shquote,$(MESH_ARGS))
 
 $(RUN_DIR)/manifest.json: $(SCENE_DIR)/transforms.json $(call stage_code,train) | $(INSTALLED)
 	$(call show_plan,train)

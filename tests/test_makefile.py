@@ -34,7 +34,7 @@ def test_posed_chain_builds_everything_then_nothing(tmp_path):
     args = [
         f"POSED={src}", f"OUT={out}",
         "TRAIN_ARGS=--max-steps 150 --batch-rays 1024 --eval-every 0 --final-eval-views 1",
-        "RENDER_ARGS=--frames 3", "MESH_ARGS=--resolution 48 --no-colors",
+        "RENDER_ARGS=--frames=3", "MESH_ARGS=--resolution 48 --no-colors",
     ]  # fmt: skip
     first = _make("all", *args)
     assert first.returncode == 0, first.stderr[-2000:]
