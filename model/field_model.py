@@ -22,10 +22,11 @@ from data.errors import UserError
 from data.transforms import Scene, is_forward_facing
 from model.background import Background
 from radiance.aabb import ray_aabb_segment
-from radiance.contraction import CONTRACTED_BOX, Contraction
+from radiance.contraction import CONTRACTED_BOX, Contraction, normalized_distance
 from radiance.fields import Field, TensoRF, VanillaNeRF, make_field
 from radiance.ndc import NDC, fit_ndc
 from radiance.occupancy import OccupancyGrid
+from radiance.regularizers import distortion_loss
 from radiance.render import StratifiedSampler, render_contracted, render_marched, render_rays_hierarchical
 
 __all__ = ["ModelSettings", "FieldModel", "build_model", "scene_ndc", "choose_scene_model"]
@@ -191,6 +192,17 @@ class FieldModel:
         if not bool(valid.all()):  # rays away from the reference view see nothing (the dummy ray misses)
             out["depth"] = torch.where(valid, out["depth"], torch.zeros_like(out["depth"]))
         return out
+
+    def distortion(self, out: dict, o: Tensor, d: Tensor) -> Tensor:
+        """mip-NeRF 360's distortion loss of a training render `out` of rays o, d [R, 3], in the normalised
+        warped distance (radiance.contraction.normalized_distance). Contracted scenes only: the fog it removes
+        is what a short real capture grows near its cameras."""
+        if self.contraction is None or self.kind != "fast":
+            raise ValueError("distortion: expected a fast field in a contracted scene")
+        idx = out["ray_indices"]
+        s0 = normalized_distance(self.contraction, o, d, self.near, out["t_starts"], idx)
+        s1 = normalized_distance(self.contraction, o, d, self.near, out["t_ends"], idx)
+        return distortion_loss(out["weights"], s0, s1, idx, o.shape[0])
 
     def _render(self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, gen=None, median=False):
         if self.kind == "fast" and self.contraction is not None:

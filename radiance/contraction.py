@@ -36,6 +36,7 @@ __all__ = [
     "contraction_chord_scale",
     "march_contracted",
     "march_contracted_reference",
+    "normalized_distance",
 ]
 
 CONTRACTED_BOX = ((-2.0, -2.0, -2.0), (2.0, 2.0, 2.0))
@@ -104,6 +105,26 @@ def _t_of_s(s: Tensor, t_s: Tensor) -> Tensor:
     """Inverse warp: s <= t_s -> t = s; beyond, t = t_s^2 / (t_s - (s - t_s) / K)."""
     rest = (t_s - (s - t_s) / OUTER_SHARE).clamp(min=torch.finfo(s.dtype).tiny)
     return torch.where(s <= t_s, s, t_s * t_s / rest)
+
+
+def normalized_distance(
+    c: Contraction,
+    rays_o: Tensor,  # [R, 3]
+    rays_d: Tensor,  # [R, 3] unit
+    near: float | Tensor,  # scalar or [R]
+    t: Tensor,  # [N] world distances
+    ray_indices: Tensor,  # [N] long
+) -> Tensor:  # [N] in [0, 1]
+    """The warped distance s of the marching (module doc) scaled to [0, 1] per ray: 0 at `near`, 1 at s's end
+    (1 + K) t_s, i.e. at infinity. Uniform inside the object, compressed like contracted space beyond it (what
+    mip-NeRF 360's distortion loss is measured in)."""
+    r = rays_o.shape[0]
+    near_t = torch.as_tensor(near, dtype=rays_o.dtype, device=rays_o.device).expand(r)
+    t_s = _switch_distance(c, rays_o, rays_d, near_t)  # [R]
+    ts, n0 = t_s[ray_indices], near_t[ray_indices]
+    beyond = ts + OUTER_SHARE * (ts - ts * ts / t.clamp(min=torch.finfo(t.dtype).tiny))
+    s = torch.where(t <= ts, t, beyond)
+    return ((s - n0) / ((1 + OUTER_SHARE) * ts - n0)).clamp(0.0, 1.0)
 
 
 def contraction_chord_scale(c: Contraction, rays_o: Tensor, rays_d: Tensor, t0: Tensor, t1: Tensor) -> Tensor:

@@ -163,6 +163,8 @@ class Loop:
             loss = loss + torch.mean((out["rgb_coarse"] - target) ** 2)
         if model.kind == "fast" and cfg.density_l1 > 0:
             loss = loss + cfg.density_l1 * model.field.density_l1()
+        if cfg.distortion:
+            loss = loss + cfg.distortion * model.distortion(out, o, d)
         if not math.isfinite(float(loss.detach())):
             return False
         self.opt.zero_grad(set_to_none=True)

@@ -1,0 +1,54 @@
+"""radiance.regularizers.distortion_loss against its O(N^2) twin (values and gradients, float64), its extremes,
+and the warped distance it is measured in (radiance.contraction.normalized_distance)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from radiance.contraction import Contraction, normalized_distance
+from radiance.regularizers import distortion_loss, distortion_loss_reference
+
+
+def _packed(seed: int, counts: list[int]):
+    g = torch.Generator().manual_seed(seed)
+    idx = torch.repeat_interleave(torch.arange(len(counts)), torch.tensor(counts))
+    edges = [torch.sort(torch.rand(c + 1, generator=g, dtype=torch.float64)).values for c in counts]
+    s0 = torch.cat([e[:-1] for e in edges])
+    s1 = torch.cat([e[1:] for e in edges])
+    w = torch.rand(idx.numel(), generator=g, dtype=torch.float64) / 4
+    return w, s0, s1, idx
+
+
+def test_matches_the_plain_twin_with_gradients():
+    w, s0, s1, idx = _packed(0, [5, 1, 0, 9, 3])
+    w.requires_grad_(True)
+    got, ref = distortion_loss(w, s0, s1, idx, 5), distortion_loss_reference(w, s0, s1, idx, 5)
+    torch.testing.assert_close(got, ref)
+    (g_got,) = torch.autograd.grad(got, w)
+    (g_ref,) = torch.autograd.grad(distortion_loss_reference(w, s0, s1, idx, 5), w)
+    torch.testing.assert_close(g_got, g_ref)
+    assert torch.autograd.gradcheck(lambda v: distortion_loss(v, s0, s1, idx, 5), (w,))
+
+
+def test_one_peak_costs_less_than_fog():
+    s = torch.linspace(0, 1, 65, dtype=torch.float64)
+    s0, s1, idx = s[:-1], s[1:], torch.zeros(64, dtype=torch.long)
+    peak = torch.zeros(64, dtype=torch.float64)
+    peak[30] = 1.0
+    fog = torch.full((64,), 1 / 64, dtype=torch.float64)
+    lp, lf = distortion_loss(peak, s0, s1, idx, 1), distortion_loss(fog, s0, s1, idx, 1)
+    assert lp == pytest.approx(1 / 64 / 3) and lf > 10 * lp  # a peak costs only its own width
+    assert distortion_loss(torch.zeros(0), torch.zeros(0), torch.zeros(0), torch.zeros(0, dtype=torch.long), 3) == 0
+    with pytest.raises(ValueError, match=r"\[N\]"):
+        distortion_loss(peak[:, None], s0, s1, idx, 1)
+
+
+def test_normalized_distance_runs_from_near_to_infinity():
+    c = Contraction([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    o = torch.tensor([[0.0, 0.0, -3.0]], dtype=torch.float64)
+    d = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+    t = torch.tensor([0.5, 2.0, 4.0, 1e3, 1e12], dtype=torch.float64)
+    u = normalized_distance(c, o, d, 0.5, t, torch.zeros(5, dtype=torch.long))
+    assert u[0] == 0 and bool((u[1:] > u[:-1]).all()) and u[-1] == pytest.approx(1.0, abs=1e-9)
+    assert u[2] == pytest.approx((4.0 - 0.5) / (1.5 * 4.0 - 0.5))  # the box's exit (t_s = 4): uniform until there
