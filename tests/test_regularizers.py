@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from data.errors import UserError
 from radiance.contraction import Contraction, normalized_distance
 from radiance.regularizers import distortion_loss, distortion_loss_reference
 
@@ -52,3 +53,15 @@ def test_normalized_distance_runs_from_near_to_infinity():
     u = normalized_distance(c, o, d, 0.5, t, torch.zeros(5, dtype=torch.long))
     assert u[0] == 0 and bool((u[1:] > u[:-1]).all()) and u[-1] == pytest.approx(1.0, abs=1e-9)
     assert u[2] == pytest.approx((4.0 - 0.5) / (1.5 * 4.0 - 0.5))  # the box's exit (t_s = 4): uniform until there
+
+
+def test_train_refuses_distortion_outside_contracted_scenes(tmp_path):
+    from stages import scene as scene_stage
+    from stages import train
+
+    scene_stage.run(scene_stage.Config(out_dir=tmp_path / "s", kind="posed", size=16, views=4, seed=0))
+    cfg = dict(scene_dir=tmp_path / "s", run_dir=tmp_path / "r", max_steps=1, device="cpu")
+    with pytest.raises(UserError, match="contracted scenes only"):
+        train.run(train.Config(**cfg, distortion=0.01))  # an object with alpha: box
+    with pytest.raises(UserError, match="distortion >= 0"):
+        train.run(train.Config(**cfg, distortion=-1.0))
