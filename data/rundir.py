@@ -180,9 +180,22 @@ def output_folder(
     An earlier output (any of `marks` in the folder) is refused with one line unless `resume` (the stage continues
     it) or `overwrite`: then every entry is moved to FOLDER.previous/ (an older one there is deleted), which is
     deleted when the block ends without error and kept (with its name in the error) when it fails. Yields that
-    folder or None.
+    folder or None. A folder this call created is removed again when the block fails leaving it empty.
     """
     folder = Path(folder)
+    created = not folder.exists()
+    try:
+        with _claimed(folder, overwrite=overwrite, resume=resume, marks=marks) as previous:
+            yield previous
+    except BaseException:
+        if created:
+            with contextlib.suppress(OSError):
+                folder.rmdir()  # only when empty: a failed stage leaves no empty output folder behind
+        raise
+
+
+@contextlib.contextmanager
+def _claimed(folder: Path, *, overwrite: bool, resume: bool, marks: Iterable[str]) -> Iterator[Path | None]:
     with folder_lock(folder):
         found = sorted(m for m in marks if (folder / m).exists())
         previous = None

@@ -46,7 +46,7 @@ $(OUT)/video.mp4: $(RUN_DIR)/manifest.json $(call stage_code,render) | $(INSTALL
 
 $(OUT)/depth/manifest.json: $(RUN_DIR)/manifest.json $(call stage_code,depth) | $(INSTALLED)
 	$(call show_plan,depth)
-	$(NERFPIPE) depth $(RUN_DIR) $(OUT)/depth $(DEPTH_ARGS)
+	$(NERFPIPE) depth $(RUN_DIR) $(OUT)/depth --overwrite $(DEPTH_ARGS)
 
 $(OUT)/eval.json: $(RUN_DIR)/manifest.json $(call stage_code,eval) | $(INSTALLED)
 	$(call show_plan,eval)

@@ -186,13 +186,23 @@ def test_failed_overwrite_keeps_the_earlier_run(scene_dir, finished_run, tmp_pat
     assert _sha(tmp_path / "run.previous" / "checkpoint.pt") == before
 
 
-def test_other_folder_stages_refuse_a_finished_output(tmp_path):
+def test_other_folder_stages_refuse_a_finished_output(finished_run, tmp_path):
+    from stages import depth
+
     out = tmp_path / "s"
     scene_stage.run(scene_stage.Config(out_dir=out, kind="rgba", size=16, views=4))
-    with pytest.raises(UserError, match="already holds an earlier output .*--overwrite"):
+    with pytest.raises(UserError, match=r"already holds an earlier output \(manifest.json\); pass --overwrite"):
         scene_stage.run(scene_stage.Config(out_dir=out, kind="rgba", size=16, views=4))
     scene_stage.run(scene_stage.Config(out_dir=out, kind="rgba", size=16, views=5, overwrite=True))
     assert len(read_scene(out).frames) == 5 and not (tmp_path / "s.previous").exists()
+    config = depth.Config(run_dir=finished_run, out_dir=tmp_path / "d", device="cpu")
+    depth.run(config)
+    with pytest.raises(UserError, match="already holds an earlier output"):
+        depth.run(config)
+    depth.run(depth.Config(run_dir=finished_run, out_dir=tmp_path / "d", device="cpu", overwrite=True))
+    with pytest.raises(UserError, match="--views"):  # a failed stage leaves no empty folder behind
+        depth.run(depth.Config(run_dir=finished_run, out_dir=tmp_path / "d2", views="nope"))
+    assert not (tmp_path / "d2").exists()
 
 
 # ---------------------------------------------------------------------------------------------- full disks, I/O

@@ -107,6 +107,10 @@ class Views:
             close = ((part[:, :3].to(torch.int16) - c).abs() <= tolerance).all(dim=1)
             part[close, 3] = 0
 
+    def any_transparent(self, chunk: int = 1 << 22) -> bool:
+        """Whether any pixel has alpha < 255 (in chunks: a mask of every pixel would be a quarter of the images)."""
+        return any(bool((self.rgba[i : i + chunk, 3] < 255).any()) for i in range(0, self.n_rays, chunk))
+
     def pixels_of(self, v: int) -> Tensor:
         """Ray indices [h * w] of view v."""
         return torch.arange(int(self.offsets[v]), int(self.offsets[v + 1]))
