@@ -24,7 +24,8 @@ Progress: the CLI owns the one live display, a `rich.progress.Progress(transient
 when stderr is a terminal (logs, pipes and tests get `progress=None`, i.e. silent stages); it is passed as
 `progress=` to every stage `run` whose signature has that parameter.
 
-Errors: a user error (`data.errors.UserError`) prints one line `error: ...` and exits 2; any other failure
+Errors: a user error (`data.errors.UserError`: bad input, a full disk, a busy folder) prints one line `error: ...`
+and exits 2 (a stage stopped cleanly by SIGINT/SIGTERM: `data.errors.Interrupted`, 130/143); any other failure
 prints one line and exits 1; Ctrl-C prints one line and exits 130; `nerfpipe --debug ...` re-raises (traceback).
 Usage errors (bad option, bad choice, missing argument) are typer's own `Error:` lines, exit 2.
 """
@@ -461,7 +462,7 @@ def main(argv: list[str] | None = None) -> None:
         if _debug:
             raise
         print(f"error: {_one_line(str(e))}", file=sys.stderr)
-        sys.exit(2)
+        sys.exit(e.exit_code)  # 2; 130/143 for a stage stopped cleanly by SIGINT/SIGTERM (data.errors.Interrupted)
     except Exception as e:  # noqa: BLE001 - the CLI boundary: one line, traceback only with --debug
         if _debug:
             raise

@@ -51,7 +51,7 @@ def main(seconds: float, size: int, views: int, out: Path, threads: int | None) 
     results = {}
     for model in ("box", "ndc"):
         cfg = train.Config(scene_dir=scene_dir, run_dir=out / model, scene_model=model, max_seconds=seconds,
-                           max_steps=10**9, eval_every=100, threads=threads)  # fmt: skip
+                           max_steps=10**9, eval_every=100, threads=threads, overwrite=True)  # fmt: skip
         res = train.run(cfg)
         used = json.loads(res.manifest.read_text())["used"]
         results[model] = {

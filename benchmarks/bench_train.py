@@ -39,7 +39,7 @@ def nerfpipe(command: str, args: str):
 
 
 def _train_eval(scene: Path, run: Path, seconds: float, field: str, eval_views: int | None) -> dict:
-    out = nerfpipe("train", f"{scene} {run} --max-seconds {seconds} --field {field}")
+    out = nerfpipe("train", f"{scene} {run} --max-seconds {seconds} --field {field} --overwrite")
     views = f" --views {eval_views}" if eval_views else ""
     ev = nerfpipe("eval", f"{run} {run}/eval.json{views}").result
     used = json.loads(out.manifest.read_text())["used"]
@@ -69,7 +69,7 @@ def bench_small(out: Path, seconds: float) -> dict:
     res = {}
     for scale in (1.0, 0.1):
         root = out / f"small_{scale:g}"
-        nerfpipe("scene", f"{root / 'src'} --kind blender --size 128 --views 48 --scale {scale}")
+        nerfpipe("scene", f"{root / 'src'} --kind blender --size 128 --views 48 --scale {scale} --overwrite")
         nerfpipe("convert", f"{root / 'src'} {root / 'scene'}")
         r = _train_eval(root / "scene", root / "run", seconds, "fast", None)
         nerfpipe("mesh", f"{root / 'run'} {root / 'mesh.ply'} --resolution 256")

@@ -79,6 +79,7 @@ def _train(scene_dir: Path, run_dir: Path, seconds: float, threads: int, extra: 
         str(threads),
         "--device",
         "cpu",
+        "--overwrite",
         *extra,
     ]
     print("$", " ".join(cmd), flush=True)

@@ -466,7 +466,7 @@ def training(ctx: Context) -> Section:
     report_dir = ctx.out / "training"
     labels = [label for label, _ in runs]
     levels = ",".join(f"{v:g}" for v in plan.levels)
-    report_args = (*run_dirs, report_dir, "--labels", ",".join(labels), "--levels", levels)
+    report_args = (*run_dirs, report_dir, "--labels", ",".join(labels), "--levels", levels, "--overwrite")
     commands.append(_command_line("report", *report_args))
     report = stage("report", *report_args)
     rel = report_dir.relative_to(ctx.out)
@@ -627,7 +627,8 @@ def fit_image(ctx: Context) -> Section:
     image = sorted((src / "images").glob("*.png"))[0]
     out_dir = ctx.out / "fit_image"
     args = (image, out_dir, "--sweep", ",".join(map(str, plan.fit_sweep)), "--encoding", "both", "--steps", 10**9,
-            "--max-seconds", plan.fit_seconds, "--threads", ctx.threads, "--device", ctx.device)  # fmt: skip
+            "--max-seconds", plan.fit_seconds, "--threads", ctx.threads, "--device", ctx.device,
+            "--overwrite")  # fmt: skip
     out = stage("fit-image", *args)
     rel = out_dir.relative_to(ctx.out)
     rows = [[m.label, f"{m.parameters:,}", m.steps, f"{m.seconds:.1f}", f"{m.psnr:.2f}"] for m in out.models]

@@ -7,20 +7,24 @@ manifest.json schema:
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import hashlib
 import io
 import os
 import platform
+import shutil
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from datetime import datetime, timezone
 from importlib import metadata
 from pathlib import Path
 from typing import Any
 
 from data.atomic import write_json, write_text
+from data.errors import UserError
+from data.lock import LOCK_NAME, folder_lock
 
 __all__ = [
     "config_to_json",
@@ -31,6 +35,8 @@ __all__ = [
     "sidecar",
     "MetricsLog",
     "Stopwatch",
+    "output_folder",
+    "previous_folder",
 ]
 
 _PACKAGES = ("nerfpipe", "torch", "numpy", "pycolmap", "opencv-contrib-python-headless", "scikit-image", "trimesh",
@@ -157,3 +163,58 @@ class MetricsLog:
         w.writeheader()
         w.writerows(self.rows)
         return write_text(self.path, buf.getvalue())
+
+
+def previous_folder(folder: str | os.PathLike) -> Path:
+    """Where `--overwrite` sets an earlier output aside: `FOLDER.previous/` beside it (as poses does with colmap/)."""
+    folder = Path(folder)
+    return folder.with_name(folder.name + ".previous")
+
+
+@contextlib.contextmanager
+def output_folder(
+    folder: str | os.PathLike, *, overwrite: bool, resume: bool = False, marks: Iterable[str] = ("manifest.json",)
+) -> Iterator[Path | None]:
+    """Hold `folder`'s lock (`data.lock`) while a stage writes there, and apply the rerun rule.
+
+    An earlier output (any of `marks` in the folder) is refused with one line unless `resume` (the stage continues
+    it) or `overwrite`: then every entry is moved to FOLDER.previous/ (an older one there is deleted), which is
+    deleted when the block ends without error and kept (with its name in the error) when it fails. Yields that
+    folder or None. A folder this call created is removed again when the block fails leaving it empty.
+    """
+    folder = Path(folder)
+    created = not folder.exists()
+    try:
+        with _claimed(folder, overwrite=overwrite, resume=resume, marks=marks) as previous:
+            yield previous
+    except BaseException:
+        if created:
+            with contextlib.suppress(OSError):
+                folder.rmdir()  # only when empty: a failed stage leaves no empty output folder behind
+        raise
+
+
+@contextlib.contextmanager
+def _claimed(folder: Path, *, overwrite: bool, resume: bool, marks: Iterable[str]) -> Iterator[Path | None]:
+    with folder_lock(folder):
+        found = sorted(m for m in marks if (folder / m).exists())
+        previous = None
+        if found and not resume:
+            if not overwrite:
+                how = "--resume to continue it or --overwrite" if "checkpoint.pt" in found else "--overwrite"
+                raise UserError(f"{folder} already holds an earlier output ({', '.join(found)}); "
+                                f"pass {how} to replace it")  # fmt: skip
+            previous = previous_folder(folder)
+            shutil.rmtree(previous, ignore_errors=True)
+            previous.mkdir()
+            for entry in folder.iterdir():
+                if entry.name != LOCK_NAME:
+                    os.replace(entry, previous / entry.name)
+        try:
+            yield previous
+        except UserError as exc:
+            if previous is not None:
+                exc.args = (f"{exc} (the earlier output is kept in {previous})",)
+            raise
+        if previous is not None:
+            shutil.rmtree(previous, ignore_errors=True)

@@ -3,20 +3,31 @@
 The file holds tensors and primitive containers only, so it loads with `torch.load(weights_only=True)`:
 format, field_config (the field's constructor arguments), field (state dict), occupancy (state dict or None),
 ndc (`radiance.ndc.NDC.to_dict()` or None), contraction (`radiance.contraction.Contraction.to_dict()` or None),
-background ({mode, state}: `model.background.Background`), optimizer (state dict), step, seconds, lr_factor, rng.
-Checkpoints without contraction/background (older runs) load as box runs on white.
+background ({mode, state}: `model.background.Background`), optimizer (state dict), step, seconds, lr_factor, rng,
+nerfpipe_version (the version that wrote it). Checkpoints without contraction/background (older runs) load as box
+runs on white.
+
+Integrity: `save_checkpoint` serialises into memory, writes the bytes atomically (`data.atomic`: a full disk is one
+line naming the file, the previous checkpoint stays) and returns their sha256, which `train` records in the run's
+manifest.json (`checkpoint_sha256`); `read_checkpoint` refuses a checkpoint whose bytes no longer match it (a
+checkpoint without a manifest, an interrupted run's, has nothing to check against). A checkpoint of another format
+(another nerfpipe version's layout, an X-ray run's) or of an unknown field kind is refused naming what was expected.
 """
 
 from __future__ import annotations
 
+import hashlib
+import io
+import json
 from pathlib import Path
 from typing import Any
 
 import torch
 from torch import Tensor
 
-from data.atomic import atomic_path
+from data.atomic import write_bytes
 from data.errors import UserError
+from data.rundir import sha256_file, versions
 from model.background import Background
 from radiance.contraction import Contraction
 
@@ -30,12 +41,14 @@ __all__ = [
 ]
 
 CHECKPOINT_FORMAT = 1
+FIELD_KINDS = ("fast", "vanilla")
 
 
 def save_checkpoint(
     path: Path, model: Any, opt: torch.optim.Optimizer, step: int, seconds: float, lr_factor: float, rng: Tensor
-) -> None:
-    """Write `model` (a `model.field_model.FieldModel`) and the optimiser state atomically to `path`."""
+) -> str:
+    """Write `model` (a `model.field_model.FieldModel`) and the optimiser state atomically to `path`; returns the
+    file's sha256 (hex)."""
     state = {
         "format": CHECKPOINT_FORMAT,
         "field_config": model.field.config(),
@@ -49,15 +62,38 @@ def save_checkpoint(
         "seconds": seconds,
         "lr_factor": lr_factor,
         "rng": rng,
+        "nerfpipe_version": versions().get("nerfpipe", "unknown"),
     }
-    with atomic_path(path) as tmp:
-        torch.save(state, tmp)
+    buf = io.BytesIO()  # torch's own file writer reports a full disk as "unexpected pos"; ours names the errno
+    torch.save(state, buf)
+    data = buf.getbuffer()
+    write_bytes(path, data)
+    return hashlib.sha256(data).hexdigest()
 
 
 def read_checkpoint(path: Path, device: torch.device | str) -> dict:
-    """The train checkpoint's dict on `device`; UserError when missing, unreadable or not ours."""
-    return load_state(path, device, fmt=CHECKPOINT_FORMAT, missing="no checkpoint to resume from",
-                      kind=f"a nerfpipe train checkpoint (format {CHECKPOINT_FORMAT})")  # fmt: skip
+    """The train checkpoint's dict on `device`; UserError when missing, unreadable, not ours, or not the file the
+    run's manifest.json recorded."""
+    expected = _manifest_sha256(path)
+    if expected is not None and path.is_file() and (found := sha256_file(path)) != expected:
+        raise UserError(f"{path}: checkpoint does not match the sha256 recorded in manifest.json (expected "
+                        f"{expected[:12]}..., found {found[:12]}...): corrupt or replaced")  # fmt: skip
+    state = load_state(path, device, fmt=CHECKPOINT_FORMAT, missing="no checkpoint to resume from",
+                       kind=f"a nerfpipe train checkpoint (format {CHECKPOINT_FORMAT})")  # fmt: skip
+    kind = state.get("field_config", {}).get("kind") if isinstance(state.get("field_config"), dict) else None
+    if kind not in FIELD_KINDS:
+        raise UserError(f"{path}: checkpoint holds a field of kind {kind!r}; expected one of {', '.join(FIELD_KINDS)}")
+    return state
+
+
+def _manifest_sha256(path: Path) -> str | None:
+    """The checkpoint hash in the manifest beside `path` (None: no manifest, or one that predates hashes)."""
+    try:
+        doc = json.loads((path.parent / "manifest.json").read_text())
+    except (OSError, ValueError):
+        return None
+    value = doc.get("checkpoint_sha256") if isinstance(doc, dict) else None
+    return value if isinstance(value, str) else None
 
 
 def load_state(path: Path, device: torch.device | str, *, fmt: object, missing: str, kind: str) -> dict:
@@ -70,7 +106,11 @@ def load_state(path: Path, device: torch.device | str, *, fmt: object, missing: 
     except Exception as exc:  # corrupt or foreign file
         raise UserError(f"{path}: cannot read checkpoint ({type(exc).__name__})") from None
     if not isinstance(state, dict) or state.get("format") != fmt:
-        raise UserError(f"{path}: not {kind}")
+        found = state.get("format") if isinstance(state, dict) else None
+        writer = state.get("nerfpipe_version") if isinstance(state, dict) else None
+        by = f" written by nerfpipe {writer}" if writer else ""
+        raise UserError(f"{path}: not {kind}: found format {found!r}{by}, "
+                        f"this is nerfpipe {versions().get('nerfpipe', 'unknown')}")  # fmt: skip
     return state
 
 

@@ -17,3 +17,9 @@ bench-ndc: $(INSTALLED)
 
 bench-mesh: $(INSTALLED)
 	$(VENV)/bin/python -m benchmarks.bench_mesh --out $(BENCH_OUT)/mesh
+
+# Peak RSS of train against view count at 1920x1080 (issue 19: big captures in bounded memory); ~5 min.
+.PHONY: bench-memory
+bench-memory: $(INSTALLED)
+	$(VENV)/bin/python -m benchmarks.bench_memory --views 100,300 --downscale 1 --out $(BENCH_OUT)/memory
+	$(VENV)/bin/python -m benchmarks.bench_memory --views 100,300,1000 --downscale auto --out $(BENCH_OUT)/memory

@@ -32,9 +32,10 @@ show_plan = -@$(PLAN) show $(1) --token $(PLAN_TOKEN) --out=$(call shquote,$(OUT
 	--train-args=$(call shquote,$(TRAIN_ARGS)) --render-args=$(call shquote,$(RENDER_ARGS)) \
 	--depth-args=$(call shquote,$(DEPTH_ARGS)) --mesh-args=$(call shquote,$(MESH_ARGS))
 
+# A rebuild replaces the run (--overwrite: the old one waits in run.previous/ until the new one succeeds).
 $(RUN_DIR)/manifest.json: $(SCENE_DIR)/transforms.json $(call stage_code,train) | $(INSTALLED)
 	$(call show_plan,train)
-	$(NERFPIPE) train $(SCENE_DIR) $(RUN_DIR) $(TRAIN_ARGS)
+	$(NERFPIPE) train $(SCENE_DIR) $(RUN_DIR) --overwrite $(TRAIN_ARGS)
 
 # The default video costs about what training did: --max-seconds is the training run's time (its manifest's
 # used.train_seconds, at least 60 s); render shrinks, then thins, the frames to fit. RENDER_ARGS come after it,
@@ -45,7 +46,7 @@ $(OUT)/video.mp4: $(RUN_DIR)/manifest.json $(call stage_code,render) | $(INSTALL
 
 $(OUT)/depth/manifest.json: $(RUN_DIR)/manifest.json $(call stage_code,depth) | $(INSTALLED)
 	$(call show_plan,depth)
-	$(NERFPIPE) depth $(RUN_DIR) $(OUT)/depth $(DEPTH_ARGS)
+	$(NERFPIPE) depth $(RUN_DIR) $(OUT)/depth --overwrite $(DEPTH_ARGS)
 
 $(OUT)/eval.json: $(RUN_DIR)/manifest.json $(call stage_code,eval) | $(INSTALLED)
 	$(call show_plan,eval)

@@ -7,7 +7,7 @@ DEMO_TRAIN_ARGS := --max-seconds 120
 DEMO_RENDER_ARGS := --frames 60 --downscale 2
 
 $(DEMO_INPUT)/manifest.json: pipelines/demo.mk $(call stage_code,scene) | $(INSTALLED)
-	$(NERFPIPE) scene $(DEMO_INPUT) $(DEMO_SCENE_ARGS)
+	$(NERFPIPE) scene $(DEMO_INPUT) --overwrite $(DEMO_SCENE_ARGS)
 
 .PHONY: demo
 demo: $(DEMO_INPUT)/manifest.json

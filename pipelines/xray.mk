@@ -15,16 +15,16 @@ XRAY_OUTPUTS :=
 
 ifneq ($(XRAY),)
 $(XRAY_SCENE)/manifest.json: $(XRAY) $(call stage_code,xray_simulate) | $(INSTALLED)
-	$(NERFPIPE) xray-simulate $(XRAY) $(XRAY_SCENE) $(XRAY_SIM_ARGS)
+	$(NERFPIPE) xray-simulate $(XRAY) $(XRAY_SCENE) --overwrite $(XRAY_SIM_ARGS)
 
 $(XRAY_RUN)/manifest.json: $(XRAY_SCENE)/manifest.json $(call stage_code,xray_train) | $(INSTALLED)
-	$(NERFPIPE) xray-train $(XRAY_SCENE) $(XRAY_RUN) $(XRAY_TRAIN_ARGS)
+	$(NERFPIPE) xray-train $(XRAY_SCENE) $(XRAY_RUN) --overwrite $(XRAY_TRAIN_ARGS)
 
 $(OUT)/xray_eval.json: $(XRAY_RUN)/manifest.json $(call stage_code,xray_eval) | $(INSTALLED)
 	$(NERFPIPE) xray-eval $(XRAY_RUN) $@ $(XRAY_EVAL_ARGS)
 
 $(OUT)/xray/manifest.json: $(XRAY_RUN)/manifest.json $(call stage_code,xray_export) | $(INSTALLED)
-	$(NERFPIPE) xray-export $(XRAY_RUN) $(OUT)/xray $(XRAY_EXPORT_ARGS)
+	$(NERFPIPE) xray-export $(XRAY_RUN) $(OUT)/xray --overwrite $(XRAY_EXPORT_ARGS)
 
 XRAY_OUTPUTS := $(XRAY_SCENE)/manifest.json $(XRAY_RUN)/manifest.json $(OUT)/xray_eval.json $(OUT)/xray/manifest.json
 endif

@@ -32,7 +32,7 @@ import numpy as np
 from data.atomic import atomic_path, write_json
 from data.errors import UserError
 from data.progress import NO_PROGRESS, Progress
-from data.rundir import MetricsLog, Stopwatch, config_to_json, write_manifest
+from data.rundir import MetricsLog, Stopwatch, config_to_json, output_folder, write_manifest
 from data.video import colorize, depth_legend_png, to_uint8, video_writer, write_png
 from model import camera_path, load_trained, render_view, resolve_device
 
@@ -65,6 +65,8 @@ class Config:
     """Frames per second of depth.mp4."""
     device: str = "auto"
     """torch device: auto, cpu, cuda, cuda:N."""
+    overwrite: bool = False
+    """Replace an earlier output in out_dir (set aside in OUT_DIR.previous/ until this one is written)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -112,6 +114,12 @@ def _global_range(paths: list[Path], max_samples: int = 1_000_000) -> tuple[floa
 
 
 def run(config: Config, progress: Progress | None = None) -> Outputs:
+    """Hold out_dir (one writer; an earlier output needs --overwrite) and run the stage (`_run`)."""
+    with output_folder(config.out_dir, overwrite=config.overwrite):
+        return _run(config, progress)
+
+
+def _run(config: Config, progress: Progress | None = None) -> Outputs:
     started = time.time()
     if config.views not in VIEWS:
         raise UserError(f"--views: expected one of {', '.join(VIEWS)}, got {config.views!r}")

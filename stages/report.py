@@ -26,7 +26,7 @@ from typing import Any
 
 from data.atomic import atomic_path, write_text
 from data.errors import UserError
-from data.rundir import config_to_json, write_manifest
+from data.rundir import config_to_json, output_folder, write_manifest
 
 __all__ = ["Config", "Outputs", "RunSummary", "read_run", "run"]
 
@@ -43,6 +43,8 @@ class Config:
     """PSNR levels (dB) whose time-to-reach the table reports."""
     labels: tuple[str, ...] | None = None
     """Names for the runs in the plot and table (default: the run folder names, made unique)."""
+    overwrite: bool = False
+    """Replace an earlier output in out_dir (set aside in OUT_DIR.previous/ until this one is written)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -170,6 +172,12 @@ def _plot(path: Path, runs: list[RunSummary], levels: tuple[float, ...]) -> None
 
 
 def run(config: Config, progress: Any | None = None) -> Outputs:
+    """Hold out_dir (one writer; an earlier output needs --overwrite) and run the stage (`_run`)."""
+    with output_folder(config.out_dir, overwrite=config.overwrite):
+        return _run(config, progress)
+
+
+def _run(config: Config, progress: Any | None = None) -> Outputs:
     started = time.time()
     runs_in = tuple(Path(r) for r in config.runs)
     if not runs_in:

@@ -28,7 +28,7 @@ import torch
 from data.atomic import atomic_path
 from data.errors import UserError
 from data.progress import NO_PROGRESS, Progress
-from data.rundir import config_to_json, write_manifest
+from data.rundir import config_to_json, output_folder, write_manifest
 from data.video import to_uint8, video_writer, write_png
 from model.device import cpu_threads
 from model.xray import XrayRun, load_xray_run
@@ -69,6 +69,8 @@ class Config:
     """torch device: auto, cpu, cuda, cuda:N."""
     threads: int | None = None
     """torch intra-op threads (None: torch's default)."""
+    overwrite: bool = False
+    """Replace an earlier output in out_dir (set aside in OUT_DIR.previous/ until this one is written)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -180,8 +182,9 @@ def write_mesh(path: Path, xrun: XrayRun, vol: np.ndarray, iso: float) -> int:
 
 def run(config: Config, progress: Progress | None = None) -> Outputs:
     """See the module doc; torch's CPU threads are set to config.threads for the call and restored after."""
-    with cpu_threads(config.threads):
-        return _run(config, progress)
+    with output_folder(config.out_dir, overwrite=config.overwrite):
+        with cpu_threads(config.threads):
+            return _run(config, progress)
 
 
 def _run(config: Config, progress: Progress | None) -> Outputs:

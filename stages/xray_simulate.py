@@ -34,7 +34,7 @@ import torch
 from data.errors import UserError
 from data.progress import NO_PROGRESS, Progress
 from data.projections import ProjectionScene, validate_geometry, write_projection_scene
-from data.rundir import config_to_json, write_manifest
+from data.rundir import config_to_json, output_folder, write_manifest
 from data.volumes import read_volume
 from model.device import cpu_threads
 from radiance.xray import (
@@ -87,6 +87,8 @@ class Config:
     """Seed for the noise."""
     threads: int | None = None
     """torch intra-op threads (None: torch's default)."""
+    overwrite: bool = False
+    """Replace an earlier output in out_dir (set aside in OUT_DIR.previous/ until this one is written)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -145,8 +147,9 @@ def make_geometry(config: Config, grid: VoxelGrid) -> tuple[XrayGeometry, tuple[
 
 def run(config: Config, progress: Progress | None = None) -> Outputs:
     """See the module doc; torch's CPU threads are set to config.threads for the call and restored after."""
-    with cpu_threads(config.threads):
-        return _run(config, progress)
+    with output_folder(config.out_dir, overwrite=config.overwrite):
+        with cpu_threads(config.threads):
+            return _run(config, progress)
 
 
 def _run(config: Config, progress: Progress | None) -> Outputs:

@@ -57,7 +57,7 @@ def test_duplicate_names_get_parent_prefix_and_labels_override(tmp_path):
     b = _fake_run(tmp_path / "y" / "run", [(1, 1.0, 12.0)], {})
     out = report.run(report.Config(runs=(a, b), out_dir=tmp_path / "r"))
     assert [r.label for r in out.runs] == ["x/run", "y/run"]
-    out = report.run(report.Config(runs=(a, b), out_dir=tmp_path / "r", labels=("one", "two")))
+    out = report.run(report.Config(runs=(a, b), out_dir=tmp_path / "r", labels=("one", "two"), overwrite=True))
     assert [r.label for r in out.runs] == ["one", "two"]
 
 

@@ -21,10 +21,11 @@ from stages.train.views import Views
 def _views(images: list[np.ndarray]) -> Views:
     """Views holding only colours (rays are not needed to detect a background)."""
     rgba = [np.concatenate([im, np.full(im.shape[:2] + (1,), 255, np.uint8)], -1).reshape(-1, 4) for im in images]
-    m = sum(len(r) for r in rgba)
-    return Views(origins=torch.zeros(len(images), 3), view=torch.zeros(m, dtype=torch.int32),
-                 dirs=torch.zeros(m, 3), rgba=torch.from_numpy(np.concatenate(rgba)),
-                 shapes=[im.shape[:2] for im in images])  # fmt: skip
+    n = len(images)
+    offsets = torch.tensor([0] + [len(r) for r in rgba]).cumsum(0)
+    return Views(rgba=torch.from_numpy(np.concatenate(rgba)), offsets=offsets,
+                 world_from_cams=torch.eye(4, dtype=torch.float64).repeat(n, 1, 1),
+                 intrinsics=torch.ones(n, 9, dtype=torch.float64), shapes=[im.shape[:2] for im in images])  # fmt: skip
 
 
 def _object_on(colour: int | None, seed: int) -> np.ndarray:

@@ -50,7 +50,7 @@ import trimesh
 
 from data.atomic import write_bytes, write_json
 from data.errors import UserError
-from data.rundir import config_to_json, write_manifest
+from data.rundir import config_to_json, output_folder, write_manifest
 from radiance.camera import Intrinsics, generate_rays, pixel_centers
 from radiance.paths import look_at
 from stages.scene.files import (
@@ -89,7 +89,7 @@ FORWARD_ELEVATION_DEG = 20.0
 @dataclass(frozen=True, kw_only=True)
 class Config:
     out_dir: Path
-    """Folder to write the scene into (created; existing files of the same names are replaced)."""
+    """Folder to write the scene into (created; one that holds an earlier scene needs --overwrite)."""
     kind: Literal["photos", "posed", "rgba", "blender"] = "posed"
     """photos: bare images for COLMAP; posed: images + transforms.json; rgba: transparent background + alpha;
     blender: the NeRF-synthetic layout (transforms_{train,val,test}.json, RGBA PNGs in train/ val/ test/)."""
@@ -107,6 +107,8 @@ class Config:
     LLFF-style forward-facing capture: content from ~1.5 m to ~7 m)."""
     scale: float = 1.0
     """Multiply every length (objects, cameras, depth, mesh) by this; the images do not change."""
+    overwrite: bool = False
+    """Replace an earlier scene in out_dir (set aside in OUT_DIR.previous/ until this one is written)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -251,6 +253,12 @@ def _png(rgb: np.ndarray, alpha: np.ndarray | None) -> bytes:
 
 def run(config: Config) -> Outputs:
     """Render the scene described by `config` into `config.out_dir`; see the module docstring for the files."""
+    _check(config)
+    with output_folder(config.out_dir, overwrite=config.overwrite):
+        return _run(config)
+
+
+def _check(config: Config) -> None:
     if config.size < 8 or config.views < 1:
         raise UserError(f"scene: expected --size >= 8 and --views >= 1, got size={config.size}, views={config.views}")
     if config.kind not in ("photos", "posed", "rgba", "blender"):
@@ -260,6 +268,10 @@ def run(config: Config) -> Outputs:
     scale = float(config.scale)
     if not (math.isfinite(scale) and scale > 0):
         raise UserError(f"scene: expected --scale > 0 (finite), got {config.scale!r}")
+
+
+def _run(config: Config) -> Outputs:
+    scale = float(config.scale)
     started = time.time()
     out = Path(config.out_dir)
     prims = default_primitives(config.seed)

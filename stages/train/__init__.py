@@ -5,13 +5,19 @@ Run directory (docs/DESIGN.md "Trained run directory"):
   weights_only=True), metrics.csv (step, seconds, loss, train_psnr, test_psnr (blank when not evaluated), lr,
   samples_per_ray, skip_fraction), psnr_vs_time.png, manifest.json (written last).
 
+Reruns and reliability (docs/RELIABILITY.md): the run folder is locked while train writes there
+(`data.lock`); a folder holding a run (checkpoint.pt or manifest.json) is refused unless `--resume` (continue:
+the manifest is removed until the run ends again) or `--overwrite` (the old run goes to RUN_DIR.previous/, deleted
+when the new run succeeds). Ctrl-C or SIGTERM saves a checkpoint at the current step and exits 130/143 with one
+line; a checkpoint is also written every `checkpoint_seconds`. The manifest records the checkpoint's sha256.
+
 The story: `_setup` reads the scene and builds (or resumes) the field model (`model.field_model`), `Loop.run`
 optimises it (`stages.train.loop`), `_final_eval` renders evenly spaced test views in full, and the manifest
 records what was used and left out (`stages.train.report`).
 
 Conventions: rays in the scene frame, unit directions, t = Euclidean distance (radiance.camera).
-Training draws random rays across all train views (pre-generated: directions float32, colours uint8;
-`stages.train.views`). RGBA scenes composite a random background per ray during training and white for
+Training draws random rays across all train views (colours held as uint8, rays made per batch from each view's
+camera; `stages.train.views`). RGBA scenes composite a random background per ray during training and white for
 evaluation. Fields: `fast` (TensoRF VM, occupancy-grid marching, coarse-to-fine upsampling) and `vanilla` (the
 NeRF paper: 64 stratified + 128 importance samples, coarse and fine networks).
 """
@@ -27,9 +33,10 @@ from typing import Literal
 import numpy as np
 import torch
 
-from data.errors import UserError
+from data.errors import Interrupted, UserError
 from data.progress import NO_PROGRESS, Progress
-from data.rundir import MetricsLog, write_config, write_manifest
+from data.rundir import MetricsLog, output_folder, write_config, write_manifest
+from data.stop import stop_on_signals
 from data.transforms import Scene, read_scene
 from model.checkpoint import read_checkpoint, restore_background, restore_contraction
 from model.device import cpu_threads, resolve_device
@@ -65,6 +72,9 @@ class Config:
     """Seed for initialisation and ray batches."""
     resume: bool = False
     """Continue from run_dir/checkpoint.pt (step count, optimizer state and elapsed time continue)."""
+    overwrite: bool = False
+    """Replace the run already in run_dir (set aside in RUN_DIR.previous/ until this run succeeds); without it,
+    or --resume, train refuses a folder that holds a run."""
     batch_rays: int | None = None
     """Rays per optimizer step (None: 1024 on CPU, 8192 on CUDA; stages.train.defaults)."""
     lr: float | None = None
@@ -79,7 +89,10 @@ class Config:
     log_every: int = 25
     """Write a metrics row every this many steps."""
     checkpoint_every: int = 1000
-    """Write checkpoint.pt every this many steps (and at the end)."""
+    """Write checkpoint.pt every this many steps (and at the end, and on Ctrl-C or SIGTERM)."""
+    checkpoint_seconds: float = 60.0
+    """Also write checkpoint.pt every this many seconds of wall-clock time, so a killed run loses at most that
+    (0: off)."""
     scene_model: Literal["auto", "box", "ndc", "contract"] = "auto"
     """Where the field lives: auto, box, ndc or contract. box: the scene's aabb (objects on a plain or
     transparent background). ndc: normalised device coordinates of the mean camera (forward-facing captures;
@@ -157,6 +170,11 @@ def _validate(config: Config) -> None:
         raise UserError(f"expected lr > 0, got {config.lr}")
     if not config.distortion >= 0:
         raise UserError(f"expected distortion >= 0, got {config.distortion}")
+    if config.resume and config.overwrite:
+        raise UserError("pass either --resume (continue the run) or --overwrite (replace it), not both")
+    if config.checkpoint_every < 1 or not config.checkpoint_seconds >= 0:
+        raise UserError(f"expected checkpoint_every >= 1 and checkpoint_seconds >= 0, got "
+                        f"{config.checkpoint_every}, {config.checkpoint_seconds}")  # fmt: skip
     if config.threads is not None and config.threads < 1:
         raise UserError(f"expected threads >= 1, got {config.threads}")
     if config.resolution is not None and (len(config.resolution) != 2 or min(config.resolution) < 2):
@@ -176,15 +194,23 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     progress: the CLI's display (`data.progress`); None trains silently.
     """
     _validate(config)
-    with cpu_threads(config.threads):
-        return _run(config, progress or NO_PROGRESS)
+    marks = ("checkpoint.pt", "manifest.json")
+    with output_folder(config.run_dir, overwrite=config.overwrite, resume=config.resume, marks=marks):
+        with cpu_threads(config.threads):
+            return _run(config, progress or NO_PROGRESS)
 
 
 def _run(config: Config, progress: Progress) -> Outputs:
     started = time.time()
     loop, scene, scene_path, record = _setup(config, progress)
     config = loop.config
-    seconds = loop.run()
+    (Path(config.run_dir) / "manifest.json").unlink(missing_ok=True)  # resumed: not a finished run until the end
+    with stop_on_signals() as stop:
+        loop.stop = stop
+        seconds = loop.run()
+    if stop.signum is not None:  # the signal came during the last checkpoint: it holds the final step
+        raise Interrupted(f"interrupted ({stop.name}) at step {loop.step} after {seconds:.1f} s; continue with "
+                          f"--resume (checkpoint {loop.ckpt_path})", stop.signum)  # fmt: skip
     test_psnr, chosen = _final_eval(config, loop, seconds)
     run_dir = Path(config.run_dir)
     plot = run_dir / "psnr_vs_time.png"
@@ -199,7 +225,7 @@ def _run(config: Config, progress: Progress) -> Outputs:
     outputs = [run_dir / n for n in ("config.json", "checkpoint.pt", "metrics.csv", "psnr_vs_time.png")]
     inputs = [scene_path / "transforms.json"] if scene_path.is_dir() else [scene_path]
     manifest = write_manifest(run_dir, stage="train", started=started, inputs=inputs, outputs=outputs, used=used,
-                              left_out=left_out, version=VERSION)  # fmt: skip
+                              left_out=left_out, version=VERSION, checkpoint_sha256=loop.ckpt_sha256)  # fmt: skip
     return Outputs(run_dir=run_dir, checkpoint=loop.ckpt_path, metrics=loop.metrics.path, plot=plot,
                    manifest=manifest, steps=loop.step, seconds=seconds, test_psnr=test_psnr)  # fmt: skip
 
@@ -252,7 +278,9 @@ def _setup(config: Config, progress: Progress) -> tuple[Loop, Scene, Path, dict]
     eval_px = None
     if test is not None:
         g = torch.Generator().manual_seed(config.seed + 1)
-        eval_px = torch.randperm(test.dirs.shape[0], generator=g)[: config.eval_pixels]
+        n = test.n_rays  # randperm holds 8 bytes a pixel: above 16 M pixels, draw with replacement instead
+        eval_px = (torch.randperm(n, generator=g)[: config.eval_pixels] if n <= 1 << 24
+                   else torch.randint(n, (config.eval_pixels,), generator=g))  # fmt: skip
 
     base_lr = config.lr if config.lr is not None else (0.03 if config.field == "fast" else 5e-4)
     opt = make_optimizer(model, base_lr)
@@ -314,7 +342,7 @@ def _final_eval(config: Config, loop: Loop, seconds: float) -> tuple[float | Non
 
 
 def _rays_per_second(loop: Loop, bg: torch.Tensor) -> float:
-    idx = torch.arange(min(4096, loop.test.dirs.shape[0]))
+    idx = torch.arange(min(4096, loop.test.n_rays))
     t0 = time.perf_counter()
     evaluate_psnr(loop.model, loop.test, idx, bg, loop.device)
     return idx.numel() / max(time.perf_counter() - t0, 1e-6)

@@ -118,7 +118,7 @@ def object_size_px(scene: Scene, train_idx: tuple[int, ...]) -> float:
 
 def resolve_defaults(config, scene: Scene, views: Views, train_idx, device: torch.device, downscale: float) -> Defaults:
     """The Config's None / auto values resolved from the scene and the device (see the module doc)."""
-    has_alpha = scene.has_alpha or bool((views.rgba[:, 3] < 255).any())
+    has_alpha = scene.has_alpha or views.any_transparent()
     background, plain, bg_reason = _background(config.background, views, has_alpha)
     limit = 1600 if device.type == "cuda" else 800
     why = " (asked for)" if config.downscale else f": long side <= {limit} px"

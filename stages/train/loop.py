@@ -5,6 +5,10 @@ time budget gets the whole schedule: the learning rate decays exponentially to `
 grid is upsampled at the `upsample_at` fractions. Seconds spent on periodic evaluation are not training time
 (the schedule, the budget and metrics.csv exclude them). A non-finite loss restores the last good state
 (kept every 100 steps and at each upsample) and halves the learning rate; the third time the run stops.
+
+Checkpoints: every `checkpoint_every` steps, every `checkpoint_seconds` of wall-clock time (so a killed run loses
+at most that), at the end, and when `stop` (`data.stop`: SIGINT/SIGTERM) is raised, after which the loop raises
+`data.errors.Interrupted` ("interrupted at step N after S s; continue with --resume").
 """
 
 from __future__ import annotations
@@ -21,8 +25,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from data.errors import Interrupted
 from data.progress import Progress
 from data.rundir import MetricsLog
+from data.stop import StopRequest
 from model.checkpoint import save_checkpoint
 from model.field_model import FieldModel
 from radiance.compositing import over_background
@@ -99,6 +105,9 @@ class Loop:
     samples_per_ray: float = 0.0
     skip_fraction: float = 0.0
     eval_rays_per_second: float | None = None
+    stop: StopRequest | None = None  # polled between steps (data.stop)
+    ckpt_sha256: str | None = None  # of the last checkpoint written
+    _ckpt_wall: float = 0.0  # time.perf_counter() at the last checkpoint
     _paused: float = 0.0
     _t_start: float = 0.0
     _losses: list[float] = field(default_factory=list)
@@ -111,12 +120,14 @@ class Loop:
         """Train until max_steps or max_seconds; refresh the occupancy grid; checkpoint. Returns seconds."""
         cfg = self.config
         schedule = upsample_schedule(cfg.resolution, cfg.upsample_at)
-        self._t_start = time.perf_counter()
+        self._t_start = self._ckpt_wall = time.perf_counter()
         good = self._snapshot()
         failures = 0
         task = self.progress.add_task("train", total=cfg.max_seconds)
         self.model.field.train()
         while self.step < cfg.max_steps:
+            if self.stop is not None and self.stop.signum is not None:
+                self._interrupted()
             frac = max(self.step / max(cfg.max_steps, 1), self.elapsed() / cfg.max_seconds)
             if frac >= 1.0:
                 break
@@ -138,7 +149,10 @@ class Loop:
             if self.step % 100 == 0:
                 good = self._snapshot()
             self._log(lr, task)
-            if self.step % cfg.checkpoint_every == 0:
+            every_s = getattr(cfg, "checkpoint_seconds", 0.0)
+            if self.step % cfg.checkpoint_every == 0 or (
+                every_s > 0 and time.perf_counter() - self._ckpt_wall >= every_s
+            ):
                 self._checkpoint()
                 self.metrics.save()
         seconds = self.elapsed()
@@ -152,7 +166,7 @@ class Loop:
     def _step(self) -> bool:
         """One optimiser step on a random batch of rays; False (and no update) when the loss is not finite."""
         cfg, model = self.config, self.model
-        idx = torch.randint(self.train.dirs.shape[0], (self.batch_rays,), generator=self.gen)
+        idx = torch.randint(self.train.n_rays, (self.batch_rays,), generator=self.gen)
         o, d, rgb, alpha = self.train.batch(idx, self.device)
         bg = model.background.train_colour(o.shape[0], self.gen, transparent=alpha == 0)  # [B, 3] or [3]
         target = over_background(rgb, alpha[:, None], bg.detach())
@@ -219,4 +233,14 @@ class Loop:
 
     def _checkpoint(self, seconds: float | None = None) -> None:
         seconds = self.elapsed() if seconds is None else seconds
-        save_checkpoint(self.ckpt_path, self.model, self.opt, self.step, seconds, self.lr_factor, self.gen.get_state())
+        self.ckpt_sha256 = save_checkpoint(self.ckpt_path, self.model, self.opt, self.step, seconds, self.lr_factor,
+                                           self.gen.get_state())  # fmt: skip
+        self._ckpt_wall = time.perf_counter()
+
+    def _interrupted(self) -> None:
+        """Save the current step (checkpoint, metrics) and stop with one line."""
+        seconds = self.elapsed()
+        self._checkpoint(seconds)
+        self.metrics.save()
+        raise Interrupted(f"interrupted ({self.stop.name}) at step {self.step} after {seconds:.1f} s; continue with "
+                          f"--resume (checkpoint {self.ckpt_path})", self.stop.signum)  # fmt: skip

@@ -1,7 +1,12 @@
-"""Training and test rays of a scene's views, held in memory: origins per view, directions and colours per ray.
+"""Training and test views of a scene, held in memory as uint8 colours; rays are made per batch.
 
-Rays are in the scene frame with unit directions (`radiance.camera.generate_rays`); colours are uint8 RGBA
-(alpha 255 for RGB images). `evenly_spaced` picks the test views `train` renders in full at the end.
+Memory grows with the images, not beyond them: each pixel is 4 bytes (uint8 RGBA, alpha 255 for RGB images) and
+each view keeps its camera. A batch of ray indices (flat over the views' pixels, view-major then row-major, the
+order `radiance.camera.pixel_centers` uses) becomes rays there and then: view and pixel from the index, the
+direction from that view's camera (`radiance.camera.generate_rays`' arithmetic, float64, then float32), so the
+rays are those the whole images would give and sampling is unchanged. (Before: directions float32 and a view
+index per pixel, 20 bytes a pixel, 5x the images; 300 views of 1920x1080 needed 12 GB.)
+Rays are in the scene frame with unit directions. `evenly_spaced` picks the test views `train` renders in full.
 """
 
 from __future__ import annotations
@@ -14,66 +19,133 @@ from torch import Tensor
 
 from data.errors import UserError
 from data.transforms import Scene, load_image
-from radiance.camera import generate_rays
+from radiance.camera import Intrinsics, undistort
 
 __all__ = ["Views", "load_views", "evenly_spaced", "auto_downscale"]
 
 
+class RayViews:
+    """`views.view[idx]`: the view [B] (int32) of each flat ray index, from the views' pixel offsets."""
+
+    def __init__(self, offsets: Tensor):
+        self.offsets = offsets  # [V + 1] int64
+
+    def __getitem__(self, idx: Tensor) -> Tensor:
+        return (torch.searchsorted(self.offsets, idx.long(), right=True) - 1).to(torch.int32)
+
+
+@dataclass(frozen=True)
+class _Cameras:
+    """Per-ray intrinsics as [B] float64 tensors: what `radiance.camera.undistort` reads, elementwise."""
+
+    fx: Tensor
+    fy: Tensor
+    cx: Tensor
+    cy: Tensor
+    k1: Tensor
+    k2: Tensor
+    k3: Tensor
+    p1: Tensor
+    p2: Tensor
+    has_distortion: bool
+
+
 @dataclass
 class Views:
-    """Rays of a set of views: origins per view, directions and colours per ray (flattened views)."""
+    """A set of views: uint8 colours per pixel (views concatenated) and one camera per view."""
 
-    origins: Tensor  # [V, 3] float32
-    view: Tensor  # [M] int32, view of each ray
-    dirs: Tensor  # [M, 3] float32
-    rgba: Tensor  # [M, 4] uint8 (alpha 255 for RGB images)
+    rgba: Tensor  # [M, 4] uint8, view-major then row-major
+    offsets: Tensor  # [V + 1] int64: view v's pixels are offsets[v]:offsets[v + 1]
+    world_from_cams: Tensor  # [V, 4, 4] float64, OpenGL axes
+    intrinsics: Tensor  # [V, 9] float64: fx, fy, cx, cy, k1, k2, k3, p1, p2 (of the possibly shrunk images)
     shapes: list[tuple[int, int]]  # (h, w) per view
 
-    def batch(self, idx: Tensor, device: torch.device) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """Rays idx [B] -> origins [B, 3], directions [B, 3], rgb [B, 3] and alpha [B] in [0, 1] on device."""
-        o = self.origins[self.view[idx].long()].to(device)
-        d = self.dirs[idx].to(device)
-        c = self.rgba[idx].to(device).float() / 255.0
-        return o, d, c[:, :3], c[:, 3]
+    def __post_init__(self) -> None:
+        self.widths = torch.tensor([w for _, w in self.shapes], dtype=torch.int64)  # [V]
+        self.distorted = bool((self.intrinsics[:, 4:] != 0).any())
+        self.view = RayViews(self.offsets)
 
-    def mask_colour(self, colour: tuple[float, float, float], tolerance: int = 4) -> None:
+    @property
+    def n_rays(self) -> int:
+        """Pixels (rays) over all views."""
+        return int(self.offsets[-1])
+
+    @property
+    def origins(self) -> Tensor:
+        """[V, 3] float32 camera centres."""
+        return self.world_from_cams[:, :3, 3].float()
+
+    def rays(self, idx: Tensor) -> tuple[Tensor, Tensor]:
+        """Rays idx [B] -> origins [B, 3], unit directions [B, 3] (float32, CPU), through the pixel centres."""
+        idx = idx.long()
+        v = self.view[idx].long()
+        p = idx - self.offsets[v]
+        w = self.widths[v]
+        u, row = (p % w).double() + 0.5, (p // w).double() + 0.5
+        k = self.intrinsics[v]  # [B, 9]
+        cams = _Cameras(*k.unbind(-1), has_distortion=self.distorted)
+        xy_distorted = torch.stack([(u - cams.cx) / cams.fx, (row - cams.cy) / cams.fy], dim=-1)
+        xy = undistort(xy_distorted, cams)  # type: ignore[arg-type]  # per-ray coefficients, same arithmetic
+        dirs_cam = torch.stack([xy[:, 0], -xy[:, 1], -torch.ones_like(xy[:, 0])], dim=-1)  # OpenCV -> OpenGL
+        m = self.world_from_cams[v]  # [B, 4, 4]
+        d = (dirs_cam[:, None, :] * m[:, :3, :3]).sum(-1)  # [B, 3] = R @ dirs_cam
+        d = d / torch.linalg.norm(d, dim=-1, keepdim=True)
+        return m[:, :3, 3].float(), d.float()
+
+    def batch(self, idx: Tensor, device: torch.device) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Rays idx [B] -> origins [B, 3], directions [B, 3], rgb [B, 3] and alpha [B] in [0, 1] on device.
+        `self.view[idx]` gives each ray's view."""
+        o, d = self.rays(idx)
+        c = self.rgba[idx].to(device).float() / 255.0
+        return o.to(device), d.to(device), c[:, :3], c[:, 3]
+
+    def mask_colour(self, colour: tuple[float, float, float], tolerance: int = 4, chunk: int = 1 << 22) -> None:
         """Pixels within `tolerance` (of 255) of `colour` on every channel become transparent (alpha 0)."""
         c = torch.tensor([round(v * 255) for v in colour], dtype=torch.int16)
-        close = ((self.rgba[:, :3].to(torch.int16) - c).abs() <= tolerance).all(dim=1)
-        self.rgba[close, 3] = 0
+        for i in range(0, self.n_rays, chunk):  # in chunks: the int16 copy would be 1.5x the images
+            part = self.rgba[i : i + chunk]
+            close = ((part[:, :3].to(torch.int16) - c).abs() <= tolerance).all(dim=1)
+            part[close, 3] = 0
+
+    def any_transparent(self, chunk: int = 1 << 22) -> bool:
+        """Whether any pixel has alpha < 255 (in chunks: a mask of every pixel would be a quarter of the images)."""
+        return any(bool((self.rgba[i : i + chunk, 3] < 255).any()) for i in range(0, self.n_rays, chunk))
 
     def pixels_of(self, v: int) -> Tensor:
         """Ray indices [h * w] of view v."""
-        start = sum(h * w for h, w in self.shapes[:v])
-        h, w = self.shapes[v]
-        return torch.arange(start, start + h * w)
+        return torch.arange(int(self.offsets[v]), int(self.offsets[v + 1]))
 
 
 def load_views(scene: Scene, indices: tuple[int, ...], downscale: float = 1.0) -> Views:
-    """Every pixel's ray of the views `indices`, images shrunk by `downscale` (area filter, intrinsics scaled);
-    UserError when an image's size disagrees with transforms.json."""
+    """The views `indices` with images shrunk by `downscale` (area filter, intrinsics scaled), colours in one
+    preallocated uint8 array; UserError when an image's size disagrees with transforms.json."""
     import cv2
 
-    origins, views, dirs, rgba, shapes = [], [], [], [], []
+    intrs = [scene.frame_intrinsics(i) for i in indices]
+    intrs = [intr.scaled(1.0 / downscale) if downscale != 1.0 else intr for intr in intrs]
+    shapes = [(intr.h, intr.w) for intr in intrs]
+    offsets = torch.tensor([0] + [h * w for h, w in shapes], dtype=torch.int64).cumsum(0)
+    rgba = torch.empty((int(offsets[-1]), 4), dtype=torch.uint8)
     for k, i in enumerate(indices):
         img = load_image(scene.image_path(i))
-        intr = scene.frame_intrinsics(i)
-        if img.shape[:2] != (intr.h, intr.w):
+        full = scene.frame_intrinsics(i)
+        if img.shape[:2] != (full.h, full.w):
             raise UserError(f"{scene.image_path(i)}: image is {img.shape[1]}x{img.shape[0]}, "
-                            f"transforms.json says {intr.w}x{intr.h}")  # fmt: skip
+                            f"transforms.json says {full.w}x{full.h}")  # fmt: skip
         if downscale != 1.0:
-            intr = intr.scaled(1.0 / downscale)
-            img = cv2.resize(img, (intr.w, intr.h), interpolation=cv2.INTER_AREA)
+            img = cv2.resize(img, (intrs[k].w, intrs[k].h), interpolation=cv2.INTER_AREA)
+        out = rgba[int(offsets[k]) : int(offsets[k + 1])].numpy().reshape(*shapes[k], 4)
+        out[..., : img.shape[-1]] = np.round(img * 255)
         if img.shape[-1] == 3:
-            img = np.concatenate([img, np.ones_like(img[..., :1])], axis=-1)
-        world_from_cam = torch.as_tensor(scene.frames[i].world_from_cam, dtype=torch.float64)
-        o, d = generate_rays(intr, world_from_cam)
-        origins.append(o[0].float())
-        dirs.append(d.float())
-        views.append(torch.full((d.shape[0],), k, dtype=torch.int32))
-        rgba.append(torch.from_numpy(np.round(img.reshape(-1, 4) * 255).astype(np.uint8)))
-        shapes.append((intr.h, intr.w))
-    return Views(torch.stack(origins), torch.cat(views), torch.cat(dirs), torch.cat(rgba), shapes)
+            out[..., 3] = 255
+    world_from_cams = torch.stack(
+        [torch.as_tensor(scene.frames[i].world_from_cam, dtype=torch.float64) for i in indices]
+    )
+    return Views(rgba, offsets, world_from_cams, torch.tensor([_coeffs(intr) for intr in intrs]), shapes)
+
+
+def _coeffs(intr: Intrinsics) -> list[float]:
+    return [intr.fx, intr.fy, intr.cx, intr.cy, intr.k1, intr.k2, intr.k3, intr.p1, intr.p2]
 
 
 def evenly_spaced(n: int, k: int | None) -> list[int]:

@@ -33,7 +33,7 @@ from data.atomic import write_json
 from data.errors import UserError
 from data.progress import NO_PROGRESS, Progress
 from data.projections import ProjectionScene, read_any
-from data.rundir import MetricsLog, config_to_json, write_manifest
+from data.rundir import MetricsLog, config_to_json, output_folder, write_manifest
 from data.volumes import write_npy
 from model.device import cpu_threads, resolve_device
 from model.xray import (
@@ -108,6 +108,8 @@ class Config:
     """Seed for initialisation and ray batches."""
     threads: int | None = None
     """CPU: torch intra-op threads (None: torch's default)."""
+    overwrite: bool = False
+    """Replace an earlier output in run_dir (set aside in RUN_DIR.previous/ until this one is written)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -192,8 +194,9 @@ def _evenly(ids: tuple[int, ...], k: int) -> list[int]:
 
 def run(config: Config, progress: Progress | None = None) -> Outputs:
     """See the module doc; torch's CPU threads are set to config.threads for the call and restored after."""
-    with cpu_threads(config.threads):
-        return _run(config, progress)
+    with output_folder(config.run_dir, overwrite=config.overwrite):
+        with cpu_threads(config.threads):
+            return _run(config, progress)
 
 
 def _run(config: Config, progress: Progress | None) -> Outputs:
