@@ -154,6 +154,7 @@ STAGES: dict[str, Stage] = {
 # (command, field) -> name of the stage module's `parse(text)` for fields no rule reads from text.
 PARSERS: dict[tuple[str, str], tuple[str, str]] = {
     ("render", "outputs"): ("parse_outputs", "<name,...>"),
+    ("render", "path"): ("parse_path", "<name|FILE.json>"),
     ("mesh", "threshold"): ("parse_threshold", "<auto|float>"),
     ("mesh", "bbox"): ("parse_bbox", "<auto|x0,y0,z0,x1,y1,z1>"),
     ("xray-export", "iso"): ("parse_iso", "<auto|float>"),
@@ -268,6 +269,19 @@ def _as_text(value: Any) -> Any:
     return ",".join(str(v) for v in value) if isinstance(value, tuple) else value
 
 
+def _usage_errors(parse: Callable[[str], Any]) -> Callable[[str], Any]:
+    """A stage parser whose ValueError becomes typer's usage error with the parser's own message (click would
+    otherwise drop the message and print only the value)."""
+
+    def wrapped(text: str) -> Any:
+        try:
+            return parse(text)
+        except ValueError as exc:
+            raise typer.BadParameter(str(exc)) from None
+
+    return wrapped
+
+
 def _param(command: str, module: types.ModuleType, f: dataclasses.Field, hint: Any, doc: str) -> _Param | None:
     """The typer parameter for one Config field, or None for a field with no command-line form."""
     help_ = _first_sentence(doc)
@@ -279,7 +293,7 @@ def _param(command: str, module: types.ModuleType, f: dataclasses.Field, hint: A
         return _Param(f.name, Annotated[base, typer.Argument(help=help_)])
     if (command, f.name) in PARSERS:
         parser, metavar = PARSERS[command, f.name]
-        option = typer.Option(help=help_, parser=getattr(module, parser), metavar=metavar)
+        option = typer.Option(help=help_, parser=_usage_errors(getattr(module, parser)), metavar=metavar)
         return _Param(f.name, Annotated[str | None, option], _as_text(default))
     if optional and dataclasses.is_dataclass(base) and default is not None:  # a nested config: on (default) / off
         return _Param(f.name, Annotated[bool, typer.Option(help=help_)], True, lambda on: _KEEP if on else None)
