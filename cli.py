@@ -117,6 +117,10 @@ def _xray(out: Any) -> str:
     return _done(out)
 
 
+def _view(out: Any) -> str:
+    return f"viewer ({out.kind}) at {out.url} stopped"
+
+
 def _done(out: Any) -> str:
     """Summary for a stage without its own: the first path among its outputs."""
     values = [getattr(out, f.name) for f in dataclasses.fields(out)] if dataclasses.is_dataclass(out) else []
@@ -148,6 +152,7 @@ STAGES: dict[str, Stage] = {
     "xray-simulate": Stage("stages.xray_simulate", "X-ray projections of a CT volume -> a projection scene.", _xray),
     "xray-train": Stage("stages.xray_train", "Fit an attenuation field to X-ray projections; 3-D PSNR vs time.", _xray),
     "xray-eval": Stage("stages.xray_eval", "3-D PSNR/SSIM, projection PSNR/SSIM, FDK baseline, to JSON.", _xray),
+    "view": Stage("stages.view", "Browse a scene or a run in the browser (viser); record camera paths.", _view),
     "xray-export": Stage("stages.xray_export", "Slice montages, a rotating DRR/MIP video and an iso-surface mesh."),
 }
 
