@@ -29,7 +29,7 @@ from stages import train
 from stages.view import server as viewer_server
 from stages.view.cameras import browser_intrinsics, viser_pose, world_from_cam_gl
 from stages.view.recorder import PathRecorder
-from stages.view.run_view import frame_image, render_camera, test_psnr_text
+from stages.view.run_view import frame_image, render_camera, psnr_summary
 from stages.view.scene_view import box_edges, camera_rays
 
 try:  # the analytic stand-in lives with the render tests
@@ -161,7 +161,7 @@ def test_recorded_path_renders(trained_run, tmp_path):
     res = render_stage.run(render_stage.Config(run_dir=trained_run, out=tmp_path / "rec.mp4", path=str(path),
                                                device="cpu"))  # fmt: skip
     assert res.n_frames == 5 and res.size == (12, 16)
-    assert "PSNR" in test_psnr_text(trained_run)
+    assert "PSNR" in psnr_summary(trained_run)
 
 
 def _sphere_run(root: Path, monkeypatch) -> Path:

@@ -32,7 +32,7 @@ from data.transforms import read_scene
 from model import load_trained, resolve_device
 from stages.view import server as viewer_server
 from stages.view.recorder import PathRecorder, add_recorder_gui
-from stages.view.run_view import MODES, LiveRender, test_psnr_text
+from stages.view.run_view import MODES, LiveRender, psnr_summary
 from stages.view.scene_view import SceneView
 from stages.view.xray_view import XrayView
 
@@ -154,7 +154,7 @@ def _draw_run(server, viewer: Viewer, trained, run_dir: Path, config: Config) ->
     viewer.live = live
     with server.gui.add_folder("Render"):
         mode = server.gui.add_dropdown("Show", MODES, initial_value="rgb")
-        server.gui.add_markdown(test_psnr_text(run_dir))
+        server.gui.add_markdown(psnr_summary(run_dir))
 
     @mode.on_update
     def _(_event) -> None:

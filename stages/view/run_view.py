@@ -23,7 +23,7 @@ from model import OPAQUE
 from model.preview import render_preview
 from stages.view.cameras import browser_intrinsics, world_from_cam_gl
 
-__all__ = ["MODES", "SETTLE_SECONDS", "frame_image", "render_camera", "test_psnr_text", "LiveRender"]
+__all__ = ["MODES", "SETTLE_SECONDS", "frame_image", "render_camera", "psnr_summary", "LiveRender"]
 
 MODES = ("rgb", "depth", "accumulation")
 SETTLE_SECONDS = 0.25
@@ -53,7 +53,7 @@ def render_camera(trained, wxyz, position, fov: float, aspect: float, long_side:
     return frame_image(view, mode)
 
 
-def test_psnr_text(run_dir: Path) -> str:
+def psnr_summary(run_dir: Path) -> str:
     """Markdown with the run's held-out PSNR: eval.json (per view) when `nerfpipe eval` wrote one into the run,
     else the last test PSNR of training's metrics.csv."""
     ev = Path(run_dir) / "eval.json"
