@@ -29,7 +29,7 @@ from stages import train
 from stages.view import server as viewer_server
 from stages.view.cameras import browser_intrinsics, viser_pose, world_from_cam_gl
 from stages.view.recorder import PathRecorder
-from stages.view.run_view import frame_image, render_camera, psnr_summary
+from stages.view.run_view import frame_image, psnr_summary, render_camera
 from stages.view.scene_view import box_edges, camera_rays
 
 try:  # the analytic stand-in lives with the render tests

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import csv
 import json
+import sys
 import threading
 import time
 from pathlib import Path
@@ -103,6 +104,12 @@ class LiveRender:
         changed.set()
 
     def _render(self, client, coarse: bool) -> None:
+        try:
+            self._render_once(client, coarse)
+        except Exception as exc:  # noqa: BLE001 - a failed frame must not end the browser's render thread
+            print(f"warning: view: a frame failed: {type(exc).__name__}: {exc}", file=sys.stderr)
+
+    def _render_once(self, client, coarse: bool) -> None:
         cam = client.camera
         if not cam.fov > 0 or not cam.aspect > 0:
             return
@@ -110,6 +117,8 @@ class LiveRender:
         img = render_camera(self.trained, cam.wxyz, cam.position, cam.fov, cam.aspect,
                             self.preview if coarse else self.refine, coarse=coarse, mode=self.mode)  # fmt: skip
         self.last_seconds["coarse" if coarse else "refined"] = time.perf_counter() - t0
+        if self._stop.is_set() or client.client_id not in self._events:
+            return
         client.scene.set_background_image(img, format="jpeg", jpeg_quality=90)
 
     def _loop(self, client, changed: threading.Event) -> None:
