@@ -296,13 +296,17 @@ def render_marched_terminating(
         counts = torch.bincount(ray_idx, minlength=n)  # [R]
         pos = torch.arange(ray_idx.numel(), device=ray_idx.device) - (torch.cumsum(counts, 0) - counts)[ray_idx]
         slab = pos // segment  # [N] which slab of its ray a sample is in
+        order = torch.argsort(slab, stable=True)  # samples grouped by slab: each pass touches only its own
+        ends = torch.cumsum(torch.bincount(slab), 0).tolist()
         tau_before = x.new_zeros(n)  # [R] optical depth of the slabs done so far
         log_t_min = -math.log(min_transmittance) if min_transmittance > 0 else math.inf
-        for k in range(int(slab.max()) + 1):
-            take = (slab == k) & (tau_before[ray_idx] <= log_t_min)  # T = exp(-tau) >= min_transmittance
-            if not bool(take.any()):
+        start = 0
+        for end in ends:
+            idx = order[start:end]
+            start = end
+            idx = idx[tau_before[ray_idx[idx]] <= log_t_min]  # T = exp(-tau) >= min_transmittance
+            if idx.numel() == 0:  # every ray that reaches this slab has stopped: so have all later ones
                 break
-            idx = torch.nonzero(take, as_tuple=True)[0]
             sigma[idx] = sigma_fn(x[idx]).to(sigma.dtype)
             tau_before.index_add_(0, ray_idx[idx], optical_depth(sigma[idx], t0[idx], t1[idx]).to(sigma.dtype))
     shade = dict(color_threshold=color_threshold, color_per_ray=color_per_ray, with_median=with_median)
