@@ -1,7 +1,7 @@
 """Stage `view`: an interactive viewer (viser, in the browser) for a scene before training, a trained run or an
 X-ray run.
 
-    nerfpipe view SCENE_DIR|RUN_DIR [--port 7007] [--host 127.0.0.1] [--preview 256] [--refine 512]
+    nerfpipe view SCENE_DIR|RUN_DIR [--port 7007] [--host 127.0.0.1] [--preview 256] [--refine 384]
 
 - SCENE_DIR (a folder with transforms.json): camera frusta with their images, sparse points (transforms.json's
   `sparse_points_path`), the scene box, the up axis; clicking a camera shows its image and name; a toggle draws
@@ -49,7 +49,7 @@ class Config:
     """Address to listen on; 127.0.0.1 keeps the viewer to this machine, 0.0.0.0 opens it to the network."""
     preview: int = 256
     """Long side, in pixels, of the frames rendered while the camera moves (coarse)."""
-    refine: int = 512
+    refine: int = 384
     """Long side, in pixels, of the frame rendered once the camera stops."""
     paths_dir: Path | None = None
     """Where the recorder saves camera paths (default: the folder viewed)."""
