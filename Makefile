@@ -24,11 +24,20 @@ $(INSTALLED): pyproject.toml
 install: $(INSTALLED)
 
 # ------------------------------------------------------------------------------------------- checks
-.PHONY: test lint format
-test: $(INSTALLED)
+.PHONY: test lint format browser
+test: $(INSTALLED) browser
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/pytest
+
+# Debian's chromium for the viewer's browser test (tests/test_view.py skips, saying why, where it is missing).
+# Installed from the distribution's packages only, never a browser build downloaded at run time.
+browser:
+	@if command -v chromium >/dev/null; then :; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	  apt-get install -y -q chromium >/dev/null || { apt-get update -q >/dev/null && apt-get install -y -q chromium >/dev/null; } \
+	  || echo "make browser: apt-get could not install chromium; the browser test will skip"; \
+	else echo "make browser: needs root and apt-get to install chromium; the browser test will skip"; fi
 
 lint: $(INSTALLED)
 	$(VENV)/bin/ruff check .

@@ -118,6 +118,10 @@ def _xray(out: Any) -> str:
     return _done(out)
 
 
+def _view(out: Any) -> str:
+    return f"viewer ({out.kind}) at {out.url} stopped"
+
+
 def _done(out: Any) -> str:
     """Summary for a stage without its own: the first path among its outputs."""
     values = [getattr(out, f.name) for f in dataclasses.fields(out)] if dataclasses.is_dataclass(out) else []
@@ -149,12 +153,14 @@ STAGES: dict[str, Stage] = {
     "xray-simulate": Stage("stages.xray_simulate", "X-ray projections of a CT volume -> a projection scene.", _xray),
     "xray-train": Stage("stages.xray_train", "Fit an attenuation field to X-ray projections; 3-D PSNR vs time.", _xray),
     "xray-eval": Stage("stages.xray_eval", "3-D PSNR/SSIM, projection PSNR/SSIM, FDK baseline, to JSON.", _xray),
+    "view": Stage("stages.view", "Browse a scene or a run in the browser (viser); record camera paths.", _view),
     "xray-export": Stage("stages.xray_export", "Slice montages, a rotating DRR/MIP video and an iso-surface mesh."),
 }
 
 # (command, field) -> name of the stage module's `parse(text)` for fields no rule reads from text.
 PARSERS: dict[tuple[str, str], tuple[str, str]] = {
     ("render", "outputs"): ("parse_outputs", "<name,...>"),
+    ("render", "path"): ("parse_path", "<name|FILE.json>"),
     ("mesh", "threshold"): ("parse_threshold", "<auto|float>"),
     ("mesh", "bbox"): ("parse_bbox", "<auto|x0,y0,z0,x1,y1,z1>"),
     ("xray-export", "iso"): ("parse_iso", "<auto|float>"),
@@ -269,6 +275,19 @@ def _as_text(value: Any) -> Any:
     return ",".join(str(v) for v in value) if isinstance(value, tuple) else value
 
 
+def _usage_errors(parse: Callable[[str], Any]) -> Callable[[str], Any]:
+    """A stage parser whose ValueError becomes typer's usage error with the parser's own message (click would
+    otherwise drop the message and print only the value)."""
+
+    def wrapped(text: str) -> Any:
+        try:
+            return parse(text)
+        except ValueError as exc:
+            raise typer.BadParameter(str(exc)) from None
+
+    return wrapped
+
+
 def _param(command: str, module: types.ModuleType, f: dataclasses.Field, hint: Any, doc: str) -> _Param | None:
     """The typer parameter for one Config field, or None for a field with no command-line form."""
     help_ = _first_sentence(doc)
@@ -280,7 +299,7 @@ def _param(command: str, module: types.ModuleType, f: dataclasses.Field, hint: A
         return _Param(f.name, Annotated[base, typer.Argument(help=help_)])
     if (command, f.name) in PARSERS:
         parser, metavar = PARSERS[command, f.name]
-        option = typer.Option(help=help_, parser=getattr(module, parser), metavar=metavar)
+        option = typer.Option(help=help_, parser=_usage_errors(getattr(module, parser)), metavar=metavar)
         return _Param(f.name, Annotated[str | None, option], _as_text(default))
     if optional and dataclasses.is_dataclass(base) and default is not None:  # a nested config: on (default) / off
         return _Param(f.name, Annotated[bool, typer.Option(help=help_)], True, lambda on: _KEEP if on else None)

@@ -6,10 +6,11 @@ Cameras are world_from_cam [4, 4] in the scene frame, OpenGL axes (x right, y up
 `turntable` orbits the point the training cameras look at, `arc` is the part of that orbit the training cameras
 cover, `trajectory` follows the training cameras (capture order, or azimuth order when the capture order wanders)
 smoothed and resampled, `spiral` is LLFF's forward-facing path, `test` / `train` replay a split's cameras with
-their own intrinsics (distortion included). `auto` picks spiral for a forward-facing capture, turntable when the
-training cameras go round the object (largest azimuth gap <= `MAX_TURNTABLE_GAP_DEG`), trajectory otherwise, and
-says why in `CameraPath.used`. Synthetic paths use the first training camera's intrinsics without distortion,
-scaled by 1/downscale.
+their own intrinsics (distortion included); a `.json` file (`data.camera_path`: recorded by `nerfpipe view`, or
+nerfstudio's camera_path.json) is played back frame by frame with its own size and field of view. `auto` picks
+spiral for a forward-facing capture, turntable when the training cameras go round the object (largest azimuth
+gap <= `MAX_TURNTABLE_GAP_DEG`), trajectory otherwise, and says why in `CameraPath.used`. Synthetic paths use the first
+training camera's intrinsics without distortion, scaled by 1/downscale.
 """
 
 from __future__ import annotations
@@ -23,12 +24,16 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
+from data.camera_path import read_camera_path
 from data.errors import UserError
 from data.transforms import Scene, is_forward_facing
 from radiance import paths
 from radiance.camera import Intrinsics, generate_rays
 
-__all__ = ["PATHS", "OPAQUE", "Renderable", "render_view", "training_intrinsics", "CameraPath", "camera_path"]
+__all__ = [
+    "PATHS", "OPAQUE", "Renderable", "render_view", "training_intrinsics", "CameraPath", "camera_path",
+    "is_path_file", "path_from_file",
+]  # fmt: skip
 
 PATHS = ("auto", "turntable", "arc", "trajectory", "spiral", "test", "train")
 MAX_TURNTABLE_GAP_DEG = 90.0
@@ -131,14 +136,40 @@ def _path_order(scene: Scene, train_idx: tuple[int, ...], train_poses: np.ndarra
     return by_azimuth, f"azimuth order ({why})"
 
 
+def is_path_file(kind: str) -> bool:
+    """True when a `--path` value names a camera-path file (`*.json`) rather than a built-in path."""
+    return str(kind).lower().endswith(".json")
+
+
+def path_from_file(file: str | Path, downscale: float = 1.0) -> CameraPath:
+    """A recorded camera path (`data.camera_path`): one camera per entry, pinhole intrinsics from the file's
+    render size and vertical field of view (fx = fy, centred), scaled by 1/downscale."""
+    if not downscale > 0:
+        raise UserError(f"--downscale: expected > 0, got {downscale}")
+    doc = read_camera_path(file)
+    intr = []
+    for fov in doc.fovs_deg:
+        f = 0.5 * doc.height / np.tan(np.radians(fov) / 2)
+        base = Intrinsics(w=doc.width, h=doc.height, fx=f, fy=f, cx=doc.width / 2, cy=doc.height / 2)
+        intr.append(_scaled(base, downscale, keep_distortion=False))
+    names = tuple(f"frame_{k:05d}" for k in range(len(intr)))
+    used = {"path": "file", "file": str(file), "format": doc.source, "fps_in_file": doc.fps,
+            "size_in_file_wh": [doc.width, doc.height]}  # fmt: skip
+    return CameraPath(world_from_cams=doc.world_from_cams, intrinsics=tuple(intr), names=names, frame_indices=None,
+                      used=used)  # fmt: skip
+
+
 def camera_path(
     scene: Scene, kind: str, *, frames: int = 120, downscale: float = 1.0, elevation: float | None = None,
     radius: float | None = None,
 ) -> CameraPath:  # fmt: skip
     """Cameras of a path over a trained run's scene. radius in the user's units (scaled into the scene frame);
-    radius and elevation shape the turntable and the arc (a trajectory keeps the cameras' own)."""
+    radius and elevation shape the turntable and the arc (a trajectory keeps the cameras' own). A `kind` ending in
+    .json is a camera-path file (`path_from_file`; frames, radius and elevation do not apply)."""
+    if is_path_file(kind):
+        return path_from_file(kind, downscale)
     if kind not in PATHS:
-        raise UserError(f"--path: unknown path {kind!r}; expected one of {', '.join(PATHS)}")
+        raise UserError(f"--path: unknown path {kind!r}; expected one of {', '.join(PATHS)} or a FILE.json")
     if not downscale > 0:
         raise UserError(f"--downscale: expected > 0, got {downscale}")
     if kind in ("test", "train"):

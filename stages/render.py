@@ -1,7 +1,7 @@
 """Stage `render`: a trained run -> an H.264 mp4 along a camera path (and optionally the PNG frames).
 
-    nerfpipe render RUN_DIR OUT.mp4 [--path auto|turntable|arc|trajectory|spiral|test|train] [--frames 120]
-        [--fps 30] [--downscale 1] [--max-seconds S] [--elevation DEG] [--radius R]
+    nerfpipe render RUN_DIR OUT.mp4 [--path auto|turntable|arc|trajectory|spiral|test|train|FILE.json]
+        [--frames 120] [--fps 30] [--downscale 1] [--max-seconds S] [--elevation DEG] [--radius R]
         [--outputs rgb,depth,accumulation] [--frames-dir DIR]
 
 Paths (`model.camera_path`, maths in `radiance.paths`): `turntable` orbits the point the training cameras look
@@ -13,7 +13,9 @@ smoothed, splined, resampled at equal arc length) looking at that point; `spiral
 photo per frame in the metrics log). `auto`: spiral for a forward-facing capture, turntable when the training
 cameras go round the object (no gap over 90 degrees between their azimuths), trajectory otherwise; the manifest
 says which and why (coverage in degrees, largest gap). Synthetic paths use the first training camera's
-intrinsics without distortion, scaled by 1/downscale.
+intrinsics without distortion, scaled by 1/downscale. A `FILE.json` camera path (`data.camera_path`: recorded by
+`nerfpipe view` or nerfstudio's camera_path.json) plays every camera in it at the file's size and field of view
+(scaled by 1/downscale); --frames, --elevation and --radius do not apply to it.
 
 Time budget (`max_seconds`): rays/s is measured on a small preview (`PREVIEW_VIEWS` path cameras at about
 `PREVIEW_RAYS` pixels each; a video with no more pixels than that is rendered as asked, unmeasured); when the
@@ -34,7 +36,6 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 import torch
@@ -45,10 +46,11 @@ from data.rundir import MetricsLog, Stopwatch, config_to_json, sidecar, write_ma
 from data.transforms import Scene, load_image
 from data.video import colorize, grey, to_uint8, video_writer, write_png
 from model import OPAQUE, PATHS, CameraPath, Renderable, camera_path, load_trained, render_view, resolve_device
+from model.cameras import is_path_file
 from radiance.compositing import over_background
 from radiance.metrics import psnr
 
-__all__ = ["Config", "Outputs", "OUTPUT_KINDS", "parse_outputs", "fit_budget", "run"]
+__all__ = ["Config", "Outputs", "OUTPUT_KINDS", "parse_outputs", "parse_path", "fit_budget", "run"]
 
 OUTPUT_KINDS = ("rgb", "depth", "accumulation")
 MIN_SHORT_SIDE = 240
@@ -66,10 +68,12 @@ class Config:
     """Trained run directory (config.json, checkpoint.pt, ...)."""
     out: Path
     """Output video, `.mp4`."""
-    path: Literal["auto", "turntable", "arc", "trajectory", "spiral", "test", "train"] = "auto"
-    """Camera path: turntable (all the way round) | arc (the part of the orbit the photos cover) | trajectory
-    (follows the training cameras, smoothed) | spiral | test | train; auto: spiral for a forward-facing scene,
-    turntable when the photos go round the object (no azimuth gap over 90 degrees), trajectory otherwise."""
+    path: str = "auto"
+    """Camera path: auto | turntable | arc | trajectory | spiral | test | train, or a camera-path FILE.json
+    (recorded by `nerfpipe view`, or nerfstudio's camera_path.json; docs/camera_path.md). turntable goes all
+    the way round, arc covers the part of the orbit the photos cover, trajectory follows the training cameras
+    (smoothed); auto: spiral for a forward-facing scene, turntable when the photos go round the object (no
+    azimuth gap over 90 degrees), trajectory otherwise."""
     frames: int = 120
     """Number of frames of a synthetic path (test / train replay every camera of the split)."""
     fps: float = 30.0
@@ -118,6 +122,14 @@ def parse_outputs(text: str | tuple[str, ...] | list[str]) -> tuple[str, ...]:
     if len(set(items)) != len(items):
         raise UserError(f"--outputs: {text!r} names an output twice")
     return tuple(items)
+
+
+def parse_path(text: str) -> str:
+    """A built-in path name or a `.json` camera-path file (for the CLI; ValueError lists the choices)."""
+    text = text.strip()
+    if text in PATHS or is_path_file(text):
+        return text
+    raise ValueError(f"unknown path {text!r}; expected one of {', '.join(PATHS)} or a FILE.json")
 
 
 def _depth_range(trained: Renderable, cams: CameraPath, device: torch.device, scale: float) -> tuple[float, float]:
@@ -206,7 +218,7 @@ def _within_budget(trained: Renderable, cams: CameraPath, config: Config, device
     rate, rays, seconds = _rays_per_second(trained, cams, device)
     left = config.max_seconds - (time.time() - started)
     per_frame = sum(i.w * i.h for i in cams.intrinsics) / len(cams.intrinsics)
-    replay = cams.frame_indices is not None
+    replay = cams.frame_indices is not None or is_path_file(config.path)  # every camera kept
     scale, frames, reason = fit_budget(
         seconds=max(left, 1e-3), rays_per_s=rate, rays_per_frame=per_frame, frames=len(cams.names),
         short_side=min(min(i.w, i.h) for i in cams.intrinsics), drop_frames=not replay,
@@ -233,8 +245,8 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     out = Path(config.out)
     if out.suffix.lower() != ".mp4":
         raise UserError(f"{out}: expected an .mp4 output path")
-    if config.path not in PATHS:
-        raise UserError(f"--path: unknown path {config.path!r}; expected one of {', '.join(PATHS)}")
+    if config.path not in PATHS and not is_path_file(config.path):
+        raise UserError(f"--path: unknown path {config.path!r}; expected one of {', '.join(PATHS)} or a FILE.json")
     if not config.fps > 0:
         raise UserError(f"--fps: expected > 0, got {config.fps}")
     if config.max_seconds is not None and not config.max_seconds > 0:

@@ -1,0 +1,73 @@
+"""Interactive rendering of a trained run (what `nerfpipe view` shows): fast, inference only, no depth median.
+
+`render_preview(trained, intr, world_from_cam, coarse=...)` returns what `model.render_view` returns without
+`depth_median` (rgb [H, W, 3], z-depth [H, W] in scene units, acc [H, W], numpy float32). For a `fast` field in
+the scene's box it marches the occupancy grid with early ray termination (`radiance.render.
+render_marched_terminating`: rays stop once their transmittance is below `MIN_TRANSMITTANCE`); `coarse=True`
+also doubles the marching step (`COARSE_STEP`), which is what the viewer shows while the camera moves. Other runs
+(vanilla, NDC, contracted) go through `Trained.render_rays` (the same as `render`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from model.cameras import Renderable
+from radiance.camera import Intrinsics, generate_rays
+from radiance.render import render_marched_terminating
+
+__all__ = ["MIN_TRANSMITTANCE", "COARSE_STEP", "render_preview", "preview_rays"]
+
+MIN_TRANSMITTANCE = 1e-3
+"""A ray stops once less than this much light gets through (acc and rgb off by at most this)."""
+COARSE_STEP = 2.0
+"""While the camera moves, march at this many times the run's inference step (its training step)."""
+
+
+def _fast_box(trained: Renderable):
+    """The run's FieldModel when it is a `fast` field in the scene's box with an occupancy grid, else None."""
+    model = getattr(trained, "model", None)
+    if model is None or model.kind != "fast" or model.grid is None or model.ndc is not None:
+        return None
+    return None if model.contraction is not None else model
+
+
+@torch.no_grad()
+def preview_rays(trained: Renderable, rays_o: torch.Tensor, rays_d: torch.Tensor, *, coarse: bool = False) -> dict:
+    """rays [R, 3] (unit d) -> dict(rgb [R, 3], depth [R] (expected t), acc [R]) on the run's device."""
+    model = _fast_box(trained)
+    if model is None:
+        out = trained.render_rays(rays_o, rays_d)
+        return {k: out[k] for k in ("rgb", "depth", "acc")}
+    field = model.field
+    rgb_fn = (lambda x, d: field.color(x, d if field.view_dependent else None)) if field.has_color else None
+    step = model.step_size * model.render_step_factor * (COARSE_STEP if coarse else 1.0)
+    parts: dict[str, list[torch.Tensor]] = {"rgb": [], "depth": [], "acc": []}
+    for i in range(0, rays_o.shape[0], model.chunk):
+        o = rays_o[i : i + model.chunk].to(trained.device, torch.float32)
+        d = rays_d[i : i + model.chunk].to(trained.device, torch.float32)
+        out = render_marched_terminating(
+            o, d, grid=model.grid, sigma_fn=field.density, rgb_fn=rgb_fn, near=model.near, far=model.far,
+            step_size=step, background=trained.background, min_transmittance=MIN_TRANSMITTANCE,
+        )  # fmt: skip
+        if "rgb" not in out:
+            out["rgb"] = trained.background.to(o).expand(o.shape[0], 3)
+        for k in parts:
+            parts[k].append(out[k])
+    return {k: torch.cat(v) for k, v in parts.items()}
+
+
+def render_preview(trained: Renderable, intr: Intrinsics, world_from_cam: np.ndarray, *, coarse: bool = False):
+    """One camera (scene frame, OpenGL axes) -> dict(rgb [H, W, 3], depth [H, W] z-depth, acc [H, W]) numpy."""
+    pose = torch.as_tensor(np.asarray(world_from_cam, dtype=np.float64))
+    rays_o, rays_d = generate_rays(intr, pose)  # float64 [R, 3]
+    cos = (rays_d @ -pose[:3, 2]).to(torch.float32).reshape(intr.h, intr.w).numpy()  # t -> z-depth
+    device = getattr(trained, "device", torch.device("cpu"))
+    out = preview_rays(trained, rays_o.to(device, torch.float32), rays_d.to(device, torch.float32), coarse=coarse)
+
+    def grab(key: str, shape: tuple[int, ...]) -> np.ndarray:
+        return out[key].detach().float().cpu().reshape(shape).numpy()
+
+    h, w = intr.h, intr.w
+    return {"rgb": grab("rgb", (h, w, 3)), "depth": grab("depth", (h, w)) * cos, "acc": grab("acc", (h, w))}

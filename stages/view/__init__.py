@@ -1,0 +1,171 @@
+"""Stage `view`: an interactive viewer (viser, in the browser) for a scene before training, a trained run or an
+X-ray run.
+
+    nerfpipe view SCENE_DIR|RUN_DIR [--port 7007] [--host 127.0.0.1] [--preview 256] [--refine 384]
+
+- SCENE_DIR (a folder with transforms.json): camera frusta with their images, sparse points (transforms.json's
+  `sparse_points_path`), the scene box, the up axis; clicking a camera shows its image and name; a toggle draws
+  a few of its rays and their sample points (`stages.view.scene_view`).
+- RUN_DIR (`train`'s output): the field rendered live from the browser's camera, coarse while it moves and
+  refined when it stops, as rgb / depth / accumulation; the training cameras; the test views' PSNR from the run's
+  files (`stages.view.run_view`), and the camera-path recorder (`stages.view.recorder`), whose JSON
+  `nerfpipe render RUN_DIR OUT.mp4 --path FILE.json` plays back.
+- An X-ray run (`xray-train`'s output): DRR / MIP at any gantry angle and a movable slice plane
+  (`stages.view.xray_view`).
+
+The server listens on 127.0.0.1 (this machine only) unless `--host` says otherwise, which prints a warning;
+Ctrl-C stops it. `serve(config)` starts it and returns a `Viewer` (tests and scripts stop it with `.stop()`);
+`run(config)` serves until Ctrl-C. Camera paths are saved under `--paths-dir` (default: the folder viewed).
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from data.errors import UserError
+from data.transforms import read_scene
+from model import load_trained, resolve_device
+from stages.view import server as viewer_server
+from stages.view.recorder import PathRecorder, add_recorder_gui
+from stages.view.run_view import MODES, LiveRender, psnr_summary
+from stages.view.scene_view import SceneView
+from stages.view.xray_view import XrayView
+
+__all__ = ["Config", "Outputs", "Viewer", "kind_of", "serve", "run"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class Config:
+    target: Path
+    """A scene folder (transforms.json), a train run directory or an xray-train run directory."""
+    port: int = 7007
+    """TCP port of the viewer (0: any free port)."""
+    host: str = "127.0.0.1"
+    """Address to listen on; 127.0.0.1 keeps the viewer to this machine, 0.0.0.0 opens it to the network."""
+    preview: int = 256
+    """Long side, in pixels, of the frames rendered while the camera moves (coarse)."""
+    refine: int = 384
+    """Long side, in pixels, of the frame rendered once the camera stops."""
+    paths_dir: Path | None = None
+    """Where the recorder saves camera paths (default: the folder viewed)."""
+    device: str = "auto"
+    """torch device: auto (cuda if available, else cpu), cpu, cuda, cuda:1, ..."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class Outputs:
+    url: str
+    """Where the viewer was served."""
+    kind: str
+    """scene | run | xray."""
+
+
+@dataclass
+class Viewer:
+    """A running viewer: its server, what it shows, and how to stop it."""
+
+    server: object
+    url: str
+    kind: str
+    port: int
+    live: LiveRender | None = None
+    scene_view: SceneView | None = None
+    recorder: PathRecorder | None = None
+    stopped: threading.Event = field(default_factory=threading.Event)
+
+    def stop(self) -> None:
+        if self.live is not None:
+            self.live.stop()
+        if not self.stopped.is_set():
+            self.stopped.set()
+            self.server.stop()
+
+
+def kind_of(target: Path) -> str:
+    """'scene' (transforms.json), 'run' (train run: config.json with scene_dir + checkpoint.pt) or 'xray'."""
+    target = Path(target)
+    if not target.exists():
+        raise UserError(f"{target}: not found (expected a scene folder or a run directory)")
+    if (target / "transforms.json").is_file() or (target.is_file() and target.name.endswith(".json")):
+        return "scene"
+    cfg = target / "config.json"
+    if cfg.is_file() and (target / "checkpoint.pt").is_file():
+        doc = json.loads(cfg.read_text())
+        return "run" if "scene_dir" in doc else "xray"
+    raise UserError(f"{target}: neither a scene folder (transforms.json) nor a finished run (config.json, "
+                    "checkpoint.pt)")  # fmt: skip
+
+
+def _look_from_first_camera(server, scene, centre: np.ndarray) -> None:
+    train = scene.split("train") or tuple(range(len(scene.frames)))
+    pose = scene.frames[train[0]].world_from_cam
+    server.initial_camera.position = tuple(pose[:3, 3])
+    server.initial_camera.look_at = tuple(centre)
+    server.initial_camera.up = (0.0, 0.0, 1.0)
+
+
+def serve(config: Config) -> Viewer:
+    """Start the viewer for `config.target` and return at once."""
+    if config.preview < 8 or config.refine < 8:
+        raise UserError(f"--preview/--refine: expected >= 8 pixels, got {config.preview}, {config.refine}")
+    kind = kind_of(config.target)
+    target = Path(config.target)
+    paths_dir = (
+        Path(config.paths_dir) if config.paths_dir is not None else (target if target.is_dir() else target.parent)
+    )
+    device = resolve_device(config.device)
+    loaded = load_trained(target, device) if kind == "run" else None
+    if kind == "xray":
+        from model.xray import load_xray_run
+
+        xray = load_xray_run(target, device)
+    server = viewer_server.start(config.host, config.port)
+    port = server.get_port()
+    viewer = Viewer(server=server, url=f"http://{config.host}:{port}", kind=kind, port=port)
+    try:
+        if kind == "xray":
+            XrayView(server, xray).draw()
+            return viewer
+        scene = loaded.scene if loaded is not None else read_scene(target)
+        view = SceneView(server, scene)
+        centre = np.asarray(scene.aabb, dtype=np.float64).reshape(2, 3).mean(axis=0)
+        _look_from_first_camera(server, scene, centre)
+        if loaded is None:
+            view.draw()
+        else:
+            _draw_run(server, viewer, loaded, target, config)
+            train = scene.split("train") or tuple(range(len(scene.frames)))
+            view.draw(train, label="Training cameras")
+        viewer.scene_view = view
+        viewer.recorder = add_recorder_gui(server, paths_dir, size=view.size)
+    except BaseException:
+        viewer.stop()
+        raise
+    return viewer
+
+
+def _draw_run(server, viewer: Viewer, trained, run_dir: Path, config: Config) -> None:
+    live = LiveRender(server, trained, preview=config.preview, refine=config.refine)
+    viewer.live = live
+    with server.gui.add_folder("Render"):
+        mode = server.gui.add_dropdown("Show", MODES, initial_value="rgb")
+        server.gui.add_markdown(psnr_summary(run_dir))
+
+    @mode.on_update
+    def _(_event) -> None:
+        live.mode = mode.value
+        live.refresh()
+
+
+def run(config: Config) -> Outputs:
+    """Serve until Ctrl-C."""
+    viewer = serve(config)
+    print(f"nerfpipe view: {viewer.kind} at {viewer.url} (Ctrl-C stops)", flush=True)
+    viewer_server.serve_forever(viewer.server, viewer.stopped)
+    viewer.stop()
+    return Outputs(url=viewer.url, kind=viewer.kind)

@@ -1,0 +1,249 @@
+"""Stage `view`: the render callback against `render`, the early-terminating renderer against its plain twin,
+camera conversions, the scene drawing and the recorder (no browser), then a real headless Chromium screenshot.
+
+The trained run is a few seconds of `train` on the procedural RGBA scene; the browser test uses the analytic
+sphere stand-in of test_render_stage (exact, instant) so that it checks the viewer, not the training.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import shutil
+import subprocess
+import time
+import urllib.request
+from pathlib import Path
+
+import imageio.v2 as iio
+import numpy as np
+import pytest
+import torch
+
+import stages.render as render_stage
+import stages.view as view
+from data.errors import UserError
+from data.video import to_uint8
+from model import load_trained, render_view
+from radiance.render import render_marched, render_marched_terminating
+from stages import scene as scene_stage
+from stages import train
+from stages.view import server as viewer_server
+from stages.view.cameras import browser_intrinsics, viser_pose, world_from_cam_gl
+from stages.view.recorder import PathRecorder
+from stages.view.run_view import frame_image, psnr_summary, render_camera
+from stages.view.scene_view import box_edges, camera_rays
+
+try:  # the analytic stand-in lives with the render tests
+    from test_render_stage import SphereRun, sphere_scene
+except ImportError:  # tests/ imported as a package
+    from tests.test_render_stage import SphereRun, sphere_scene
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+@pytest.fixture(scope="module")
+def trained_run(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("view")
+    scene_stage.run(scene_stage.Config(out_dir=root / "scene", kind="rgba", size=32, views=10, seed=0))
+    train.run(train.Config(scene_dir=root / "scene", run_dir=root / "run", max_steps=120, max_seconds=30.0,
+                           batch_rays=512, resolution=(24, 32), occupancy_resolution=16, eval_every=0,
+                           final_eval_views=1, device="cpu", threads=2))  # fmt: skip
+    return root / "run"
+
+
+def _test_camera(trained):
+    i = (trained.scene.split("test") or (0,))[0]
+    return trained.scene.frames[i].world_from_cam
+
+
+def test_render_callback_matches_render(trained_run):
+    trained = load_trained(trained_run, "cpu")
+    pose = _test_camera(trained)
+    wxyz, pos = viser_pose(pose)
+    fov, aspect = 0.7, 4 / 3
+    img = render_camera(trained, wxyz, pos, fov, aspect, 64, coarse=False)
+    assert img.shape == (48, 64, 3) and img.dtype == np.uint8
+    assert img.std() > 3, "blank image"
+    ref = to_uint8(render_view(trained, browser_intrinsics(fov, aspect, 64), pose, torch.device("cpu"))["rgb"])
+    diff = np.abs(img.astype(int) - ref.astype(int))
+    assert diff.mean() < 0.5 and diff.max() <= 3, (diff.mean(), diff.max())  # early termination: <= 1e-3 light
+    coarse = render_camera(trained, wxyz, pos, fov, aspect, 64, coarse=True)
+    mse = np.mean((coarse / 255.0 - ref / 255.0) ** 2)
+    assert coarse.shape == img.shape and -10 * np.log10(max(mse, 1e-12)) > 25  # coarse, not wrong
+    for mode in ("depth", "accumulation"):
+        other = render_camera(trained, wxyz, pos, fov, aspect, 32, coarse=True, mode=mode)
+        assert other.shape == (24, 32, 3) and np.isfinite(other).all()
+
+
+def test_early_termination_matches_its_plain_twin(trained_run):
+    trained = load_trained(trained_run, "cpu")
+    m = trained.model
+    intr = browser_intrinsics(0.7, 1.0, 40)
+    from radiance.camera import generate_rays
+
+    o, d = (t.float() for t in generate_rays(intr, torch.as_tensor(_test_camera(trained))))
+    kw = dict(grid=m.grid, sigma_fn=m.field.density, rgb_fn=lambda x, v: m.field.color(x, v), near=m.near, far=m.far,
+              step_size=m.step_size * m.render_step_factor, background=trained.background)  # fmt: skip
+    with torch.no_grad():
+        plain = render_marched(o, d, **kw)
+        exact = render_marched_terminating(o, d, min_transmittance=0.0, segment=5, **kw)
+        fast = render_marched_terminating(o, d, min_transmittance=1e-3, **kw)
+    for key in ("rgb", "acc", "depth"):
+        assert torch.allclose(exact[key], plain[key], atol=1e-5), key
+    assert (fast["acc"] - plain["acc"]).abs().max() <= 1.1e-3
+    assert (fast["rgb"] - plain["rgb"]).abs().max() <= 2e-3
+
+
+def test_camera_conversions_round_trip():
+    rng = np.random.default_rng(1)
+    for _ in range(10):
+        q = rng.normal(size=4)
+        pose = world_from_cam_gl(q / np.linalg.norm(q), rng.normal(size=3))
+        wxyz, pos = viser_pose(pose)
+        assert np.allclose(world_from_cam_gl(wxyz, pos), pose, atol=1e-12)
+    # viser's identity camera looks down +z with y down: in OpenGL axes it looks down world +z, up is -y
+    gl = world_from_cam_gl((1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    assert np.allclose(-gl[:3, 2], [0, 0, 1]) and np.allclose(gl[:3, 1], [0, -1, 0])
+    intr = browser_intrinsics(np.pi / 2, 0.5, 100)
+    assert (intr.w, intr.h) == (50, 100) and np.isclose(intr.fy, 50.0)
+
+
+def test_scene_pieces(tmp_path):
+    scene = sphere_scene(tmp_path / "scene")
+    segments, pts = camera_rays(scene, 0, grid=2, samples=5)
+    assert segments.shape == (4, 2, 3) and pts.shape == (20, 3)
+    lo, hi = np.asarray(scene.aabb).reshape(2, 3)
+    assert np.all(pts >= lo - 1e-9) and np.all(pts <= hi + 1e-9)  # samples inside the box
+    edges = box_edges(np.array([[0, 0, 0], [1, 2, 3]]))
+    assert edges.shape == (12, 2, 3) and np.allclose(np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1).sum(), 24)
+
+
+def test_scene_viewer_starts_draws_and_stops(tmp_path, capsys):
+    scene = sphere_scene(tmp_path / "scene")
+    viewer = view.serve(view.Config(target=tmp_path / "scene", port=0))
+    try:
+        assert viewer.kind == "scene" and viewer.url.startswith("http://127.0.0.1:")
+        viewer.scene_view.handles["rays"].value = True
+        viewer.scene_view.select(1)
+        assert scene.frames[1].file_path in viewer.scene_view.handles["name"].content
+        assert "/scene/samples" in viewer.scene_view.handles
+    finally:
+        viewer.stop()
+    assert "warning" not in capsys.readouterr().err  # loopback: no warning
+    assert viewer_server.is_loopback("127.0.0.1") and viewer_server.is_loopback("::1")
+    assert not viewer_server.is_loopback("0.0.0.0")
+
+
+def test_open_host_warns(capsys):
+    server = viewer_server.start("0.0.0.0", 0)
+    server.stop()
+    assert "warning: serving on 0.0.0.0" in capsys.readouterr().err
+
+
+def test_bad_targets_are_one_line_errors(tmp_path):
+    with pytest.raises(UserError, match="not found"):
+        view.serve(view.Config(target=tmp_path / "missing"))
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(UserError, match="neither a scene"):
+        view.serve(view.Config(target=tmp_path / "empty"))
+    with pytest.raises(UserError, match="--port"):
+        viewer_server.start("127.0.0.1", 70000)
+
+
+def test_recorded_path_renders(trained_run, tmp_path):
+    trained = load_trained(trained_run, "cpu")
+    rec = PathRecorder()
+    for i in (0, 1, 2):
+        wxyz, pos = viser_pose(trained.scene.frames[i].world_from_cam)
+        rec.add_browser_camera(wxyz, pos, 0.7, 4 / 3)
+    with pytest.raises(UserError, match="seconds"):
+        rec.save(tmp_path / "bad.json", seconds=0, fps=4, height=12)
+    path = rec.save(tmp_path / "rec.json", seconds=1.0, fps=4.0, height=12)
+    res = render_stage.run(render_stage.Config(run_dir=trained_run, out=tmp_path / "rec.mp4", path=str(path),
+                                               device="cpu"))  # fmt: skip
+    assert res.n_frames == 5 and res.size == (12, 16)
+    assert "PSNR" in psnr_summary(trained_run)
+
+
+def _sphere_run(root: Path, monkeypatch) -> Path:
+    scene = sphere_scene(root / "scene", w=64, h=48)
+    run_dir = root / "run"
+    run_dir.mkdir()
+    (run_dir / "config.json").write_text(json.dumps({"scene_dir": str(root / "scene")}))
+    (run_dir / "checkpoint.pt").write_bytes(b"")
+    monkeypatch.setattr(view, "load_trained", lambda run_dir, device: SphereRun(scene=scene))
+    return run_dir
+
+
+def test_frame_image_modes():
+    v = {"rgb": np.full((2, 3, 3), 0.5, np.float32), "depth": np.array([[1, 2, 3], [4, 5, 6]], np.float32),
+         "acc": np.ones((2, 3), np.float32)}  # fmt: skip
+    assert frame_image(v, "rgb").shape == (2, 3, 3) and frame_image(v, "depth").std() > 0
+    with pytest.raises(ValueError):
+        frame_image(v, "bogus")
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="no chromium on PATH: `make browser` installs Debian's (apt-get, root)")
+def test_browser_shows_the_object(tmp_path, monkeypatch):
+    """Headless Chromium opens the viewer of a run on 127.0.0.1; a screenshot (taken over the DevTools protocol,
+    every second until the first frame has arrived, at most BROWSER_SECONDS) shows the rendered sphere."""
+    viewer = view.serve(view.Config(target=_sphere_run(tmp_path, monkeypatch), port=0, preview=96, refine=160))
+    profile = tmp_path / "profile"
+    cmd = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader",
+           "--enable-unsafe-swiftshader", "--disable-quic", "--no-first-run", "--disable-background-networking",
+           "--disable-component-update", "--disable-sync", f"--user-data-dir={profile}", "--hide-scrollbars",
+           "--window-size=1280,720", "--remote-debugging-port=0", viewer.url]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    shot = None
+    try:
+        shot = _screenshot_when(proc, profile, _shows_sphere, BROWSER_SECONDS)
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+        viewer.stop()
+    assert shot is not None, "chromium gave no screenshot"
+    iio.imwrite(tmp_path / "shot.png", shot)
+    assert _shows_sphere(shot), f"the screenshot does not show the rendered object ({tmp_path / 'shot.png'})"
+
+
+BROWSER_SECONDS = 90.0
+
+
+def _screenshot_when(proc, profile: Path, good, seconds: float) -> np.ndarray | None:
+    """PNG screenshots of the page over the DevTools protocol, until `good(image)` or `seconds` pass; the last."""
+    from websockets.sync.client import connect
+
+    deadline = time.monotonic() + seconds
+    port_file = profile / "DevToolsActivePort"
+    while not port_file.is_file() and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.2)
+    port = int(port_file.read_text().split()[0])
+    page = None
+    while page is None and time.monotonic() < deadline:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/json", timeout=5) as r:
+            page = next((t for t in json.load(r) if t.get("type") == "page"), None)
+        time.sleep(0.2)
+    img = None
+    with connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=30) as ws:
+        for k in range(10_000):
+            ws.send(json.dumps({"id": k, "method": "Page.captureScreenshot", "params": {"format": "png"}}))
+            while (msg := json.loads(ws.recv(timeout=60))).get("id") != k:
+                pass
+            img = iio.imread(base64.b64decode(msg["result"]["data"]))
+            if good(img) or time.monotonic() > deadline:
+                return img
+            time.sleep(1.0)
+    return img
+
+
+def _shows_sphere(img: np.ndarray) -> bool:
+    """The sphere's normal colours in the middle of the page (the viewer looks at the object; the panels and the
+    notifications lie at the edges): saturated pixels of several hues. Blank, white and error pages have none."""
+    h, w = img.shape[:2]
+    rgb = img[h // 4 : 3 * h // 4, w // 4 : 13 * w // 20, :3].astype(float) / 255
+    sat = rgb.max(-1) - rgb.min(-1)
+    colourful = sat > 0.15
+    if colourful.mean() < 0.03:
+        return False
+    return len(np.unique(np.argmax(rgb[colourful], axis=-1))) >= 2
