@@ -13,7 +13,8 @@ import torch
 from torch import Tensor
 
 from data.errors import UserError
-from data.transforms import Scene, load_image
+from data.masks import load_masked_image
+from data.transforms import Scene
 from radiance.camera import generate_rays
 
 __all__ = ["Views", "load_views", "evenly_spaced", "auto_downscale"]
@@ -56,7 +57,7 @@ def load_views(scene: Scene, indices: tuple[int, ...], downscale: float = 1.0) -
 
     origins, views, dirs, rgba, shapes = [], [], [], [], []
     for k, i in enumerate(indices):
-        img = load_image(scene.image_path(i))
+        img = load_masked_image(scene, i)  # a frame's mask_path makes its masked-out pixels transparent
         intr = scene.frame_intrinsics(i)
         if img.shape[:2] != (intr.h, intr.w):
             raise UserError(f"{scene.image_path(i)}: image is {img.shape[1]}x{img.shape[0]}, "
