@@ -112,7 +112,8 @@ def test_convert_carries_masks(tmp_path):
     scene = read_scene(out.transforms)
     assert [f.mask_path for f in scene.frames] == [f"masks/v{k}.png" for k in range(3)]
     for k in range(3):
-        assert (tmp_path / "out" / "masks" / f"v{k}.png").read_bytes() == (tmp_path / "s/masks" / f"v{k}.png").read_bytes()
+        copied = (tmp_path / "out" / "masks" / f"v{k}.png").read_bytes()
+        assert copied == (tmp_path / "s" / "masks" / f"v{k}.png").read_bytes()
     assert "3 of 3" in json.loads(out.manifest.read_text())["used"]["masks"]
     plain = convert.run(convert.Config(source=tmp_path / "s", scene_dir=tmp_path / "out2", normalize=False))
     assert plain.num_frames == 3
