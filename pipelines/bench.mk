@@ -1,7 +1,7 @@
 # Benchmarks (not tests): they read ../shared/data and print figures. Speed goals live here.
 BENCH_OUT ?= runs/bench
-.PHONY: bench bench-poses bench-train bench-ndc bench-mesh
-bench: bench-poses bench-train bench-ndc bench-mesh
+.PHONY: bench bench-poses bench-train bench-ndc bench-mesh bench-turntable
+bench: bench-poses bench-train bench-ndc bench-mesh bench-turntable
 
 bench-poses: $(INSTALLED)
 	$(VENV)/bin/python -m benchmarks.bench_poses --out $(BENCH_OUT)/poses
@@ -17,3 +17,7 @@ bench-ndc: $(INSTALLED)
 
 bench-mesh: $(INSTALLED)
 	$(VENV)/bin/python -m benchmarks.bench_mesh --out $(BENCH_OUT)/mesh
+
+# a synthetic turntable (object turns, camera and room fixed): poses with masks vs without, then 120 s of training
+bench-turntable: $(INSTALLED)
+	$(VENV)/bin/python -m benchmarks.bench_turntable --out $(BENCH_OUT)/turntable
