@@ -55,7 +55,8 @@ class Frame:
     intrinsics: Intrinsics | None = None
     """Per-frame camera; None means the scene's shared one."""
     mask_path: str | None = None
-    """Optional mask image (white = keep), relative to the scene root."""
+    """Optional mask image, relative to the scene root: grey, the image's size, white = keep, black = masked
+    out (nerfstudio's convention; `train` makes masked-out pixels transparent, see `data.masks`)."""
     depth_file_path: str | None = None
     """Optional depth map, relative to the scene root."""
 
@@ -95,6 +96,16 @@ class Scene:
 
     def image_path(self, i: int) -> Path:
         return _inside_root(self.root, self.frames[i].file_path, f"frames[{i}].file_path")
+
+    def mask_path(self, i: int) -> Path | None:
+        """Frame i's mask file, resolved (None without one; white = keep, `data.masks`)."""
+        rel = self.frames[i].mask_path
+        return None if rel is None else _inside_root(self.root, rel, f"frames[{i}].mask_path")
+
+    @property
+    def has_masks(self) -> bool:
+        """Some frame has a mask_path."""
+        return any(f.mask_path is not None for f in self.frames)
 
     def split(self, name: str) -> tuple[int, ...]:
         """Frame indices of a split; 'train' defaults to every frame when the file names none."""

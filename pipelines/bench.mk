@@ -1,7 +1,7 @@
 # Benchmarks (not tests): they read ../shared/data and print figures. Speed goals live here.
 BENCH_OUT ?= runs/bench
-.PHONY: bench bench-poses bench-train bench-ndc bench-mesh
-bench: bench-poses bench-train bench-ndc bench-mesh
+.PHONY: bench bench-poses bench-train bench-ndc bench-mesh bench-turntable
+bench: bench-poses bench-train bench-ndc bench-mesh bench-turntable
 
 bench-poses: $(INSTALLED)
 	$(VENV)/bin/python -m benchmarks.bench_poses --out $(BENCH_OUT)/poses
@@ -23,3 +23,7 @@ bench-mesh: $(INSTALLED)
 bench-memory: $(INSTALLED)
 	$(VENV)/bin/python -m benchmarks.bench_memory --views 100,300 --downscale 1 --out $(BENCH_OUT)/memory
 	$(VENV)/bin/python -m benchmarks.bench_memory --views 100,300,1000 --downscale auto --out $(BENCH_OUT)/memory
+
+# a synthetic turntable (object turns, camera and room fixed): poses with masks vs without, then 120 s of training
+bench-turntable: $(INSTALLED)
+	$(VENV)/bin/python -m benchmarks.bench_turntable --out $(BENCH_OUT)/turntable

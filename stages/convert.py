@@ -4,6 +4,9 @@ Writes, in this order:
 - `images/<name>` (copied byte for byte; npz arrays encoded as PNG) and `images_<F>/<name>` downscaled by
   F (cv2.INTER_AREA, same name and format, size `Intrinsics.scaled(1 / F)`) for each F in `downscales` whose
   result keeps at least `min_downscaled_size` pixels on the short side;
+- `masks/<image stem>.<suffix>` when the source has masks (a transforms.json's `mask_path`, COLMAP's
+  `masks/<image name>.png` beside its images, which `poses --masks` writes), each checked to decode at its
+  image's size, copied byte for byte, named by `frames[].mask_path` (white = keep; `data.masks`);
 - `sparse_points.ply` (COLMAP sources): the sparse points with colours **in the scene frame**; it is named by
   the top-level key `sparse_points_path`, not nerfstudio's `ply_file_path` (which nerfstudio reads as being in
   the source frame);
@@ -36,6 +39,7 @@ import numpy as np
 from data.atomic import atomic_path, write_bytes
 from data.errors import UserError
 from data.importers import Source, SourceFrame, load_source
+from data.masks import read_mask
 from data.rundir import config_to_json, write_manifest
 from data.transforms import Frame, Scene, cameras_face_forward, read_scene, write_scene
 from radiance.normalize import Normalization, normalize
@@ -180,6 +184,25 @@ def _imwrite(path: Path, img: np.ndarray) -> None:
     write_bytes(path, buf.tobytes())
 
 
+def _mask_names(frames: list[SourceFrame]) -> list[str | None]:
+    """Each frame's mask file name under SCENE_DIR/masks/: the image's stem with the mask's suffix
+    (images/a.jpg -> masks/a.png, nerfstudio's layout), or the image's name plus it where stems repeat."""
+    stems = [Path(f.name).stem for f in frames]
+    unique = len(set(stems)) == len(stems)
+    return [
+        None if f.mask is None else (stem if unique else f.name) + (f.mask.suffix.lower() or ".png")
+        for f, stem in zip(frames, stems, strict=True)
+    ]
+
+
+def _copy_mask(frame: SourceFrame, dest: Path) -> None:
+    """Copy a frame's mask byte for byte after checking it decodes and has the image's size (UserError naming
+    the mask file otherwise)."""
+    read_mask(frame.mask, (frame.intrinsics.w, frame.intrinsics.h), image=frame.name)
+    with atomic_path(dest) as tmp:
+        shutil.copyfile(frame.mask, tmp)
+
+
 def _copy_aux(src: Path | None, dest_dir: Path, name: str) -> str | None:
     if src is None or not src.is_file():
         return None
@@ -243,8 +266,12 @@ def run(config: Config) -> Outputs:
     factors = sorted(f for f in set(config.downscales) if f > 1 and short / f >= config.min_downscaled_size)
     px = source.pixels
 
+    mask_names = _mask_names(frames)
+
     def write_one(i: int) -> None:
         _write_image(frames[i], px(i) if px is not None else None, scene_dir, factors)
+        if mask_names[i] is not None:
+            _copy_mask(frames[i], scene_dir / "masks" / mask_names[i])
 
     with ThreadPoolExecutor(max_workers=max(1, min(8, os.cpu_count() or 1))) as pool:
         list(pool.map(write_one, range(len(frames))))
@@ -252,7 +279,7 @@ def run(config: Config) -> Outputs:
     intrs = [f.intrinsics for f in frames]
     shared = intrs[0] if all(i == intrs[0] for i in intrs) else None
     out_frames = []
-    for f in frames:
+    for f, mask_name in zip(frames, mask_names, strict=True):
         world_from_cam = scene_from_source @ f.world_from_cam
         world_from_cam[:3, :3] /= norm.applied_scale  # rotation stays orthonormal; the scale moves the centre only
         out_frames.append(
@@ -260,7 +287,7 @@ def run(config: Config) -> Outputs:
                 file_path=f"images/{f.name}",
                 world_from_cam=world_from_cam,
                 intrinsics=None if shared is not None else f.intrinsics,
-                mask_path=_copy_aux(f.mask, scene_dir / "masks", f.name),
+                mask_path=f"masks/{mask_name}" if mask_name is not None else None,
                 depth_file_path=_copy_aux(f.depth, scene_dir / "depths", f.name),
             )  # fmt: skip
         )
@@ -283,6 +310,9 @@ def run(config: Config) -> Outputs:
     read_scene(transforms)  # what we wrote must parse
     outputs.insert(0, transforms)
 
+    masked = sum(m is not None for m in mask_names)
+    if masked:
+        outputs.append(scene_dir / "masks")
     if missing:
         left_out["missing images"] = f"{missing} of {len(source.frames)} frames skipped: image file not found"
     skipped = sorted(set(config.downscales) - set(factors))
@@ -293,7 +323,9 @@ def run(config: Config) -> Outputs:
         outputs=outputs,
         used={**source.used, "kind": source.kind, "up": norm.up_method, "roi": norm.roi_method,
               "roi_from": roi_from, "aabb_source_frame": _source_box(norm, scene_from_source),
-              "scene_type": extra["scene_type"], "frames": len(frames), "downscales": factors},
+              "scene_type": extra["scene_type"], "frames": len(frames), "downscales": factors,
+              "masks": f"{masked} of {len(frames)} frames: masks/ (white = keep; masked-out pixels train as "
+                       "transparent, data.masks)" if masked else None},
         left_out=left_out, config=config_to_json(config),
     )  # fmt: skip
     log.info("convert: %d frames from %s (%s) -> %s", len(frames), config.source, source.kind, transforms)

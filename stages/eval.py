@@ -33,9 +33,10 @@ import torch
 from data.atomic import write_json
 from data.errors import UserError
 from data.ground_truth import GroundTruth, read_ground_truth
+from data.masks import load_masked_image
 from data.progress import NO_PROGRESS, Progress
 from data.rundir import MetricsLog, Stopwatch, config_to_json, sidecar, write_manifest
-from data.transforms import Scene, load_image
+from data.transforms import Scene
 from model import OPAQUE, load_trained, render_view, resolve_device
 from radiance.align import umeyama
 from radiance.compositing import over_background
@@ -180,7 +181,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         raise UserError(f"--downscale: expected >= 1, got {config.downscale}")
     downscale = config.downscale or float(getattr(trained, "run_config", {}).get("downscale") or 1.0)
     for k, i in enumerate(idx):
-        photo = load_image(scene.image_path(i))
+        photo = load_masked_image(scene, i)  # masked-out pixels transparent, as in training (data.masks)
         if downscale != 1.0:
             import cv2
 

@@ -113,6 +113,7 @@ def test_synthetic_outputs_and_report(synthetic):
     assert entry["registered"] and entry["features"] > 100 and entry["matches"] > 0 and entry["observations"] > 0
     assert entry["blur"] > 0 and "overexposed" in entry
     assert report["mean_reprojection_error_px"] < 1.0
+    assert report["stationary_matches"]["fraction"] < 0.05 and report["masks"] is None  # a moving camera
     assert {"images", "features", "matching", "mapping"} <= set(report["timings_s"])
     # 256 px photos: the working size is their own size (no probe), and all register at the first attempt
     assert out.working_size == SIZE and report["working_size"]["size"] == SIZE

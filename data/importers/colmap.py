@@ -7,6 +7,8 @@ Images: the `images` override, else the first of <model>/../images, <model>/../.
 SOURCE/colmap/images that holds at least one of the model's images.
 Cameras: COLMAP `cam_from_world` is world -> camera in OpenCV axes; we invert it and flip to OpenGL axes.
 Supported models: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV (distortion kept as k1 k2 p1 p2).
+Masks: `masks/<image name>.png` beside the image folder (COLMAP's mask layout, which `poses --masks` writes),
+when present, become the frames' masks (white = keep, `data.masks`).
 `read_world_from_cam`: only the poses of one model folder, by image name (pose-accuracy checks).
 """
 
@@ -108,6 +110,13 @@ def _image_dir(model: Path, source: Path, names: list[str], override: Path | Non
     )
 
 
+def _mask_dir(image_dir: Path, names: list[str]) -> Path | None:
+    """COLMAP's mask folder beside the image folder (`masks/<image name>.png`, the `poses --masks` layout)
+    when it holds a mask of at least one of the images, else None."""
+    masks = image_dir.parent / "masks"
+    return masks if masks.is_dir() and any((masks / f"{n}.png").is_file() for n in names) else None
+
+
 def load(source: Path, *, images: Path | None = None) -> Source:
     source = Path(source)
     models = find_models(source)
@@ -128,6 +137,7 @@ def load(source: Path, *, images: Path | None = None) -> Source:
     names = [im.name for im in posed]
     image_dir = _image_dir(model, source, names, images)
     cams = {cid: intrinsics_from_camera(cam) for cid, cam in rec.cameras.items()}
+    mask_dir = _mask_dir(image_dir, names)
     frames = []
     for im in posed:
         frames.append(
@@ -136,6 +146,7 @@ def load(source: Path, *, images: Path | None = None) -> Source:
                 world_from_cam=_world_from_cam_gl(im),
                 intrinsics=cams[im.camera_id],
                 image=image_dir / im.name,
+                mask=mask_dir / f"{im.name}.png" if mask_dir is not None else None,
             )  # fmt: skip
         )
     ids = sorted(rec.points3D)
@@ -145,9 +156,12 @@ def load(source: Path, *, images: Path | None = None) -> Source:
     if unposed:
         left_out["unregistered images"] = f"{unposed} images in the model have no pose"
     inputs = tuple(sorted(p for p in model.iterdir() if p.is_file()))
+    if mask_dir is not None:
+        left_out.update({f"mask of {n}": f"not in {mask_dir}" for n in names if not (mask_dir / f"{n}.png").is_file()})
     return Source(
         kind="colmap", frames=tuple(frames), up="cameras", points=points, colors=colors, inputs=inputs,
         used={"model": str(model), "images": str(image_dir), "models_found": len(models),
-              "cameras": sorted({rec.cameras[c].model.name for c in rec.cameras})},
+              "cameras": sorted({rec.cameras[c].model.name for c in rec.cameras}),
+              "masks": str(mask_dir) if mask_dir is not None else None},
         left_out=left_out,
     )  # fmt: skip

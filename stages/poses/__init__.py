@@ -10,6 +10,8 @@ most -> with a shared camera, one last bundle adjustment that also refines the p
 
 Outputs (COLMAP conventions: OpenCV camera axes, `cam_from_world` poses, binary model):
   SCENE_DIR/colmap/images/          upright copies / video frames: the image folder of the model
+  SCENE_DIR/colmap/masks/           with --masks: COLMAP's masks, <image name>.png, 0 / 255 (black: no features);
+                                    `convert` finds them there and carries them to training
   SCENE_DIR/colmap/names.json       {copy name: original path} (video frames: {name: "video.mp4#frame=N"})
   SCENE_DIR/colmap/database.db      features and matches of the attempt kept
   SCENE_DIR/colmap/sparse/          the chosen model (cameras.bin, images.bin, points3D.bin, ...)
@@ -25,6 +27,12 @@ Outputs (COLMAP conventions: OpenCV camera axes, `cam_from_world` poses, binary 
 A rerun first moves an earlier colmap/ (with its poses_report.json inside) to SCENE_DIR/colmap.previous/: a
 failed rerun leaves no colmap/ that looks current, yet loses nothing (the error says where the old model is);
 a successful one deletes colmap.previous/.
+
+Static camera: a turntable (the object turns, the camera and background stay) gives matches that stay at the
+same pixel in every view. After the first attempt's matching, over 30 % of the verified matches doing so stops
+the stage with a one-line error that asks for --masks (the mapper would otherwise fail, after every retry, or
+model the background); a model whose registered cameras all sit at one place is refused the same way
+(`report.check_static_matches`, `report.check_static_cameras`). With --masks the background has no features.
 
 Modules: `images` (upright copies, screening), `video` (frame picking), `colmap` (the pycolmap steps, the
 working size and the principal-point refinement), `attempts` (the retry ladder), `report` (run state,
@@ -48,6 +56,7 @@ from rich.progress import Progress
 
 from data.atomic import write_json
 from data.errors import UserError
+from data.masks import match_masks, read_mask, write_binary_mask
 from data.rundir import MetricsLog, config_to_json, write_manifest
 from stages.poses import colmap as sfm
 from stages.poses.attempts import ladder, run_attempts
@@ -68,6 +77,8 @@ from stages.poses.report import (
     build_report,
     check_features,
     check_registered,
+    check_static_cameras,
+    check_static_matches,
     print_summary,
 )
 from stages.poses.video import extract_frames
@@ -135,6 +146,12 @@ class Config:
     """Seeds COLMAP's RANSAC and mapper (results still vary a little with num_threads > 1)."""
     num_threads: int = -1
     """CPU threads for COLMAP; -1 = all cores."""
+    masks: Path | None = None
+    """A folder with one mask per photo (found by the photo's name: IMG_1.jpg.png, IMG_1.png or IMG_1.jpg; the
+    photo's size; white = keep, black = masked out). SIFT keeps no feature on black pixels, and `convert` carries
+    the masks to training, where masked-out pixels are transparent (data.masks). Needed when the camera stood
+    still and the object turned (a turntable): without masks the static background would dominate, which the
+    stage detects and refuses."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -175,8 +192,12 @@ def _check(config: Config) -> str:
     colmap_dir = Path(config.scene_dir).resolve() / "colmap"
     if src.resolve() == colmap_dir or colmap_dir in src.resolve().parents:
         raise UserError(f"input {src} is inside the output folder {colmap_dir}; copy the photos elsewhere")
+    if config.masks is not None and not Path(config.masks).is_dir():
+        raise UserError(f"masks {config.masks}: no such folder (expected one mask image per photo, white = keep)")
     if src.is_dir():
         return "photos"
+    if config.masks is not None:
+        raise UserError(f"masks are for a folder of photos, not a video ({src}); extract the frames first")
     if src.suffix.lower() in IMAGE_SUFFIXES:
         raise UserError(f"input {src} is a single image; give a folder of at least {MIN_REGISTERED} photos")
     return "video"
@@ -259,6 +280,18 @@ def _screen(config: Config, images: Path, state: RunState) -> list[str]:
     return keep
 
 
+def _write_masks(mask_dir: Path, names: list[str], out: Path, state: RunState) -> None:
+    """COLMAP's masks for the copies `names` (out/<copy name>.png, binary), from the user's folder, where each
+    is found by its original photo's name; UserError naming the file when one is missing or of another size."""
+    originals = {n: Path(state.names[n]).name for n in names}
+    found = match_masks(mask_dir, originals.values())
+    out.mkdir(parents=True, exist_ok=True)
+    for n in names:
+        src = found[originals[n]]
+        write_binary_mask(read_mask(src, state.sizes[n], image=originals[n]), out / f"{n}.png")
+        state.masks[n] = str(src)
+
+
 def _camera_groups(config: Config, names: list[str], state: RunState) -> list[list[str]]:
     if not config.single_camera:
         return [names]
@@ -337,13 +370,20 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         with phase("screening"):
             names = _screen(config, images, state)
             groups = _camera_groups(config, names, state)
+        masked = config.masks is not None
+        if masked:
+            with phase("masks"):
+                _write_masks(Path(config.masks), names, build / "masks", state)
+            settings = replace(settings, mask_path=str(build / "masks"))
         long_sides = [max(max(state.sizes[n]) for n in g) for g in groups]
         with phase("working_size"):
             settings = _working_size(config, settings, build / "probe.db", images, names, max(long_sides), state)
         plan = ladder(settings, config.max_attempts, max(long_sides))
-        run_attempts(plan, build, images, groups, long_sides, state, phase)
+        run_attempts(plan, build, images, groups, long_sides, state, phase,
+                     after_matching=lambda db: check_static_matches(db, masked, state))  # fmt: skip
         check_features(state.stats)
         check_registered(state, matcher)
+        check_static_cameras(state.model, masked)
         if config.single_camera:
             with phase("principal_point"):
                 state.model, state.principal_point = sfm.refine_principal_point(state.model, config.num_threads)
@@ -356,10 +396,12 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         write_json(report_path, report)
         write_manifest(
             build, stage="poses", started=state.started, inputs=[config.input],
-            outputs=["images/", "names.json", "database.db", "sparse/", "metrics.csv", "../poses_report.json"],
+            outputs=["images/", *(["masks/"] if masked else []), "names.json", "database.db", "sparse/",
+                     "metrics.csv", "../poses_report.json"],
             used={"matcher": matcher, "principal_point": state.principal_point,
                   "camera_groups": [len(g) for g in groups], "pycolmap": pycolmap.__version__,
-                  "working_size": state.working_size,
+                  "working_size": state.working_size, "masks": str(config.masks) if masked else None,
+                  "stationary_matches": state.stationary,
                   "attempts": [{k: a[k] for k in ("name", "registered", "total", "kept", "settings")}
                                for a in state.attempts]},
             left_out={**state.skipped, **report["not_registered"]}, version=VERSION,

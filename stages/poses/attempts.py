@@ -20,6 +20,7 @@ from __future__ import annotations
 import os
 import shutil
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
@@ -77,11 +78,12 @@ def describe(settings: SfmSettings, long_side: int) -> str:
 
 def run_attempts(
     plan: list[Attempt], build: Path, images: Path, groups: list[list[str]], long_sides: list[int],
-    state: RunState, phase: PhaseTimer,
+    state: RunState, phase: PhaseTimer, after_matching: Callable[[Path], None] | None = None,
 ) -> None:  # fmt: skip
     """Run `plan` until an attempt registers WARN_FRACTION of the images. Leaves the kept attempt's (most
     registered images, then most points) statistics and models in `state`, its database at
-    build/database.db, and one record per attempt in `state.attempts`."""
+    build/database.db, and one record per attempt in `state.attempts`. `after_matching(database)` runs once,
+    after the first attempt's matching (it may raise to stop before mapping)."""
     total = sum(len(g) for g in groups)
     best = None  # (registered, points), index, database, statistics, models, model
     db = extracted = build / "database.db"
@@ -101,6 +103,8 @@ def run_attempts(
                 with phase("matching"):
                     sfm.match(db, s)
                     state.stats = sfm.database_stats(db)
+                if k == 1 and after_matching is not None:
+                    after_matching(db)
         if textured(state.stats):
             with phase("mapping"):
                 models = sfm.reconstruct(db, images, build / "models" / str(k), s)

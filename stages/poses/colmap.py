@@ -114,6 +114,8 @@ class SfmSettings:
     min_verified_inliers: int = PYCOLMAP_MIN_VERIFIED_INLIERS
     """Two-view verification keeps pairs with this many inliers (the mapper then uses min_num_matches)."""
     mapper: MapperThresholds = field(default_factory=MapperThresholds)
+    mask_path: str | None = None
+    """Folder of COLMAP masks (`<image name>.png`, black = no features there), or None (poses --masks)."""
 
 
 def choose_working_size(long_side: int, median_features_at: Callable[[int], float]) -> tuple[int, dict[int, float]]:
@@ -150,6 +152,8 @@ def extract(db: Path, image_dir: Path, groups: list[list[str]], long_sides: list
     """
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = s.camera_model
+    if s.mask_path is not None:
+        reader.mask_path = s.mask_path  # COLMAP: <mask_path>/<image name>.png; no keypoint where it is 0
     mode = pycolmap.CameraMode.SINGLE if s.single_camera else pycolmap.CameraMode.PER_IMAGE
     for names, long_side in zip(groups, long_sides, strict=True):
         opts = pycolmap.FeatureExtractionOptions()

@@ -65,6 +65,8 @@ from stages.scene.files import (
     views as view_files,
 )
 from stages.scene.objects import Primitive, backdrop, default_primitives, room, shade, solid_texture
+from stages.scene.turntable import angles as turntable_angles
+from stages.scene.turntable import object_cameras, room_from_cam, rot_z
 
 __all__ = [
     "Config", "Outputs", "run", "cameras", "render_view", "scene_mesh", "blender_split", "SUPERSAMPLE", "BACKGROUND",
@@ -99,8 +101,11 @@ class Config:
     """Number of cameras."""
     seed: int = 0
     """Picks the textures and the camera jitter; same seed, byte-identical output."""
-    layout: Literal["orbit", "forward", "room"] = "orbit"
-    """orbit, forward or room. orbit: cameras all round the scene on a hemisphere (a 360-degree capture).
+    layout: Literal["orbit", "forward", "room", "turntable"] = "orbit"
+    """orbit, forward, room or turntable. orbit: cameras all round the scene on a hemisphere (a 360-degree capture).
+    turntable: the objects turn on their slab in front of a fixed camera and a fixed room (one full turn over the
+    views); truth poses are object-relative and masks/ holds each view's object mask (white = object;
+    stages.scene.turntable); kinds photos, posed (mask_path per frame) and rgba (the object alone).
     room: the orbit inside a textured room (floor and walls 4 m away; transforms.json's aabb is the objects'
     box, so the room lies beyond it: an unbounded capture). forward: cameras on a
     jittered grid in one plane, all looking the same way at the scene, with a textured wall 4 m behind it (an
@@ -119,6 +124,8 @@ class Outputs:
     """The rendered images, in view order."""
     transforms: Path | None
     """transforms.json (None for kind=photos and blender)."""
+    masks: tuple[Path, ...] = ()
+    """layout=turntable: masks/<stem>.png per view (white = object), in view order; empty otherwise."""
     split_files: tuple[Path, ...]
     """kind=blender: the transforms_<split>.json written; empty otherwise."""
     cameras: Path
@@ -148,6 +155,8 @@ def cameras(views: int, seed: int, layout: str = "orbit") -> np.ndarray:
     """
     if layout == "forward":
         return _forward_cameras(views, seed)
+    if layout == "turntable":
+        return object_cameras(room_from_cam(LOOK_AT, CAMERA_RADIUS, UP), views)
     rng = np.random.default_rng([seed, 7])
     i = np.arange(views)
     azimuth = 2 * np.pi * (i + rng.uniform(-0.3, 0.3, views) + rng.uniform()) / views
@@ -231,6 +240,48 @@ def render_view(
     return colour, alpha, z
 
 
+def render_turntable_view(
+    objects: tuple[Primitive, ...], background: tuple[Primitive, ...], intr: Intrinsics, fixed: np.ndarray,
+    theta: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """One turntable view (stages.scene.turntable): the camera `fixed` (room frame), the objects turned by
+    `theta`. Returns straight colour of everything [H, W, 3], its coverage [H, W], the object's straight colour
+    [H, W, 3] and coverage (the mask) [H, W], and the object's z-depth [H, W] (0 = not the object), float64."""
+    s = SUPERSAMPLE
+    grid = (np.arange(s) + 0.5) / s
+    offsets = np.stack(np.meshgrid(grid, grid, indexing="xy"), axis=-1).reshape(-1, 2)  # [S, 2]
+    object_from_room = rot_z(-theta)[:3, :3]
+
+    def cast(offs: np.ndarray) -> tuple[np.ndarray, ...]:
+        o, d = _rays(intr, fixed, offs)  # room frame
+        oo, do = o @ object_from_room.T, d @ object_from_room.T  # object frame, same t
+        t_obj, w_obj = _cast(objects, oo, do)
+        t_bg, w_bg = _cast(background, o, d)
+        on_obj = (w_obj >= 0) & (t_obj <= t_bg)
+        return o, d, oo, do, t_obj, w_obj, t_bg, w_bg, on_obj
+
+    o, d, oo, do, t_obj, w_obj, t_bg, w_bg, on_obj = cast(offsets)
+    rgb = np.zeros((len(o), 3))
+    for prims, origin, direction, t, which, use in (
+        (objects, oo, do, t_obj, w_obj, on_obj), (background, o, d, t_bg, w_bg, ~on_obj & (w_bg >= 0)),
+    ):  # fmt: skip
+        for k, prim in enumerate(prims):
+            m = use & (which == k)
+            if m.any():
+                p = origin[m] + t[m, None] * direction[m]
+                rgb[m] = shade(solid_texture(p, prim.material), prim.normal(p))
+    hw = (intr.h, intr.w, s * s)
+    hit, obj = (on_obj | (w_bg >= 0)).reshape(hw), on_obj.reshape(hw)
+    rgb = rgb.reshape(*hw, 3)
+    colour = (rgb * hit[..., None]).sum(-2) / np.maximum(hit.sum(-1), 1)[..., None]
+    obj_colour = (rgb * obj[..., None]).sum(-2) / np.maximum(obj.sum(-1), 1)[..., None]
+
+    _, dc, _, _, tc, _, _, _, on_c = cast(np.array([[0.5, 0.5]]))
+    forward = -fixed[:3, 2]
+    z = np.where(on_c, tc * (dc @ forward), 0.0).reshape(intr.h, intr.w)
+    return colour, hit.mean(-1), obj_colour, obj.mean(-1), z
+
+
 def scene_mesh(prims: tuple[Primitive, ...]) -> trimesh.Trimesh:
     """The scene surface: the primitives' closed meshes concatenated (no boolean union: where an object is sunk
     into the ground slab, the hidden parts of both stay as interior faces)."""
@@ -251,6 +302,13 @@ def _png(rgb: np.ndarray, alpha: np.ndarray | None) -> bytes:
     return buf.tobytes()
 
 
+def _grey_png(x: np.ndarray) -> bytes:
+    ok, buf = cv2.imencode(".png", _to_u8(x))
+    if not ok:
+        raise RuntimeError("PNG encoding failed")
+    return buf.tobytes()
+
+
 def run(config: Config) -> Outputs:
     """Render the scene described by `config` into `config.out_dir`; see the module docstring for the files."""
     _check(config)
@@ -263,8 +321,10 @@ def _check(config: Config) -> None:
         raise UserError(f"scene: expected --size >= 8 and --views >= 1, got size={config.size}, views={config.views}")
     if config.kind not in ("photos", "posed", "rgba", "blender"):
         raise UserError(f"scene: expected --kind photos|posed|rgba|blender, got {config.kind!r}")
-    if config.layout not in ("orbit", "forward", "room"):
-        raise UserError(f"scene: expected --layout orbit|forward|room, got {config.layout!r}")
+    if config.layout not in ("orbit", "forward", "room", "turntable"):
+        raise UserError(f"scene: expected --layout orbit|forward|room|turntable, got {config.layout!r}")
+    if config.layout == "turntable" and config.kind == "blender":
+        raise UserError("scene: --layout turntable writes kinds photos, posed or rgba, not blender")
     scale = float(config.scale)
     if not (math.isfinite(scale) and scale > 0):
         raise UserError(f"scene: expected --scale > 0 (finite), got {config.scale!r}")
@@ -280,6 +340,7 @@ def _run(config: Config) -> Outputs:
         prims = (*prims, backdrop(config.seed))
     elif config.layout == "room":
         prims = (*prims, *room(config.seed))
+    turntable = config.layout == "turntable"
     intr = intrinsics(config.size)
     world_from_cam = cameras(config.views, config.seed, config.layout)  # rendered at scale 1
     scaled_from_cam = world_from_cam.copy()
@@ -288,9 +349,18 @@ def _run(config: Config) -> Outputs:
     rgba = config.kind in ("rgba", "blender")
     bg = np.array(BACKGROUND)
 
-    images, depths, z_min = [], [], np.inf
-    for (rel, stem), w in zip(views, world_from_cam, strict=True):
-        colour, alpha, z = render_view(prims, intr, w)
+    images, depths, masks, z_min = [], [], [], np.inf
+    fixed = room_from_cam(LOOK_AT, CAMERA_RADIUS, UP)
+    for k, ((rel, stem), w) in enumerate(zip(views, world_from_cam, strict=True)):
+        if turntable:
+            colour, alpha, obj_colour, mask, z = render_turntable_view(
+                objects, room(config.seed), intr, fixed, float(turntable_angles(config.views)[k])
+            )
+            if rgba:
+                colour, alpha = obj_colour, mask
+            masks.append(write_bytes(out / "masks" / f"{stem}.png", _grey_png(mask)))
+        else:
+            colour, alpha, z = render_view(prims, intr, w)
         z_min = min(z_min, float(z[z > 0].min(initial=np.inf)))
         if not rgba:
             colour = alpha[..., None] * colour + (1 - alpha[..., None]) * bg
@@ -339,9 +409,10 @@ def _run(config: Config) -> Outputs:
         split_files = write_blender(out, rel, scaled_from_cam, FOV_X_DEG)
     elif config.kind != "photos":
         names = [Path(r).name for r in rel]
-        transforms = write_transforms(out, names, scaled_from_cam, intr, aabb, near, far, rgba)
+        mask_rel = [str(p.relative_to(out).as_posix()) for p in masks] if masks and not rgba else None
+        transforms = write_transforms(out, names, scaled_from_cam, intr, aabb, near, far, rgba, mask_rel)
 
-    outputs = [*images, *depths, mesh_path, cams_path, *([transforms] if transforms else []), *split_files]
+    outputs = [*images, *masks, *depths, mesh_path, cams_path, *([transforms] if transforms else []), *split_files]
     manifest_path = write_manifest(
         out, stage="scene", started=started, outputs=[p.relative_to(out) for p in outputs],
         used={"supersample": f"{SUPERSAMPLE}x{SUPERSAMPLE} rays per pixel, box filter", "fov_x_deg": FOV_X_DEG,
@@ -349,11 +420,13 @@ def _run(config: Config) -> Outputs:
               "scale": scale, "layout": config.layout,
               "test_split": f"every {TEST_EVERY}th view" + (f", val every {TEST_EVERY}th from {TEST_EVERY // 2}"
                                                             if config.kind == "blender" else ""),
+              **({"turntable": "the objects turn, camera and room fixed; poses object-relative; masks/ = object"}
+                 if turntable else {}),
               **({"elevation_deg": list(ELEVATION_DEG)} if config.layout == "orbit" else
                  {"forward_spread_m": list(FORWARD_SPREAD), "elevation_deg": FORWARD_ELEVATION_DEG})},
         config=config_to_json(config),
     )  # fmt: skip
     return Outputs(
-        out_dir=out, images=tuple(images), transforms=transforms, split_files=split_files, cameras=cams_path,
-        depths=tuple(depths), mesh=mesh_path, manifest=manifest_path,
+        out_dir=out, images=tuple(images), masks=tuple(masks), transforms=transforms, split_files=split_files,
+        cameras=cams_path, depths=tuple(depths), mesh=mesh_path, manifest=manifest_path,
     )  # fmt: skip

@@ -30,14 +30,16 @@ def write_mesh(path: Path, mesh: trimesh.Trimesh) -> None:
 
 
 def write_transforms(
-    out_dir: Path, names: list[str], world_from_cam: np.ndarray, intr: Intrinsics, aabb, near, far, rgba: bool
-) -> Path:
-    """transforms.json in the scene frame (= this generator's world: identity applied_transform, scale 1)."""
+    out_dir: Path, names: list[str], world_from_cam: np.ndarray, intr: Intrinsics, aabb, near, far, rgba: bool,
+    masks: list[str] | None = None,
+) -> Path:  # fmt: skip
+    """transforms.json in the scene frame (= this generator's world: identity applied_transform, scale 1);
+    `masks`: each frame's mask_path (relative to out_dir), or None."""
     test = tuple(range(0, len(names), TEST_EVERY))
     train = tuple(i for i in range(len(names)) if i % TEST_EVERY)
     frames = tuple(
-        Frame(file_path=f"images/{n}", world_from_cam=w, intrinsics=None)
-        for n, w in zip(names, world_from_cam, strict=True)
+        Frame(file_path=f"images/{n}", world_from_cam=w, intrinsics=None, mask_path=m)
+        for n, w, m in zip(names, world_from_cam, masks or [None] * len(names), strict=True)
     )
     scene = Scene(
         root=out_dir, frames=frames, intrinsics=intr, applied_transform=np.eye(4)[:3], applied_scale=1.0,

@@ -45,7 +45,7 @@ from radiance.contraction import Contraction
 from radiance.ndc import NDC
 from stages.train.defaults import contracted_resolution, resolve_defaults
 from stages.train.loop import Loop, TrainingDiverged, evaluate_psnr, make_optimizer
-from stages.train.report import plot_psnr, used_and_left_out
+from stages.train.report import per_view_report, plot_psnr, used_and_left_out
 from stages.train.views import auto_downscale, evenly_spaced, load_views
 
 __all__ = ["Config", "Outputs", "run", "TrainingDiverged", "evenly_spaced"]
@@ -223,6 +223,9 @@ def _run(config: Config, progress: Progress) -> Outputs:
     )  # fmt: skip
     used["defaults"] = record
     outputs = [run_dir / n for n in ("config.json", "checkpoint.pt", "metrics.csv", "psnr_vs_time.png")]
+    used["per_view"] = per_view_report(run_dir, loop.model, scene, train_idx, config.downscale, seconds,
+                                       loop.eval_rays_per_second, loop.device)  # fmt: skip
+    outputs += [run_dir / f for f in used["per_view"]["files"]]
     inputs = [scene_path / "transforms.json"] if scene_path.is_dir() else [scene_path]
     manifest = write_manifest(run_dir, stage="train", started=started, inputs=inputs, outputs=outputs, used=used,
                               left_out=left_out, version=VERSION, checkpoint_sha256=loop.ckpt_sha256)  # fmt: skip

@@ -1,18 +1,43 @@
-"""What `train` writes about a finished run: the PSNR-vs-time plot and the manifest's used / left_out records."""
+"""What `train` writes about a finished run: the PSNR-vs-time plot, the manifest's used / left_out records, and
+the per-image report (`per_view_report`): every training view's PSNR, the worst listed, and a contact sheet.
+
+Per-image report (`per_view.json`, `per_view_worst.png`): after training, each training view is rendered at a
+low resolution (the run's images shrunk further so that all of them cost about PER_VIEW_FRACTION of the training
+time at the measured render speed; long side between PER_VIEW_MIN_SIDE and PER_VIEW_MAX_SIDE px) and compared with
+its photo shrunk the same way (area filter; masks and alpha composited on the evaluation colour, like the test
+PSNR). A view far below the others (SUSPECT_DB under the median) is one the field could not explain: blurred,
+occluded, badly exposed or mis-posed. The sheet shows the worst views: photo | render | error (x4), one per row.
+"""
 
 from __future__ import annotations
 
+import math
 import resource
+import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
-from data.atomic import atomic_path
+from data.atomic import atomic_path, write_bytes, write_json
+from data.masks import load_masked_image
 from data.transforms import Scene, is_forward_facing
 from model.field_model import FieldModel
+from radiance.camera import generate_rays
+from radiance.compositing import over_background
+from radiance.metrics import psnr_from_mse
 
-__all__ = ["plot_psnr", "used_and_left_out"]
+__all__ = ["plot_psnr", "used_and_left_out", "per_view_report", "PER_VIEW_FRACTION"]
+
+PER_VIEW_FRACTION = 0.03
+"""The per-image report's render budget, as a fraction of the training seconds."""
+PER_VIEW_MIN_SIDE, PER_VIEW_MAX_SIDE = 24, 128
+"""Long side (px) of the per-image report's renders: at least (even over budget), at most."""
+SUSPECT_DB = 3.0
+"""A view this many dB under the median PSNR is listed as suspect."""
+WORST = 6
+"""Views on the contact sheet."""
 
 
 def plot_psnr(path: Path, rows: list[dict], title: str) -> None:
@@ -89,3 +114,119 @@ def used_and_left_out(
     if model.grid is None:
         left_out["occupancy_grid"] = "vanilla field uses the paper's stratified + hierarchical sampling"
     return used, left_out
+
+
+def _view_image(scene: Scene, i: int, w: int, h: int) -> np.ndarray:
+    """Frame i's photo (mask applied) shrunk to w x h (area filter): float32 [h, w, 4]."""
+    import cv2
+
+    img = load_masked_image(scene, i)
+    if img.shape[-1] == 3:
+        img = np.concatenate([img, np.ones_like(img[..., :1])], axis=-1)
+    return cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+
+
+@torch.no_grad()
+def _render(model: FieldModel, intr, world_from_cam: np.ndarray, bg: torch.Tensor, device) -> np.ndarray:
+    """The field's colour of every pixel of `intr` (rows first): float32 [h, w, 3]."""
+    o, d = generate_rays(intr, torch.as_tensor(world_from_cam, dtype=torch.float64))
+    o, d = o.float().to(device), d.float().to(device)
+    out = [model.render(o[k : k + model.chunk], d[k : k + model.chunk], bg, train=False)["rgb"]
+           for k in range(0, o.shape[0], model.chunk)]  # fmt: skip
+    return torch.cat(out).clamp(0, 1).cpu().numpy().reshape(intr.h, intr.w, 3)
+
+
+def _shrink(scene: Scene, train_idx: tuple[int, ...], downscale: float, rays: float) -> float:
+    """Factor (>= the run's downscale) at which the training views hold about `rays` pixels in all, the long
+    side kept within [PER_VIEW_MIN_SIDE, PER_VIEW_MAX_SIDE]."""
+    pixels = sum(scene.frame_intrinsics(i).w * scene.frame_intrinsics(i).h for i in train_idx)
+    long_side = max(max(scene.frame_intrinsics(i).w, scene.frame_intrinsics(i).h) for i in train_idx)
+    factor = max(downscale, math.sqrt(pixels / max(rays, 1.0)), long_side / PER_VIEW_MAX_SIDE)
+    return min(factor, max(downscale, long_side / PER_VIEW_MIN_SIDE))
+
+
+def _label(img: np.ndarray, text: str) -> np.ndarray:
+    """uint8 [h, w, 3] RGB with a 14-px caption strip above it."""
+    import cv2
+
+    strip = np.full((14, img.shape[1], 3), 255, np.uint8)
+    cv2.putText(strip, text, (2, 11), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.concatenate([strip, img], axis=0)
+
+
+def _contact_sheet(rows: list[tuple[str, float, np.ndarray, np.ndarray]], height: int = 128) -> bytes:
+    """PNG bytes: per row (name, psnr, photo, render) the photo | render | |error| x 4, scaled to `height` px."""
+    import cv2
+
+    lines = []
+    for name, psnr, photo, render in rows:
+        err = np.clip(np.abs(photo - render) * 4, 0, 1)
+        scale = height / photo.shape[0]
+        tiles = []
+        for tile, what in ((photo, f"{name}  {psnr:.1f} dB"), (render, "render"), (err, "|error| x4")):
+            u8 = np.round(np.clip(tile, 0, 1) * 255).astype(np.uint8)
+            u8 = cv2.resize(u8, (round(tile.shape[1] * scale), height), interpolation=cv2.INTER_NEAREST)
+            tiles.append(_label(u8, what))
+        lines.append(np.concatenate(tiles, axis=1))
+    width = max(line.shape[1] for line in lines)
+    sheet = np.concatenate([np.pad(line, ((0, 2), (0, width - line.shape[1]), (0, 0)), constant_values=255)
+                            for line in lines])  # fmt: skip
+    ok, buf = cv2.imencode(".png", sheet[..., ::-1].copy())
+    if not ok:
+        raise RuntimeError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def per_view_report(
+    run_dir: Path, model: FieldModel, scene: Scene, train_idx: tuple[int, ...], downscale: float,
+    train_seconds: float, rays_per_second: float | None, device: torch.device,
+    fraction: float = PER_VIEW_FRACTION,
+) -> dict[str, Any]:  # fmt: skip
+    """Write run_dir/per_view.json and per_view_worst.png (module docstring); returns the manifest's summary
+    (`files` lists the two files). `rays_per_second`: the render speed measured in training (None: measured on
+    the first view)."""
+    t0 = time.perf_counter()
+    model.field.eval()
+    bg = model.background.eval_colour().detach()
+    budget = fraction * train_seconds
+    first = scene.frame_intrinsics(train_idx[0]).scaled(1 / _shrink(scene, train_idx, downscale, 0))
+    if rays_per_second is None:  # one small view, timed
+        t = time.perf_counter()
+        _render(model, first, scene.frames[train_idx[0]].world_from_cam, bg, device)
+        rays_per_second = first.w * first.h / max(time.perf_counter() - t, 1e-6)
+    factor = _shrink(scene, train_idx, downscale, budget * rays_per_second)
+    views, sheet_rows = [], {}
+    bg_np = bg.cpu().numpy()
+    for i in train_idx:
+        intr = scene.frame_intrinsics(i).scaled(1 / factor)
+        photo = _view_image(scene, i, intr.w, intr.h)
+        target = over_background(photo[..., :3], photo[..., 3:], bg_np)
+        render = _render(model, intr, scene.frames[i].world_from_cam, bg, device)
+        mse = float(np.mean((render - target) ** 2))
+        name = Path(scene.frames[i].file_path).name
+        views.append({"frame": i, "file": scene.frames[i].file_path, "psnr": round(psnr_from_mse(mse), 3),
+                      "masked": scene.frames[i].mask_path is not None})  # fmt: skip
+        sheet_rows[i] = (name, views[-1]["psnr"], target, render)
+    worst = sorted(views, key=lambda v: v["psnr"])
+    median = float(np.median([v["psnr"] for v in views]))
+    suspect = [v["file"] for v in worst if v["psnr"] < median - SUSPECT_DB]
+    shown = worst[:WORST]
+    write_bytes(run_dir / "per_view_worst.png", _contact_sheet([sheet_rows[v["frame"]] for v in shown]))
+    seconds = time.perf_counter() - t0
+    doc = {
+        "what": "PSNR of each training view rendered at low resolution against its photo (shrunk the same way, "
+                "masks applied, composited on the evaluation colour); worst first",
+        "resolution": {"downscale": round(factor, 3), "example_size": [intr.w, intr.h]},
+        "budget_seconds": round(budget, 3), "seconds": round(seconds, 3),
+        "median_psnr": round(median, 3),
+        "suspect": suspect,
+        "suspect_rule": f"PSNR more than {SUSPECT_DB:g} dB under the median: blurred, occluded, badly exposed or "
+                        "mis-posed photos; the sheet per_view_worst.png shows photo | render | error x4",
+        "sheet": [v["file"] for v in shown],
+        "views": worst,
+    }  # fmt: skip
+    write_json(run_dir / "per_view.json", doc)
+    return {"files": ["per_view.json", "per_view_worst.png"], "median_psnr": doc["median_psnr"],
+            "worst": [[v["file"], v["psnr"]] for v in shown[:3]], "suspect": suspect,
+            "seconds": doc["seconds"], "budget_seconds": doc["budget_seconds"],
+            "downscale": round(factor, 3)}  # fmt: skip

@@ -18,7 +18,8 @@ import torch
 from torch import Tensor
 
 from data.errors import UserError
-from data.transforms import Scene, load_image
+from data.masks import load_masked_image
+from data.transforms import Scene
 from radiance.camera import Intrinsics, undistort
 
 __all__ = ["Views", "load_views", "evenly_spaced", "auto_downscale"]
@@ -127,7 +128,7 @@ def load_views(scene: Scene, indices: tuple[int, ...], downscale: float = 1.0) -
     offsets = torch.tensor([0] + [h * w for h, w in shapes], dtype=torch.int64).cumsum(0)
     rgba = torch.empty((int(offsets[-1]), 4), dtype=torch.uint8)
     for k, i in enumerate(indices):
-        img = load_image(scene.image_path(i))
+        img = load_masked_image(scene, i)  # a frame's mask_path makes its masked-out pixels transparent
         full = scene.frame_intrinsics(i)
         if img.shape[:2] != (full.h, full.w):
             raise UserError(f"{scene.image_path(i)}: image is {img.shape[1]}x{img.shape[0]}, "
