@@ -3,8 +3,11 @@
 The file holds tensors and primitive containers only, so it loads with `torch.load(weights_only=True)`:
 format, field_config (the field's constructor arguments), field (state dict), occupancy (state dict or None),
 ndc (`radiance.ndc.NDC.to_dict()` or None), contraction (`radiance.contraction.Contraction.to_dict()` or None),
-background ({mode, state}: `model.background.Background`), optimizer (state dict), step, seconds, lr_factor, rng.
-Checkpoints without contraction/background (older runs) load as box runs on white.
+background ({mode, state}: `model.background.Background`), optimizer (state dict), step, seconds, lr_factor, rng,
+appearance (`model.appearance.Appearance.to_dict()` or None), camera_opt (`model.camera_opt.CameraOpt.to_dict()`
+or None: the pose corrections of `train --refine-poses`).
+Checkpoints without contraction/background (older runs) load as box runs on white; without appearance or
+camera_opt, as runs without them.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from torch import Tensor
 
 from data.atomic import atomic_path
 from data.errors import UserError
+from model.appearance import Appearance
 from model.background import Background
 from radiance.contraction import Contraction
 
@@ -26,6 +30,7 @@ __all__ = [
     "read_checkpoint",
     "restore_background",
     "restore_contraction",
+    "restore_appearance",
     "load_state",
 ]
 
@@ -33,9 +38,18 @@ CHECKPOINT_FORMAT = 1
 
 
 def save_checkpoint(
-    path: Path, model: Any, opt: torch.optim.Optimizer, step: int, seconds: float, lr_factor: float, rng: Tensor
+    path: Path,
+    model: Any,
+    opt: torch.optim.Optimizer,
+    step: int,
+    seconds: float,
+    lr_factor: float,
+    rng: Tensor,
+    camera_opt: Any = None,
 ) -> None:
-    """Write `model` (a `model.field_model.FieldModel`) and the optimiser state atomically to `path`."""
+    """Write `model` (a `model.field_model.FieldModel`), the optimiser state and the pose corrections
+    (`camera_opt`: a `model.camera_opt.CameraOpt` or None) atomically to `path`."""
+    appearance = getattr(model, "appearance", None)
     state = {
         "format": CHECKPOINT_FORMAT,
         "field_config": model.field.config(),
@@ -49,6 +63,8 @@ def save_checkpoint(
         "seconds": seconds,
         "lr_factor": lr_factor,
         "rng": rng,
+        "appearance": appearance.to_dict() if appearance is not None else None,
+        "camera_opt": camera_opt.to_dict() if camera_opt is not None else None,
     }
     with atomic_path(path) as tmp:
         torch.save(state, tmp)
@@ -82,6 +98,12 @@ def restore_background(state: dict, device: torch.device | str) -> Background:
     bg = Background(doc["mode"])
     bg.load_state_dict(doc["state"])
     return bg.to(device)
+
+
+def restore_appearance(state: dict, device: torch.device | str) -> Appearance | None:
+    """The checkpoint's per-image appearance codes (None: trained without, or an older checkpoint)."""
+    doc = state.get("appearance")
+    return Appearance.from_dict(doc).to(device) if doc is not None else None
 
 
 def restore_contraction(state: dict) -> Contraction | None:
