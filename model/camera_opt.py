@@ -52,13 +52,13 @@ __all__ = [
 class CameraSchedule:
     """Learning rates and warm-up of the camera optimiser."""
 
-    lr: float = 1e-3
+    lr: float = 5e-3
     """Adam learning rate of the rotation (radians) and translation (scene units) corrections at full strength."""
     focal_lr: float = 1e-3
     """Adam learning rate of the log focal scale."""
     delay: float = 0.02
     """Run-progress fraction before the cameras move (the field first needs a rough shape to register to)."""
-    warmup: float = 0.1
+    warmup: float = 0.05
     """Run-progress fraction over which the learning rate ramps linearly from 0 to `lr` (after `delay`)."""
     decay: float = 0.1
     """Final learning-rate factor at the end of the run (exponential, like the field's)."""

@@ -1,7 +1,7 @@
 # Benchmarks (not tests): they read ../shared/data and print figures. Speed goals live here.
 BENCH_OUT ?= runs/bench
-.PHONY: bench bench-poses bench-train bench-ndc bench-mesh
-bench: bench-poses bench-train bench-ndc bench-mesh
+.PHONY: bench bench-poses bench-train bench-ndc bench-mesh bench-refine
+bench: bench-poses bench-train bench-ndc bench-mesh bench-refine
 
 bench-poses: $(INSTALLED)
 	$(VENV)/bin/python -m benchmarks.bench_poses --out $(BENCH_OUT)/poses
@@ -17,3 +17,7 @@ bench-ndc: $(INSTALLED)
 
 bench-mesh: $(INSTALLED)
 	$(VENV)/bin/python -m benchmarks.bench_mesh --out $(BENCH_OUT)/mesh
+
+# issue 17: train --refine-poses on 3 deg / 3 % perturbed cameras, --appearance on per-view gains and casts (120 s runs)
+bench-refine: $(INSTALLED)
+	$(VENV)/bin/python -m benchmarks.bench_refine --out $(BENCH_OUT)/refine

@@ -132,9 +132,10 @@ class Config:
     to RUN_DIR/transforms.json; the manifest lists each camera's correction."""
     refine_focal: bool = False
     """With refine_poses: also refine one focal-length scale shared by every camera."""
-    camera_lr: float = 1e-3
+    camera_lr: float = 5e-3
     """refine_poses: the corrections' learning rate (radians and scene units per step, Adam), reached after
-    the warm-up and decayed like the field's."""
+    the warm-up and decayed like the field's. 48 px scene, 3 deg / 3 % perturbations, 500 steps: median rotation
+    error 3.02 -> 1.92 deg at 1e-3, -> 1.28 deg at 5e-3."""
     appearance: bool = False
     """Learn a small appearance code per training image (NeRF-W) that changes colour only (exposure, white
     balance, colour cast; density is shared); novel views render with the mean code (`model.appearance`)."""
