@@ -161,8 +161,9 @@ def test_perturbed_poses_are_recovered(tiny, tmp_path):
     after = pose_errors(np.stack([trained.scene.frames[i].world_from_cam for i in idx]), truth).median_rotation_deg
     assert before == pytest.approx(3.0, abs=0.05)
     assert after < 0.5 * before, (before, after)
-    written = read_scene(run / "transforms.json") if False else json.loads((run / "transforms.json").read_text())
+    written = json.loads((run / "transforms.json").read_text())  # image paths relative to the run directory
     assert len(written["frames"]) == len(exact.frames)
+    assert (run / written["frames"][0]["file_path"]).resolve() == perturbed.image_path(0)
     used = json.loads(out.manifest.read_text())["used"]["pose_refinement"]
     assert len(used["per_camera"]) == len(idx) and used["median_rotation_deg"] > 1.0
     assert trained.pose_refinement["test_poses"]["method"] == "similarity"
