@@ -223,8 +223,9 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         "lpips": _mean([v["lpips"] for v in views]) if lpips_fn else None, "lpips_unavailable": lpips_reason,
         "rays_per_second": rendered_px / max(render_seconds, 1e-9), "render_seconds": render_seconds,
         "device": str(device), "downscale": downscale, "views": views,
-        "test_poses": (trained.pose_refinement or {}).get("test_poses", "as in transforms.json (no pose refinement)"),
-        "appearance": APPEARANCE_EVAL_RULE if trained.model.appearance is not None else None,
+        "test_poses": (getattr(trained, "pose_refinement", None) or {}).get(
+            "test_poses", "as in transforms.json (no pose refinement)"),
+        "appearance": APPEARANCE_EVAL_RULE if getattr(getattr(trained, "model", None), "appearance", None) else None,
     }  # fmt: skip
     result.update(_depth_summary(gt, alignment, abs_errors, covered, gt_pixels))
     write_json(out, result)
