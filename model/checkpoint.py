@@ -12,6 +12,10 @@ line naming the file, the previous checkpoint stays) and returns their sha256, w
 manifest.json (`checkpoint_sha256`); `read_checkpoint` refuses a checkpoint whose bytes no longer match it (a
 checkpoint without a manifest, an interrupted run's, has nothing to check against). A checkpoint of another format
 (another nerfpipe version's layout, an X-ray run's) or of an unknown field kind is refused naming what was expected.
+appearance (`model.appearance.Appearance.to_dict()` or None), camera_opt (`model.camera_opt.CameraOpt.to_dict()`
+or None: the pose corrections of `train --refine-poses`).
+Checkpoints without contraction/background (older runs) load as box runs on white; without appearance or
+camera_opt, as runs without them.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from torch import Tensor
 from data.atomic import write_bytes
 from data.errors import UserError
 from data.rundir import sha256_file, versions
+from model.appearance import Appearance
 from model.background import Background
 from radiance.contraction import Contraction
 
@@ -37,6 +42,7 @@ __all__ = [
     "read_checkpoint",
     "restore_background",
     "restore_contraction",
+    "restore_appearance",
     "load_state",
 ]
 
@@ -45,10 +51,18 @@ FIELD_KINDS = ("fast", "vanilla")
 
 
 def save_checkpoint(
-    path: Path, model: Any, opt: torch.optim.Optimizer, step: int, seconds: float, lr_factor: float, rng: Tensor
+    path: Path,
+    model: Any,
+    opt: torch.optim.Optimizer,
+    step: int,
+    seconds: float,
+    lr_factor: float,
+    rng: Tensor,
+    camera_opt: Any = None,
 ) -> str:
-    """Write `model` (a `model.field_model.FieldModel`) and the optimiser state atomically to `path`; returns the
-    file's sha256 (hex)."""
+    """Write `model` (a `model.field_model.FieldModel`), the optimiser state and the pose corrections
+    (`camera_opt`: a `model.camera_opt.CameraOpt` or None) atomically to `path`; returns the file's sha256 (hex)."""
+    appearance = getattr(model, "appearance", None)
     state = {
         "format": CHECKPOINT_FORMAT,
         "field_config": model.field.config(),
@@ -63,6 +77,8 @@ def save_checkpoint(
         "lr_factor": lr_factor,
         "rng": rng,
         "nerfpipe_version": versions().get("nerfpipe", "unknown"),
+        "appearance": appearance.to_dict() if appearance is not None else None,
+        "camera_opt": camera_opt.to_dict() if camera_opt is not None else None,
     }
     buf = io.BytesIO()  # torch's own file writer reports a full disk as "unexpected pos"; ours names the errno
     torch.save(state, buf)
@@ -122,6 +138,12 @@ def restore_background(state: dict, device: torch.device | str) -> Background:
     bg = Background(doc["mode"])
     bg.load_state_dict(doc["state"])
     return bg.to(device)
+
+
+def restore_appearance(state: dict, device: torch.device | str) -> Appearance | None:
+    """The checkpoint's per-image appearance codes (None: trained without, or an older checkpoint)."""
+    doc = state.get("appearance")
+    return Appearance.from_dict(doc).to(device) if doc is not None else None
 
 
 def restore_contraction(state: dict) -> Contraction | None:

@@ -20,6 +20,7 @@ from torch import Tensor
 
 from data.errors import UserError
 from data.transforms import Scene, is_forward_facing
+from model.appearance import Appearance
 from model.background import Background
 from radiance.aabb import ray_aabb_segment
 from radiance.contraction import CONTRACTED_BOX, Contraction, normalized_distance
@@ -173,15 +174,26 @@ class FieldModel:
     render_step_factor: float = 1.0
     contraction: Contraction | None = None
     background: Background | None = None
+    appearance: Appearance | None = None  # per-image colour codes (train --appearance; model.appearance)
 
     @property
     def chunk(self) -> int:
         """Rays per evaluation chunk (vanilla: 256 samples x 256 activations per ray)."""
         return 8192 if self.kind == "fast" else 1024
 
-    def render(self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, gen=None, median=False):
+    def render(self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, gen=None, median=False, view=None):
         """World rays o, d [R, 3] (unit d) -> dict(rgb, depth, depth_median, acc, ...); depths are distances
-        along the world rays whatever space the field lives in."""
+        along the world rays whatever space the field lives in. With per-image appearance, `view` [R] gives
+        each ray's training view (None: the evaluation rule, `model.appearance`)."""
+        out = self._render_world(o, d, background, train=train, gen=gen, median=median)
+        if self.appearance is not None:
+            for key in ("rgb", "rgb_coarse"):
+                if key in out:
+                    acc = out["acc"] if key == "rgb" else out["coarse"]["acc"]
+                    out[key] = self.appearance(out[key], acc, background, view)
+        return out
+
+    def _render_world(self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, gen=None, median=False):
         if self.ndc is None:
             return self._render(o, d, background, train=train, gen=gen, median=median)
         o_n, d_n, valid = self.ndc.rays_to_ndc(o, d)

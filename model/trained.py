@@ -17,7 +17,8 @@ from torch import Tensor
 
 from data.errors import UserError
 from data.transforms import Scene, read_scene
-from model.checkpoint import read_checkpoint, restore_background, restore_contraction
+from model.camera_opt import TEST_POSE_RULE, refined_scene
+from model.checkpoint import read_checkpoint, restore_appearance, restore_background, restore_contraction
 from model.device import resolve_device
 from model.field_model import FieldModel, ModelSettings, build_model
 from radiance.fields import Field
@@ -43,6 +44,9 @@ class Trained:
     model: FieldModel
     run_config: dict = dataclasses.field(default_factory=dict)
     """The run's resolved config.json (train's Config as JSON)."""
+    pose_refinement: dict | None = None
+    """Runs trained with --refine-poses: what `model.camera_opt.refined_scene` did to `scene` (whose cameras
+    are then the refined ones, test views mapped into the refined frame); None otherwise."""
 
     @property
     def chunk(self) -> int:
@@ -145,6 +149,11 @@ def load_trained(run_dir: str | Path, device: str | torch.device = "auto") -> Tr
     ndc = NDC.from_dict(state["ndc"]) if state.get("ndc") is not None else None
     contraction = restore_contraction(state)
     model = build_model(settings, scene, dev, state["field_config"], ndc, contraction, restore_background(state, dev))
+    model.appearance = restore_appearance(state, dev)
+    refinement = None  # built from the input scene as in training; below, consumers get the refined cameras
+    if state.get("camera_opt") is not None:
+        scene, refinement = refined_scene(scene, state["camera_opt"], scene.split("train"))
+        refinement["test_poses"] = {"rule": TEST_POSE_RULE, **refinement.get("test_poses", {})}
     model.field.load_state_dict(state["field"])
     if model.grid is not None and state["occupancy"] is not None:
         model.grid.load_state_dict(state["occupancy"])
@@ -155,4 +164,4 @@ def load_trained(run_dir: str | Path, device: str | torch.device = "auto") -> Tr
     else:  # the grid and box are in NDC or contracted space; consumers (mesh) work in the scene frame
         occupancy, aabb = None, torch.as_tensor(scene.aabb, dtype=torch.float32, device=dev).reshape(2, 3)
     return Trained(scene=scene, field=model.field, occupancy=occupancy, aabb=aabb, background=background,
-                   device=dev, model=model, run_config=doc)  # fmt: skip
+                   device=dev, model=model, run_config=doc, pose_refinement=refinement)  # fmt: skip

@@ -1,7 +1,7 @@
 # Benchmarks (not tests): they read ../shared/data and print figures. Speed goals live here.
 BENCH_OUT ?= runs/bench
-.PHONY: bench bench-poses bench-train bench-ndc bench-mesh bench-turntable
-bench: bench-poses bench-train bench-ndc bench-mesh bench-turntable
+.PHONY: bench bench-poses bench-train bench-ndc bench-mesh bench-turntable bench-refine
+bench: bench-poses bench-train bench-ndc bench-mesh bench-turntable bench-refine
 
 bench-poses: $(INSTALLED)
 	$(VENV)/bin/python -m benchmarks.bench_poses --out $(BENCH_OUT)/poses
@@ -27,3 +27,7 @@ bench-memory: $(INSTALLED)
 # a synthetic turntable (object turns, camera and room fixed): poses with masks vs without, then 120 s of training
 bench-turntable: $(INSTALLED)
 	$(VENV)/bin/python -m benchmarks.bench_turntable --out $(BENCH_OUT)/turntable
+
+# issue 17: train --refine-poses on 3 deg / 3 % perturbed cameras, --appearance on per-view gains and casts (120 s runs)
+bench-refine: $(INSTALLED)
+	$(VENV)/bin/python -m benchmarks.bench_refine --out $(BENCH_OUT)/refine

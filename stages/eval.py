@@ -16,6 +16,10 @@ cameras, mapped to the source frame, do not coincide with the ground-truth camer
 similarity (Umeyama) fitted from the run's camera centres to the ground-truth centres, matched by image stem,
 converts the depth scale; the JSON says which (`depth_alignment.method`: none | similarity).
 
+Runs trained with `--refine-poses` are scored from the refined frame: the test cameras are mapped into it by the
+similarity from the input training cameras to the refined ones (`model.camera_opt`; JSON `test_poses`). Runs
+trained with `--appearance` render with the mean appearance code (JSON `appearance`).
+
 Writes OUT.json, OUT.metrics.csv (per view: step, seconds, psnr, ssim, depth_mae) and OUT.manifest.json (last).
 """
 
@@ -38,6 +42,7 @@ from data.progress import NO_PROGRESS, Progress
 from data.rundir import MetricsLog, Stopwatch, config_to_json, sidecar, write_manifest
 from data.transforms import Scene
 from model import OPAQUE, load_trained, render_view, resolve_device
+from model.appearance import EVAL_RULE as APPEARANCE_EVAL_RULE
 from radiance.align import umeyama
 from radiance.compositing import over_background
 from radiance.metrics import psnr
@@ -219,6 +224,9 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         "lpips": _mean([v["lpips"] for v in views]) if lpips_fn else None, "lpips_unavailable": lpips_reason,
         "rays_per_second": rendered_px / max(render_seconds, 1e-9), "render_seconds": render_seconds,
         "device": str(device), "downscale": downscale, "views": views,
+        "test_poses": (getattr(trained, "pose_refinement", None) or {}).get(
+            "test_poses", "as in transforms.json (no pose refinement)"),
+        "appearance": APPEARANCE_EVAL_RULE if getattr(getattr(trained, "model", None), "appearance", None) else None,
     }  # fmt: skip
     result.update(_depth_summary(gt, alignment, abs_errors, covered, gt_pixels))
     write_json(out, result)
@@ -228,7 +236,8 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         inputs=[Path(config.run_dir) / "checkpoint.pt", Path(config.run_dir) / "config.json",
                 *([gt.folder / "cameras.json"] if gt else [])],
         outputs=[out, metrics.path], used={"split": split, "views": len(views), "device": str(device),
-                                           "ssim": "skimage structural_similarity, 7x7, data_range 1"},
+                                           "ssim": "skimage structural_similarity, 7x7, data_range 1",
+                                           "test_poses": result["test_poses"], "appearance": result["appearance"]},
         left_out={**({"lpips": lpips_reason} if lpips_reason else {}),
                   **({} if gt else {"depth": "no --ground-truth given"})},
         config=config_to_json(config),

@@ -17,6 +17,7 @@ import copy
 import math
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,6 +30,7 @@ from data.errors import Interrupted
 from data.progress import Progress
 from data.rundir import MetricsLog
 from data.stop import StopRequest
+from model.camera_opt import CameraOpt
 from model.checkpoint import save_checkpoint
 from model.field_model import FieldModel
 from radiance.compositing import over_background
@@ -52,6 +54,8 @@ def make_optimizer(model: FieldModel | Field, lr: float, *, fused: bool = True) 
     groups = field.param_groups(lr)
     if extra:
         groups.append({"params": extra, "lr": lr, "lr_scale": 1.0})
+    if isinstance(model, FieldModel) and model.appearance is not None:
+        groups += model.appearance.param_groups(lr)
     return torch.optim.Adam(groups, betas=(0.9, 0.99), fused=fused)
 
 
@@ -71,11 +75,15 @@ def upsample_schedule(resolution: tuple[int, int], upsample_at: tuple[float, ...
 
 
 @torch.no_grad()
-def evaluate_psnr(model: FieldModel, views: Views, idx: Tensor, bg: Tensor, device: torch.device) -> float:
-    """PSNR over the rays idx [K] of `views`, photos with alpha composited on bg [3]."""
+def evaluate_psnr(model: FieldModel, views: Views, idx: Tensor, bg: Tensor, device: torch.device,
+                  rays: Callable | None = None) -> float:  # fmt: skip
+    """PSNR over the rays idx [K] of `views`, photos with alpha composited on bg [3]; `rays` maps (o, d) into
+    the frame of refined cameras (`CameraOpt.test_rays`; None: as given)."""
     se, n, chunk = 0.0, 0, model.chunk
     for i in range(0, idx.numel(), chunk):
         o, d, rgb, alpha = views.batch(idx[i : i + chunk], device)
+        if rays is not None:
+            o, d = rays(o, d)
         pred = model.render(o, d, bg, train=False)["rgb"]
         se += float(((pred - over_background(rgb, alpha[:, None], bg)) ** 2).sum())
         n += pred.numel()
@@ -111,6 +119,11 @@ class Loop:
     _paused: float = 0.0
     _t_start: float = 0.0
     _losses: list[float] = field(default_factory=list)
+    cameras: CameraOpt | None = None  # pose refinement (train --refine-poses; model.camera_opt)
+
+    def test_rays(self) -> Callable | None:
+        """The map of test rays into the refined cameras' frame (None without pose refinement)."""
+        return self.cameras.test_rays() if self.cameras is not None else None
 
     def elapsed(self) -> float:
         """Training seconds so far (across resumes, evaluation excluded)."""
@@ -168,9 +181,12 @@ class Loop:
         cfg, model = self.config, self.model
         idx = torch.randint(self.train.n_rays, (self.batch_rays,), generator=self.gen)
         o, d, rgb, alpha = self.train.batch(idx, self.device)
+        view = self.train.view[idx].to(self.device)  # [B] each ray's training view
+        if self.cameras is not None:
+            o, d = self.cameras(o, d, view)
         bg = model.background.train_colour(o.shape[0], self.gen, transparent=alpha == 0)  # [B, 3] or [3]
         target = over_background(rgb, alpha[:, None], bg.detach())
-        out = model.render(o, d, bg, train=True, gen=None)
+        out = model.render(o, d, bg, train=True, gen=None, view=view)
         loss = torch.mean((out["rgb"] - target) ** 2)
         mse = float(loss.detach())
         if "rgb_coarse" in out:
@@ -184,6 +200,8 @@ class Loop:
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()
+        if self.cameras is not None:
+            self.cameras.step(max(self.step / max(cfg.max_steps, 1), self.elapsed() / cfg.max_seconds))
         self.step += 1
         self._losses.append(mse)
         per_ray = float(out["samples"]) / o.shape[0]
@@ -221,7 +239,8 @@ class Loop:
         if evaluate:
             t_eval = time.perf_counter()
             bg = self.model.background.eval_colour().detach()
-            row["test_psnr"] = f"{evaluate_psnr(self.model, self.test, self.eval_px, bg, self.device):.3f}"
+            psnr = evaluate_psnr(self.model, self.test, self.eval_px, bg, self.device, self.test_rays())
+            row["test_psnr"] = f"{psnr:.3f}"
             spent = time.perf_counter() - t_eval
             self._paused += spent
             self.eval_rays_per_second = self.eval_px.numel() / max(spent, 1e-6)
@@ -234,7 +253,7 @@ class Loop:
     def _checkpoint(self, seconds: float | None = None) -> None:
         seconds = self.elapsed() if seconds is None else seconds
         self.ckpt_sha256 = save_checkpoint(self.ckpt_path, self.model, self.opt, self.step, seconds, self.lr_factor,
-                                           self.gen.get_state())  # fmt: skip
+                                           self.gen.get_state(), self.cameras)  # fmt: skip
         self._ckpt_wall = time.perf_counter()
 
     def _interrupted(self) -> None:
