@@ -206,6 +206,26 @@ def render_rays_hierarchical(
     return {**fine, "coarse": coarse}
 
 
+def _march_occupied(rays_o, rays_d, grid, near, far, step_size, jitter, generator) -> tuple[Tensor, ...]:
+    """Packed samples of `render_marched` (and its terminating twin): occupancy marching at `step_size` through
+    the box around the occupied cells, each ray shifted by U[0, step_size) when `jitter`. Returns ray_indices [N],
+    t_starts [N], t_ends [N] and the midpoints x [N, 3]."""
+    n = rays_o.shape[0]
+    near_t, far_t = _per_ray(near, rays_o, "near"), _per_ray(far, rays_o, "far")
+    box = grid.occupied_aabb()
+    if box is None:
+        t_near = t_far = torch.zeros(n, dtype=rays_o.dtype, device=rays_o.device)
+    else:
+        t_near, t_far = ray_aabb_segment(rays_o, rays_d, box, near_t, far_t)
+    if jitter:
+        u = torch.rand(t_near.shape, generator=generator, dtype=t_near.dtype, device=t_near.device)
+        t_near = t_near + u * step_size
+    ray_idx, t0, t1 = march_rays(grid, rays_o, rays_d, near=t_near, far=torch.maximum(t_far, t_near),
+                                 step_size=step_size)  # fmt: skip
+    x = rays_o[ray_idx] + rays_d[ray_idx] * (0.5 * (t0 + t1))[:, None]  # [N, 3]
+    return ray_idx, t0, t1, x
+
+
 def render_marched(
     rays_o: Tensor,  # [R, 3]
     rays_d: Tensor,  # [R, 3] unit
@@ -237,20 +257,7 @@ def render_marched(
     ray_indices.
     """
     _check_rays(rays_o, rays_d)
-    n = rays_o.shape[0]
-    near_t, far_t = _per_ray(near, rays_o, "near"), _per_ray(far, rays_o, "far")
-    box = grid.occupied_aabb()
-    if box is None:
-        t_near = t_far = torch.zeros(n, dtype=rays_o.dtype, device=rays_o.device)
-    else:
-        t_near, t_far = ray_aabb_segment(rays_o, rays_d, box, near_t, far_t)
-    if jitter:
-        u = torch.rand(t_near.shape, generator=generator, dtype=t_near.dtype, device=t_near.device)
-        t_near = t_near + u * step_size
-    ray_idx, t0, t1 = march_rays(grid, rays_o, rays_d, near=t_near, far=torch.maximum(t_far, t_near),
-                                 step_size=step_size)  # fmt: skip
-    t_mid = 0.5 * (t0 + t1)
-    x = rays_o[ray_idx] + rays_d[ray_idx] * t_mid[:, None]  # [N, 3]
+    ray_idx, t0, t1, x = _march_occupied(rays_o, rays_d, grid, near, far, step_size, jitter, generator)
     sigma = sigma_fn(x)  # [N]
     shade = dict(color_threshold=color_threshold, color_per_ray=color_per_ray, with_median=with_median)
     return _shade_packed(rays_o, rays_d, ray_idx, t0, t1, x, sigma, rgb_fn=rgb_fn, background=background, **shade)
@@ -282,15 +289,7 @@ def render_marched_terminating(
     if not 0 <= min_transmittance < 1 or segment < 1:
         raise ValueError(f"expected min_transmittance in [0, 1) and segment >= 1, got {min_transmittance}, {segment}")
     n = rays_o.shape[0]
-    near_t, far_t = _per_ray(near, rays_o, "near"), _per_ray(far, rays_o, "far")
-    box = grid.occupied_aabb()
-    if box is None:
-        t_near = t_far = torch.zeros(n, dtype=rays_o.dtype, device=rays_o.device)
-    else:
-        t_near, t_far = ray_aabb_segment(rays_o, rays_d, box, near_t, far_t)
-    ray_idx, t0, t1 = march_rays(grid, rays_o, rays_d, near=t_near, far=torch.maximum(t_far, t_near),
-                                 step_size=step_size)  # fmt: skip
-    x = rays_o[ray_idx] + rays_d[ray_idx] * (0.5 * (t0 + t1))[:, None]  # [N, 3]
+    ray_idx, t0, t1, x = _march_occupied(rays_o, rays_d, grid, near, far, step_size, False, None)
     sigma = x.new_zeros(ray_idx.shape)  # [N]
     if ray_idx.numel():
         counts = torch.bincount(ray_idx, minlength=n)  # [R]
