@@ -16,6 +16,7 @@ from model.appearance import EVAL_RULE, Appearance
 from stages import eval as eval_stage
 from stages import scene as scene_stage
 from stages import train
+from tests.test_refine import tiny_config
 
 
 def test_starts_as_the_identity_and_commutes_with_compositing():
@@ -48,20 +49,12 @@ def scenes(tmp_path_factory) -> tuple[Path, Path]:
     return root / "clean", degrade_scene(root / "clean", root / "varied")
 
 
-def _config(scene_dir: Path, run_dir: Path, **kw) -> train.Config:
-    base = dict(scene_dir=scene_dir, run_dir=run_dir, max_steps=3, max_seconds=600.0, batch_rays=256,
-                resolution=(16, 24), occupancy_resolution=16, log_every=1, eval_every=0, final_eval_views=1,
-                device="cpu", threads=1)  # fmt: skip
-    base.update(kw)
-    return train.Config(**base)
-
-
 def test_off_by_default_and_same_first_loss(scenes, tmp_path):
     assert not train.Config(scene_dir=Path("s"), run_dir=Path("r")).appearance
-    off = train.run(_config(scenes[1], tmp_path / "off"))
+    off = train.run(tiny_config(scenes[1], tmp_path / "off"))
     assert torch.load(off.checkpoint, weights_only=True)["appearance"] is None
     assert "appearance" in json.loads(off.manifest.read_text())["left_out"]
-    on = train.run(_config(scenes[1], tmp_path / "on", appearance=True))
+    on = train.run(tiny_config(scenes[1], tmp_path / "on", appearance=True))
     runs = (tmp_path / "off", tmp_path / "on")
     first = [float((p / "metrics.csv").read_text().splitlines()[1].split(",")[2]) for p in runs]
     assert first[1] == pytest.approx(first[0], rel=1e-4) and on.steps == off.steps  # float rounding of A c + b
@@ -70,7 +63,7 @@ def test_off_by_default_and_same_first_loss(scenes, tmp_path):
 
 def test_codes_learn_the_gains_and_eval_uses_the_mean(scenes, tmp_path):
     run = tmp_path / "run"
-    out = train.run(_config(scenes[1], run, max_steps=300, batch_rays=512, appearance=True, log_every=100))
+    out = train.run(tiny_config(scenes[1], run, max_steps=300, batch_rays=512, appearance=True, log_every=100))
     trained = load_trained(run, "cpu")
     app = trained.model.appearance
     assert app is not None and app.n_views == len(trained.scene.split("train"))

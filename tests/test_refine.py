@@ -121,7 +121,8 @@ def tiny(tmp_path_factory) -> tuple[Path, Path]:
     return root / "exact", perturb_scene(root / "exact", root / "perturbed", 3.0, 0.03)
 
 
-def _config(scene_dir: Path, run_dir: Path, **kw) -> train.Config:
+def tiny_config(scene_dir: Path, run_dir: Path, **kw) -> train.Config:
+    """A few-step CPU train config on a tiny grid (test_appearance uses it too)."""
     base = dict(scene_dir=scene_dir, run_dir=run_dir, max_steps=3, max_seconds=600.0, batch_rays=256,
                 resolution=(16, 24), occupancy_resolution=16, log_every=1, eval_every=0, final_eval_views=1,
                 device="cpu", threads=1)  # fmt: skip
@@ -137,12 +138,12 @@ def test_off_by_default_and_identity_at_start(tiny, tmp_path):
     """Defaults: no corrections in the checkpoint, the manifest says why. Switched on, the first step's loss is
     the default run's (corrections start at zero and wait for the warm-up delay)."""
     assert not train.Config(scene_dir=Path("s"), run_dir=Path("r")).refine_poses
-    off = train.run(_config(tiny[1], tmp_path / "off"))
+    off = train.run(tiny_config(tiny[1], tmp_path / "off"))
     state = torch.load(off.checkpoint, weights_only=True)
     assert state["camera_opt"] is None
     assert "pose_refinement" in json.loads(off.manifest.read_text())["left_out"]
     assert not (tmp_path / "off" / "transforms.json").exists()
-    on = train.run(_config(tiny[1], tmp_path / "on", refine_poses=True))
+    on = train.run(tiny_config(tiny[1], tmp_path / "on", refine_poses=True))
     assert float(_losses(tmp_path / "on")[0]) == pytest.approx(float(_losses(tmp_path / "off")[0]), rel=1e-5)
     assert on.steps == off.steps
 
@@ -155,7 +156,7 @@ def test_perturbed_poses_are_recovered(tiny, tmp_path):
     truth = np.stack([exact.frames[i].world_from_cam for i in idx])
     before = pose_errors(np.stack([perturbed.frames[i].world_from_cam for i in idx]), truth).median_rotation_deg
     run = tmp_path / "run"
-    out = train.run(_config(tiny[1], run, max_steps=300, max_seconds=1e5, batch_rays=512, refine_poses=True,
+    out = train.run(tiny_config(tiny[1], run, max_steps=300, max_seconds=1e5, batch_rays=512, refine_poses=True,
                             camera_lr=3e-3, log_every=100))  # fmt: skip
     trained = load_trained(run, "cpu")
     after = pose_errors(np.stack([trained.scene.frames[i].world_from_cam for i in idx]), truth).median_rotation_deg
