@@ -132,3 +132,38 @@ def test_vm_features_match_their_reference_twin(channels):
     torch.testing.assert_close(grads[0][0], grads[1][0], rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(grads[0][1], grads[1][1], rtol=1e-5, atol=1e-5)
     assert _vm_features(planes, lines, xn[:0]).shape == (3, channels, 0)
+
+
+def test_sampled_tv_is_unbiased_and_its_direct_gradient_matches_autograd():
+    """The per-step TV estimate averages to the full TV; the in-place gradient equals autograd of the estimate."""
+    from radiance.fields.fast import _plane_tv, add_plane_tv_grad_, plane_tv_sampled, tv_pairs
+
+    g = torch.Generator().manual_seed(2)
+    planes = torch.randn(3, 5, 9, 7, generator=g, dtype=torch.float64).cumsum(2)  # rougher along H than W
+    full = float(_plane_tv(planes))
+    draws = torch.tensor([float(plane_tv_sampled(planes, tv_pairs(planes.shape, 64, g, planes.device)))
+                          for _ in range(2000)], dtype=torch.float64)  # fmt: skip
+    assert abs(float(draws.mean()) - full) < 4 * float(draws.std()) / 2000**0.5
+    pairs = tv_pairs(planes.shape, 64, g, planes.device)
+    assert int(pairs.max()) < 9 * 7 and int(pairs.min()) >= 0
+    p = torch.nn.Parameter(planes.clone())
+    (0.3 * plane_tv_sampled(p, pairs)).backward()
+    expected, p.grad = p.grad.clone(), torch.ones_like(p)  # an existing gradient is added to, not replaced
+    value = add_plane_tv_grad_(p, pairs, 0.3)
+    torch.testing.assert_close(p.grad - 1, expected)
+    assert value == pytest.approx(float(plane_tv_sampled(planes, pairs)))
+    with pytest.raises(ValueError, match="texels >= 2"):
+        tv_pairs(planes.shape, 1, g, planes.device)
+
+
+def test_tv_is_zero_for_constant_planes_and_field_adds_its_gradient():
+    f = TensoRF(aabb=AABB, resolution=8, density_rank=2, app_rank=2, hidden=8)
+    with torch.no_grad():
+        for p in f.grid_parameters():
+            p.fill_(0.5)
+    assert float(f.tv().detach()) == 0.0
+    assert f.add_tv_grad_(1.0, 16, torch.Generator().manual_seed(0)) == 0.0
+    assert float(f.density_planes.grad.abs().max()) == 0.0 and f.app_planes.grad is not None
+    with torch.no_grad():
+        f.density_planes.normal_()
+    assert float(f.tv().detach()) > 0 and f.add_tv_grad_(1.0, 16) > 0

@@ -72,6 +72,58 @@ def _vm_features_reference(planes: Tensor, lines: Tensor, xn: Tensor) -> Tensor:
     return (p * ln)[..., 0]
 
 
+def _plane_tv(planes: Tensor) -> Tensor:
+    """planes [3, C, H, W] -> sum over the 3 planes of 2 * (mean squared H-difference + mean squared W-difference)."""
+    dh = (planes[:, :, 1:, :] - planes[:, :, :-1, :]).pow(2).mean(dim=(1, 2, 3))
+    dw = (planes[:, :, :, 1:] - planes[:, :, :, :-1]).pow(2).mean(dim=(1, 2, 3))
+    return 2.0 * (dh + dw).sum()
+
+
+def tv_pairs(shape: torch.Size, texels: int, gen: torch.Generator | None, device: torch.device) -> Tensor:
+    """K = texels random neighbour pairs per plane of planes [3, C, H, W] (the same in every channel), half along H
+    and half along W -> flat indices into H * W, [2 (texel, its neighbour), 3, 1, K]."""
+    n, _, h, w = shape
+    if texels < 2 or h < 2 or w < 2:
+        raise ValueError(f"expected texels >= 2 and planes at least 2 x 2, got {texels} and {tuple(shape)}")
+    k = texels // 2
+    dev = gen.device if gen is not None else device
+    i = torch.randint(h - 1, (n, 1, k), generator=gen, device=dev)  # along H: rows with a next row
+    j = torch.randint(w, (n, 1, k), generator=gen, device=dev)
+    along_h = torch.stack([i * w + j, (i + 1) * w + j])
+    i = torch.randint(h, (n, 1, k), generator=gen, device=dev)  # along W: columns with a next column
+    j = torch.randint(w - 1, (n, 1, k), generator=gen, device=dev)
+    along_w = torch.stack([i * w + j, i * w + j + 1])
+    return torch.cat([along_h, along_w], dim=-1).to(device)
+
+
+def plane_tv_sampled(planes: Tensor, pairs: Tensor) -> Tensor:
+    """Unbiased estimate of `_plane_tv` from `tv_pairs` (differentiable; the plain twin of `add_plane_tv_grad_`).
+    Each pair is half of the estimate: 2 * (mean over H-pairs + mean over W-pairs) = 4 * mean over all pairs."""
+    n, c = planes.shape[:2]
+    flat = planes.reshape(n, c, -1)
+    k = pairs.shape[-1]
+    diff = flat.gather(2, pairs[1].expand(n, c, k)) - flat.gather(2, pairs[0].expand(n, c, k))  # [3, C, K]
+    return 4.0 * diff.pow(2).mean(dim=(1, 2)).sum()
+
+
+@torch.no_grad()
+def add_plane_tv_grad_(planes: nn.Parameter, pairs: Tensor, weight: float) -> float:
+    """planes.grad += weight * d(plane_tv_sampled)/d(planes), touching only the sampled texels (the dense gradient
+    of a gather costs as much as the whole plane); returns the estimate's value."""
+    n, c = planes.shape[:2]
+    flat = planes.reshape(n, c, -1)
+    k = pairs.shape[-1]
+    a, b = pairs[0].expand(n, c, k), pairs[1].expand(n, c, k)
+    diff = flat.gather(2, b) - flat.gather(2, a)  # [3, C, K]
+    if planes.grad is None:
+        planes.grad = torch.zeros_like(planes)
+    g = planes.grad.view(n, c, -1)
+    step = diff * (weight * 8.0 / (c * k))  # d/d(diff) of 4 * mean(diff^2) over C * K entries, per plane
+    g.scatter_add_(2, b, step)
+    g.scatter_add_(2, a, -step)
+    return float(4.0 * diff.pow(2).mean(dim=(1, 2)).sum())
+
+
 class TensoRF(Field):
     """VM-decomposed density (+ appearance) grid with a small shading MLP."""
 
@@ -167,6 +219,26 @@ class TensoRF(Field):
     def density_l1(self) -> Tensor:
         """Mean absolute value of the density factors (TensoRF's L1 sparsity prior)."""
         return self.density_planes.abs().mean() + self.density_lines.abs().mean()
+
+    def tv(self) -> Tensor:
+        """TensoRF's total-variation prior on the planes (its `TVLoss`): for each factor group, 2 x (mean squared
+        difference of neighbouring texels along H + along W) per plane, summed over the three planes; density plus
+        appearance (when present). Smooths the factors, which removes the streaks and floaters a VM field paints
+        into sparsely seen space (TensoRF applies it to real captures). Every texel: the plain twin of `add_tv_grad_`."""
+        total = _plane_tv(self.density_planes)
+        if self.has_color:
+            total = total + _plane_tv(self.app_planes)
+        return total
+
+    def add_tv_grad_(self, weight: float, texels: int, gen: torch.Generator | None = None) -> float:
+        """Add weight x the gradient of an unbiased `tv` estimate from `texels` random neighbour pairs per plane to
+        the planes' .grad (call after backward, before the optimizer step); returns the estimate. At 256^2 the
+        full `tv` costs about as much as a training step, this a few milliseconds."""
+        total = 0.0
+        for planes in [self.density_planes] + ([self.app_planes] if self.has_color else []):
+            pairs = tv_pairs(planes.shape, texels, gen, planes.device)
+            total += add_plane_tv_grad_(planes, pairs, weight)
+        return total
 
     @torch.no_grad()
     def upsample(self, resolution: int) -> None:

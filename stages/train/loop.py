@@ -34,6 +34,9 @@ from model.camera_opt import CameraOpt
 from model.checkpoint import save_checkpoint
 from model.field_model import FieldModel
 from radiance.compositing import over_background
+
+TV_TEXELS = 4096
+"""Random texels per plane in each step's total-variation estimate (`TensoRF.tv`)."""
 from radiance.fields import Field
 from radiance.metrics import psnr_from_mse
 from stages.train.views import Views
@@ -199,6 +202,8 @@ class Loop:
             return False
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
+        if model.kind == "fast" and (cfg.tv or 0) > 0:
+            model.field.add_tv_grad_(cfg.tv, TV_TEXELS, self.gen)
         self.opt.step()
         if self.cameras is not None:
             self.cameras.step(max(self.step / max(cfg.max_steps, 1), self.elapsed() / cfg.max_seconds))
