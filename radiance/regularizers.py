@@ -10,11 +10,14 @@ floaters near the cameras of a short real capture). With samples sorted along ea
 
 from __future__ import annotations
 
+import math
+
+import torch
 from torch import Tensor
 
 from radiance.compositing import segment_cumsum
 
-__all__ = ["distortion_loss", "distortion_loss_reference"]
+__all__ = ["distortion_loss", "distortion_loss_reference", "depth_nll_loss"]
 
 
 def distortion_loss(
@@ -49,3 +52,31 @@ def distortion_loss_reference(weights: Tensor, s0: Tensor, s1: Tensor, ray_indic
         w, mr, d = weights[sel], m[sel], (s1 - s0)[sel]
         total = total + (w[:, None] * w[None, :] * (mr[:, None] - mr[None, :]).abs()).sum() + (w * w * d).sum() / 3
     return total / n_rays
+
+
+def depth_nll_loss(
+    weights: Tensor,  # [N] packed
+    t_starts: Tensor,  # [N] interval starts along the rays (the units of `depth`)
+    t_ends: Tensor,  # [N]
+    ray_indices: Tensor,  # [N] long
+    depth: Tensor,  # [R] the known distance at which each ray meets a surface
+    sigma: Tensor,  # [R] its uncertainty (> 0)
+) -> Tensor:  # [] mean over rays
+    """DS-NeRF's depth loss (Deng et al. 2022, as nerfstudio's `ds_nerf_depth_loss`), with a normalised kernel:
+        L_r = - sum_i log(w_i + eps) * N(m_i; depth_r, sigma_r) * (t1_i - t0_i),
+    m_i the interval midpoint, N the Gaussian density, eps the dtype's eps: the negative log-likelihood that the ray
+    ends at the known depth. Its minimum puts the ray's weight in one peak there, so it removes the fog in front of
+    a surface that sparse structure-from-motion points vouch for. Samples far from the depth carry no loss; a ray
+    with no sample near its depth (skipped as empty) contributes 0."""
+    if not (weights.shape == t_starts.shape == t_ends.shape == ray_indices.shape) or weights.ndim != 1:
+        raise ValueError(f"expected weights, t_starts, t_ends, ray_indices [N], got "
+                         f"{[tuple(t.shape) for t in (weights, t_starts, t_ends, ray_indices)]}")  # fmt: skip
+    if depth.ndim != 1 or depth.shape != sigma.shape or depth.numel() < 1:
+        raise ValueError(f"expected depth, sigma [R] with R >= 1, got {tuple(depth.shape)}, {tuple(sigma.shape)}")
+    if weights.numel() == 0:
+        return weights.sum()
+    eps = torch.finfo(weights.dtype).eps
+    mid = 0.5 * (t_starts + t_ends)
+    z = (mid - depth[ray_indices]) / sigma[ray_indices]
+    kernel = torch.exp(-0.5 * z * z) / (sigma[ray_indices] * math.sqrt(2.0 * math.pi))
+    return -(torch.log(weights + eps) * kernel * (t_ends - t_starts)).sum() / depth.shape[0]

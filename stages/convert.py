@@ -41,6 +41,9 @@ from data.errors import UserError
 from data.importers import Source, SourceFrame, load_source
 from data.masks import read_mask
 from data.rundir import config_to_json, write_manifest
+from data.sparse_depth import FILE as SPARSE_FILE
+from data.sparse_depth import KEY as SPARSE_KEY
+from data.sparse_depth import write_sparse_depth
 from data.transforms import Frame, Scene, cameras_face_forward, read_scene, write_scene
 from radiance.normalize import Normalization, normalize
 
@@ -300,6 +303,12 @@ def run(config: Config) -> Outputs:
         _write_ply(scene_dir / "sparse_points.ply", pts, source.colors)
         extra["sparse_points_path"] = "sparse_points.ply"
         outputs.append(scene_dir / "sparse_points.ply")
+        observed = {fr.file_path: f.point_ids for f, fr in zip(frames, out_frames, strict=True)
+                    if f.point_ids is not None}  # fmt: skip
+        if observed:
+            write_sparse_depth(scene_dir / SPARSE_FILE, pts, observed)
+            extra[SPARSE_KEY] = SPARSE_FILE
+            outputs.append(scene_dir / SPARSE_FILE)
 
     scene = Scene(
         root=scene_dir, frames=tuple(out_frames), intrinsics=shared, applied_transform=applied,

@@ -281,3 +281,38 @@ def test_look_at_point_converging_and_parallel():
     a, b = look_at_point(centres, parallel), look_at_point(centres, parallel)
     np.testing.assert_array_equal(a, b)  # deterministic fallback, in front of the rig
     assert a[2] < centres[:, 2].mean()
+
+
+def test_colmap_tracks_become_sparse_depth(tmp_path):
+    """convert writes which points each photo observed (the fixture's tracks: photos 1 and 2 see all 60), in the
+    scene frame, and the rays through them end at the points."""
+    from data.sparse_depth import KEY, read_sparse_depth
+
+    src = tmp_path / "src"
+    fx.make_colmap(src / "sparse" / "0", src / "images", 10)
+    run(Config(source=src, scene_dir=tmp_path / "scene"))
+    scene = read_scene(tmp_path / "scene")
+    sparse = read_sparse_depth(scene.root / scene.extra[KEY])
+    points = np.asarray(trimesh.load(tmp_path / "scene" / scene.extra["sparse_points_path"]).vertices)
+    np.testing.assert_allclose(sparse.points, points, atol=1e-5)
+    counts = sorted(len(v) for v in sparse.observed.values())
+    assert counts == [0] * 8 + [60, 60]
+    name = next(n for n, v in sparse.observed.items() if len(v))
+    i = next(k for k, f in enumerate(scene.frames) if f.file_path == name)
+    o, d, dist = sparse.rays(name, scene.frames[i].world_from_cam[:3, 3])
+    np.testing.assert_allclose(o + d * dist[:, None], sparse.points[sparse.observed[name]], atol=1e-5)
+    assert (d @ -scene.frames[i].world_from_cam[:3, 2] > 0).all()  # in front of the camera that saw them
+
+
+def test_sparse_depth_file_errors_are_one_line(tmp_path):
+    from data.errors import UserError
+    from data.sparse_depth import read_sparse_depth, write_sparse_depth
+
+    with pytest.raises(UserError, match="not found"):
+        read_sparse_depth(tmp_path / "nope.npz")
+    (tmp_path / "bad.npz").write_bytes(b"not an npz")
+    with pytest.raises(UserError, match="expected an npz"):
+        read_sparse_depth(tmp_path / "bad.npz")
+    write_sparse_depth(tmp_path / "oob.npz", np.zeros((2, 3)), {"a.png": np.array([0, 5])})
+    with pytest.raises(UserError, match="outside"):
+        read_sparse_depth(tmp_path / "oob.npz")

@@ -65,3 +65,36 @@ def test_train_refuses_distortion_outside_contracted_scenes(tmp_path):
         train.run(train.Config(**cfg, distortion=0.01))  # an object with alpha: box
     with pytest.raises(UserError, match="distortion >= 0"):
         train.run(train.Config(**cfg, distortion=-1.0))
+
+
+def test_depth_nll_prefers_weight_at_the_known_depth_and_matches_a_loop():
+    """DS-NeRF's loss: lower for a ray whose weight peaks at its depth than for fog in front; a per-sample loop
+    gives the same value; gradients are finite even for zero weights."""
+    import math
+
+    from radiance.regularizers import depth_nll_loss
+
+    t = torch.linspace(0.0, 2.0, 41, dtype=torch.float64)
+    t0, t1 = t[:-1].repeat(2), t[1:].repeat(2)
+    idx = torch.repeat_interleave(torch.arange(2), 40)
+    mid = 0.5 * (t0 + t1)
+    peak = torch.exp(-0.5 * ((mid[:40] - 1.0) / 0.05) ** 2)
+    fog = torch.full((40,), 1.0 / 40, dtype=torch.float64)
+    w = torch.cat([peak / peak.sum(), fog]).requires_grad_(True)
+    depth, sigma = torch.tensor([1.0, 1.0], dtype=torch.float64), torch.tensor([0.05, 0.05], dtype=torch.float64)
+    per_ray = [float(depth_nll_loss(w.detach()[idx == r], t0[idx == r], t1[idx == r], idx[idx == r] * 0, depth[:1], sigma[:1]))
+               for r in range(2)]  # fmt: skip
+    assert per_ray[0] < per_ray[1]
+    loop = 0.0
+    for i in range(80):
+        r = int(idx[i])
+        z = (float(mid[i]) - float(depth[r])) / float(sigma[r])
+        kernel = math.exp(-0.5 * z * z) / (float(sigma[r]) * math.sqrt(2 * math.pi))
+        loop -= math.log(float(w.detach()[i]) + torch.finfo(torch.float64).eps) * kernel * float(t1[i] - t0[i])
+    total = depth_nll_loss(w, t0, t1, idx, depth, sigma)
+    assert float(total.detach()) == pytest.approx(loop / 2, rel=1e-12)
+    wz = torch.zeros(80, dtype=torch.float64, requires_grad=True)
+    (gz,) = torch.autograd.grad(depth_nll_loss(wz, t0, t1, idx, depth, sigma), wz)
+    assert torch.isfinite(gz).all() and float(gz.min()) < 0  # more weight near the depth lowers the loss
+    with pytest.raises(ValueError, match="expected depth, sigma"):
+        depth_nll_loss(w, t0, t1, idx, depth, sigma[:1])

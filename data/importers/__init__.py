@@ -40,6 +40,8 @@ class SourceFrame:
     """Optional source mask file."""
     depth: Path | None = None
     """Optional source depth file."""
+    point_ids: np.ndarray | None = None
+    """Indices into `Source.points` of the sparse points this image observed (COLMAP tracks), or None."""
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -138,6 +138,8 @@ def load(source: Path, *, images: Path | None = None) -> Source:
     image_dir = _image_dir(model, source, names, images)
     cams = {cid: intrinsics_from_camera(cam) for cid, cam in rec.cameras.items()}
     mask_dir = _mask_dir(image_dir, names)
+    ids = sorted(rec.points3D)
+    row = {pid: k for k, pid in enumerate(ids)}
     frames = []
     for im in posed:
         frames.append(
@@ -147,9 +149,10 @@ def load(source: Path, *, images: Path | None = None) -> Source:
                 intrinsics=cams[im.camera_id],
                 image=image_dir / im.name,
                 mask=mask_dir / f"{im.name}.png" if mask_dir is not None else None,
+                point_ids=np.unique(np.array([row[p.point3D_id] for p in im.points2D if p.has_point3D()
+                                              and p.point3D_id in row], dtype=np.int64)),
             )  # fmt: skip
         )
-    ids = sorted(rec.points3D)
     points = np.array([rec.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
     colors = np.array([rec.points3D[i].color for i in ids], dtype=np.uint8).reshape(-1, 3)
     unposed = rec.num_images() - len(posed)

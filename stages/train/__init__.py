@@ -37,6 +37,8 @@ from data.errors import Interrupted, UserError
 from data.progress import NO_PROGRESS, Progress
 from data.rundir import MetricsLog, output_folder, write_config, write_manifest
 from data.stop import stop_on_signals
+from data.sparse_depth import KEY as SPARSE_KEY
+from data.sparse_depth import read_sparse_depth
 from data.transforms import Scene, read_scene
 from model.appearance import EVAL_RULE as APPEARANCE_EVAL_RULE
 from model.appearance import Appearance
@@ -47,13 +49,15 @@ from model.field_model import ModelSettings, build_model, choose_scene_model, sc
 from radiance.contraction import Contraction
 from radiance.ndc import NDC
 from stages.train.defaults import contracted_resolution, resolve_defaults
-from stages.train.loop import Loop, TrainingDiverged, evaluate_psnr, make_optimizer
+from stages.train.loop import DepthRays, Loop, TrainingDiverged, evaluate_psnr, make_optimizer
 from stages.train.report import per_view_report, plot_psnr, used_and_left_out
 from stages.train.views import auto_downscale, evenly_spaced, load_views
 
 __all__ = ["Config", "Outputs", "run", "TrainingDiverged", "evenly_spaced"]
 
 VERSION = "1"
+DEPTH_LOSS = 0.01
+"""Default `--depth-loss` weight where sparse points exist (contracted scenes)."""
 TV_REAL = 0.01
 """Default `--tv` weight for contracted and NDC scenes (TensoRF's LLFF setting: 1.0 x its 1e-2 plane factor)."""
 METRICS = ["step", "seconds", "loss", "train_psnr", "test_psnr", "lr", "samples_per_ray", "skip_fraction"]
@@ -131,6 +135,10 @@ class Config:
     """fast: weight of TensoRF's total-variation prior on the field's planes (`TensoRF.tv`; TensoRF's LLFF setting
     is 0.01). None: 0.01 for contracted and NDC scenes (real captures, where a VM field otherwise paints streaks
     and floaters into sparsely seen space: fox held-out 13.7 -> 17.8 dB), 0 for box scenes (objects)."""
+    depth_loss: float | None = None
+    """fast, contracted scenes: weight of DS-NeRF's depth loss on rays through the sparse points each training
+    photo observed (transforms.json's `sparse_depth_path`, written by `convert` from COLMAP; data.sparse_depth).
+    None: DEPTH_LOSS when the scene has them and is contracted, else 0 (and the manifest says why)."""
     distortion: float = 0.0
     """fast, contracted scenes: weight of mip-NeRF 360's distortion loss (its lambda is 0.01), which pulls each
     ray's weight into one compact peak (radiance.regularizers). Off by default: on the fox (300 s budget, CPU) it
@@ -315,7 +323,8 @@ def _setup(config: Config, progress: Progress) -> tuple[Loop, Scene, Path, dict]
                  f"{TV_REAL} for {model_kind} scenes (real captures)" if tv else "0 for box scenes (objects)")
     if config.distortion > 0 and model_kind != "contract":
         raise UserError(f"--distortion applies to contracted scenes only (this one is {model_kind}: {model_reason})")
-    resolved = dataclasses.replace(config, resolution=resolution, step_ratio=step_ratio, tv=tv,
+    depth_rays, depth_weight, depth_reason = _depth_rays(config, scene, train_idx, model_kind)
+    resolved = dataclasses.replace(config, resolution=resolution, step_ratio=step_ratio, tv=tv, depth_loss=depth_weight,
                                    batch_rays=found.batch_rays, downscale=downscale)  # fmt: skip
     if state is not None:
         ndc = NDC.from_dict(state["ndc"]) if state.get("ndc") is not None else None
@@ -359,10 +368,42 @@ def _setup(config: Config, progress: Progress) -> tuple[Loop, Scene, Path, dict]
                 batch_rays=found.batch_rays, gen=gen, device=device, metrics=metrics, ckpt_path=ckpt_path,
                 progress=progress, step=step, seconds_before=seconds_before, lr_factor=lr_factor,
                 cameras=cameras)  # fmt: skip
+    loop.depth_rays = depth_rays
     record = {**found.reasons, "scene_model": f"{model_kind}: {model_reason}", "tv": tv_reason,
+              "depth_loss": depth_reason,
               "resolved": {"resolution": list(resolution), "step_ratio": step_ratio,
                            "batch_rays": found.batch_rays, "background": model.background.describe(), "tv": tv}}  # fmt: skip
     return loop, scene, scene_path, record
+
+
+def _depth_rays(config: Config, scene: Scene, train_idx: tuple[int, ...],
+                model_kind: str) -> tuple[DepthRays | None, float, str]:  # fmt: skip
+    """(rays through the training photos' sparse points or None, the weight, why) for `Config.depth_loss`."""
+    if config.depth_loss is not None and not config.depth_loss >= 0:
+        raise UserError(f"--depth-loss: expected >= 0, got {config.depth_loss}")
+    rel = scene.extra.get(SPARSE_KEY)
+    if config.depth_loss == 0:
+        return None, 0.0, "off (given)"
+    if rel is None or model_kind != "contract" or config.field != "fast":
+        why = (f"no {SPARSE_KEY} in transforms.json (sparse points come from COLMAP through convert)" if rel is None
+               else f"applies to fast contracted scenes only (this one: {config.field}, {model_kind})")
+        if config.depth_loss is not None:
+            raise UserError(f"--depth-loss: {why}")
+        return None, 0.0, f"left out: {why}"
+    sparse = read_sparse_depth(scene.root / rel)
+    os_, ds, depths, views = [], [], [], []
+    for k, i in enumerate(train_idx):
+        o, d, dist = sparse.rays(scene.frames[i].file_path, scene.frames[i].world_from_cam[:3, 3])
+        os_.append(o), ds.append(d), depths.append(dist), views.append(np.full(len(dist), k))
+    depth = np.concatenate(depths)
+    if depth.size == 0:
+        if config.depth_loss is not None:
+            raise UserError(f"--depth-loss: {rel} has no points observed by the training photos")
+        return None, 0.0, f"left out: {rel} has no points observed by the training photos"
+    rays = DepthRays(torch.from_numpy(np.concatenate(os_)), torch.from_numpy(np.concatenate(ds)),
+                     torch.from_numpy(depth), torch.from_numpy(np.concatenate(views)).long())  # fmt: skip
+    weight = config.depth_loss if config.depth_loss is not None else DEPTH_LOSS
+    return rays, weight, f"{weight} on {depth.size} sparse-point rays of {len(train_idx)} training photos"
 
 
 def _camera_opt(config: Config, scene: Scene, train_idx: tuple[int, ...], state: dict | None,

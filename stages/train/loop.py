@@ -34,6 +34,23 @@ from model.camera_opt import CameraOpt
 from model.checkpoint import save_checkpoint
 from model.field_model import FieldModel
 from radiance.compositing import over_background
+from radiance.regularizers import depth_nll_loss
+
+DEPTH_RAYS = 256
+"""Sparse-point rays rendered per step for the depth loss (a quarter of the CPU photometric batch)."""
+DEPTH_SIGMA = 0.02
+"""Depth uncertainty of a structure-from-motion point, as a fraction of its distance (DS-NeRF's sigma)."""
+
+
+@dataclass(frozen=True)
+class DepthRays:
+    """Rays from training cameras through their observed sparse points: o, d [K, 3], depth [K], view [K]."""
+
+    o: Tensor
+    d: Tensor
+    depth: Tensor
+    view: Tensor
+
 
 TV_TEXELS = 4096
 """Random texels per plane in each step's total-variation estimate (`TensoRF.tv`)."""
@@ -41,7 +58,7 @@ from radiance.fields import Field
 from radiance.metrics import psnr_from_mse
 from stages.train.views import Views
 
-__all__ = ["TrainingDiverged", "Loop", "make_optimizer", "upsample_schedule", "evaluate_psnr"]
+__all__ = ["TrainingDiverged", "Loop", "make_optimizer", "upsample_schedule", "evaluate_psnr", "DepthRays"]
 
 
 class TrainingDiverged(RuntimeError):
@@ -123,6 +140,7 @@ class Loop:
     _t_start: float = 0.0
     _losses: list[float] = field(default_factory=list)
     cameras: CameraOpt | None = None  # pose refinement (train --refine-poses; model.camera_opt)
+    depth_rays: DepthRays | None = None  # sparse-point depth supervision (train --depth-loss)
 
     def test_rays(self) -> Callable | None:
         """The map of test rays into the refined cameras' frame (None without pose refinement)."""
@@ -198,6 +216,8 @@ class Loop:
             loss = loss + cfg.density_l1 * model.field.density_l1()
         if cfg.distortion:
             loss = loss + cfg.distortion * model.distortion(out, o, d)
+        if self.depth_rays is not None and cfg.depth_loss:
+            loss = loss + cfg.depth_loss * self._depth_term(bg)
         if not math.isfinite(float(loss.detach())):
             return False
         self.opt.zero_grad(set_to_none=True)
@@ -214,6 +234,19 @@ class Loop:
         if model.grid is not None:
             self.skip_fraction = model.grid.skip_fraction
         return True
+
+    def _depth_term(self, bg: Tensor) -> Tensor:
+        """DS-NeRF's loss on DEPTH_RAYS random rays through the training cameras' sparse points."""
+        rays = self.depth_rays
+        k = torch.randint(rays.depth.shape[0], (DEPTH_RAYS,), generator=self.gen)
+        o, d, depth, view = (t[k].to(self.device) for t in (rays.o, rays.d, rays.depth, rays.view))
+        if self.cameras is not None:
+            o, d = self.cameras(o, d, view)
+        if bg.ndim == 2:  # per-ray colours of the photometric batch, reused (the colour does not enter the loss)
+            bg = bg[torch.arange(o.shape[0], device=bg.device) % bg.shape[0]]
+        out = self.model.render(o, d, bg.detach(), train=True, gen=None, view=view)
+        return depth_nll_loss(out["weights"], out["t_starts"], out["t_ends"], out["ray_indices"], depth,
+                              DEPTH_SIGMA * depth)  # fmt: skip
 
     def _snapshot(self) -> tuple[dict, dict, int]:
         return copy.deepcopy(self.model.field.state_dict()), copy.deepcopy(self.opt.state_dict()), self.step
