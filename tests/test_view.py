@@ -9,8 +9,13 @@ from __future__ import annotations
 
 import base64
 import json
+import os
 import shutil
+import signal
+import socket
 import subprocess
+import sys
+import threading
 import time
 import urllib.request
 from pathlib import Path
@@ -39,6 +44,7 @@ try:  # the analytic stand-in lives with the render tests
 except ImportError:  # tests/ imported as a package
     from tests.test_render_stage import SphereRun, sphere_scene
 
+ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 
@@ -247,3 +253,34 @@ def _shows_sphere(img: np.ndarray) -> bool:
     if colourful.mean() < 0.03:
         return False
     return len(np.unique(np.argmax(rgb[colourful], axis=-1))) >= 2
+
+
+@pytest.mark.parametrize(("signum", "code"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_signal_stops_the_cli_viewer_in_one_line(tmp_path, signum, code):
+    """`nerfpipe view SCENE` in a subprocess: Ctrl-C (SIGINT) or SIGTERM once it serves -> it exits within
+    seconds with 130 / 143, one line on stderr, nothing of viser's on stdout, and the port is closed."""
+    sphere_scene(tmp_path / "scene")
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, str(ROOT / "cli.py"), "view", str(tmp_path / "scene"), "--port", "0"],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    watchdog = threading.Timer(120.0, proc.kill)  # a viewer that never starts must not hang the suite
+    watchdog.start()
+    try:
+        first = proc.stdout.readline()
+        assert "(Ctrl-C stops)" in first, (first, proc.stderr.read() if proc.poll() is not None else "")
+        port = int(first.split("http://127.0.0.1:")[1].split()[0])
+        t0 = time.monotonic()
+        proc.send_signal(signum)
+        out, err = proc.communicate(timeout=30)
+        seconds = time.monotonic() - t0
+    finally:
+        watchdog.cancel()
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == code, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: interrupted ({signal.Signals(signum).name})"), err
+    assert out == "", out  # viser's banner and "Server stopped" stay off stdout
+    assert seconds < 10, seconds
+    with pytest.raises(OSError):
+        socket.create_connection(("127.0.0.1", port), timeout=2).close()

@@ -14,20 +14,22 @@ X-ray run.
   (`stages.view.xray_view`).
 
 The server listens on 127.0.0.1 (this machine only) unless `--host` says otherwise, which prints a warning;
-Ctrl-C stops it. `serve(config)` starts it and returns a `Viewer` (tests and scripts stop it with `.stop()`);
+Ctrl-C (or SIGTERM) stops it: one line, exit code 130 (143). `serve(config)` starts it and returns a `Viewer`
+(tests and scripts stop it with `.stop()`);
 `run(config)` serves until Ctrl-C. Camera paths are saved under `--paths-dir` (default: the folder viewed).
 """
 
 from __future__ import annotations
 
 import json
+import signal
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from data.errors import UserError
+from data.errors import Interrupted, UserError
 from data.transforms import read_scene
 from model import load_trained, resolve_device
 from stages.view import server as viewer_server
@@ -83,7 +85,7 @@ class Viewer:
             self.live.stop()
         if not self.stopped.is_set():
             self.stopped.set()
-            self.server.stop()
+            viewer_server.stop_quietly(self.server)
 
 
 def kind_of(target: Path) -> str:
@@ -163,9 +165,13 @@ def _draw_run(server, viewer: Viewer, trained, run_dir: Path, config: Config) ->
 
 
 def run(config: Config) -> Outputs:
-    """Serve until Ctrl-C."""
+    """Serve until Ctrl-C / SIGTERM (Interrupted: one line, exit 130 / 143) or until `Viewer.stop()`."""
     viewer = serve(config)
-    print(f"nerfpipe view: {viewer.kind} at {viewer.url} (Ctrl-C stops)", flush=True)
-    viewer_server.serve_forever(viewer.server, viewer.stopped)
-    viewer.stop()
+    try:
+        signum = viewer_server.wait(viewer.stopped, f"nerfpipe view: {viewer.kind} at {viewer.url} (Ctrl-C stops)")
+    finally:
+        viewer.stop()
+    if signum is not None:
+        name = signal.Signals(signum).name
+        raise Interrupted(f"interrupted ({name}): the viewer at {viewer.url} stopped", signum)
     return Outputs(url=viewer.url, kind=viewer.kind)
