@@ -103,10 +103,12 @@ def kind_of(target: Path) -> str:
                     "checkpoint.pt)")  # fmt: skip
 
 
-def _look_from_first_camera(server, scene, centre: np.ndarray) -> None:
+def _look_from_first_camera(server, scene, centre: np.ndarray, pull_back: float = 1.0) -> None:
+    """The browser starts at the first training camera (`pull_back` times as far from the centre), looking at
+    the centre."""
     train = scene.split("train") or tuple(range(len(scene.frames)))
     pose = scene.frames[train[0]].world_from_cam
-    server.initial_camera.position = tuple(pose[:3, 3])
+    server.initial_camera.position = tuple(centre + pull_back * (pose[:3, 3] - centre))
     server.initial_camera.look_at = tuple(centre)
     server.initial_camera.up = (0.0, 0.0, 1.0)
 
@@ -136,13 +138,15 @@ def serve(config: Config) -> Viewer:
         scene = loaded.scene if loaded is not None else read_scene(target)
         view = SceneView(server, scene)
         centre = np.asarray(scene.aabb, dtype=np.float64).reshape(2, 3).mean(axis=0)
-        _look_from_first_camera(server, scene, centre)
+        # a scene: from behind the rig, every camera in view; a run: from its first camera, whose frustum (drawn
+        # without its image: the live render is the picture) then lies round the view's edges
+        _look_from_first_camera(server, scene, centre, pull_back=2.0 if loaded is None else 1.0)
         if loaded is None:
             view.draw()
         else:
             _draw_run(server, viewer, loaded, target, config)
             train = scene.split("train") or tuple(range(len(scene.frames)))
-            view.draw(train, label="Training cameras")
+            view.draw(train, label="Training cameras", images=False)
         viewer.scene_view = view
         viewer.recorder = add_recorder_gui(server, paths_dir, size=view.size)
     except BaseException:

@@ -1,0 +1,113 @@
+"""The viewer's controls in a real browser (headless Chromium over DevTools, test_view's `Browser`): a run's
+rgb / depth / accumulation switch and the camera-path recorder, clicked in the page; the X-ray controls; the
+scene view's camera click and rays toggle. Each browser test takes a few seconds on the analytic sphere."""
+
+from __future__ import annotations
+
+import imageio.v2 as iio
+import numpy as np
+import pytest
+
+import stages.render as render_stage
+import stages.view as view
+
+try:  # the browser driver and the sphere stand-ins live with the viewer's and render's tests
+    from test_render_stage import SphereRun
+    from test_view import (
+        CHROMIUM,
+        NO_CHROMIUM,
+        Browser,
+        _shows_sphere,
+        _sphere_run,
+        button,
+        labelled,
+        option,
+        wait_until,
+    )
+except ImportError:  # tests/ imported as a package
+    from tests.test_render_stage import SphereRun
+    from tests.test_view import (
+        CHROMIUM,
+        NO_CHROMIUM,
+        Browser,
+        _shows_sphere,
+        _sphere_run,
+        button,
+        labelled,
+        option,
+        wait_until,
+    )
+
+
+def _middle(img: np.ndarray) -> np.ndarray:
+    """The part of the page where the sphere is drawn (as in _shows_sphere), RGB in [0, 1]."""
+    h, w = img.shape[:2]
+    return img[h // 4 : 3 * h // 4, w // 4 : 13 * w // 20, :3].astype(float) / 255
+
+
+def _shows_depth(img: np.ndarray) -> bool:
+    """Depth mode: the sphere in turbo colours (saturated) on black (no opacity), no white background left."""
+    rgb = _middle(img)
+    sat = rgb.max(-1) - rgb.min(-1)
+    black, white = rgb.max(-1) < 0.1, rgb.min(-1) > 0.9
+    return (sat > 0.3).mean() > 0.03 and black.mean() > 0.3 and white.mean() < 0.01
+
+
+def _shows_accumulation(img: np.ndarray) -> bool:
+    """Accumulation mode: the opaque sphere white on black (the colours left are the box's and up axis' lines)."""
+    rgb = _middle(img)
+    sat = rgb.max(-1) - rgb.min(-1)
+    black, white = rgb.max(-1) < 0.1, rgb.min(-1) > 0.9
+    return white.mean() > 0.03 and black.mean() > 0.3 and (sat > 0.3).mean() < white.mean()
+
+
+def _choose(browser: Browser, label: str, value: str) -> None:
+    """Open the dropdown `label` and pick `value`, with mouse clicks."""
+    browser.click(labelled(label))
+    browser.click(option(value))
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason=NO_CHROMIUM)
+def test_browser_run_modes_and_recorder(tmp_path, monkeypatch):
+    """In the page: "Show" -> depth, then accumulation (clicked) changes what is drawn; "Add keyframe" clicked
+    twice from two browser cameras and "Save path" clicked write a JSON that `render --path` plays."""
+    run_dir = _sphere_run(tmp_path, monkeypatch)
+    viewer = view.serve(view.Config(target=run_dir, port=0, preview=96, refine=160))
+    shots = {}
+    try:
+        with Browser(viewer.url, tmp_path / "profile") as browser:
+            shots["rgb"] = browser.screenshot_when(_shows_sphere)
+            for mode, good in (("depth", _shows_depth), ("accumulation", _shows_accumulation)):
+                _choose(browser, "Show", mode)
+                wait_until(lambda mode=mode: viewer.live.mode == mode, f"mode {mode}")
+                shots[mode] = browser.screenshot_when(good)
+
+            browser.click(button("Add keyframe (this view)"))
+            wait_until(lambda: len(viewer.recorder.keyframes) == 1, "the first keyframe")
+            (client,) = viewer.server.get_clients().values()
+            first = client.camera.position
+            client.camera.position = tuple(np.asarray(first) * 1.3)  # the browser's camera moves back
+            wait_until(lambda: np.allclose(client.camera.position, np.asarray(first) * 1.3, atol=1e-3),
+                       "the browser to report its new camera")  # fmt: skip
+            browser.click(button("Add keyframe (this view)"))
+            wait_until(lambda: len(viewer.recorder.keyframes) == 2, "the second keyframe")
+            browser.type_into(labelled("Seconds"), "1")
+            browser.type_into(labelled("FPS"), "4")
+            browser.click(button("Save path"))
+            wait_until(lambda: (run_dir / "camera_path.json").is_file(), "the saved camera path")
+    finally:
+        viewer.stop()
+    for mode, shot in shots.items():
+        iio.imwrite(tmp_path / f"{mode}.png", shot)
+    assert _shows_sphere(shots["rgb"]), tmp_path / "rgb.png"
+    assert _shows_depth(shots["depth"]), tmp_path / "depth.png"
+    assert _shows_accumulation(shots["accumulation"]), tmp_path / "accumulation.png"
+    keys = viewer.recorder.keyframes
+    assert np.allclose(keys[1].world_from_cam[:3, 3], 1.3 * keys[0].world_from_cam[:3, 3], atol=1e-3)
+    assert np.allclose(keys[1].world_from_cam[:3, :3], keys[0].world_from_cam[:3, :3], atol=1e-3)
+
+    scene = viewer.scene_view.scene
+    monkeypatch.setattr(render_stage, "load_trained", lambda run_dir, device: SphereRun(scene=scene))
+    res = render_stage.run(render_stage.Config(run_dir=run_dir, out=tmp_path / "path.mp4", downscale=10.0,
+                                               path=str(run_dir / "camera_path.json"), device="cpu"))  # fmt: skip
+    assert res.n_frames == 5 and res.size[0] == 48  # 1 s at 4 fps (typed in), 480 px high / 10
