@@ -283,12 +283,14 @@ class Browser:
         return res["result"].get("value")
 
     def click(self, element_js: str, seconds: float = BROWSER_SECONDS) -> None:
-        """A left click at the centre of the element that the JS expression `element_js` finds (waits for it)."""
+        """A left click at the centre of the element that the JS expression `element_js` finds (waits until it is
+        there and has stopped moving)."""
         find = f"(() => {{ const e = {element_js}; if (!e) return null; e.scrollIntoView({{block: 'center'}}); "
         find += "const r = e.getBoundingClientRect(); return [r.x + r.width / 2, r.y + r.height / 2]; })()"
-        deadline = time.monotonic() + seconds
-        while (xy := self.evaluate(find)) is None:
-            assert time.monotonic() < deadline, f"no element {element_js}"
+        deadline, last = time.monotonic() + seconds, None
+        while (xy := self.evaluate(find)) is None or xy != last:  # found, and still (panels slide in)
+            assert time.monotonic() < deadline, f"no element {element_js}, or it keeps moving"
+            last = xy
             time.sleep(0.2)
         self.click_at(*xy)
 

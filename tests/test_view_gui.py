@@ -4,12 +4,15 @@ scene view's camera click and rays toggle. Each browser test takes a few seconds
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import imageio.v2 as iio
 import numpy as np
 import pytest
 
 import stages.render as render_stage
 import stages.view as view
+from stages.view.xray_view import projection_image, slice_image
 
 try:  # the browser driver and the sphere stand-ins live with the viewer's and render's tests
     from test_render_stage import SphereRun
@@ -24,6 +27,7 @@ try:  # the browser driver and the sphere stand-ins live with the viewer's and r
         option,
         wait_until,
     )
+    from test_xray_stages import phantom
 except ImportError:  # tests/ imported as a package
     from tests.test_render_stage import SphereRun
     from tests.test_view import (
@@ -37,6 +41,7 @@ except ImportError:  # tests/ imported as a package
         option,
         wait_until,
     )
+    from tests.test_xray_stages import phantom
 
 
 def _middle(img: np.ndarray) -> np.ndarray:
@@ -111,3 +116,53 @@ def test_browser_run_modes_and_recorder(tmp_path, monkeypatch):
     res = render_stage.run(render_stage.Config(run_dir=run_dir, out=tmp_path / "path.mp4", downscale=10.0,
                                                path=str(run_dir / "camera_path.json"), device="cpu"))  # fmt: skip
     assert res.n_frames == 5 and res.size[0] == 48  # 1 s at 4 fps (typed in), 480 px high / 10
+
+
+@pytest.fixture(scope="module")
+def xray_run(tmp_path_factory) -> Path:
+    """A seconds-long X-ray run on test_xray_stages' phantom (16^3, 12 views): only the viewer's input."""
+    from stages import xray_simulate, xray_train
+
+    tmp = tmp_path_factory.mktemp("xray_view")
+    np.save(tmp / "phantom.npy", phantom(16))
+    xray_simulate.run(xray_simulate.Config(volume=tmp / "phantom.npy", out_dir=tmp / "scene", views=12, arc=360.0,
+                                           test_views=2, voxel_size=1.0, dso=100.0, dsd=150.0))  # fmt: skip
+    cfg = xray_train.Config(scene=tmp / "scene", run_dir=tmp / "run", max_steps=20, max_seconds=60.0, batch_rays=512,
+                            lr=0.1, eval_every=0.0, threads=1, device="cpu")  # fmt: skip
+    return xray_train.run(cfg).run_dir
+
+
+def _panel_image(viewer) -> np.ndarray:
+    return np.asarray(viewer.xray_view.handles["image"].image)
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason=NO_CHROMIUM)
+def test_browser_xray_projection_and_slice(xray_run, tmp_path):
+    """In the page: "Projection" -> MIP (clicked) replaces the DRR in the panel; the gantry angle and the slice
+    axis / position (set server-side, as the page's sliders would) move the projection and the slice plane."""
+    viewer = view.serve(view.Config(target=xray_run, port=0))
+    xv = viewer.xray_view
+    try:
+        drr = _panel_image(viewer)
+        assert drr.std() > 3, "blank DRR"
+        with Browser(viewer.url, tmp_path / "profile") as browser:
+            browser.click(labelled("Projection"))  # the page is up once its controls are
+            browser.click(option("MIP"))
+            wait_until(lambda: not np.array_equal(_panel_image(viewer), drr), "the MIP chosen in the page")
+            mip = _panel_image(viewer)
+            shot = browser.screenshot()
+        assert mip.shape == drr.shape and mip.std() > 3 and np.abs(mip.astype(int) - drr).mean() > 2
+        assert np.array_equal(mip, projection_image(xv.run, "MIP", 0.0, xv.volume))
+        xv.handles["angle"].value = 90.0
+        assert np.array_equal(_panel_image(viewer), projection_image(xv.run, "MIP", 90.0, xv.volume))
+        assert not np.array_equal(_panel_image(viewer), mip)
+        xv.handles["axis"].value = "x"
+        xv.handles["where"].value = 0.25
+        img, k = slice_image(xv.vol_np, "x", 0.25, xv.hi)
+        assert k == 4 and np.array_equal(np.asarray(xv.handles["slice"].image), img)
+        lo, hi = xv.box
+        assert np.isclose(xv.handles["slice"].position[0], lo[0] + 4.5 * (hi[0] - lo[0]) / xv.vol_np.shape[0])
+    finally:
+        viewer.stop()
+    iio.imwrite(tmp_path / "xray.png", shot)
+    assert shot[..., :3].std() > 10, tmp_path / "xray.png"

@@ -78,6 +78,7 @@ class Viewer:
     live: LiveRender | None = None
     scene_view: SceneView | None = None
     recorder: PathRecorder | None = None
+    xray_view: XrayView | None = None
     stopped: threading.Event = field(default_factory=threading.Event)
 
     def stop(self) -> None:
@@ -133,7 +134,8 @@ def serve(config: Config) -> Viewer:
     viewer = Viewer(server=server, url=f"http://{config.host}:{port}", kind=kind, port=port)
     try:
         if kind == "xray":
-            XrayView(server, xray).draw()
+            viewer.xray_view = XrayView(server, xray)
+            viewer.xray_view.draw()
             return viewer
         scene = loaded.scene if loaded is not None else read_scene(target)
         view = SceneView(server, scene)
