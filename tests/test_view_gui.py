@@ -12,11 +12,13 @@ import pytest
 
 import stages.render as render_stage
 import stages.view as view
+from stages.view.scene_view import thumbnail
 from stages.view.xray_view import projection_image, slice_image
 
 try:  # the browser driver and the sphere stand-ins live with the viewer's and render's tests
-    from test_render_stage import SphereRun
+    from test_render_stage import SphereRun, sphere_scene
     from test_view import (
+        BROWSER_SECONDS,
         CHROMIUM,
         NO_CHROMIUM,
         Browser,
@@ -29,8 +31,9 @@ try:  # the browser driver and the sphere stand-ins live with the viewer's and r
     )
     from test_xray_stages import phantom
 except ImportError:  # tests/ imported as a package
-    from tests.test_render_stage import SphereRun
+    from tests.test_render_stage import SphereRun, sphere_scene
     from tests.test_view import (
+        BROWSER_SECONDS,
         CHROMIUM,
         NO_CHROMIUM,
         Browser,
@@ -166,3 +169,47 @@ def test_browser_xray_projection_and_slice(xray_run, tmp_path):
         viewer.stop()
     iio.imwrite(tmp_path / "xray.png", shot)
     assert shot[..., :3].std() > 10, tmp_path / "xray.png"
+
+
+def _red(img: np.ndarray) -> int:
+    """Pixels of the rays' red (220, 30, 30)."""
+    rgb = img[..., :3].astype(int)
+    return int(((rgb[..., 0] > 150) & (rgb[..., 1] < 90) & (rgb[..., 2] < 90)).sum())
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason=NO_CHROMIUM)
+def test_browser_scene_camera_click_and_rays(tmp_path):
+    """A scene before training: every camera is a frustum with its image; a mouse click on camera 3's frustum in
+    the 3-D view (the browser's camera set just behind it) shows its image and name in the panel; the rays
+    checkbox, clicked, draws its rays and samples (red in the page) and, clicked again, removes them."""
+    scene = sphere_scene(tmp_path / "scene", w=64, h=48)
+    viewer = view.serve(view.Config(target=tmp_path / "scene", port=0))
+    sv, i = viewer.scene_view, 3
+    try:
+        assert sorted(sv.frusta) == list(range(len(scene.frames)))
+        assert all(np.asarray(f.image).shape == thumbnail(scene, k).shape for k, f in sv.frusta.items())
+        with Browser(viewer.url, tmp_path / "profile") as browser:
+            browser.click(labelled("Show its rays and samples"), seconds=BROWSER_SECONDS)  # the page is up:
+            wait_until(lambda: sv.handles["rays"].value, "the rays checkbox ticked")  # (no camera chosen yet)
+            assert "/scene/rays" not in sv.handles
+            (client,) = viewer.server.get_clients().values()
+            pose = scene.frames[i].world_from_cam
+            forward, scale = -pose[:3, 2], 0.05 * sv.size
+            client.camera.position = tuple(pose[:3, 3] - 3 * scale * forward)
+            client.camera.look_at = tuple(pose[:3, 3] + scale * forward)
+            wait_until(lambda: np.allclose(client.camera.position, pose[:3, 3] - 3 * scale * forward, atol=1e-3),
+                       "the browser to report its new camera")  # fmt: skip
+            before = browser.screenshot()
+            browser.click_at(*browser.evaluate("[window.innerWidth / 2, window.innerHeight / 2]"))
+            wait_until(lambda: sv.selected == i, f"camera {i} clicked in the 3-D view")
+            wait_until(lambda: "/scene/rays" in sv.handles, "its rays drawn")
+            name = scene.frames[i].file_path
+            wait_until(lambda: name in browser.evaluate("document.body.innerText"), "its name in the panel")
+            with_rays = browser.screenshot_when(lambda img: _red(img) > _red(before) + 200, seconds=10)
+            browser.click(labelled("Show its rays and samples"))
+            wait_until(lambda: "/scene/rays" not in sv.handles and "/scene/samples" not in sv.handles, "no rays")
+        assert np.array_equal(np.asarray(sv.handles["image"].image), thumbnail(scene, i, 256))
+    finally:
+        viewer.stop()
+    iio.imwrite(tmp_path / "rays.png", with_rays)
+    assert _red(with_rays) > _red(before) + 200, tmp_path / "rays.png"
