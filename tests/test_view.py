@@ -9,8 +9,13 @@ from __future__ import annotations
 
 import base64
 import json
+import os
 import shutil
+import signal
+import socket
 import subprocess
+import sys
+import threading
 import time
 import urllib.request
 from pathlib import Path
@@ -39,6 +44,7 @@ try:  # the analytic stand-in lives with the render tests
 except ImportError:  # tests/ imported as a package
     from tests.test_render_stage import SphereRun, sphere_scene
 
+ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 
@@ -184,57 +190,145 @@ def test_frame_image_modes():
         frame_image(v, "bogus")
 
 
-@pytest.mark.skipif(CHROMIUM is None, reason="no chromium on PATH: `make browser` installs Debian's (apt-get, root)")
+NO_CHROMIUM = "no chromium on PATH: `make browser` installs Debian's (apt-get, root)"
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason=NO_CHROMIUM)
 def test_browser_shows_the_object(tmp_path, monkeypatch):
     """Headless Chromium opens the viewer of a run on 127.0.0.1; a screenshot (taken over the DevTools protocol,
-    every second until the first frame has arrived, at most BROWSER_SECONDS) shows the rendered sphere."""
+    every half second until the first frame has arrived, at most BROWSER_SECONDS) shows the rendered sphere: the
+    live render, since a run's training frusta are drawn without their images (camera 0's thumbnail, right in
+    front of the browser's first view, used to cover the middle of the page and pass for it)."""
     viewer = view.serve(view.Config(target=_sphere_run(tmp_path, monkeypatch), port=0, preview=96, refine=160))
-    profile = tmp_path / "profile"
-    cmd = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader",
-           "--enable-unsafe-swiftshader", "--disable-quic", "--no-first-run", "--disable-background-networking",
-           "--disable-component-update", "--disable-sync", f"--user-data-dir={profile}", "--hide-scrollbars",
-           "--window-size=1280,720", "--remote-debugging-port=0", viewer.url]  # fmt: skip
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    shot = None
     try:
-        shot = _screenshot_when(proc, profile, _shows_sphere, BROWSER_SECONDS)
+        with Browser(viewer.url, tmp_path / "profile") as browser:
+            shot = browser.screenshot_when(_shows_sphere)
     finally:
-        proc.terminate()
-        proc.wait(timeout=30)
         viewer.stop()
-    assert shot is not None, "chromium gave no screenshot"
     iio.imwrite(tmp_path / "shot.png", shot)
     assert _shows_sphere(shot), f"the screenshot does not show the rendered object ({tmp_path / 'shot.png'})"
 
 
 BROWSER_SECONDS = 90.0
+"""The longest a browser test waits for one thing (the page, a frame, a control's effect)."""
 
 
-def _screenshot_when(proc, profile: Path, good, seconds: float) -> np.ndarray | None:
-    """PNG screenshots of the page over the DevTools protocol, until `good(image)` or `seconds` pass; the last."""
-    from websockets.sync.client import connect
+class Browser:
+    """Debian's headless Chromium on one page, driven over the DevTools protocol (websocket): screenshots,
+    JavaScript, and real mouse clicks (Input.dispatchMouseEvent at an element's centre, as a user's would be)."""
 
+    def __init__(self, url: str, profile: Path, size: tuple[int, int] = (1280, 720)) -> None:
+        cmd = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader",
+               "--enable-unsafe-swiftshader", "--disable-quic", "--no-first-run", "--disable-background-networking",
+               "--disable-component-update", "--disable-sync", f"--user-data-dir={profile}", "--hide-scrollbars",
+               f"--window-size={size[0]},{size[1]}", "--remote-debugging-port=0", url]  # fmt: skip
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        self._id, self.ws = 0, None
+        try:
+            self.ws = self._connect(profile)
+        except BaseException:
+            self.close()
+            raise
+
+    def _connect(self, profile: Path):
+        from websockets.sync.client import connect
+
+        deadline = time.monotonic() + BROWSER_SECONDS
+        port_file = profile / "DevToolsActivePort"
+        while not port_file.is_file() and time.monotonic() < deadline and self.proc.poll() is None:
+            time.sleep(0.2)
+        port = int(port_file.read_text().split()[0])
+        page = None
+        while page is None and time.monotonic() < deadline:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/json", timeout=5) as r:
+                page = next((t for t in json.load(r) if t.get("type") == "page"), None)
+            time.sleep(0.2)
+        return connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=30)
+
+    def __enter__(self) -> Browser:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self.ws is not None:
+            self.ws.close()
+        self.proc.terminate()
+        self.proc.wait(timeout=30)
+
+    def call(self, method: str, **params) -> dict:
+        self._id += 1
+        self.ws.send(json.dumps({"id": self._id, "method": method, "params": params}))
+        while (msg := json.loads(self.ws.recv(timeout=60))).get("id") != self._id:
+            pass
+        if "error" in msg:
+            raise RuntimeError(f"DevTools {method}: {msg['error']}")
+        return msg["result"]
+
+    def screenshot(self) -> np.ndarray:
+        return iio.imread(base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"]))
+
+    def screenshot_when(self, good, seconds: float = BROWSER_SECONDS) -> np.ndarray:
+        """Screenshots every half second until `good(image)` or `seconds` pass -> the last one."""
+        deadline = time.monotonic() + seconds
+        while not good(img := self.screenshot()) and time.monotonic() < deadline:
+            time.sleep(0.5)
+        return img
+
+    def evaluate(self, js: str):
+        res = self.call("Runtime.evaluate", expression=js, returnByValue=True)
+        if "exceptionDetails" in res:
+            raise RuntimeError(f"{js}: {res['exceptionDetails']}")
+        return res["result"].get("value")
+
+    def click(self, element_js: str, seconds: float = BROWSER_SECONDS) -> None:
+        """A left click at the centre of the element that the JS expression `element_js` finds (waits until it is
+        there and has stopped moving)."""
+        find = f"(() => {{ const e = {element_js}; if (!e) return null; e.scrollIntoView({{block: 'center'}}); "
+        find += "const r = e.getBoundingClientRect(); return [r.x + r.width / 2, r.y + r.height / 2]; })()"
+        deadline, last = time.monotonic() + seconds, None
+        while (xy := self.evaluate(find)) is None or xy != last:  # found, and still (panels slide in)
+            assert time.monotonic() < deadline, f"no element {element_js}, or it keeps moving"
+            last = xy
+            time.sleep(0.2)
+        self.click_at(*xy)
+
+    def type_into(self, element_js: str, text: str) -> None:
+        """Click the input that `element_js` finds, select its text and type `text` over it, then Tab away."""
+        self.click(element_js)
+        self.evaluate(f"({element_js}).select()")
+        self.call("Input.insertText", text=text)
+        for kind in ("keyDown", "keyUp"):
+            self.call("Input.dispatchKeyEvent", type=kind, key="Tab", code="Tab", windowsVirtualKeyCode=9)
+
+    def click_at(self, x: float, y: float) -> None:
+        self.call("Input.dispatchMouseEvent", type="mouseMoved", x=x, y=y)
+        for kind in ("mousePressed", "mouseReleased"):
+            self.call("Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left", clickCount=1)
+
+
+def button(text: str) -> str:
+    """JS: the button whose text is `text`."""
+    return f"[...document.querySelectorAll('button')].find(b => b.innerText.trim() === {json.dumps(text)})"
+
+
+def labelled(label: str) -> str:
+    """JS: the input (text, number, dropdown) labelled `label`."""
+    return (f"[...document.querySelectorAll('label')].filter(l => l.innerText.trim() === {json.dumps(label)})"
+            ".map(l => document.getElementById(l.htmlFor)).find(e => e)")  # fmt: skip
+
+
+def option(text: str) -> str:
+    """JS: the open dropdown's option `text`."""
+    return f"[...document.querySelectorAll('[role=option]')].find(o => o.innerText.trim() === {json.dumps(text)})"
+
+
+def wait_until(pred, what: str, seconds: float = BROWSER_SECONDS) -> None:
     deadline = time.monotonic() + seconds
-    port_file = profile / "DevToolsActivePort"
-    while not port_file.is_file() and time.monotonic() < deadline and proc.poll() is None:
-        time.sleep(0.2)
-    port = int(port_file.read_text().split()[0])
-    page = None
-    while page is None and time.monotonic() < deadline:
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}/json", timeout=5) as r:
-            page = next((t for t in json.load(r) if t.get("type") == "page"), None)
-        time.sleep(0.2)
-    img = None
-    with connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=30) as ws:
-        for k in range(10_000):
-            ws.send(json.dumps({"id": k, "method": "Page.captureScreenshot", "params": {"format": "png"}}))
-            while (msg := json.loads(ws.recv(timeout=60))).get("id") != k:
-                pass
-            img = iio.imread(base64.b64decode(msg["result"]["data"]))
-            if good(img) or time.monotonic() > deadline:
-                return img
-            time.sleep(1.0)
-    return img
+    while not pred():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.1)
 
 
 def _shows_sphere(img: np.ndarray) -> bool:
@@ -247,3 +341,34 @@ def _shows_sphere(img: np.ndarray) -> bool:
     if colourful.mean() < 0.03:
         return False
     return len(np.unique(np.argmax(rgb[colourful], axis=-1))) >= 2
+
+
+@pytest.mark.parametrize(("signum", "code"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_signal_stops_the_cli_viewer_in_one_line(tmp_path, signum, code):
+    """`nerfpipe view SCENE` in a subprocess: Ctrl-C (SIGINT) or SIGTERM once it serves -> it exits within
+    seconds with 130 / 143, one line on stderr, nothing of viser's on stdout, and the port is closed."""
+    sphere_scene(tmp_path / "scene")
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, str(ROOT / "cli.py"), "view", str(tmp_path / "scene"), "--port", "0"],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    watchdog = threading.Timer(120.0, proc.kill)  # a viewer that never starts must not hang the suite
+    watchdog.start()
+    try:
+        first = proc.stdout.readline()
+        assert "(Ctrl-C stops)" in first, (first, proc.stderr.read() if proc.poll() is not None else "")
+        port = int(first.split("http://127.0.0.1:")[1].split()[0])
+        t0 = time.monotonic()
+        proc.send_signal(signum)
+        out, err = proc.communicate(timeout=30)
+        seconds = time.monotonic() - t0
+    finally:
+        watchdog.cancel()
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == code, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: interrupted ({signal.Signals(signum).name})"), err
+    assert out == "", out  # viser's banner and "Server stopped" stay off stdout
+    assert seconds < 10, seconds
+    with pytest.raises(OSError):
+        socket.create_connection(("127.0.0.1", port), timeout=2).close()

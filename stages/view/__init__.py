@@ -14,20 +14,22 @@ X-ray run.
   (`stages.view.xray_view`).
 
 The server listens on 127.0.0.1 (this machine only) unless `--host` says otherwise, which prints a warning;
-Ctrl-C stops it. `serve(config)` starts it and returns a `Viewer` (tests and scripts stop it with `.stop()`);
+Ctrl-C (or SIGTERM) stops it: one line, exit code 130 (143). `serve(config)` starts it and returns a `Viewer`
+(tests and scripts stop it with `.stop()`);
 `run(config)` serves until Ctrl-C. Camera paths are saved under `--paths-dir` (default: the folder viewed).
 """
 
 from __future__ import annotations
 
 import json
+import signal
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from data.errors import UserError
+from data.errors import Interrupted, UserError
 from data.transforms import read_scene
 from model import load_trained, resolve_device
 from stages.view import server as viewer_server
@@ -76,6 +78,7 @@ class Viewer:
     live: LiveRender | None = None
     scene_view: SceneView | None = None
     recorder: PathRecorder | None = None
+    xray_view: XrayView | None = None
     stopped: threading.Event = field(default_factory=threading.Event)
 
     def stop(self) -> None:
@@ -83,7 +86,7 @@ class Viewer:
             self.live.stop()
         if not self.stopped.is_set():
             self.stopped.set()
-            self.server.stop()
+            viewer_server.stop_quietly(self.server)
 
 
 def kind_of(target: Path) -> str:
@@ -101,10 +104,12 @@ def kind_of(target: Path) -> str:
                     "checkpoint.pt)")  # fmt: skip
 
 
-def _look_from_first_camera(server, scene, centre: np.ndarray) -> None:
+def _look_from_first_camera(server, scene, centre: np.ndarray, pull_back: float = 1.0) -> None:
+    """The browser starts at the first training camera (`pull_back` times as far from the centre), looking at
+    the centre."""
     train = scene.split("train") or tuple(range(len(scene.frames)))
     pose = scene.frames[train[0]].world_from_cam
-    server.initial_camera.position = tuple(pose[:3, 3])
+    server.initial_camera.position = tuple(centre + pull_back * (pose[:3, 3] - centre))
     server.initial_camera.look_at = tuple(centre)
     server.initial_camera.up = (0.0, 0.0, 1.0)
 
@@ -129,18 +134,21 @@ def serve(config: Config) -> Viewer:
     viewer = Viewer(server=server, url=f"http://{config.host}:{port}", kind=kind, port=port)
     try:
         if kind == "xray":
-            XrayView(server, xray).draw()
+            viewer.xray_view = XrayView(server, xray)
+            viewer.xray_view.draw()
             return viewer
         scene = loaded.scene if loaded is not None else read_scene(target)
         view = SceneView(server, scene)
         centre = np.asarray(scene.aabb, dtype=np.float64).reshape(2, 3).mean(axis=0)
-        _look_from_first_camera(server, scene, centre)
+        # a scene: from behind the rig, every camera in view; a run: from its first camera, whose frustum (drawn
+        # without its image: the live render is the picture) then lies round the view's edges
+        _look_from_first_camera(server, scene, centre, pull_back=2.0 if loaded is None else 1.0)
         if loaded is None:
             view.draw()
         else:
             _draw_run(server, viewer, loaded, target, config)
             train = scene.split("train") or tuple(range(len(scene.frames)))
-            view.draw(train, label="Training cameras")
+            view.draw(train, label="Training cameras", images=False)
         viewer.scene_view = view
         viewer.recorder = add_recorder_gui(server, paths_dir, size=view.size)
     except BaseException:
@@ -163,9 +171,13 @@ def _draw_run(server, viewer: Viewer, trained, run_dir: Path, config: Config) ->
 
 
 def run(config: Config) -> Outputs:
-    """Serve until Ctrl-C."""
+    """Serve until Ctrl-C / SIGTERM (Interrupted: one line, exit 130 / 143) or until `Viewer.stop()`."""
     viewer = serve(config)
-    print(f"nerfpipe view: {viewer.kind} at {viewer.url} (Ctrl-C stops)", flush=True)
-    viewer_server.serve_forever(viewer.server, viewer.stopped)
-    viewer.stop()
+    try:
+        signum = viewer_server.wait(viewer.stopped, f"nerfpipe view: {viewer.kind} at {viewer.url} (Ctrl-C stops)")
+    finally:
+        viewer.stop()
+    if signum is not None:
+        name = signal.Signals(signum).name
+        raise Interrupted(f"interrupted ({name}): the viewer at {viewer.url} stopped", signum)
     return Outputs(url=viewer.url, kind=viewer.kind)

@@ -76,8 +76,12 @@ class SceneView:
     size: float = 1.0
     selected: int | None = None
     handles: dict = field(default_factory=dict)
+    frusta: dict = field(default_factory=dict)
+    """Camera index -> its frustum's scene handle."""
 
-    def draw(self, indices: tuple[int, ...] | None = None, *, label: str = "Cameras") -> None:
+    def draw(self, indices: tuple[int, ...] | None = None, *, label: str = "Cameras", images: bool = True) -> None:
+        """Draw the scene; `indices`: the cameras drawn (default all); `images=False` draws their frusta empty (a
+        run's live render stays visible behind them; a click still shows the camera's image in the panel)."""
         s = self.server
         aabb = np.asarray(self.scene.aabb, dtype=np.float64).reshape(2, 3)
         self.size = float(np.linalg.norm(aabb[1] - aabb[0]))
@@ -98,7 +102,7 @@ class SceneView:
         rays.on_update(lambda _: self._draw_rays(rays.value))
         self.handles["rays"] = rays
         for i in range(len(self.scene.frames)) if indices is None else indices:
-            self._draw_camera(i)
+            self._draw_camera(i, images)
 
     def _draw_points(self) -> None:
         rel = self.scene.extra.get("sparse_points_path")
@@ -113,14 +117,15 @@ class SceneView:
         colours = np.asarray(colours)[:, :3] if colours is not None and len(colours) == len(pts) else (200, 200, 200)
         self.server.scene.add_point_cloud("/scene/points", pts, colors=colours, point_size=0.004 * self.size)
 
-    def _draw_camera(self, i: int) -> None:
+    def _draw_camera(self, i: int, image: bool = True) -> None:
         intr = self.scene.frame_intrinsics(i)
         wxyz, pos = viser_pose(self.scene.frames[i].world_from_cam)
         frustum = self.server.scene.add_camera_frustum(
             f"/cameras/{i:04d}", fov=vertical_fov(intr), aspect=intr.w / intr.h, scale=0.05 * self.size,
-            image=thumbnail(self.scene, i), wxyz=wxyz, position=pos, color=(60, 60, 60),
+            image=thumbnail(self.scene, i) if image else None, wxyz=wxyz, position=pos, color=(60, 60, 60),
         )  # fmt: skip
         frustum.on_click(lambda _event, i=i: self.select(i))
+        self.frusta[i] = frustum
 
     def select(self, i: int) -> None:
         """Show frame i's image and name in the panel (and its rays when the toggle is on)."""

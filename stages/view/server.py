@@ -2,20 +2,24 @@
 
 `start(host, port)` refuses a port outside 1..65535 and a host that is not an address (UserError), prints a
 warning on stderr when the host is not a loopback address (anyone who can reach it sees the scene and can use
-the viewer), and returns the running `viser.ViserServer`. `serve_forever(server)` sleeps until Ctrl-C (or
-`stop` is set) and then stops the server.
+the viewer), and returns the running `viser.ViserServer` (viser's own banner and "Server stopped" lines are kept
+off stdout: `nerfpipe view` prints its own). `wait(stop, ready)` prints `ready` once Ctrl-C and SIGTERM are caught
+and blocks until one comes (returning its number) or `stop` is set.
 """
 
 from __future__ import annotations
 
+import contextlib
+import io
 import ipaddress
 import socket
 import sys
 import threading
 
 from data.errors import UserError
+from data.stop import stop_on_signals
 
-__all__ = ["is_loopback", "start", "serve_forever"]
+__all__ = ["is_loopback", "start", "stop_quietly", "wait"]
 
 
 def is_loopback(host: str) -> bool:
@@ -51,16 +55,22 @@ def start(host: str, port: int):
                 raise UserError(f"--port: cannot listen on {host}:{port} ({exc.strerror})") from None
     import viser
 
-    return viser.ViserServer(host=host, port=port, verbose=False)
+    with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner even with verbose=False
+        return viser.ViserServer(host=host, port=port, verbose=False)
 
 
-def serve_forever(server, stop: threading.Event | None = None) -> None:
-    """Block until Ctrl-C (KeyboardInterrupt) or `stop` is set; the server is stopped either way."""
-    stop = stop or threading.Event()
-    try:
-        while not stop.wait(0.5):
-            pass
-    except KeyboardInterrupt:
-        pass
-    finally:
+def stop_quietly(server) -> None:
+    """Stop a viser server (its thread prints "(viser) Server stopped" while stop() joins it: kept off stdout)."""
+    with contextlib.redirect_stdout(io.StringIO()):
         server.stop()
+
+
+def wait(stop: threading.Event, ready: str = "", poll: float = 0.2) -> int | None:
+    """Print `ready` (once SIGINT and SIGTERM are caught) and block until one of them comes or `stop` is set ->
+    the signal's number, or None for `stop`."""
+    with stop_on_signals() as request:
+        if ready:
+            print(ready, flush=True)
+        while request.signum is None and not stop.wait(poll):
+            pass
+    return request.signum

@@ -50,6 +50,8 @@ class XrayView:
         box = np.asarray(run.grid.box, dtype=np.float64)
         self.box = box
         self.size = float(np.linalg.norm(box[1] - box[0]))
+        self.handles: dict = {}
+        """The panel's controls (projection, angle, image, axis, where) and the scene's slice image ("slice")."""
 
     def draw(self) -> None:
         s = self.server
@@ -61,6 +63,7 @@ class XrayView:
             image = s.gui.add_image(projection_image(self.run, "DRR", 0.0, self.volume), label="projection")
             axis = s.gui.add_dropdown("Slice axis", AXES, initial_value="z")
             where = s.gui.add_slider("Slice position", min=0.0, max=1.0, step=0.01, initial_value=0.5)
+        self.handles.update(projection=kind, angle=angle, image=image, axis=axis, where=where)
 
         def update_projection(_=None) -> None:
             image.image = projection_image(self.run, kind.value, float(angle.value), self.volume)
@@ -88,6 +91,7 @@ class XrayView:
         rot = np.zeros((3, 3))
         rot[first, 0], rot[second, 1] = 1.0, 1.0
         rot[:, 2] = np.cross(rot[:, 0], rot[:, 1])
-        self.server.scene.add_image("/xray/slice", img, render_width=float(hi[first] - lo[first]),
-                                    render_height=float(hi[second] - lo[second]), wxyz=quat_from_matrix(rot),
-                                    position=pos)  # fmt: skip
+        self.handles["slice"] = self.server.scene.add_image(
+            "/xray/slice", img, render_width=float(hi[first] - lo[first]),
+            render_height=float(hi[second] - lo[second]), wxyz=quat_from_matrix(rot), position=pos,
+        )  # fmt: skip
