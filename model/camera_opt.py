@@ -52,7 +52,7 @@ __all__ = [
 class CameraSchedule:
     """Learning rates and warm-up of the camera optimiser."""
 
-    lr: float = 5e-3
+    lr: float = 1e-2
     """Adam learning rate of the rotation (radians) and translation (scene units) corrections at full strength."""
     focal_lr: float = 1e-3
     """Adam learning rate of the log focal scale."""
