@@ -74,6 +74,10 @@ class Config:
     """Ground-truth folder (cameras.json, depth/*.npy in metres) or the scene folder holding ground_truth/."""
     device: str = "auto"
     """torch device: auto, cpu, cuda, cuda:N."""
+    test_pose_steps: int = 0
+    """Runs trained with --refine-poses: optimise each test camera's pose against its photo for this many steps
+    with the field frozen before scoring (NeRF--, nerfstudio; `model.camera_opt.optimise_test_pose`); 0: off,
+    the test cameras are only mapped into the refined frame."""
     appearance_rule: Literal["mean", "half"] = "mean"
     """Runs with --appearance: mean (render with the mean code, score whole views) or half (NeRF-W: fit each test
     view's code on the left half of its photo, score the right half; every run is then scored on right halves)."""
@@ -197,6 +201,14 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
             f"--appearance-rule: expected one of {', '.join(APPEARANCE_RULES)}, got {config.appearance_rule!r}"
         )
     half = config.appearance_rule == "half"
+    if config.test_pose_steps < 0:
+        raise UserError(f"--test-pose-steps: expected >= 0, got {config.test_pose_steps}")
+    refined_run = getattr(trained, "pose_refinement", None) is not None
+    pose_steps = config.test_pose_steps if refined_run else 0
+    if pose_steps:
+        from model.camera_opt import TEST_POSE_OPT_RULE, optimise_test_pose
+    bg_t = torch.as_tensor(background, dtype=torch.float32, device=device)
+    test_pose_moves: list[dict[str, float]] = []
     has_appearance = getattr(getattr(trained, "model", None), "appearance", None) is not None
     for k, i in enumerate(idx):
         photo = load_masked_image(scene, i)  # masked-out pixels transparent, as in training (data.masks)
@@ -212,6 +224,9 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         if (intr.w, intr.h) != (w, h):
             intr = intr.scaled(w / intr.w)
         pose = scene.frames[i].world_from_cam
+        if pose_steps:
+            pose, moved = optimise_test_pose(trained.model, bg_t, pose, intr, photo, pose_steps)
+            test_pose_moves.append(moved)
         t0 = time.perf_counter()
         view = _render_scored(trained, intr, pose, device, photo, half, background)
         render_seconds += time.perf_counter() - t0
@@ -238,8 +253,11 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         "lpips": _mean([v["lpips"] for v in views]) if lpips_fn else None, "lpips_unavailable": lpips_reason,
         "rays_per_second": rendered_px / max(render_seconds, 1e-9), "render_seconds": render_seconds,
         "device": str(device), "downscale": downscale, "views": views,
-        "test_poses": (getattr(trained, "pose_refinement", None) or {}).get(
-            "test_poses", "as in transforms.json (no pose refinement)"),
+        "test_poses": (TEST_POSE_OPT_RULE if pose_steps else (getattr(trained, "pose_refinement", None) or {}).get(
+            "test_poses", "as in transforms.json (no pose refinement)")),
+        "test_pose_optimisation": {"steps": pose_steps, "median_rotation_deg": float(np.median(
+            [m["rotation_deg"] for m in test_pose_moves])), "median_translation": float(np.median(
+            [m["translation"] for m in test_pose_moves]))} if test_pose_moves else None,
         "appearance": APPEARANCE_RULES[config.appearance_rule] if has_appearance else None,
         "appearance_rule": config.appearance_rule,
         "scored_pixels": "right half of each test view (--appearance-rule half)" if half else "whole views",

@@ -14,10 +14,11 @@ import torch
 from benchmarks.bench_refine import perturb_scene
 from data.transforms import read_scene
 from model import load_trained
-from model.camera_opt import CameraOpt, CameraSchedule, align_test_poses
+from model.camera_opt import TEST_POSE_OPT_RULE, CameraOpt, CameraSchedule, align_test_poses
 from radiance.align import pose_errors
 from radiance.camera import Intrinsics, generate_rays
 from radiance.se3 import se3_exp, se3_log, so3_exp, so3_log
+from stages import eval as eval_stage
 from stages import scene as scene_stage
 from stages import train
 
@@ -186,3 +187,9 @@ def test_perturbed_poses_are_recovered(tiny, tmp_path):
     used = json.loads(out.manifest.read_text())["used"]["pose_refinement"]
     assert len(used["per_camera"]) == len(idx) and used["median_rotation_deg"] > 1.0
     assert trained.pose_refinement["test_poses"]["method"] == "similarity"
+    plain = eval_stage.run(eval_stage.Config(run_dir=run, out=tmp_path / "e.json", device="cpu", views=1)).result
+    assert plain["test_pose_optimisation"] is None and plain["test_poses"]["method"] == "similarity"
+    tuned = eval_stage.run(eval_stage.Config(run_dir=run, out=tmp_path / "t.json", device="cpu", views=1,
+                                             test_pose_steps=3)).result  # fmt: skip
+    assert tuned["test_poses"] == TEST_POSE_OPT_RULE and tuned["test_pose_optimisation"]["steps"] == 3
+    assert 0 < tuned["test_pose_optimisation"]["median_rotation_deg"] < 1.0
