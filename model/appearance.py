@@ -9,9 +9,15 @@ Because it is affine, compositing commutes with it: sum_i w_i (A rgb_i + b) = A 
 exactly to a ray's composited colour (before the background). The head starts at zero (every transform is the
 identity), the codes at N(0, 0.01^2) so that both receive gradients.
 
-Evaluation rule (novel views have no code): the mean code over the training images. The head is linear, so
-this renders with the mean transform; when the photos' variations average out (exposure around the right
-level), that is the scene's own colour. `None` as the view selects it.
+Evaluation rules (novel views have no code):
+- `mean` (default): the mean code over the training images. The head is linear, so this renders with the mean
+  transform; when the photos' variations average out (exposure around the right level), that is the scene's own
+  colour. `None` as the view selects it.
+- `half` (NeRF-W's protocol, `eval --appearance-rule half`): each test view's code is fitted to the left half of
+  its photo with the field frozen, and the view is scored on the right half only. The transform is affine in the
+  code (linear head) and acts on composited colours, so the fit is one ridge least-squares solve on the left
+  half's rendered (colour, opacity): `fit_code`. `apply_transform` applies its transform to the
+  view rendered without appearance (exact: the transform acts on composited colours).
 """
 
 from __future__ import annotations
@@ -19,9 +25,15 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-__all__ = ["Appearance", "EVAL_RULE"]
+__all__ = ["Appearance", "fit_code", "apply_transform", "EVAL_RULE", "EVAL_RULES"]
 
 EVAL_RULE = "mean code over the training images (linear head: the mean per-image colour transform)"
+EVAL_RULES = {
+    "mean": EVAL_RULE,
+    "half": "NeRF-W: each test view's code fitted (ridge least squares, field frozen) on the left half of its "
+    "photo; PSNR/SSIM on the right half only",
+}
+"""eval's --appearance-rule values and what each does (eval's JSON records the text)."""
 
 
 class Appearance(nn.Module):
@@ -41,6 +53,10 @@ class Appearance(nn.Module):
     def transform(self, view: Tensor | None) -> tuple[Tensor, Tensor]:
         """view [B] (training view indices) or None (the evaluation rule) -> A [B or 1, 3, 3], b [B or 1, 3]."""
         code = self.codes.mean(0, keepdim=True) if view is None else self.codes[view.long()]
+        return self.code_transform(code)
+
+    def code_transform(self, code: Tensor) -> tuple[Tensor, Tensor]:
+        """code [B, dim] -> A [B, 3, 3], b [B, 3]."""
         out = self.head(code)  # [B, 12]
         eye = torch.eye(3, dtype=out.dtype, device=out.device)
         return eye + out[:, :9].reshape(-1, 3, 3), out[:, 9:]
@@ -48,10 +64,7 @@ class Appearance(nn.Module):
     def forward(self, rgb: Tensor, acc: Tensor, background: Tensor, view: Tensor | None) -> Tensor:
         """A ray's colour rgb [B, 3] composited on background ([3] or [B, 3]) with opacity acc [B] -> the same
         with the view's transform applied to the field's part (the background is left as it is)."""
-        bg = background.to(rgb).expand_as(rgb)
-        fg = rgb - (1 - acc)[:, None] * bg  # sum_i w_i rgb_i
-        a, b = self.transform(view)
-        return (a @ fg[:, :, None])[..., 0] + acc[:, None] * b + (1 - acc)[:, None] * bg
+        return apply_transform(self.transform(view), rgb, acc, background)
 
     def param_groups(self, lr: float) -> list[dict]:
         """Codes and head at lr / 20, like the field's colour MLP."""
@@ -65,3 +78,39 @@ class Appearance(nn.Module):
         app = cls(int(doc["n_views"]), int(doc["dim"]))
         app.load_state_dict(doc["state"])
         return app
+
+
+def apply_transform(ab: tuple[Tensor, Tensor], rgb: Tensor, acc: Tensor, background: Tensor) -> Tensor:
+    """The affine (A [B or 1, 3, 3], b [B or 1, 3]) on the field's part of composited colours rgb [B, 3]."""
+    a, b = ab
+    bg = background.to(rgb).expand_as(rgb)
+    fg = rgb - (1 - acc)[:, None] * bg  # sum_i w_i rgb_i
+    return (a @ fg[:, :, None])[..., 0] + acc[:, None] * b + (1 - acc)[:, None] * bg
+
+
+@torch.no_grad()
+def fit_code(appearance: Appearance, rgb: Tensor, acc: Tensor, background: Tensor, target: Tensor,
+             ridge: float = 1e-3) -> Tensor:  # fmt: skip
+    """The code [dim] whose transform best maps the field's own composited colours rgb [N, 3] (rendered without
+    appearance; opacity acc [N], on background [3]) to the photo's target [N, 3]: ridge least squares around the
+    mean code (the prediction is affine in the code: the head is linear); ridge is relative to the mean squared
+    Jacobian."""
+    if rgb.shape != target.shape or rgb.ndim != 2 or rgb.shape[1] != 3 or acc.shape != rgb.shape[:1]:
+        raise ValueError(f"expected rgb, target [N, 3] and acc [N], got {tuple(rgb.shape)}, {tuple(target.shape)}, "
+                         f"{tuple(acc.shape)}")  # fmt: skip
+    rgb, acc, target = rgb.double(), acc.double(), target.double()
+    bg = background.to(rgb).reshape(3)
+    fg = rgb - (1 - acc)[:, None] * bg
+    w, bias = appearance.head.weight.double(), appearance.head.bias.double()  # [12, dim], [12]
+
+    def predict(out: Tensor) -> Tensor:  # head output [12] -> [N, 3]
+        a = torch.eye(3, dtype=out.dtype) + out[:9].reshape(3, 3)
+        return fg @ a.T + acc[:, None] * out[9:] + (1 - acc)[:, None] * bg
+
+    base = predict(bias)  # [N, 3] at code 0
+    jac = torch.stack([(predict(bias + w[:, j]) - base).reshape(-1) for j in range(w.shape[1])], dim=1)  # [3N, dim]
+    mean = appearance.codes.double().mean(0)
+    lam = ridge * float((jac**2).sum(0).mean()) + 1e-12
+    lhs = jac.T @ jac + lam * torch.eye(w.shape[1], dtype=jac.dtype)
+    rhs = jac.T @ (target - base).reshape(-1) + lam * mean
+    return torch.linalg.solve(lhs, rhs).to(appearance.codes.dtype)

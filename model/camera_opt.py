@@ -45,6 +45,8 @@ __all__ = [
     "pose_report",
     "write_refined_transforms",
     "TEST_POSE_RULE",
+    "TEST_POSE_OPT_RULE",
+    "optimise_test_pose",
 ]
 
 
@@ -52,7 +54,7 @@ __all__ = [
 class CameraSchedule:
     """Learning rates and warm-up of the camera optimiser."""
 
-    lr: float = 5e-3
+    lr: float = 1e-2
     """Adam learning rate of the rotation (radians) and translation (scene units) corrections at full strength."""
     focal_lr: float = 1e-3
     """Adam learning rate of the log focal scale."""
@@ -252,3 +254,46 @@ def write_refined_transforms(scene: Scene, doc: dict[str, Any], train_idx: tuple
     frames = tuple(dataclasses.replace(f, file_path=rel(f.file_path), mask_path=rel(f.mask_path),
                                        depth_file_path=rel(f.depth_file_path)) for f in refined.frames)  # fmt: skip
     return write_scene(refined.replace(root=folder, frames=frames), path)
+
+
+TEST_POSE_OPT_RULE = ("as above, then each test camera's SE(3) optimised against its photo with the field frozen "
+                      "(NeRF--, nerfstudio: eval --test-pose-steps)")  # fmt: skip
+
+
+def optimise_test_pose(model: Any, background: Tensor, world_from_cam: np.ndarray, intr: Intrinsics,
+                       photo: np.ndarray, steps: int, *, lr: float = 2e-3, batch: int = 2048,
+                       seed: int = 0) -> tuple[np.ndarray, dict[str, float]]:  # fmt: skip
+    """One test camera world_from_cam [4, 4] refined against its photo [H, W, 3] (composited on `background`
+    [3]) by `steps` Adam steps on a correction of the camera (`CameraOpt`), the field (`model`, a FieldModel)
+    frozen; each step renders `batch` random pixels. Returns the refined camera and its correction's size."""
+    from radiance.camera import generate_rays
+
+    if photo.shape[:2] != (intr.h, intr.w) or photo.ndim != 3 or photo.shape[2] != 3:
+        raise ValueError(f"expected photo [{intr.h}, {intr.w}, 3], got {tuple(photo.shape)}")
+    device = background.device
+    cam = CameraOpt(np.asarray(world_from_cam, dtype=np.float64)[None]).to(device)
+    opt = torch.optim.Adam([cam.delta], lr=lr, betas=(0.9, 0.99))
+    o_all, d_all = generate_rays(intr, torch.as_tensor(np.asarray(world_from_cam, dtype=np.float64)))
+    o_all, d_all = o_all.to(device, torch.float32), d_all.to(device, torch.float32)
+    target = torch.from_numpy(np.ascontiguousarray(photo, dtype=np.float32)).reshape(-1, 3).to(device)
+    gen = torch.Generator().manual_seed(seed)
+    frozen = [p for p in model.field.parameters() if p.requires_grad]
+    for p in frozen:
+        p.requires_grad_(False)
+    try:
+        for k in range(steps):
+            idx = torch.randint(o_all.shape[0], (min(batch, o_all.shape[0]),), generator=gen).to(device)
+            o, d = cam(o_all[idx], d_all[idx], torch.zeros_like(idx))
+            pred = model.render(o, d, background, train=False)["rgb"]
+            loss = torch.mean((pred - target[idx]) ** 2)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            for g in opt.param_groups:
+                g["lr"] = lr * 0.1 ** (k / max(steps, 1))
+            opt.step()
+    finally:
+        for p in frozen:
+            p.requires_grad_(True)
+    refined = cam.refined()[0]
+    rec = corrections_record(np.asarray(world_from_cam)[None], refined[None], [""])[0]
+    return refined, {"rotation_deg": rec["rotation_deg"], "translation": rec["translation"]}

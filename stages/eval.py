@@ -18,7 +18,10 @@ converts the depth scale; the JSON says which (`depth_alignment.method`: none | 
 
 Runs trained with `--refine-poses` are scored from the refined frame: the test cameras are mapped into it by the
 similarity from the input training cameras to the refined ones (`model.camera_opt`; JSON `test_poses`). Runs
-trained with `--appearance` render with the mean appearance code (JSON `appearance`).
+trained with `--appearance` render with the mean appearance code (`--appearance-rule mean`, the default), or with
+NeRF-W's protocol (`--appearance-rule half`): each test view's code is fitted to the left half of its photo and
+the view is scored on the right half only -- runs without appearance are then scored on the right half too, so
+the two compare on the same pixels (JSON `appearance`, `appearance_rule`, `scored_pixels`).
 
 Writes OUT.json, OUT.metrics.csv (per view: step, seconds, psnr, ssim, depth_mae) and OUT.manifest.json (last).
 """
@@ -29,7 +32,7 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -42,7 +45,8 @@ from data.progress import NO_PROGRESS, Progress
 from data.rundir import MetricsLog, Stopwatch, config_to_json, sidecar, write_manifest
 from data.transforms import Scene
 from model import OPAQUE, load_trained, render_view, resolve_device
-from model.appearance import EVAL_RULE as APPEARANCE_EVAL_RULE
+from model.appearance import EVAL_RULES as APPEARANCE_RULES
+from model.appearance import apply_transform, fit_code
 from radiance.align import umeyama
 from radiance.compositing import over_background
 from radiance.metrics import psnr
@@ -70,6 +74,13 @@ class Config:
     """Ground-truth folder (cameras.json, depth/*.npy in metres) or the scene folder holding ground_truth/."""
     device: str = "auto"
     """torch device: auto, cpu, cuda, cuda:N."""
+    test_pose_steps: int = 0
+    """Runs trained with --refine-poses: optimise each test camera's pose against its photo for this many steps
+    with the field frozen before scoring (NeRF--, nerfstudio; `model.camera_opt.optimise_test_pose`); 0: off,
+    the test cameras are only mapped into the refined frame."""
+    appearance_rule: Literal["mean", "half"] = "mean"
+    """Runs with --appearance: mean (render with the mean code, score whole views) or half (NeRF-W: fit each test
+    view's code on the left half of its photo, score the right half; every run is then scored on right halves)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -185,6 +196,20 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     if config.downscale is not None and not config.downscale >= 1:
         raise UserError(f"--downscale: expected >= 1, got {config.downscale}")
     downscale = config.downscale or float(getattr(trained, "run_config", {}).get("downscale") or 1.0)
+    if config.appearance_rule not in APPEARANCE_RULES:
+        raise UserError(
+            f"--appearance-rule: expected one of {', '.join(APPEARANCE_RULES)}, got {config.appearance_rule!r}"
+        )
+    half = config.appearance_rule == "half"
+    if config.test_pose_steps < 0:
+        raise UserError(f"--test-pose-steps: expected >= 0, got {config.test_pose_steps}")
+    refined_run = getattr(trained, "pose_refinement", None) is not None
+    pose_steps = config.test_pose_steps if refined_run else 0
+    if pose_steps:
+        from model.camera_opt import TEST_POSE_OPT_RULE, optimise_test_pose
+    bg_t = torch.as_tensor(background, dtype=torch.float32, device=device)
+    test_pose_moves: list[dict[str, float]] = []
+    has_appearance = getattr(getattr(trained, "model", None), "appearance", None) is not None
     for k, i in enumerate(idx):
         photo = load_masked_image(scene, i)  # masked-out pixels transparent, as in training (data.masks)
         if downscale != 1.0:
@@ -199,14 +224,18 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         if (intr.w, intr.h) != (w, h):
             intr = intr.scaled(w / intr.w)
         pose = scene.frames[i].world_from_cam
+        if pose_steps:
+            pose, moved = optimise_test_pose(trained.model, bg_t, pose, intr, photo, pose_steps)
+            test_pose_moves.append(moved)
         t0 = time.perf_counter()
-        view = render_view(trained, intr, pose, device)
+        view = _render_scored(trained, intr, pose, device, photo, half, background)
         render_seconds += time.perf_counter() - t0
         rendered_px += w * h
         pred = np.clip(view["rgb"], 0.0, 1.0)
+        p_s, g_s = (pred[:, w // 2 :], photo[:, w // 2 :]) if half else (pred, photo)
         row: dict[str, Any] = {"name": Path(scene.frames[i].file_path).name,
-                               "psnr": psnr(pred, photo), "ssim": ssim(pred, photo),
-                               "lpips": lpips_fn(pred, photo) if lpips_fn else None}  # fmt: skip
+                               "psnr": psnr(p_s, g_s), "ssim": ssim(p_s, g_s),
+                               "lpips": lpips_fn(p_s, g_s) if lpips_fn else None}  # fmt: skip
         if gt is not None:
             err, n_cov, n_gt = _depth_errors(trained, view, intr, pose, row["name"], gt, alignment, scale, device)
             if err is not None:
@@ -224,9 +253,14 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         "lpips": _mean([v["lpips"] for v in views]) if lpips_fn else None, "lpips_unavailable": lpips_reason,
         "rays_per_second": rendered_px / max(render_seconds, 1e-9), "render_seconds": render_seconds,
         "device": str(device), "downscale": downscale, "views": views,
-        "test_poses": (getattr(trained, "pose_refinement", None) or {}).get(
-            "test_poses", "as in transforms.json (no pose refinement)"),
-        "appearance": APPEARANCE_EVAL_RULE if getattr(getattr(trained, "model", None), "appearance", None) else None,
+        "test_poses": (TEST_POSE_OPT_RULE if pose_steps else (getattr(trained, "pose_refinement", None) or {}).get(
+            "test_poses", "as in transforms.json (no pose refinement)")),
+        "test_pose_optimisation": {"steps": pose_steps, "median_rotation_deg": float(np.median(
+            [m["rotation_deg"] for m in test_pose_moves])), "median_translation": float(np.median(
+            [m["translation"] for m in test_pose_moves]))} if test_pose_moves else None,
+        "appearance": APPEARANCE_RULES[config.appearance_rule] if has_appearance else None,
+        "appearance_rule": config.appearance_rule,
+        "scored_pixels": "right half of each test view (--appearance-rule half)" if half else "whole views",
     }  # fmt: skip
     result.update(_depth_summary(gt, alignment, abs_errors, covered, gt_pixels))
     write_json(out, result)
@@ -237,12 +271,38 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
                 *([gt.folder / "cameras.json"] if gt else [])],
         outputs=[out, metrics.path], used={"split": split, "views": len(views), "device": str(device),
                                            "ssim": "skimage structural_similarity, 7x7, data_range 1",
-                                           "test_poses": result["test_poses"], "appearance": result["appearance"]},
+                                           "test_poses": result["test_poses"], "appearance": result["appearance"],
+                                           "appearance_rule": config.appearance_rule},
         left_out={**({"lpips": lpips_reason} if lpips_reason else {}),
                   **({} if gt else {"depth": "no --ground-truth given"})},
         config=config_to_json(config),
     )  # fmt: skip
     return Outputs(out=out, metrics=metrics.path, manifest=manifest, result=result)
+
+
+def _render_scored(trained, intr, pose, device, photo: np.ndarray, half: bool, background: np.ndarray) -> dict:
+    """render_view; with the half rule and appearance codes, the view rendered without appearance, its code
+    fitted on the left half of `photo` [H, W, 3] (`model.appearance.fit_code`) and its transform applied."""
+    app = getattr(trained.model, "appearance", None)
+    if not half or app is None:
+        return render_view(trained, intr, pose, device)
+    trained.model.appearance = None
+    try:
+        view = render_view(trained, intr, pose, device)
+    finally:
+        trained.model.appearance = app
+    h, w = view["acc"].shape
+    rgb = torch.from_numpy(view["rgb"]).reshape(-1, 3).to(device)
+    acc = torch.from_numpy(view["acc"]).reshape(-1).to(device)
+    bg = torch.as_tensor(background, dtype=torch.float32, device=device)
+    left = torch.zeros(h, w, dtype=torch.bool)
+    left[:, : w // 2] = True
+    left = left.reshape(-1).to(device)
+    target = torch.from_numpy(np.ascontiguousarray(photo, dtype=np.float32)).reshape(-1, 3).to(device)
+    code = fit_code(app, rgb[left], acc[left], bg, target[left])
+    with torch.no_grad():
+        out = apply_transform(app.code_transform(code[None]), rgb, acc, bg)
+    return {**view, "rgb": out.reshape(h, w, 3).float().cpu().numpy()}
 
 
 def _depth_errors(trained, view, intr, pose, name, gt, alignment, scale, device):

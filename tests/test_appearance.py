@@ -12,7 +12,7 @@ import torch
 
 from benchmarks.bench_refine import degrade_scene
 from model import load_trained
-from model.appearance import EVAL_RULE, Appearance
+from model.appearance import EVAL_RULE, EVAL_RULES, Appearance, apply_transform, fit_code
 from stages import eval as eval_stage
 from stages import scene as scene_stage
 from stages import train
@@ -40,6 +40,23 @@ def test_starts_as_the_identity_and_commutes_with_compositing():
     mean_a, mean_b = app.transform(None)
     assert torch.allclose(mean_a[0], app.transform(torch.arange(4))[0].mean(0), atol=1e-6)
     assert torch.allclose(mean_b[0], app.transform(torch.arange(4))[1].mean(0), atol=1e-6)
+
+
+def test_fit_code_recovers_a_code_from_half_a_view():
+    """NeRF-W's rule: the code whose transform maps the field's colours to the photo, by least squares."""
+    torch.manual_seed(0)
+    app = Appearance(5, dim=4)
+    with torch.no_grad():
+        app.head.weight.normal_(std=0.2)
+        app.head.bias.normal_(std=0.05)
+    rgb, acc, bg = torch.rand(400, 3), torch.rand(400), torch.tensor([1.0, 1.0, 1.0])
+    rgb = rgb * acc[:, None] + (1 - acc)[:, None] * bg
+    code = torch.tensor([0.5, -1.0, 0.25, 2.0])
+    target = apply_transform(app.code_transform(code[None]), rgb, acc, bg).detach()
+    got = fit_code(app, rgb, acc, bg, target, ridge=1e-9)
+    assert torch.allclose(got, code, atol=1e-4), got
+    with pytest.raises(ValueError, match="expected rgb, target"):
+        fit_code(app, rgb, acc, bg, target[:10])
 
 
 @pytest.fixture(scope="module")
@@ -75,4 +92,9 @@ def test_codes_learn_the_gains_and_eval_uses_the_mean(scenes, tmp_path):
     used = json.loads(out.manifest.read_text())["used"]["appearance"]
     assert used["evaluation"] == EVAL_RULE
     res = eval_stage.run(eval_stage.Config(run_dir=run, out=tmp_path / "eval.json", device="cpu")).result
-    assert res["appearance"] == EVAL_RULE
+    assert res["appearance"] == EVAL_RULE and res["appearance_rule"] == "mean"
+    assert res["scored_pixels"] == "whole views"
+    half = eval_stage.run(eval_stage.Config(run_dir=run, out=tmp_path / "half.json", device="cpu",
+                                            appearance_rule="half")).result  # fmt: skip
+    assert half["appearance"] == EVAL_RULES["half"] and half["scored_pixels"].startswith("right half")
+    assert np.isfinite(half["psnr"])

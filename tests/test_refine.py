@@ -14,10 +14,11 @@ import torch
 from benchmarks.bench_refine import perturb_scene
 from data.transforms import read_scene
 from model import load_trained
-from model.camera_opt import CameraOpt, CameraSchedule, align_test_poses
+from model.camera_opt import TEST_POSE_OPT_RULE, CameraOpt, CameraSchedule, align_test_poses
 from radiance.align import pose_errors
 from radiance.camera import Intrinsics, generate_rays
 from radiance.se3 import se3_exp, se3_log, so3_exp, so3_log
+from stages import eval as eval_stage
 from stages import scene as scene_stage
 from stages import train
 
@@ -148,6 +149,24 @@ def test_off_by_default_and_identity_at_start(tiny, tmp_path):
     assert on.steps == off.steps
 
 
+def test_refinement_trains_coarse_to_fine_by_default(tiny, tmp_path):
+    """--refine-poses starts the grid at a quarter of its final size and upsamples later (BARF's coarse-to-fine in
+    grid terms); without it the defaults are as before; asked-for values win."""
+    from stages.train.defaults import REFINE_UPSAMPLE_AT, UPSAMPLE_AT
+
+    kw = dict(resolution=None, max_steps=1)
+    configs = {}
+    for name, extra in (("off", {}), ("on", {"refine_poses": True}),
+                        ("asked", {"refine_poses": True, "upsample_at": (0.1,), "resolution": (16, 24)})):  # fmt: skip
+        train.run(tiny_config(tiny[1], tmp_path / name, **{**kw, **extra}))
+        configs[name] = json.loads((tmp_path / name / "config.json").read_text())
+    r1 = configs["off"]["resolution"][1]
+    assert configs["off"]["resolution"][0] == 64 and tuple(configs["off"]["upsample_at"]) == UPSAMPLE_AT
+    assert configs["on"]["resolution"] == [max(16, round(r1 / 4)), r1]
+    assert tuple(configs["on"]["upsample_at"]) == REFINE_UPSAMPLE_AT
+    assert configs["asked"]["resolution"] == [16, 24] and configs["asked"]["upsample_at"] == [0.1]
+
+
 def test_perturbed_poses_are_recovered(tiny, tmp_path):
     """Joint refinement on a tiny scene: the median rotation error (after similarity alignment) falls clearly;
     render/eval see the refined cameras, train writes them, the manifest lists each camera's correction."""
@@ -168,3 +187,9 @@ def test_perturbed_poses_are_recovered(tiny, tmp_path):
     used = json.loads(out.manifest.read_text())["used"]["pose_refinement"]
     assert len(used["per_camera"]) == len(idx) and used["median_rotation_deg"] > 1.0
     assert trained.pose_refinement["test_poses"]["method"] == "similarity"
+    plain = eval_stage.run(eval_stage.Config(run_dir=run, out=tmp_path / "e.json", device="cpu", views=1)).result
+    assert plain["test_pose_optimisation"] is None and plain["test_poses"]["method"] == "similarity"
+    tuned = eval_stage.run(eval_stage.Config(run_dir=run, out=tmp_path / "t.json", device="cpu", views=1,
+                                             test_pose_steps=3)).result  # fmt: skip
+    assert tuned["test_poses"] == TEST_POSE_OPT_RULE and tuned["test_pose_optimisation"]["steps"] == 3
+    assert 0 < tuned["test_pose_optimisation"]["median_rotation_deg"] < 1.0

@@ -19,6 +19,11 @@ One rule, written once, for both devices:
   2 voxels on CPU. Measured on CPU: lego_100 (box ~100 px) -> (64, 160) was the best of (48, 128), (64, 160), (64,
   192) in 120 s; lego_400 (box ~400 px) -> (96, 300) gave 32.5 dB in 900 s. On CUDA the start size is at least 128
   (issue 14's H100 measurement: (128, 300) with 8192 rays, 33.9 dB vs 28.3 dB for (64, 160) in 240 s).
+- **Pose refinement** (`--refine-poses`): coarse-to-fine as BARF anneals its frequencies, in the grid's terms
+  (its resolution is its frequency band): the grid starts at a quarter of the final size (at least 16) and is
+  upsampled at `REFINE_UPSAMPLE_AT` instead of `UPSAMPLE_AT`, so the cameras first register to a smooth field.
+  48 px scene, 3 deg / 3 % perturbations, 400 steps: median rotation error 1.40 deg with the usual (64, 96) grid
+  upsampled at 5-30 %, 0.84 deg with (24, 96) upsampled at 20-50 %.
 - **Marching step** (`--step-ratio`): 2 voxels of the final grid below 200 voxels, 1 voxel from there on
   (lego_400 used 1 at 300).
 - **Batch** (`--batch-rays`): 1024 rays on CPU (more small steps beat fewer big ones in a fixed time: 22.6 vs
@@ -36,8 +41,20 @@ from data.transforms import Scene
 from model.background import Background
 from stages.train.views import Views
 
-__all__ = ["Defaults", "contracted_resolution", "detect_plain_colour", "object_size_px", "resolve_defaults"]
+__all__ = [
+    "UPSAMPLE_AT",
+    "REFINE_UPSAMPLE_AT",
+    "Defaults",
+    "contracted_resolution",
+    "detect_plain_colour",
+    "object_size_px",
+    "resolve_defaults",
+]
 
+UPSAMPLE_AT = (0.05, 0.1, 0.2, 0.3)
+"""Run-progress fractions of the grid upsamplings (fast field)."""
+REFINE_UPSAMPLE_AT = (0.2, 0.3, 0.4, 0.5)
+"""The same with --refine-poses: the grid stays coarse while the cameras move most."""
 BORDER = 2
 PLAIN_FRACTION = 0.9
 PLAIN_TOLERANCE = 4 / 255
@@ -51,6 +68,7 @@ class Defaults:
     background: Background
     plain_background: bool
     reasons: dict[str, str]
+    upsample_at: tuple[float, ...] = UPSAMPLE_AT
     plain_colour: tuple[float, float, float] | None = None
 
 
@@ -130,8 +148,18 @@ def resolve_defaults(config, scene: Scene, views: Views, train_idx, device: torc
         size = object_size_px(scene, train_idx) / downscale
         r1 = int(min(300, max(96, round(1.6 * size))))
         r0 = int(min(128, max(128 if cuda else 64, round(0.32 * r1))))
-        resolution = (r0, r1)
         reasons["resolution"] = f"object ~{size:.0f} px across: final 1.6 x size in [96, 300], start 0.32 x"
+        if getattr(config, "refine_poses", False):
+            r0 = max(16, round(r1 / 4))
+            reasons["resolution"] += "; --refine-poses: start at a quarter of the final size (coarse-to-fine)"
+        resolution = (r0, r1)
+    if getattr(config, "upsample_at", None) is not None:
+        upsample_at, reasons["upsample_at"] = tuple(config.upsample_at), "asked for"
+    elif getattr(config, "refine_poses", False):
+        upsample_at = REFINE_UPSAMPLE_AT
+        reasons["upsample_at"] = "--refine-poses: later upsamplings, the cameras register to a coarse grid first"
+    else:
+        upsample_at = UPSAMPLE_AT
     if config.step_ratio is not None:
         step_ratio, reasons["step_ratio"] = float(config.step_ratio), "asked for"
     else:
@@ -146,7 +174,8 @@ def resolve_defaults(config, scene: Scene, views: Views, train_idx, device: torc
     if config.background == "auto" and plain and not has_alpha:
         plain_colour = tuple(float(v) for v in background.eval_colour())
     return Defaults(resolution=resolution, step_ratio=step_ratio, batch_rays=batch, background=background,
-                    plain_background=plain, reasons=reasons, plain_colour=plain_colour)  # fmt: skip
+                    plain_background=plain, reasons=reasons, upsample_at=upsample_at,
+                    plain_colour=plain_colour)  # fmt: skip
 
 
 def contracted_resolution(resolution: tuple[int, int], device: torch.device) -> tuple[int, int]:
