@@ -11,9 +11,10 @@ Conventions:
 - `render_marched` (occupancy-grid marching, two passes) splits the callbacks instead:
   `sigma_fn(x [N, 3]) -> sigma [N]` on every sample (position only, like OccupancyGrid.update's density_fn),
   then `rgb_fn(x [K, 3], d [K, 3]) -> rgb [K, 3]` only on the K samples whose weight counts.
-- `render_marched_terminating` is `render_marched` for inference (no grad, no jitter): the density is asked for in
-  depth slabs of `segment` samples per ray, only on rays whose transmittance is still above `min_transmittance`
-  (early ray termination); its plain twin is `render_marched` (equal with min_transmittance = 0).
+- `render_marched_terminating` / `render_contracted_terminating` are `render_marched` / `render_contracted` for
+  inference (no grad, no jitter): the same steps taken front to back in slabs of `segment` steps, only on rays
+  whose transmittance is still >= `min_transmittance` (early ray termination), per-ray outputs only; their plain
+  twins are `render_marched` / `render_contracted` (equal with min_transmittance = 0).
 - Outputs are dicts; per-ray entries (PER_RAY_KEYS) are [R] or [R, 3], per-sample ones are shaped like t_starts.
 """
 
