@@ -28,9 +28,17 @@ from radiance.fields import Field, TensoRF, VanillaNeRF, make_field
 from radiance.ndc import NDC, fit_ndc
 from radiance.occupancy import OccupancyGrid
 from radiance.regularizers import distortion_loss
-from radiance.render import StratifiedSampler, render_contracted, render_marched, render_rays_hierarchical
+from radiance.render import (
+    StratifiedSampler,
+    render_contracted,
+    render_contracted_terminating,
+    render_marched,
+    render_marched_terminating,
+    render_rays_hierarchical,
+)
+from radiance.safe import eps
 
-__all__ = ["ModelSettings", "FieldModel", "build_model", "scene_ndc", "choose_scene_model"]
+__all__ = ["ModelSettings", "Inference", "FieldModel", "build_model", "scene_ndc", "choose_scene_model"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -64,6 +72,17 @@ class ModelSettings:
             ) from None
 
 
+@dataclass(frozen=True, kw_only=True)
+class Inference:
+    """How a `fast` field renders when not training (vanilla fields ignore it): early ray termination and step."""
+
+    min_transmittance: float | None = None
+    """A ray stops once less light than this gets through (acc, rgb off by at most this); None: the rays' dtype
+    epsilon (float32: 1.2e-7, below the rounding of any value in [0, 1]: what render, depth and eval use)."""
+    step_scale: float = 1.0
+    """March at this multiple of the run's inference step (the viewer's coarse preview: 2)."""
+
+
 def _render_fast(
     field: TensoRF,
     grid: OccupancyGrid,
@@ -76,8 +95,17 @@ def _render_fast(
     background: Tensor,  # [3] or [R, 3]
     jitter: bool = False,
     with_median: bool = False,
+    infer: Inference | None = None,
 ) -> dict[str, Tensor]:
-    """TensoRF + occupancy grid: radiance.render.render_marched over the field's density and colour."""
+    """TensoRF + occupancy grid: radiance.render.render_marched over the field's density and colour (training),
+    its early-terminating twin otherwise."""
+    if infer is not None:
+        out = render_marched_terminating(
+            rays_o, rays_d, grid=grid, sigma_fn=field.density, rgb_fn=_rgb_fn(field), near=near, far=far,
+            step_size=step_size * infer.step_scale, background=background, with_median=with_median,
+            color_threshold=_color_threshold(False), min_transmittance=_min_transmittance(infer, rays_o),
+        )  # fmt: skip
+        return {**out, "samples": torch.tensor(float(out["samples"]))}
     out = render_marched(
         rays_o, rays_d, grid=grid, sigma_fn=field.density, rgb_fn=_rgb_fn(field), near=near, far=far,
         step_size=step_size, background=background, jitter=jitter, with_median=with_median,
@@ -92,6 +120,10 @@ def _color_threshold(training: bool) -> float:
     and with a threshold no colour would be evaluated, so no gradient would reach the density except through
     the background term -- none at all on a black background (tiny-NeRF's npz trained to 12.3 dB and stayed)."""
     return 0.0 if training else 1e-4
+
+
+def _min_transmittance(infer: Inference, rays_o: Tensor) -> float:
+    return eps(rays_o.dtype) if infer.min_transmittance is None else infer.min_transmittance
 
 
 def _rgb_fn(field: TensoRF):
@@ -113,8 +145,17 @@ def _render_fast_contracted(
     background: Tensor,
     jitter: bool = False,
     with_median: bool = False,
+    infer: Inference | None = None,
 ) -> dict[str, Tensor]:
-    """TensoRF in contracted space (unbounded scenes): radiance.render.render_contracted."""
+    """TensoRF in contracted space (unbounded scenes): radiance.render.render_contracted (training), its
+    early-terminating twin otherwise."""
+    if infer is not None:
+        out = render_contracted_terminating(
+            rays_o, rays_d, grid=grid, contraction=contraction, sigma_fn=field.density, rgb_fn=_rgb_fn(field),
+            near=near, step_size=step_size * infer.step_scale, background=background, with_median=with_median,
+            color_threshold=_color_threshold(False), min_transmittance=_min_transmittance(infer, rays_o),
+        )  # fmt: skip
+        return {**out, "samples": torch.tensor(float(out["samples"]))}
     out = render_contracted(
         rays_o, rays_d, grid=grid, contraction=contraction, sigma_fn=field.density, rgb_fn=_rgb_fn(field),
         near=near, step_size=step_size, background=background, jitter=jitter, with_median=with_median,
@@ -181,11 +222,15 @@ class FieldModel:
         """Rays per evaluation chunk (vanilla: 256 samples x 256 activations per ray)."""
         return 8192 if self.kind == "fast" else 1024
 
-    def render(self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, gen=None, median=False, view=None):
+    def render(
+        self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, gen=None, median=False, view=None,
+        infer: Inference = Inference(),
+    ):  # fmt: skip
         """World rays o, d [R, 3] (unit d) -> dict(rgb, depth, depth_median, acc, ...); depths are distances
         along the world rays whatever space the field lives in. With per-image appearance, `view` [R] gives
-        each ray's training view (None: the evaluation rule, `model.appearance`)."""
-        out = self._render_world(o, d, background, train=train, gen=gen, median=median)
+        each ray's training view (None: the evaluation rule, `model.appearance`). Not training, a fast field
+        stops each ray early (`infer`; the outputs are then per ray only, plus `samples`)."""
+        out = self._render_world(o, d, background, train=train, gen=gen, median=median, infer=infer)
         if self.appearance is not None:
             for key in ("rgb", "rgb_coarse"):
                 if key in out:
@@ -193,11 +238,11 @@ class FieldModel:
                     out[key] = self.appearance(out[key], acc, background, view)
         return out
 
-    def _render_world(self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, gen=None, median=False):
+    def _render_world(self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, gen, median, infer):
         if self.ndc is None:
-            return self._render(o, d, background, train=train, gen=gen, median=median)
+            return self._render(o, d, background, train=train, gen=gen, median=median, infer=infer)
         o_n, d_n, valid = self.ndc.rays_to_ndc(o, d)
-        out = self._render(o_n, d_n, background, train=train, gen=gen, median=median)
+        out = self._render(o_n, d_n, background, train=train, gen=gen, median=median, infer=infer)
         for key in ("depth", "depth_median"):
             if key in out:
                 out[key] = self.ndc.world_t(o, d, o_n, d_n, out[key])
@@ -216,16 +261,14 @@ class FieldModel:
         s1 = normalized_distance(self.contraction, o, d, self.near, out["t_ends"], idx)
         return distortion_loss(out["weights"], s0, s1, idx, o.shape[0])
 
-    def _render(self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, gen=None, median=False):
+    def _render(self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, gen, median, infer):
+        step = self.step_size if train else self.step_size * self.render_step_factor
+        fast = dict(step_size=step, background=background, jitter=train, with_median=median,
+                    infer=None if train else infer)  # fmt: skip
         if self.kind == "fast" and self.contraction is not None:
-            step = self.step_size if train else self.step_size * self.render_step_factor
-            return _render_fast_contracted(self.field, self.grid, self.contraction, o, d, near=self.near,
-                                           step_size=step, background=background, jitter=train,
-                                           with_median=median)  # fmt: skip
+            return _render_fast_contracted(self.field, self.grid, self.contraction, o, d, near=self.near, **fast)
         if self.kind == "fast":
-            step = self.step_size if train else self.step_size * self.render_step_factor
-            return _render_fast(self.field, self.grid, o, d, near=self.near, far=self.far, step_size=step,
-                               background=background, jitter=train, with_median=median)  # fmt: skip
+            return _render_fast(self.field, self.grid, o, d, near=self.near, far=self.far, **fast)
         return _render_vanilla(self.field, o, d, aabb=self.aabb, near=self.near, far=self.far, background=background,
                               jitter=train, generator=gen)  # fmt: skip
 

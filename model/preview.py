@@ -1,11 +1,11 @@
 """Interactive rendering of a trained run (what `nerfpipe view` shows): fast, inference only, no depth median.
 
 `render_preview(trained, intr, world_from_cam, coarse=...)` returns what `model.render_view` returns without
-`depth_median` (rgb [H, W, 3], z-depth [H, W] in scene units, acc [H, W], numpy float32). For a `fast` field in
-the scene's box it marches the occupancy grid with early ray termination (`radiance.render.
-render_marched_terminating`: rays stop once their transmittance is below `MIN_TRANSMITTANCE`); `coarse=True`
-also doubles the marching step (`COARSE_STEP`), which is what the viewer shows while the camera moves. Other runs
-(vanilla, NDC, contracted) go through `Trained.render_rays` (the same as `render`).
+`depth_median` (rgb [H, W, 3], z-depth [H, W] in scene units, acc [H, W], numpy float32). For
+a `fast` field (box, NDC or contracted) it marches with early ray termination (`model.field_model.Inference`:
+rays stop once their transmittance is below `MIN_TRANSMITTANCE`, where `render` stops at the dtype's epsilon);
+`coarse=True` also doubles the marching step (`COARSE_STEP`), which is what the viewer shows while the camera
+moves. Vanilla runs go through `Trained.render_rays` (the same as `render`).
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ import numpy as np
 import torch
 
 from model.cameras import Renderable
+from model.field_model import Inference
 from radiance.camera import Intrinsics, generate_rays
-from radiance.render import render_marched_terminating
 
 __all__ = ["MIN_TRANSMITTANCE", "COARSE_STEP", "render_preview", "preview_rays"]
 
@@ -25,32 +25,19 @@ COARSE_STEP = 2.0
 """While the camera moves, march at this many times the run's inference step (its training step)."""
 
 
-def _fast_box(trained: Renderable):
-    """The run's FieldModel when it is a `fast` field in the scene's box with an occupancy grid, else None."""
-    model = getattr(trained, "model", None)
-    if model is None or model.kind != "fast" or model.grid is None or model.ndc is not None:
-        return None
-    return None if model.contraction is not None else model
-
-
 @torch.no_grad()
 def preview_rays(trained: Renderable, rays_o: torch.Tensor, rays_d: torch.Tensor, *, coarse: bool = False) -> dict:
     """rays [R, 3] (unit d) -> dict(rgb [R, 3], depth [R] (expected t), acc [R]) on the run's device."""
-    model = _fast_box(trained)
-    if model is None:
+    model = getattr(trained, "model", None)
+    if model is None or model.kind != "fast" or model.grid is None:
         out = trained.render_rays(rays_o, rays_d)
         return {k: out[k] for k in ("rgb", "depth", "acc")}
-    field = model.field
-    rgb_fn = (lambda x, d: field.color(x, d if field.view_dependent else None)) if field.has_color else None
-    step = model.step_size * model.render_step_factor * (COARSE_STEP if coarse else 1.0)
+    infer = Inference(min_transmittance=MIN_TRANSMITTANCE, step_scale=COARSE_STEP if coarse else 1.0)
     parts: dict[str, list[torch.Tensor]] = {"rgb": [], "depth": [], "acc": []}
     for i in range(0, rays_o.shape[0], model.chunk):
         o = rays_o[i : i + model.chunk].to(trained.device, torch.float32)
         d = rays_d[i : i + model.chunk].to(trained.device, torch.float32)
-        out = render_marched_terminating(
-            o, d, grid=model.grid, sigma_fn=field.density, rgb_fn=rgb_fn, near=model.near, far=model.far,
-            step_size=step, background=trained.background, min_transmittance=MIN_TRANSMITTANCE,
-        )  # fmt: skip
+        out = model.render(o, d, trained.background, train=False, infer=infer)
         if "rgb" not in out:
             out["rgb"] = trained.background.to(o).expand(o.shape[0], 3)
         for k in parts:

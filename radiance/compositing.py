@@ -36,6 +36,7 @@ __all__ = [
     "render_weights_reference",
     "accumulate",
     "median_depth",
+    "median_crossing",
     "composite",
     "beer_lambert",
     "over_background",
@@ -222,18 +223,32 @@ def median_depth(
     tau = optical_depth(s, t0, t1)  # [R, S]
     trans = torch.exp(-exclusive_cumsum(tau))  # [R, S]
     w = trans * -torch.expm1(-tau)  # [R, S]
-    w_before = exclusive_cumsum(w)  # [R, S]
-    idx = ((w_before + w) < 0.5).sum(dim=-1, keepdim=True)  # [R, 1] first interval reaching 0.5
+    crossed, depth = median_crossing(s, t0, t1, trans, w, exclusive_cumsum(w))
+    return torch.where(crossed, depth, torch.full_like(depth, fill)).to(sigmas.dtype)
+
+
+def median_crossing(
+    sigmas: Tensor,  # [R, S] padded rows, float32+
+    t_starts: Tensor,  # [R, S]
+    t_ends: Tensor,  # [R, S]
+    trans: Tensor,  # [R, S] transmittance before each interval
+    weights: Tensor,  # [R, S]
+    w_before: Tensor,  # [R, S] weight accumulated before each interval (earlier rows' part included)
+) -> tuple[Tensor, Tensor]:
+    """Where each row's accumulated weight reaches 0.5 within these intervals: (crossed [R] bool, t [R]; t is
+    meaningless where not crossed). Solved inside the crossing interval for its constant density; shared by
+    `median_depth` and renderers that composite a ray in pieces (front to back)."""
+    width = sigmas.shape[-1]
+    idx = ((w_before + weights) < 0.5).sum(dim=-1, keepdim=True)  # [R, 1] first interval reaching 0.5
     crossed = idx[:, 0] < width
     idx = idx.clamp(max=width - 1)
-    s_i, t0_i, t1_i, trans_i, wb_i = (x.gather(1, idx)[:, 0] for x in (s, t0, t1, trans, w_before))
+    s_i, t0_i, t1_i, trans_i, wb_i = (x.gather(1, idx)[:, 0] for x in (sigmas, t_starts, t_ends, trans, w_before))
     # Inside the interval: wb + T (1 - exp(-sigma x)) = 0.5  ->  x = -log1p(-(0.5 - wb) / T) / sigma.
     ratio = safe_div(0.5 - wb_i, trans_i).clamp(0, 1)
     x = -torch.log1p(-ratio) / torch.where(s_i > 0, s_i, torch.ones_like(s_i))
     x = torch.where(s_i > 0, x, torch.zeros_like(x))
     x = torch.minimum(x.clamp(min=0), t1_i - t0_i)
-    depth = torch.where(crossed, t0_i + x, torch.full_like(x, fill))
-    return depth.to(sigmas.dtype)
+    return crossed, t0_i + x
 
 
 def composite(

@@ -37,6 +37,8 @@ __all__ = [
     "march_contracted",
     "march_contracted_reference",
     "normalized_distance",
+    "t_of_s",
+    "warped_range",
 ]
 
 CONTRACTED_BOX = ((-2.0, -2.0, -2.0), (2.0, 2.0, 2.0))
@@ -101,7 +103,19 @@ def _switch_distance(c: Contraction, rays_o: Tensor, rays_d: Tensor, near: Tenso
     return torch.maximum(t_s, near + 1e-3 * c.half.min().item())
 
 
-def _t_of_s(s: Tensor, t_s: Tensor) -> Tensor:
+def warped_range(
+    c: Contraction, rays_o: Tensor, rays_d: Tensor, *, near: float | Tensor, step_size: float,
+    jitter: Tensor | None = None,
+) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
+    """Each ray's warped marching range: (switch distance t_s [R], first step's s [R], s_end [R]); steps are
+    s = s0 + k step_size while s < s_end, the last one ending at s_end (module doc)."""
+    near_t = torch.as_tensor(near, dtype=rays_o.dtype, device=rays_o.device).expand(rays_o.shape[0])
+    t_s = _switch_distance(c, rays_o, rays_d, near_t)  # [R]
+    s0 = near_t + (jitter.to(rays_o) * step_size if jitter is not None else 0.0)
+    return t_s, s0, (1 + OUTER_SHARE) * t_s - step_size
+
+
+def t_of_s(s: Tensor, t_s: Tensor) -> Tensor:
     """Inverse warp: s <= t_s -> t = s; beyond, t = t_s^2 / (t_s - (s - t_s) / K)."""
     rest = (t_s - (s - t_s) / OUTER_SHARE).clamp(min=torch.finfo(s.dtype).tiny)
     return torch.where(s <= t_s, s, t_s * t_s / rest)
@@ -153,10 +167,7 @@ def march_contracted(
     if not step_size > 0:
         raise ValueError(f"expected step_size > 0, got {step_size}")
     r = rays_o.shape[0]
-    near_t = torch.as_tensor(near, dtype=rays_o.dtype, device=rays_o.device).expand(r)
-    t_s = _switch_distance(contraction, rays_o, rays_d, near_t)  # [R]
-    s_end = (1 + OUTER_SHARE) * t_s - step_size  # [R]
-    s0 = near_t + (jitter.to(rays_o) * step_size if jitter is not None else 0.0)
+    t_s, s0, s_end = warped_range(contraction, rays_o, rays_d, near=near, step_size=step_size, jitter=jitter)
     span = float((s_end - s0).max()) if r else 0.0
     n_steps = max(0, math.ceil(span / step_size))
     k = torch.arange(n_steps, dtype=rays_o.dtype, device=rays_o.device)  # [M]
@@ -165,7 +176,7 @@ def march_contracted(
     valid = s_a < s_end[:, None]
     ray_idx, col = torch.nonzero(valid, as_tuple=True)
     ts = t_s[ray_idx]
-    t0, t1 = _t_of_s(s_a[ray_idx, col], ts), _t_of_s(s_b[ray_idx, col], ts)
+    t0, t1 = t_of_s(s_a[ray_idx, col], ts), t_of_s(s_b[ray_idx, col], ts)
     mid = rays_o[ray_idx] + rays_d[ray_idx] * (0.5 * (t0 + t1))[:, None]
     keep = grid.query(contraction.contract(mid))
     return ray_idx[keep], t0[keep], t1[keep]

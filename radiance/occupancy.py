@@ -23,7 +23,7 @@ from torch import Tensor
 
 from radiance.aabb import as_aabb, ray_aabb_intersect
 
-__all__ = ["OccupancyGrid", "march_rays", "march_rays_reference", "query_reference"]
+__all__ = ["OccupancyGrid", "march_bounds", "march_rays", "march_rays_reference", "query_reference"]
 
 
 class OccupancyGrid(torch.nn.Module):
@@ -156,7 +156,8 @@ def query_reference(grid: OccupancyGrid, x: Tensor) -> Tensor:
     return torch.tensor(out, dtype=torch.bool)
 
 
-def _march_bounds(grid: OccupancyGrid, rays_o: Tensor, rays_d: Tensor, near, far) -> tuple[Tensor, Tensor]:
+def march_bounds(grid: OccupancyGrid, rays_o: Tensor, rays_d: Tensor, near, far) -> tuple[Tensor, Tensor]:
+    """Each ray's marching range [t0, t1) [R], [R]: [near, far] within the grid's box (t1 = t0 when it misses)."""
     t_near, t_far, hit = ray_aabb_intersect(rays_o, rays_d, grid.aabb.to(rays_o))
     near_t = torch.as_tensor(near, dtype=rays_o.dtype, device=rays_o.device).expand_as(t_near)
     far_t = torch.as_tensor(far, dtype=rays_o.dtype, device=rays_o.device).expand_as(t_near)
@@ -181,7 +182,7 @@ def march_rays(
     """
     if not step_size > 0:
         raise ValueError(f"expected step_size > 0, got {step_size}")
-    t0, t1 = _march_bounds(grid, rays_o, rays_d, near, far)  # [R]
+    t0, t1 = march_bounds(grid, rays_o, rays_d, near, far)  # [R]
     span = float((t1 - t0).max()) if t0.numel() else 0.0
     n_steps = max(0, math.ceil(span / step_size) + 1)
     k = torch.arange(n_steps, dtype=rays_o.dtype, device=rays_o.device)  # [M]
@@ -199,7 +200,7 @@ def march_rays_reference(
     grid: OccupancyGrid, rays_o: Tensor, rays_d: Tensor, *, near=0.0, far=float("inf"), step_size: float
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Plain per-ray while-loop twin of `march_rays` (for tests)."""
-    t0, t1 = _march_bounds(grid, rays_o, rays_d, near, far)
+    t0, t1 = march_bounds(grid, rays_o, rays_d, near, far)
     ids, starts, ends = [], [], []
     for r in range(rays_o.shape[0]):
         k = 0

@@ -11,9 +11,10 @@ Conventions:
 - `render_marched` (occupancy-grid marching, two passes) splits the callbacks instead:
   `sigma_fn(x [N, 3]) -> sigma [N]` on every sample (position only, like OccupancyGrid.update's density_fn),
   then `rgb_fn(x [K, 3], d [K, 3]) -> rgb [K, 3]` only on the K samples whose weight counts.
-- `render_marched_terminating` is `render_marched` for inference (no grad, no jitter): the density is asked for in
-  depth slabs of `segment` samples per ray, only on rays whose transmittance is still above `min_transmittance`
-  (early ray termination); its plain twin is `render_marched` (equal with min_transmittance = 0).
+- `render_marched_terminating` / `render_contracted_terminating` are `render_marched` / `render_contracted` for
+  inference (no grad, no jitter): the same steps taken front to back in slabs of `segment` steps, only on rays
+  whose transmittance is still >= `min_transmittance` (early ray termination), per-ray outputs only; their plain
+  twins are `render_marched` / `render_contracted` (equal with min_transmittance = 0).
 - Outputs are dicts; per-ray entries (PER_RAY_KEYS) are [R] or [R, 3], per-sample ones are shaped like t_starts.
 """
 
@@ -32,12 +33,13 @@ from radiance.compositing import (
     beer_lambert,
     composite,
     interval_midpoints,
+    median_crossing,
     median_depth,
     optical_depth,
     render_weights,
 )
-from radiance.contraction import Contraction, contraction_chord_scale, march_contracted
-from radiance.occupancy import OccupancyGrid, march_rays
+from radiance.contraction import Contraction, contraction_chord_scale, march_contracted, t_of_s, warped_range
+from radiance.occupancy import OccupancyGrid, march_bounds, march_rays
 from radiance.safe import safe_div
 from radiance.samplers import resample_intervals, stratified_intervals
 
@@ -52,6 +54,7 @@ __all__ = [
     "render_marched",
     "render_marched_terminating",
     "render_contracted",
+    "render_contracted_terminating",
     "render_depth",
     "render_attenuation",
     "chunked",
@@ -263,6 +266,116 @@ def render_marched(
     return _shade_packed(rays_o, rays_d, ray_idx, t0, t1, x, sigma, rgb_fn=rgb_fn, background=background, **shade)
 
 
+@dataclass(frozen=True)
+class _Steps:
+    """Uniform steps of a march, per ray: u = u0 + k step while u < u_end (the last step ends at u_end); u is t
+    (box) or the warped distance s (contracted). `warp(u [A, S], rows [A]) -> t`, `point(x [M, 3]) -> field
+    and occupancy position`, `scale(rows [M], t0 [M], t1 [M]) -> field density to world density` (or None)."""
+
+    u0: Tensor  # [R]
+    u_end: Tensor  # [R]
+    step: float
+    warp: Callable[[Tensor, Tensor], Tensor]
+    point: Callable[[Tensor], Tensor]
+    scale: Callable[[Tensor, Tensor, Tensor], Tensor] | None = None
+
+
+def _box_steps(rays_o, rays_d, grid, near, far, step_size) -> _Steps:
+    """The steps `_march_occupied` takes (no jitter): through the occupied cells' box, within [near, far]."""
+    near_t, far_t = _per_ray(near, rays_o, "near"), _per_ray(far, rays_o, "far")
+    box = grid.occupied_aabb()
+    if box is None:
+        t_near = t_far = torch.zeros(rays_o.shape[0], dtype=rays_o.dtype, device=rays_o.device)
+    else:
+        t_near, t_far = ray_aabb_segment(rays_o, rays_d, box, near_t, far_t)
+    t0, t1 = march_bounds(grid, rays_o, rays_d, t_near, torch.maximum(t_far, t_near))
+    return _Steps(t0, t1, step_size, lambda u, rows: u, lambda x: x)
+
+
+def _contracted_steps(rays_o, rays_d, contraction, near, step_size) -> _Steps:
+    """The steps `march_contracted` takes (no jitter), in warped distance s; the field sees contracted points."""
+    t_s, s0, s_end = warped_range(contraction, rays_o, rays_d, near=near, step_size=step_size)
+
+    def scale(rows, t0, t1):
+        return contraction_chord_scale(contraction, rays_o[rows], rays_d[rows], t0, t1)
+
+    return _Steps(s0, s_end, step_size, lambda u, rows: t_of_s(u, t_s[rows][:, None]), contraction.contract, scale)
+
+
+def _march_terminating(
+    rays_o, rays_d, steps: _Steps, grid, sigma_fn, rgb_fn, *, background, color_threshold, color_per_ray,
+    min_transmittance, segment, with_median,
+) -> dict:  # fmt: skip
+    """Front-to-back marching in slabs of `segment` steps over the rays still alive (transmittance before the
+    slab >= min_transmittance, steps left): occupancy, density on occupied steps, then the slab's weights from
+    the optical depth carried over; acc, depth and the median accumulate per ray, colour candidates are kept.
+    Colour is evaluated once at the end, chosen by `_shade_packed`'s rule (weight above color_threshold, at most
+    color_per_ray x R of the largest), so with min_transmittance = 0 the result is the plain twin's."""
+    n, like = rays_o.shape[0], dict(dtype=rays_o.dtype, device=rays_o.device)
+    tau, acc, depth = (torch.zeros(n, **like) for _ in range(3))  # [R] optical depth, sum w, sum w t
+    median = torch.full((n,), math.inf, **like) if with_median else None
+    log_t_min = -math.log(min_transmittance) if min_transmittance > 0 else math.inf
+    alive = torch.nonzero(steps.u0 < steps.u_end)[:, 0]  # [A]
+    picks: list[tuple[Tensor, Tensor, Tensor]] = []  # colour candidates: rows, field points, weights
+    n_samples, k0 = 0, 0
+    while alive.numel():
+        k = torch.arange(k0, k0 + segment, **like)  # [S]
+        u_end = steps.u_end[alive, None]  # [A, 1]
+        u_a = steps.u0[alive, None] + k * steps.step  # [A, S]
+        u_b = torch.minimum(u_a + steps.step, u_end)
+        t0, t1 = steps.warp(u_a, alive), steps.warp(u_b, alive)  # [A, S]
+        valid = u_a < u_end  # [A, S]
+        t_mid = torch.where(valid, 0.5 * (t0 + t1), 0.0)  # steps past the end: no inf t (0 x inf in the depth)
+        x = steps.point((rays_o[alive, None] + rays_d[alive, None] * t_mid[..., None]).reshape(-1, 3))  # [A S, 3]
+        occ = torch.nonzero(valid.reshape(-1) & grid.query(x))[:, 0]  # [M] flat indices
+        sigma = x.new_zeros(t0.shape)  # [A, S]
+        if occ.numel():
+            n_samples += occ.numel()
+            s = sigma_fn(x[occ]).to(sigma.dtype)
+            if steps.scale is not None:
+                s = s * steps.scale(alive[occ // segment], t0.reshape(-1)[occ], t1.reshape(-1)[occ])
+            sigma.view(-1)[occ] = s
+            tau_s = optical_depth(sigma, t0, t1)  # [A, S]
+            cum = torch.cumsum(tau_s, dim=1)
+            trans = torch.exp(-(tau[alive, None] + cum - tau_s))  # [A, S] before each step
+            w = trans * -torch.expm1(-tau_s)  # [A, S]
+            if median is not None:
+                undone = torch.isinf(median[alive])
+                wb = acc[alive, None] + torch.cumsum(w, dim=1) - w
+                crossed, t_med = median_crossing(sigma[undone], t0[undone], t1[undone], trans[undone], w[undone],
+                                                 wb[undone])  # fmt: skip
+                rows = alive[undone]
+                median[rows[crossed]] = t_med[crossed]
+            acc.index_add_(0, alive, w.sum(dim=1))
+            depth.index_add_(0, alive, (w * t_mid).sum(dim=1))
+            tau.index_add_(0, alive, cum[:, -1])
+            if rgb_fn is not None:
+                pick = torch.nonzero(w.reshape(-1) > color_threshold)[:, 0]
+                picks.append((alive[pick // segment], x[pick], w.reshape(-1)[pick]))
+        k0 += segment
+        nxt = steps.u0[alive] + float(k0) * steps.step < steps.u_end[alive]
+        alive = alive[nxt & (tau[alive] <= log_t_min)]  # T = exp(-tau) >= min_transmittance
+    out = {"acc": acc, "depth": safe_div(depth, acc), "samples": n_samples}
+    if median is not None:
+        out["depth_median"] = median
+    if rgb_fn is not None:
+        if not picks:
+            picks.append((torch.zeros(0, dtype=torch.long, device=acc.device), acc.new_zeros(0, 3), acc.new_zeros(0)))
+        rows, x, w = (torch.cat([p[i] for p in picks]) for i in range(3))
+        budget = int(color_per_ray * n)
+        if w.numel() > budget:  # the twin's budget: only the color_per_ray x R largest weights
+            keep = w >= torch.topk(w, budget, sorted=False).values.min()
+            rows, x, w = rows[keep], x[keep], w[keep]
+        rgb = accumulate(w, rgb_fn(x, rays_d[rows]), rows, n) if rows.numel() else acc.new_zeros(n, 3)
+        out["rgb"] = rgb if background is None else rgb + (1 - acc)[:, None] * background.to(rgb)
+    return out
+
+
+def _check_terminating(min_transmittance: float, segment: int) -> None:
+    if not 0 <= min_transmittance < 1 or segment < 1:
+        raise ValueError(f"expected min_transmittance in [0, 1) and segment >= 1, got {min_transmittance}, {segment}")
+
+
 @torch.no_grad()
 def render_marched_terminating(
     rays_o: Tensor,  # [R, 3]
@@ -278,38 +391,50 @@ def render_marched_terminating(
     color_threshold: float = 1e-4,
     color_per_ray: float = 16.0,
     min_transmittance: float = 1e-3,
-    segment: int = 16,
+    segment: int = 32,
     with_median: bool = False,
 ) -> dict:
-    """`render_marched` for inference, with early ray termination: the same samples (occupancy marching at
-    `step_size`), but the density is evaluated in slabs of `segment` samples per ray, front to back, and only on
-    rays whose transmittance before the slab is >= `min_transmittance`; samples after that get sigma = 0. The
-    light lost is at most `min_transmittance` per ray (acc, rgb off by <= that). Outputs as `render_marched`."""
+    """`render_marched` for inference, with early ray termination: the same steps (occupancy marching at
+    `step_size`, no jitter), taken front to back in slabs of `segment` steps over the rays whose transmittance
+    before the slab is >= `min_transmittance`; the rest of a ray is never sampled. The light lost is at most
+    `min_transmittance` per ray (acc, rgb off by <= that; the median is unaffected below 0.5). Returns the per-ray
+    outputs of `render_marched` (acc, depth, rgb when rgb_fn, depth_median with_median) and `samples`, the number
+    of occupied samples whose density was evaluated; no per-sample outputs."""
     _check_rays(rays_o, rays_d)
-    if not 0 <= min_transmittance < 1 or segment < 1:
-        raise ValueError(f"expected min_transmittance in [0, 1) and segment >= 1, got {min_transmittance}, {segment}")
-    n = rays_o.shape[0]
-    ray_idx, t0, t1, x = _march_occupied(rays_o, rays_d, grid, near, far, step_size, False, None)
-    sigma = x.new_zeros(ray_idx.shape)  # [N]
-    if ray_idx.numel():
-        counts = torch.bincount(ray_idx, minlength=n)  # [R]
-        pos = torch.arange(ray_idx.numel(), device=ray_idx.device) - (torch.cumsum(counts, 0) - counts)[ray_idx]
-        slab = pos // segment  # [N] which slab of its ray a sample is in
-        order = torch.argsort(slab, stable=True)  # samples grouped by slab: each pass touches only its own
-        ends = torch.cumsum(torch.bincount(slab), 0).tolist()
-        tau_before = x.new_zeros(n)  # [R] optical depth of the slabs done so far
-        log_t_min = -math.log(min_transmittance) if min_transmittance > 0 else math.inf
-        start = 0
-        for end in ends:
-            idx = order[start:end]
-            start = end
-            idx = idx[tau_before[ray_idx[idx]] <= log_t_min]  # T = exp(-tau) >= min_transmittance
-            if idx.numel() == 0:  # every ray that reaches this slab has stopped: so have all later ones
-                break
-            sigma[idx] = sigma_fn(x[idx]).to(sigma.dtype)
-            tau_before.index_add_(0, ray_idx[idx], optical_depth(sigma[idx], t0[idx], t1[idx]).to(sigma.dtype))
-    shade = dict(color_threshold=color_threshold, color_per_ray=color_per_ray, with_median=with_median)
-    return _shade_packed(rays_o, rays_d, ray_idx, t0, t1, x, sigma, rgb_fn=rgb_fn, background=background, **shade)
+    _check_terminating(min_transmittance, segment)
+    steps = _box_steps(rays_o, rays_d, grid, near, far, step_size)
+    shade = dict(background=background, color_threshold=color_threshold, color_per_ray=color_per_ray,
+                 min_transmittance=min_transmittance, segment=segment, with_median=with_median)  # fmt: skip
+    return _march_terminating(rays_o, rays_d, steps, grid, sigma_fn, rgb_fn, **shade)
+
+
+@torch.no_grad()
+def render_contracted_terminating(
+    rays_o: Tensor,  # [R, 3]
+    rays_d: Tensor,  # [R, 3] unit
+    *,
+    grid: OccupancyGrid,  # over radiance.contraction.CONTRACTED_BOX
+    contraction: Contraction,
+    sigma_fn: PositionSigmaFn,  # contracted x' [N, 3] -> sigma' [N] per contracted length
+    rgb_fn: RgbFn | None,  # (contracted x' [K, 3], world d [K, 3]) -> rgb [K, 3]
+    near: float | Tensor,
+    step_size: float,
+    background: Tensor | None = None,  # [3] or [R, 3]
+    color_threshold: float = 1e-4,
+    color_per_ray: float = 16.0,
+    min_transmittance: float = 1e-3,
+    segment: int = 32,
+    with_median: bool = False,
+) -> dict:
+    """`render_contracted` for inference with early ray termination, as `render_marched_terminating` is for
+    `render_marched`: the same warped steps (no jitter), slab by slab while the transmittance is >=
+    `min_transmittance`. Outputs as `render_marched_terminating`."""
+    _check_rays(rays_o, rays_d)
+    _check_terminating(min_transmittance, segment)
+    steps = _contracted_steps(rays_o, rays_d, contraction, near, step_size)
+    shade = dict(background=background, color_threshold=color_threshold, color_per_ray=color_per_ray,
+                 min_transmittance=min_transmittance, segment=segment, with_median=with_median)  # fmt: skip
+    return _march_terminating(rays_o, rays_d, steps, grid, sigma_fn, rgb_fn, **shade)
 
 
 def render_contracted(

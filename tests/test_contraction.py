@@ -8,7 +8,7 @@ import torch
 
 from radiance.contraction import CONTRACTED_BOX, Contraction, march_contracted, march_contracted_reference
 from radiance.occupancy import OccupancyGrid
-from radiance.render import render_contracted, render_marched
+from radiance.render import render_contracted, render_contracted_terminating, render_marched
 
 BOX = [[-1.0, -0.5, -2.0], [1.0, 1.5, 0.0]]
 
@@ -97,3 +97,38 @@ def test_far_background_is_rendered_at_world_distance():
     assert float(out["acc"].min()) > 0.99
     hit_r = (o + d * out["depth"][:, None]).norm(dim=-1)  # where the rays stop, as a radius
     assert float(hit_r.min()) > 19 and float(hit_r.max()) < 40  # the front part of the shell
+
+
+def test_contracted_terminating_matches_its_plain_twin():
+    """render_contracted_terminating against render_contracted: equal without termination, within
+    min_transmittance with it, with fewer densities evaluated, on an opaque ball in front of a far shell."""
+    c = Contraction([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    counted = []
+
+    def sigma_contracted(y):
+        counted.append(y.shape[0])
+        x = c.uncontract(y)
+        r = x.norm(dim=-1)
+        return ((r < 0.5) * 40.0 + ((r > 20) & (r < 60)) * 500.0).to(y.dtype)
+
+    def rgb(y, d):
+        return torch.sigmoid(3 * y + d)
+
+    grid = OccupancyGrid(CONTRACTED_BOX, 32)
+    grid.update(sigma_contracted, 0, every=1)
+    o, d = _rays(64, torch.float64)
+    bg = torch.tensor([0.3, 0.2, 0.1], dtype=torch.float64)
+    kw = dict(grid=grid, contraction=c, sigma_fn=sigma_contracted, rgb_fn=rgb, near=0.05, step_size=0.01,
+              background=bg, with_median=True)  # fmt: skip
+    plain = render_contracted(o, d, **kw)
+    n_plain = counted.pop()
+    exact = render_contracted_terminating(o, d, min_transmittance=0.0, segment=9, **kw)
+    assert exact["samples"] == n_plain
+    for key in ("rgb", "acc", "depth", "depth_median"):
+        torch.testing.assert_close(exact[key], plain[key], atol=1e-9, rtol=0, equal_nan=True)
+    counted.clear()
+    fast = render_contracted_terminating(o, d, min_transmittance=1e-3, **kw)
+    assert (plain["acc"] > 0.999).sum() > 16 and sum(counted) < 0.7 * n_plain
+    assert float((fast["acc"] - plain["acc"]).abs().max()) <= 1e-3
+    assert float((fast["rgb"] - plain["rgb"]).abs().max()) <= 2e-3
+    torch.testing.assert_close(fast["depth_median"], plain["depth_median"], atol=1e-9, rtol=0)

@@ -14,6 +14,7 @@ from radiance.render import (
     render_attenuation,
     render_depth,
     render_marched,
+    render_marched_terminating,
     render_rays,
     render_rays_hierarchical,
 )
@@ -219,3 +220,33 @@ def test_marched_density_only_budget_jitter_and_empty_grid():
     empty = render_marched(o, d, rgb_fn=blob_rgb, background=torch.ones(3), **{**kw, "jitter": False})
     assert empty["ray_indices"].numel() == 0 and (empty["acc"] == 0).all()
     torch.testing.assert_close(empty["rgb"], torch.ones(32, 3, dtype=torch.float64))
+
+
+def test_terminating_march_matches_its_plain_twin():
+    """Early ray termination against render_marched on the same steps: equal without termination (any slab
+    size), within min_transmittance with it, and fewer densities evaluated; the median is unaffected."""
+    o, d = blob_rays(48, seed=9)
+    grid = blob_grid()
+    bg = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
+    counted = []
+
+    def sigma(x):
+        counted.append(x.shape[0])
+        return blob_sigma(x) * 20  # opaque enough that rays stop inside the blob
+
+    kw = dict(grid=grid, rgb_fn=blob_rgb, near=0.5, far=5.0, step_size=0.004, background=bg, with_median=True)
+    plain = render_marched(o, d, sigma_fn=sigma, **kw)
+    n_plain = counted.pop()
+    for segment in (1, 7, 32):
+        exact = render_marched_terminating(o, d, sigma_fn=sigma, min_transmittance=0.0, segment=segment, **kw)
+        assert exact["samples"] == n_plain == sum(counted)
+        counted.clear()
+        for key in ("rgb", "acc", "depth", "depth_median"):
+            torch.testing.assert_close(exact[key], plain[key], atol=1e-9, rtol=0, equal_nan=True)
+    fast = render_marched_terminating(o, d, sigma_fn=sigma, min_transmittance=1e-3, **kw)
+    assert (plain["acc"] > 0.999).any() and fast["samples"] < 0.8 * n_plain
+    assert float((fast["acc"] - plain["acc"]).abs().max()) <= 1e-3
+    assert float((fast["rgb"] - plain["rgb"]).abs().max()) <= 2e-3
+    torch.testing.assert_close(fast["depth_median"], plain["depth_median"], atol=1e-9, rtol=0)
+    with pytest.raises(ValueError, match="min_transmittance"):
+        render_marched_terminating(o, d, sigma_fn=sigma, min_transmittance=1.0, **kw)
