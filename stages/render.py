@@ -57,6 +57,9 @@ MIN_SHORT_SIDE = 240
 """A time budget shrinks frames down to this many pixels on their short side (never up) before dropping frames."""
 MIN_FRAMES = 24
 """A time budget keeps at least this many frames of a synthetic path (fewer only when fewer were asked for)."""
+MIN_FPS = 8.0
+"""When a time budget drops frames, the frame rate drops with them (the video keeps the length asked for, as a
+slower sequence: 25 of 120 frames at 30 fps would last under a second) but not below this."""
 PREVIEW_RAYS = 16384
 """Pixels per preview view for the rays/s measurement (two chunks of the fast field)."""
 PREVIEW_VIEWS = 3
@@ -269,7 +272,14 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     size = (0, 0)
     progress = progress or NO_PROGRESS
     task = progress.add_task(f"render {config.path}", total=len(cams.names))
-    with video_writer(out, fps=config.fps) as video:
+    fps = config.fps
+    asked_frames = budget.get("asked", {}).get("frames")
+    if asked_frames and len(cams.names) < asked_frames:
+        fps = max(min(config.fps, MIN_FPS), config.fps * len(cams.names) / asked_frames)
+        budget["fps"] = {"asked": config.fps, "chosen": round(fps, 3),
+                         "reason": f"{len(cams.names)} of {asked_frames} frames: slower, to keep the length asked for "
+                                   f"(at least {min(config.fps, MIN_FPS):g} fps)"}  # fmt: skip
+    with video_writer(out, fps=fps) as video:
         for k in range(len(cams.names)):
             t0 = time.perf_counter()
             view = render_view(trained, cams.intrinsics[k], cams.world_from_cams[k], device)
@@ -301,7 +311,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         inputs=[Path(config.run_dir) / "checkpoint.pt", Path(config.run_dir) / "config.json"],
         outputs=[out, metrics.path, *frame_paths],
         used={**cams.used, "budget": budget, "outputs": list(outputs), "device": str(device), "frames": len(cams.names),
-              "fps": config.fps, "size_hw": list(size), "codec": "h264 yuv420p crf 18 (odd sizes padded by edge)",
+              "fps": fps, "size_hw": list(size), "codec": "h264 yuv420p crf 18 (odd sizes padded by edge)",
               **({"depth_range_user_units": [lo, hi], "depth_colormap": "turbo", "depth_background":
                   f"black where accumulation < {OPAQUE}"} if "depth" in outputs else {})},
         config=config_to_json(config),

@@ -220,6 +220,10 @@ def test_time_budget_bounds_the_video_and_is_recorded(sphere_run, tmp_path):
     budget = json.loads((tmp_path / "b.manifest.json").read_text())["used"]["budget"]
     assert budget["asked"]["frames"] == 80 and budget["chosen"]["frames"] == render_stage.MIN_FRAMES
     assert budget["chosen"]["size_hw"] == [25, 33]  # already under the short-side floor: not shrunk
+    # fewer frames play slower, so the video keeps the asked length: 24 of 80 at 30 fps -> 9 fps (>= MIN_FPS)
+    assert budget["fps"]["chosen"] == pytest.approx(max(render_stage.MIN_FPS, 30 * 24 / 80))
+    assert json.loads((tmp_path / "b.manifest.json").read_text())["used"]["fps"] == budget["fps"]["chosen"]
+    assert "fps" not in json.loads((tmp_path / "a.manifest.json").read_text())["used"]["budget"]
     small = render_stage.run(render_stage.Config(run_dir=run_dir, out=tmp_path / "c.mp4", frames=5, max_seconds=1e-3))
     assert small.n_frames == 5  # fewer pixels than the speed preview: rendered as asked
     assert "as asked" in json.loads((tmp_path / "c.manifest.json").read_text())["used"]["budget"]["reason"]
