@@ -149,8 +149,12 @@ def load(source: Path, *, images: Path | None = None) -> Source:
                 intrinsics=cams[im.camera_id],
                 image=image_dir / im.name,
                 mask=mask_dir / f"{im.name}.png" if mask_dir is not None else None,
-                point_ids=np.unique(np.array([row[p.point3D_id] for p in im.points2D if p.has_point3D()
-                                              and p.point3D_id in row], dtype=np.int64)),
+                point_ids=np.unique(
+                    np.array(
+                        [row[p.point3D_id] for p in im.points2D if p.has_point3D() and p.point3D_id in row],
+                        dtype=np.int64,
+                    )
+                ),
             )  # fmt: skip
         )
     points = np.array([rec.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)

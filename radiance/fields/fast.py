@@ -224,7 +224,8 @@ class TensoRF(Field):
         """TensoRF's total-variation prior on the planes (its `TVLoss`): for each factor group, 2 x (mean squared
         difference of neighbouring texels along H + along W) per plane, summed over the three planes; density plus
         appearance (when present). Smooths the factors, which removes the streaks and floaters a VM field paints
-        into sparsely seen space (TensoRF applies it to real captures). Every texel: the plain twin of `add_tv_grad_`."""
+        into sparsely seen space (TensoRF applies it to real captures). Every texel: the plain twin of
+        `add_tv_grad_`."""
         total = _plane_tv(self.density_planes)
         if self.has_color:
             total = total + _plane_tv(self.app_planes)

@@ -36,9 +36,9 @@ import torch
 from data.errors import Interrupted, UserError
 from data.progress import NO_PROGRESS, Progress
 from data.rundir import MetricsLog, output_folder, write_config, write_manifest
-from data.stop import stop_on_signals
 from data.sparse_depth import KEY as SPARSE_KEY
 from data.sparse_depth import read_sparse_depth
+from data.stop import stop_on_signals
 from data.transforms import Scene, read_scene
 from model.appearance import EVAL_RULE as APPEARANCE_EVAL_RULE
 from model.appearance import Appearance
@@ -321,8 +321,13 @@ def _setup(config: Config, progress: Progress) -> tuple[Loop, Scene, Path, dict]
     if config.tv is not None and not config.tv >= 0:
         raise UserError(f"--tv: expected >= 0, got {config.tv}")
     tv = config.tv if config.tv is not None else (TV_REAL if model_kind in ("contract", "ndc") else 0.0)
-    tv_reason = ("given" if config.tv is not None else
-                 f"{TV_REAL} for {model_kind} scenes (real captures)" if tv else "0 for box scenes (objects)")
+    tv_reason = (
+        "given"
+        if config.tv is not None
+        else f"{TV_REAL} for {model_kind} scenes (real captures)"
+        if tv
+        else "0 for box scenes (objects)"
+    )
     if config.distortion > 0 and model_kind != "contract":
         raise UserError(f"--distortion applies to contracted scenes only (this one is {model_kind}: {model_reason})")
     depth_rays, depth_weight, depth_reason = _depth_rays(config, scene, train_idx, model_kind)
@@ -375,7 +380,8 @@ def _setup(config: Config, progress: Progress) -> tuple[Loop, Scene, Path, dict]
     record = {**found.reasons, "scene_model": f"{model_kind}: {model_reason}", "tv": tv_reason,
               "depth_loss": depth_reason,
               "resolved": {"resolution": list(resolution), "step_ratio": step_ratio,
-                           "batch_rays": found.batch_rays, "background": model.background.describe(), "tv": tv}}  # fmt: skip
+                           "batch_rays": found.batch_rays, "background": model.background.describe(),
+                           "tv": tv}}  # fmt: skip
     return loop, scene, scene_path, record
 
 
@@ -388,8 +394,11 @@ def _depth_rays(config: Config, scene: Scene, train_idx: tuple[int, ...],
     if config.depth_loss == 0:
         return None, 0.0, "off (given)"
     if rel is None or model_kind != "contract" or config.field != "fast":
-        why = (f"no {SPARSE_KEY} in transforms.json (sparse points come from COLMAP through convert)" if rel is None
-               else f"applies to fast contracted scenes only (this one: {config.field}, {model_kind})")
+        why = (
+            f"no {SPARSE_KEY} in transforms.json (sparse points come from COLMAP through convert)"
+            if rel is None
+            else f"applies to fast contracted scenes only (this one: {config.field}, {model_kind})"
+        )
         if config.depth_loss is not None:
             raise UserError(f"--depth-loss: {why}")
         return None, 0.0, f"left out: {why}"

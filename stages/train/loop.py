@@ -34,7 +34,12 @@ from model.camera_opt import CameraOpt
 from model.checkpoint import save_checkpoint
 from model.field_model import FieldModel
 from radiance.compositing import over_background
+from radiance.fields import Field
+from radiance.metrics import psnr_from_mse
 from radiance.regularizers import depth_nll_loss
+from stages.train.views import Views
+
+__all__ = ["TrainingDiverged", "Loop", "make_optimizer", "upsample_schedule", "evaluate_psnr", "DepthRays"]
 
 DEPTH_RAYS = 256
 """Sparse-point rays rendered per step for the depth loss (a quarter of the CPU photometric batch)."""
@@ -54,11 +59,6 @@ class DepthRays:
 
 TV_TEXELS = 4096
 """Random texels per plane in each step's total-variation estimate (`TensoRF.tv`)."""
-from radiance.fields import Field
-from radiance.metrics import psnr_from_mse
-from stages.train.views import Views
-
-__all__ = ["TrainingDiverged", "Loop", "make_optimizer", "upsample_schedule", "evaluate_psnr", "DepthRays"]
 
 
 class TrainingDiverged(RuntimeError):
