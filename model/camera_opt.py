@@ -284,7 +284,7 @@ def optimise_test_pose(model: Any, background: Tensor, world_from_cam: np.ndarra
         for k in range(steps):
             idx = torch.randint(o_all.shape[0], (min(batch, o_all.shape[0]),), generator=gen).to(device)
             o, d = cam(o_all[idx], d_all[idx], torch.zeros_like(idx))
-            pred = model.render(o, d, background, train=False)["rgb"]
+            pred = model.render(o, d, background, train=False, infer=None)["rgb"]  # differentiable in the pose
             loss = torch.mean((pred - target[idx]) ** 2)
             opt.zero_grad(set_to_none=True)
             loss.backward()

@@ -224,12 +224,13 @@ class FieldModel:
 
     def render(
         self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, gen=None, median=False, view=None,
-        infer: Inference = Inference(),
+        infer: Inference | None = Inference(),
     ):  # fmt: skip
         """World rays o, d [R, 3] (unit d) -> dict(rgb, depth, depth_median, acc, ...); depths are distances
         along the world rays whatever space the field lives in. With per-image appearance, `view` [R] gives
         each ray's training view (None: the evaluation rule, `model.appearance`). Not training, a fast field
-        stops each ray early (`infer`; the outputs are then per ray only, plus `samples`)."""
+        stops each ray early (`infer`; the outputs are then per ray only, plus `samples`, and carry no gradient);
+        infer=None renders with the plain, differentiable marcher at the inference step (test-time optimisation)."""
         out = self._render_world(o, d, background, train=train, gen=gen, median=median, infer=infer)
         if self.appearance is not None:
             for key in ("rgb", "rgb_coarse"):

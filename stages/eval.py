@@ -283,7 +283,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
 def _render_scored(trained, intr, pose, device, photo: np.ndarray, half: bool, background: np.ndarray) -> dict:
     """render_view; with the half rule and appearance codes, the view rendered without appearance, its code
     fitted on the left half of `photo` [H, W, 3] (`model.appearance.fit_code`) and its transform applied."""
-    app = getattr(trained.model, "appearance", None)
+    app = getattr(getattr(trained, "model", None), "appearance", None)
     if not half or app is None:
         return render_view(trained, intr, pose, device)
     trained.model.appearance = None
