@@ -311,6 +311,8 @@ def _march_terminating(
     the optical depth carried over; acc, depth and the median accumulate per ray, colour candidates are kept.
     Colour is evaluated once at the end, chosen by `_shade_packed`'s rule (weight above color_threshold, at most
     color_per_ray x R of the largest), so with min_transmittance = 0 the result is the plain twin's."""
+    if not 0 <= min_transmittance < 1 or segment < 1:
+        raise ValueError(f"expected min_transmittance in [0, 1) and segment >= 1, got {min_transmittance}, {segment}")
     n, like = rays_o.shape[0], dict(dtype=rays_o.dtype, device=rays_o.device)
     tau, acc, depth = (torch.zeros(n, **like) for _ in range(3))  # [R] optical depth, sum w, sum w t
     median = torch.full((n,), math.inf, **like) if with_median else None
@@ -371,11 +373,6 @@ def _march_terminating(
     return out
 
 
-def _check_terminating(min_transmittance: float, segment: int) -> None:
-    if not 0 <= min_transmittance < 1 or segment < 1:
-        raise ValueError(f"expected min_transmittance in [0, 1) and segment >= 1, got {min_transmittance}, {segment}")
-
-
 @torch.no_grad()
 def render_marched_terminating(
     rays_o: Tensor,  # [R, 3]
@@ -401,11 +398,11 @@ def render_marched_terminating(
     outputs of `render_marched` (acc, depth, rgb when rgb_fn, depth_median with_median) and `samples`, the number
     of occupied samples whose density was evaluated; no per-sample outputs."""
     _check_rays(rays_o, rays_d)
-    _check_terminating(min_transmittance, segment)
     steps = _box_steps(rays_o, rays_d, grid, near, far, step_size)
-    shade = dict(background=background, color_threshold=color_threshold, color_per_ray=color_per_ray,
-                 min_transmittance=min_transmittance, segment=segment, with_median=with_median)  # fmt: skip
-    return _march_terminating(rays_o, rays_d, steps, grid, sigma_fn, rgb_fn, **shade)
+    return _march_terminating(rays_o, rays_d, steps, grid, sigma_fn, rgb_fn, background=background,
+                              color_threshold=color_threshold, color_per_ray=color_per_ray,
+                              min_transmittance=min_transmittance, segment=segment,
+                              with_median=with_median)  # fmt: skip
 
 
 @torch.no_grad()
@@ -430,11 +427,11 @@ def render_contracted_terminating(
     `render_marched`: the same warped steps (no jitter), slab by slab while the transmittance is >=
     `min_transmittance`. Outputs as `render_marched_terminating`."""
     _check_rays(rays_o, rays_d)
-    _check_terminating(min_transmittance, segment)
     steps = _contracted_steps(rays_o, rays_d, contraction, near, step_size)
-    shade = dict(background=background, color_threshold=color_threshold, color_per_ray=color_per_ray,
-                 min_transmittance=min_transmittance, segment=segment, with_median=with_median)  # fmt: skip
-    return _march_terminating(rays_o, rays_d, steps, grid, sigma_fn, rgb_fn, **shade)
+    return _march_terminating(rays_o, rays_d, steps, grid, sigma_fn, rgb_fn, background=background,
+                              color_threshold=color_threshold, color_per_ray=color_per_ray,
+                              min_transmittance=min_transmittance, segment=segment,
+                              with_median=with_median)  # fmt: skip
 
 
 def render_contracted(

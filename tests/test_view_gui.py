@@ -15,36 +15,21 @@ import stages.view as view
 from stages.view.scene_view import thumbnail
 from stages.view.xray_view import projection_image, slice_image
 
-try:  # the browser driver and the sphere stand-ins live with the viewer's and render's tests
-    from test_render_stage import SphereRun, sphere_scene
-    from test_view import (
-        BROWSER_SECONDS,
-        CHROMIUM,
-        NO_CHROMIUM,
-        Browser,
-        _shows_sphere,
-        _sphere_run,
-        button,
-        labelled,
-        option,
-        wait_until,
-    )
-    from test_xray_stages import phantom
-except ImportError:  # tests/ imported as a package
-    from tests.test_render_stage import SphereRun, sphere_scene
-    from tests.test_view import (
-        BROWSER_SECONDS,
-        CHROMIUM,
-        NO_CHROMIUM,
-        Browser,
-        _shows_sphere,
-        _sphere_run,
-        button,
-        labelled,
-        option,
-        wait_until,
-    )
-    from tests.test_xray_stages import phantom
+# the browser driver and the sphere stand-ins live with the viewer's and render's tests
+from tests.test_render_stage import SphereRun, sphere_scene
+from tests.test_view import (
+    BROWSER_SECONDS,
+    CHROMIUM,
+    NO_CHROMIUM,
+    Browser,
+    _shows_sphere,
+    _sphere_run,
+    button,
+    labelled,
+    option,
+    wait_until,
+)
+from tests.test_xray_stages import phantom
 
 
 def _middle(img: np.ndarray) -> np.ndarray:

@@ -96,13 +96,20 @@ def tv_pairs(shape: torch.Size, texels: int, gen: torch.Generator | None, device
     return torch.cat([along_h, along_w], dim=-1).to(device)
 
 
+def _pair_differences(planes: Tensor, pairs: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """planes [3, C, H, W], pairs from `tv_pairs` -> (neighbour minus texel [3, C, K], the texels' and the
+    neighbours' flat indices expanded over the channels [3, C, K])."""
+    n, c = planes.shape[:2]
+    k = pairs.shape[-1]
+    a, b = pairs[0].expand(n, c, k), pairs[1].expand(n, c, k)
+    flat = planes.reshape(n, c, -1)
+    return flat.gather(2, b) - flat.gather(2, a), a, b
+
+
 def plane_tv_sampled(planes: Tensor, pairs: Tensor) -> Tensor:
     """Unbiased estimate of `_plane_tv` from `tv_pairs` (differentiable; the plain twin of `add_plane_tv_grad_`).
     Each pair is half of the estimate: 2 * (mean over H-pairs + mean over W-pairs) = 4 * mean over all pairs."""
-    n, c = planes.shape[:2]
-    flat = planes.reshape(n, c, -1)
-    k = pairs.shape[-1]
-    diff = flat.gather(2, pairs[1].expand(n, c, k)) - flat.gather(2, pairs[0].expand(n, c, k))  # [3, C, K]
+    diff, _, _ = _pair_differences(planes, pairs)
     return 4.0 * diff.pow(2).mean(dim=(1, 2)).sum()
 
 
@@ -110,13 +117,10 @@ def plane_tv_sampled(planes: Tensor, pairs: Tensor) -> Tensor:
 def add_plane_tv_grad_(planes: nn.Parameter, pairs: Tensor, weight: float) -> float:
     """planes.grad += weight * d(plane_tv_sampled)/d(planes), touching only the sampled texels (the dense gradient
     of a gather costs as much as the whole plane); returns the estimate's value."""
-    n, c = planes.shape[:2]
-    flat = planes.reshape(n, c, -1)
-    k = pairs.shape[-1]
-    a, b = pairs[0].expand(n, c, k), pairs[1].expand(n, c, k)
-    diff = flat.gather(2, b) - flat.gather(2, a)  # [3, C, K]
+    diff, a, b = _pair_differences(planes, pairs)
     if planes.grad is None:
         planes.grad = torch.zeros_like(planes)
+    n, c, k = diff.shape
     g = planes.grad.view(n, c, -1)
     step = diff * (weight * 8.0 / (c * k))  # d/d(diff) of 4 * mean(diff^2) over C * K entries, per plane
     g.scatter_add_(2, b, step)

@@ -375,8 +375,7 @@ def _setup(config: Config, progress: Progress) -> tuple[Loop, Scene, Path, dict]
     loop = Loop(config=resolved, model=model, opt=opt, base_lr=base_lr, train=train, test=test, eval_px=eval_px,
                 batch_rays=found.batch_rays, gen=gen, device=device, metrics=metrics, ckpt_path=ckpt_path,
                 progress=progress, step=step, seconds_before=seconds_before, lr_factor=lr_factor,
-                cameras=cameras)  # fmt: skip
-    loop.depth_rays = depth_rays
+                cameras=cameras, depth_rays=depth_rays)  # fmt: skip
     record = {**found.reasons, "scene_model": f"{model_kind}: {model_reason}", "tv": tv_reason,
               "depth_loss": depth_reason,
               "resolved": {"resolution": list(resolution), "step_ratio": step_ratio,
