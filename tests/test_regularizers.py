@@ -99,3 +99,26 @@ def test_depth_nll_prefers_weight_at_the_known_depth_and_matches_a_loop():
     assert torch.isfinite(gz).all() and float(gz.min()) < 0  # more weight near the depth lowers the loss
     with pytest.raises(ValueError, match="expected depth, sigma"):
         depth_nll_loss(w, t0, t1, idx, depth, sigma[:1])
+
+
+def test_train_uses_colmap_tracks_as_depth_in_contracted_scenes_and_refuses_elsewhere(tmp_path):
+    """A COLMAP scene through convert trains with the depth loss by default (contracted) and says so; asking for
+    it in a box scene, or with a negative weight, is one clear error."""
+    import json
+
+    import fixtures_convert as fx
+
+    from stages import convert, train
+
+    fx.make_colmap(tmp_path / "src" / "sparse" / "0", tmp_path / "src" / "images", 10)
+    convert.run(convert.Config(source=tmp_path / "src", scene_dir=tmp_path / "s"))
+    cfg = dict(scene_dir=tmp_path / "s", max_steps=3, batch_rays=64, eval_every=0, final_eval_views=1, device="cpu")
+    train.run(train.Config(**cfg, run_dir=tmp_path / "r", scene_model="contract"))
+    used = json.loads((tmp_path / "r" / "manifest.json").read_text())["used"]
+    assert used["scene_model"] == "contract"
+    # the fixture's tracks: one training photo sees all 60 points
+    assert used["defaults"]["depth_loss"].startswith("0.01 on 60 sparse-point rays")
+    with pytest.raises(UserError, match="fast contracted scenes only"):
+        train.run(train.Config(**cfg, run_dir=tmp_path / "b", scene_model="box", depth_loss=0.01))
+    with pytest.raises(UserError, match="depth-loss: expected >= 0"):
+        train.run(train.Config(**cfg, run_dir=tmp_path / "n", depth_loss=-1.0))
