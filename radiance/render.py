@@ -242,6 +242,7 @@ def render_marched(
     background: Tensor | None = None,  # [3] or [R, 3]
     color_threshold: float = 1e-4,
     color_per_ray: float = 16.0,
+    color_min_per_ray: float = 0.0,
     jitter: bool = False,
     generator: torch.Generator | None = None,
     with_median: bool = False,
@@ -252,8 +253,9 @@ def render_marched(
     at `step_size`; `jitter` shifts each ray's steps by U[0, step_size) (drawn from `generator`, the global
     source when None) so training sees every depth. Colour is evaluated only where the weight exceeds
     `color_threshold` (TensoRF's rule), and at most at the `color_per_ray * R` largest weights of the batch,
-    which bounds the cost early on when every sample is faint; samples left out contribute no colour (their
-    weight still counts in `acc`).
+    which bounds the cost early on when every sample is faint, and at least at the `color_min_per_ray * R` largest
+    (training: a gradient reaches the density even when every weight is below the threshold); samples left out
+    contribute no colour (their weight still counts in `acc`).
 
     Returns acc [R], depth [R] (expected t), rgb [R, 3] (on the background; absent when rgb_fn is None),
     depth_median [R] (only with_median), and per sample (packed [N]) weights, sigmas, t_starts, t_ends,
@@ -262,7 +264,8 @@ def render_marched(
     _check_rays(rays_o, rays_d)
     ray_idx, t0, t1, x = _march_occupied(rays_o, rays_d, grid, near, far, step_size, jitter, generator)
     sigma = sigma_fn(x)  # [N]
-    shade = dict(color_threshold=color_threshold, color_per_ray=color_per_ray, with_median=with_median)
+    shade = dict(color_threshold=color_threshold, color_per_ray=color_per_ray, color_min_per_ray=color_min_per_ray,
+                 with_median=with_median)  # fmt: skip
     return _shade_packed(rays_o, rays_d, ray_idx, t0, t1, x, sigma, rgb_fn=rgb_fn, background=background, **shade)
 
 
@@ -447,6 +450,7 @@ def render_contracted(
     background: Tensor | None = None,  # [3] or [R, 3]
     color_threshold: float = 1e-4,
     color_per_ray: float = 16.0,
+    color_min_per_ray: float = 0.0,
     jitter: bool = False,
     generator: torch.Generator | None = None,
     with_median: bool = False,
@@ -464,13 +468,15 @@ def render_contracted(
     x = contraction.contract(rays_o[ray_idx] + rays_d[ray_idx] * (0.5 * (t0 + t1))[:, None])  # [N, 3]
     scale = contraction_chord_scale(contraction, rays_o[ray_idx], rays_d[ray_idx], t0, t1)  # [N]
     sigma = sigma_fn(x) * scale  # [N] per world length
-    shade = dict(color_threshold=color_threshold, color_per_ray=color_per_ray, with_median=with_median)
+    shade = dict(color_threshold=color_threshold, color_per_ray=color_per_ray, color_min_per_ray=color_min_per_ray,
+                 with_median=with_median)  # fmt: skip
     return _shade_packed(rays_o, rays_d, ray_idx, t0, t1, x, sigma, rgb_fn=rgb_fn, background=background, **shade)
 
 
 def _shade_packed(
-    rays_o, rays_d, ray_idx, t0, t1, x, sigma, *, rgb_fn, background, color_threshold, color_per_ray, with_median
-) -> dict:
+    rays_o, rays_d, ray_idx, t0, t1, x, sigma, *, rgb_fn, background, color_threshold, color_per_ray, with_median,
+    color_min_per_ray=0.0,
+) -> dict:  # fmt: skip
     """Weights from packed densities; colour only where the weight counts (see render_marched)."""
     n = rays_o.shape[0]
     t_mid = 0.5 * (t0 + t1)
@@ -478,11 +484,7 @@ def _shade_packed(
     acc = accumulate(weights, None, ray_idx, n)  # [R]
     out = {"acc": acc}
     if rgb_fn is not None:
-        w = weights.detach()
-        budget = int(color_per_ray * n)
-        if w.numel() > budget:
-            color_threshold = max(color_threshold, float(torch.topk(w, budget, sorted=False).values.min()))
-        keep = w >= color_threshold if budget < w.numel() else w > color_threshold  # [N]
+        keep = _colour_samples(weights.detach(), n, color_threshold, color_per_ray, color_min_per_ray)  # [N]
         rgb_s = rgb_fn(x[keep], rays_d[ray_idx[keep]])  # [K, 3]
         rgb = accumulate(weights[keep], rgb_s, ray_idx[keep], n)
         out["rgb"] = rgb if background is None else rgb + (1 - acc)[:, None] * background.to(rgb)
@@ -490,6 +492,20 @@ def _shade_packed(
     if with_median:
         out["depth_median"] = median_depth(sigma, t0, t1, ray_idx, n)
     return {**out, "weights": weights, "sigmas": sigma, "t_starts": t0, "t_ends": t1, "ray_indices": ray_idx}
+
+
+def _colour_samples(w: Tensor, n: int, threshold: float, per_ray: float, min_per_ray: float) -> Tensor:
+    """Which samples get a colour, from their weights w [N] in a batch of n rays -> bool [N]: weight above
+    `threshold`, at most the `per_ray * n` largest; and at least the `min_per_ray * n` largest when fewer pass
+    (a faint batch: at initialisation every weight is below any threshold)."""
+    keep = w > threshold
+    budget = int(per_ray * n)
+    if w.numel() > budget:
+        keep &= w >= torch.topk(w, budget, sorted=False).values.min()
+    floor = min(int(min_per_ray * n), w.numel())
+    if floor > 0 and int(keep.sum()) < floor:
+        keep = w >= torch.topk(w, floor, sorted=False).values.min()
+    return keep
 
 
 def render_depth(

@@ -250,3 +250,18 @@ def test_terminating_march_matches_its_plain_twin():
     torch.testing.assert_close(fast["depth_median"], plain["depth_median"], atol=1e-9, rtol=0)
     with pytest.raises(ValueError, match="min_transmittance"):
         render_marched_terminating(o, d, sigma_fn=sigma, min_transmittance=1.0, **kw)
+
+
+def test_colour_samples_threshold_budget_and_floor():
+    """Which samples get a colour: above the threshold, at most per_ray x R of the largest, and at least
+    min_per_ray x R of the largest when fewer pass (a faint batch at initialisation still gets a gradient)."""
+    from radiance.render import _colour_samples
+
+    w = torch.tensor([0.5, 2e-4, 5e-5, 1e-5, 3e-6, 0.0])
+    assert _colour_samples(w, 2, 1e-4, 16.0, 0.0).tolist() == [True, True, False, False, False, False]
+    assert _colour_samples(w, 2, 1e-4, 0.5, 0.0).tolist() == [True, False, False, False, False, False]  # budget 1
+    faint = w * 1e-4  # every weight below the threshold
+    assert not _colour_samples(faint, 2, 1e-4, 16.0, 0.0).any()  # no floor: no colour, no gradient
+    assert _colour_samples(faint, 2, 1e-4, 16.0, 1.0).tolist() == [True, True, False, False, False, False]
+    assert _colour_samples(w, 2, 1e-4, 16.0, 1.0).sum() == 2  # enough pass: the floor adds nothing
+    assert _colour_samples(w[:1], 4, 1e-4, 16.0, 1.0).tolist() == [True]  # floor capped at the samples there are

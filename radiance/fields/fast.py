@@ -160,6 +160,7 @@ class TensoRF(Field):
         self.view_dependent = view_dependent and has_color
         self.density_shift, self.density_scale, self.init_std = density_shift, density_scale, init_std
         r = self.resolution
+        self._volume: tuple | None = None  # density_volume's cache: (factors' key, volume)
         self.density_planes = nn.Parameter(init_std * torch.randn(3, density_rank, r, r))
         self.density_lines = nn.Parameter(init_std * torch.randn(3, density_rank, r, 1))
         if has_color:
@@ -187,6 +188,34 @@ class TensoRF(Field):
         check_points(x)
         xn = self.normalize(x)
         f = _vm_features(self.density_planes, self.density_lines, xn.clamp(-1, 1)).sum(dim=(0, 1))  # [N]
+        sigma = self.density_scale * F.softplus((f + self.density_shift).clamp(max=1e4))
+        return torch.where(self._inside(xn), sigma, torch.zeros_like(sigma))
+
+    def density_volume(self) -> Tensor:
+        """The density factors' sum at every grid node, [1, 1, R, R, R] indexed (z, y, x) as `F.grid_sample` reads a
+        volume: a plane's bilinear interpolation times a line's linear one is the trilinear interpolation of their
+        products at the nodes, so trilinear sampling of this volume gives `density`'s factor sum exactly (up to
+        float rounding) from 8 values a point instead of 3 x (4 + 2) x density_rank. Kept until the factors
+        change (their version counters: optimizer steps, loads and upsampling all bump or replace them)."""
+        planes, lines = self.density_planes, self.density_lines
+        key = (planes.data_ptr(), planes._version, lines.data_ptr(), lines._version, planes.shape, planes.dtype,
+               planes.device)  # fmt: skip
+        if self._volume is None or self._volume[0] != key:
+            with torch.no_grad():
+                p, ln = planes.detach(), lines.detach()[..., 0]  # [3, C, R, R], [3, C, R]
+                vol = torch.einsum("cyx,cz->zyx", p[0], ln[0])  # plane (x, y), line z
+                vol += torch.einsum("czx,cy->zyx", p[1], ln[1])  # plane (x, z), line y
+                vol += torch.einsum("czy,cx->zyx", p[2], ln[2])  # plane (y, z), line x
+            self._volume = (key, vol[None, None].contiguous())
+        return self._volume[1]
+
+    @torch.no_grad()
+    def density_inference(self, x: Tensor) -> Tensor:
+        """`density` through `density_volume` (no gradient): the renderers' sigma_fn at inference."""
+        check_points(x)
+        xn = self.normalize(x)
+        grid = xn.clamp(-1, 1)[None, :, None, None, :].to(self.density_planes.dtype)  # [1, N, 1, 1, 3] (x, y, z)
+        f = F.grid_sample(self.density_volume(), grid, mode="bilinear", align_corners=True).reshape(-1).to(x.dtype)
         sigma = self.density_scale * F.softplus((f + self.density_shift).clamp(max=1e4))
         return torch.where(self._inside(xn), sigma, torch.zeros_like(sigma))
 
