@@ -17,7 +17,8 @@ similarity (Umeyama) fitted from the run's camera centres to the ground-truth ce
 converts the depth scale; the JSON says which (`depth_alignment.method`: none | similarity).
 
 Runs trained with `--refine-poses` are scored from the refined frame: the test cameras are mapped into it by the
-similarity from the input training cameras to the refined ones (`model.camera_opt`; JSON `test_poses`). Runs
+similarity from the input training cameras to the refined ones (`model.camera_opt`), then each is optimised against
+its photo with the field frozen (`--test-pose-steps`, TEST_POSE_STEPS by default; JSON `test_poses`). Runs
 trained with `--appearance` render with the mean appearance code (`--appearance-rule mean`, the default), or with
 NeRF-W's protocol (`--appearance-rule half`): each test view's code is fitted to the left half of its photo and
 the view is scored on the right half only -- runs without appearance are then scored on the right half too, so
@@ -56,6 +57,8 @@ __all__ = ["Config", "Outputs", "run", "ssim", "lpips_status", "GroundTruth", "r
 ALEXNET_WEIGHTS = "alexnet-owt-7be5be79.pth"
 """torchvision's AlexNet checkpoint file name, which lpips loads from the torch hub cache."""
 SAME_FRAME_TOL = 1e-4
+TEST_POSE_STEPS = 100
+"""Default `--test-pose-steps` for runs trained with --refine-poses (each step renders 2048 of the photo's pixels)."""
 """Camera centres within this fraction of the ground-truth extent: the run is already in the GT frame."""
 
 
@@ -74,10 +77,12 @@ class Config:
     """Ground-truth folder (cameras.json, depth/*.npy in metres) or the scene folder holding ground_truth/."""
     device: str = "auto"
     """torch device: auto, cpu, cuda, cuda:N."""
-    test_pose_steps: int = 0
+    test_pose_steps: int | None = None
     """Runs trained with --refine-poses: optimise each test camera's pose against its photo for this many steps
-    with the field frozen before scoring (NeRF--, nerfstudio; `model.camera_opt.optimise_test_pose`); 0: off,
-    the test cameras are only mapped into the refined frame."""
+    with the field frozen before scoring (NeRF--, BARF, nerfstudio; `model.camera_opt.optimise_test_pose`); 0:
+    off, the test cameras are only mapped into the refined frame. None: TEST_POSE_STEPS for refined runs (the
+    field learned in its own frame: a test camera placed by the similarity alone is off by the frame's residual
+    drift), 0 for the others."""
     appearance_rule: Literal["mean", "half"] = "mean"
     """Runs with --appearance: mean (render with the mean code, score whole views) or half (NeRF-W: fit each test
     view's code on the left half of its photo, score the right half; every run is then scored on right halves)."""
@@ -201,10 +206,10 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
             f"--appearance-rule: expected one of {', '.join(APPEARANCE_RULES)}, got {config.appearance_rule!r}"
         )
     half = config.appearance_rule == "half"
-    if config.test_pose_steps < 0:
+    if config.test_pose_steps is not None and config.test_pose_steps < 0:
         raise UserError(f"--test-pose-steps: expected >= 0, got {config.test_pose_steps}")
     refined_run = getattr(trained, "pose_refinement", None) is not None
-    pose_steps = config.test_pose_steps if refined_run else 0
+    pose_steps = (TEST_POSE_STEPS if config.test_pose_steps is None else config.test_pose_steps) if refined_run else 0
     if pose_steps:
         from model.camera_opt import TEST_POSE_OPT_RULE, optimise_test_pose
     bg_t = torch.as_tensor(background, dtype=torch.float32, device=device)

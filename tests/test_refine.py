@@ -187,9 +187,12 @@ def test_perturbed_poses_are_recovered(tiny, tmp_path):
     used = json.loads(out.manifest.read_text())["used"]["pose_refinement"]
     assert len(used["per_camera"]) == len(idx) and used["median_rotation_deg"] > 1.0
     assert trained.pose_refinement["test_poses"]["method"] == "similarity"
-    plain = eval_stage.run(eval_stage.Config(run_dir=run, out=tmp_path / "e.json", device="cpu", views=1)).result
+    plain = eval_stage.run(eval_stage.Config(run_dir=run, out=tmp_path / "e.json", device="cpu", views=1,
+                                             test_pose_steps=0)).result  # fmt: skip
     assert plain["test_pose_optimisation"] is None and plain["test_poses"]["method"] == "similarity"
     tuned = eval_stage.run(eval_stage.Config(run_dir=run, out=tmp_path / "t.json", device="cpu", views=1,
                                              test_pose_steps=3)).result  # fmt: skip
     assert tuned["test_poses"] == TEST_POSE_OPT_RULE and tuned["test_pose_optimisation"]["steps"] == 3
     assert 0 < tuned["test_pose_optimisation"]["median_rotation_deg"] < 1.0
+    default = eval_stage.run(eval_stage.Config(run_dir=run, out=tmp_path / "d.json", device="cpu", views=1)).result
+    assert default["test_pose_optimisation"]["steps"] == eval_stage.TEST_POSE_STEPS  # refined runs: on by default
