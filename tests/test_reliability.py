@@ -140,6 +140,7 @@ def test_interrupted_consumers_leave_nothing_that_looks_complete(finished_run, t
     monkeypatch.setattr(Trained, "render_rays", interrupt_later(real_render))
     monkeypatch.setattr(Trained, "density", interrupt_later(real_density))
     monkeypatch.setattr(TensoRF, "density", interrupt_later(TensoRF.density))  # mesh queries the field directly
+    monkeypatch.setattr(TensoRF, "density_inference", interrupt_later(TensoRF.density_inference))  # the renderers
     runs = {
         "render": (lambda: render.run(render.Config(run_dir=finished_run, out=tmp_path / "v.mp4", frames=6,
                                                     device="cpu")), [tmp_path / "v.mp4", tmp_path / "v.manifest.json"]),
