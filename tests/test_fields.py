@@ -111,7 +111,7 @@ def test_upsample_keeps_the_function_and_config_round_trips():
         make_field({"kind": "nope"})
 
 
-@pytest.mark.parametrize("channels", [4, 6, 5])  # 5: odd, not split
+@pytest.mark.parametrize("channels", [8, 4, 6, 5])  # split in 4 groups of 2, 4 of 1; 6, 5: not split
 def test_vm_features_match_their_reference_twin(channels):
     """The channel-split grid_sample path gives the plain one's products and gradients (float rounding)."""
     from radiance.fields.fast import _vm_features, _vm_features_reference

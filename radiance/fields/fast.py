@@ -30,10 +30,11 @@ LINE_AXIS = (2, 1, 0)
 
 
 # grid_sample's CPU backward parallelises over the batch only: 3 planes on 2 threads leave one idle half the
-# time. Splitting the channels into CHANNEL_SPLIT groups (3 * 2 = 6 batches) balances it; each channel is
-# interpolated exactly as before. lego_100, 2 CPU cores, final grid: 23-26 -> 28-31 steps/s; bench_train fast
-# 120 s: 1989 -> 3055 steps, 31.42 -> 32.04 dB (with fused Adam; before both: 1599 steps, 31.08 dB).
-CHANNEL_SPLIT = 2
+# time. Splitting the channels into CHANNEL_SPLIT groups (3 * 4 = 12 batches) balances it; each channel is
+# interpolated exactly as before. Split 2 against none, lego_100, 2 CPU cores, final grid: 23-26 -> 28-31 steps/s;
+# bench_train fast 120 s: 1989 -> 3055 steps, 31.42 -> 32.04 dB (with fused Adam; before both: 1599 steps, 31.08 dB).
+# Split 4 against 2, tiny npz, 600 steps, 2 idle cores, twice each: 42.6 and 46.5 s against 52.5 and 50.0 s.
+CHANNEL_SPLIT = 4
 
 
 def _grid_sample(grids: Tensor, uv: Tensor) -> Tensor:
