@@ -367,10 +367,8 @@ def _march_terminating(
         if not picks:
             picks.append((torch.zeros(0, dtype=torch.long, device=acc.device), acc.new_zeros(0, 3), acc.new_zeros(0)))
         rows, x, w = (torch.cat([p[i] for p in picks]) for i in range(3))
-        budget = int(color_per_ray * n)
-        if w.numel() > budget:  # the twin's budget: only the color_per_ray x R largest weights
-            keep = w >= torch.topk(w, budget, sorted=False).values.min()
-            rows, x, w = rows[keep], x[keep], w[keep]
+        keep = _colour_samples(w, n, color_threshold, color_per_ray, 0.0)  # the twin's rule (the picks pass it)
+        rows, x, w = rows[keep], x[keep], w[keep]
         rgb = accumulate(w, rgb_fn(x, rays_d[rows]), rows, n) if rows.numel() else acc.new_zeros(n, 3)
         out["rgb"] = rgb if background is None else rgb + (1 - acc)[:, None] * background.to(rgb)
     return out
