@@ -5,8 +5,16 @@ Conventions (docs/DESIGN.md): cameras `world_from_cam` 4x4, OpenGL axes (x right
 frame. Camera k's correction xi_k = (omega, v) [6] acts in its own camera frame:
     world_from_cam_refined = world_from_cam @ se3_exp(xi_k)      (radiance.se3)
 so a ray (o, d) of that camera becomes d' = R R_d R^T d and o' = o + R t_d (R: the original rotation; R_d, t_d:
-the correction's). The focal scale s = exp(log_s) multiplies fx and fy of every camera: a ray's direction in the
-camera frame (x, y, -1) / norm becomes (x / s, y / s, -1) / norm (exact for pinhole cameras; the distortion of
+the correction's). The correction is parameterised about a pivot on the optical axis, at the depth p_k of the
+scene centre (CamP, Park et al. 2023, on why the parameterisation matters):
+    se3_exp(xi_k) is replaced by  T(p_k) se3_exp(xi_k) T(-p_k),   T(p) = translation by (0, 0, -p)
+so omega turns the camera about the object it looks at (an orbit, which changes the view only through parallax)
+and v shifts it (which moves the whole image): the weakly and strongly observed motions fall on different
+coordinates, and Adam's per-coordinate step sizes move the weak one as fast as the strong one. About the camera
+centre (p_k = 0) an orbit is a mix of omega and v whose gradient the image shift swamps. p_k = 0 gives the plain
+camera-frame correction (runs from before the pivot load that way).
+The focal scale s = exp(log_s) multiplies fx and fy of every camera: a ray's direction in the camera frame
+(x, y, -1) / norm becomes (x / s, y / s, -1) / norm (exact for pinhole cameras; the distortion of
 the original intrinsics is kept as it was). Corrections start at zero (the identity): with refinement off the
 rays are untouched.
 
@@ -38,6 +46,8 @@ from radiance.se3 import se3_exp
 
 __all__ = [
     "CameraSchedule",
+    "pivot_depths",
+    "pivoted_exp",
     "CameraOpt",
     "refined_scene",
     "align_test_poses",
@@ -73,16 +83,42 @@ class CameraSchedule:
         return ramp * self.decay**frac
 
 
+def pivot_depths(world_from_cam: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """Depth [V] of the point `centre` [3] along each camera's optical axis (-z), 0 where it is behind."""
+    w = np.asarray(world_from_cam, dtype=np.float64)
+    if w.ndim != 3 or w.shape[1:] != (4, 4) or np.shape(centre) != (3,):
+        raise ValueError(f"expected world_from_cam [V, 4, 4] and centre [3], got {w.shape}, {np.shape(centre)}")
+    rel = np.asarray(centre, dtype=np.float64) - w[:, :3, 3]  # [V, 3]
+    return np.maximum(-np.einsum("vi,vi->v", rel, w[:, :3, 2]), 0.0)
+
+
+def pivoted_exp(delta: Tensor, pivot: Tensor) -> Tensor:
+    """Corrections delta [V, 6] about pivots at depths pivot [V] on the optical axes -> [V, 4, 4]:
+    T(p) se3_exp(delta) T(-p) with T(p) the translation by (0, 0, -p) (conjugation only moves the translation:
+    t' = t + (I - R) (0, 0, -p))."""
+    if delta.ndim != 2 or delta.shape[-1] != 6 or pivot.shape != delta.shape[:1]:
+        raise ValueError(f"expected delta [V, 6] and pivot [V], got {tuple(delta.shape)}, {tuple(pivot.shape)}")
+    m = se3_exp(delta)  # [V, 4, 4]
+    p = torch.zeros_like(delta[:, :3])
+    p[:, 2] = -pivot.to(delta)
+    t = m[:, :3, 3] + p - (m[:, :3, :3] @ p[:, :, None])[..., 0]
+    return torch.cat([torch.cat([m[:, :3, :3], t[:, :, None]], dim=2), m[:, 3:]], dim=1)
+
+
 class CameraOpt(nn.Module):
     """Corrections of V cameras; `forward(o, d, view)` moves a batch of their rays."""
 
     def __init__(self, world_from_cam: Tensor | np.ndarray, *, focal: bool = False,
-                 schedule: CameraSchedule | None = None) -> None:  # fmt: skip
+                 schedule: CameraSchedule | None = None, pivot: np.ndarray | None = None) -> None:  # fmt: skip
         super().__init__()
         w = torch.as_tensor(np.asarray(world_from_cam), dtype=torch.float64)
         if w.ndim != 3 or w.shape[1:] != (4, 4):
             raise ValueError(f"expected world_from_cam [V, 4, 4], got {tuple(w.shape)}")
+        piv = torch.zeros(w.shape[0], dtype=torch.float64) if pivot is None else torch.as_tensor(pivot).double()
+        if piv.shape != w.shape[:1] or not bool(torch.isfinite(piv).all()) or bool((piv < 0).any()):
+            raise ValueError(f"expected pivot depths [{w.shape[0]}], finite and >= 0, got {tuple(piv.shape)}")
         self.register_buffer("world_from_cam", w)  # [V, 4, 4] float64, the input cameras
+        self.register_buffer("pivot", piv)  # [V] float64, depth of each correction's pivot on the optical axis
         self.delta = nn.Parameter(torch.zeros(w.shape[0], 6))  # [V, 6] (omega, v) in each camera's frame
         self.log_focal = nn.Parameter(torch.zeros(1), requires_grad=focal)  # shared focal scale exp(log_focal)
         self.focal = focal
@@ -106,7 +142,7 @@ class CameraOpt(nn.Module):
                              f"{tuple(view.shape)}")  # fmt: skip
         view = view.to(o.device).long()
         rot = self.world_from_cam[:, :3, :3].to(o)[view]  # [B, 3, 3]
-        corr = se3_exp(self.delta.to(o))[view]  # [B, 4, 4]
+        corr = pivoted_exp(self.delta.to(o), self.pivot.to(o))[view]  # [B, 4, 4]
         d_cam = (rot.transpose(1, 2) @ d[:, :, None])[..., 0]  # [B, 3]
         if self.focal:
             scale = torch.exp(-self.log_focal.to(o))
@@ -129,7 +165,7 @@ class CameraOpt(nn.Module):
     @torch.no_grad()
     def refined(self) -> np.ndarray:
         """Refined world_from_cam [V, 4, 4] float64."""
-        return (self.world_from_cam @ se3_exp(self.delta.double())).cpu().numpy()
+        return (self.world_from_cam @ pivoted_exp(self.delta.double(), self.pivot)).cpu().numpy()
 
     def test_rays(self) -> Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]:
         """(o, d) [B, 3] of a camera given in the input frame -> the same ray in the refined frame, through
@@ -152,12 +188,14 @@ class CameraOpt(nn.Module):
     def to_dict(self) -> dict[str, Any]:
         """What checkpoint.pt stores (tensors and primitives only)."""
         return {"world_from_cam": self.world_from_cam.cpu(), "delta": self.delta.detach().cpu(),
+                "pivot": self.pivot.cpu(),
                 "log_focal": self.log_focal.detach().cpu(), "focal": self.focal,
                 "optimizer": self.optimizer().state_dict()}  # fmt: skip
 
     def load_dict(self, doc: dict[str, Any]) -> None:
         with torch.no_grad():
             self.delta.copy_(doc["delta"])
+            self.pivot.copy_(doc["pivot"] if doc.get("pivot") is not None else torch.zeros_like(self.pivot))
             self.log_focal.copy_(doc["log_focal"])
         if doc.get("optimizer") is not None:
             self.optimizer().load_state_dict(doc["optimizer"])
@@ -196,7 +234,9 @@ def refined_scene(scene: Scene, doc: dict[str, Any], train_idx: tuple[int, ...])
     mapped into the refined frame by `align_test_poses`, focal lengths times the shared focal scale. Returns the
     scene and a record of what was done (for eval's JSON and the manifest)."""
     w_in = doc["world_from_cam"].double()
-    refined = (w_in @ se3_exp(doc["delta"].double())).numpy()
+    pivot = doc.get("pivot")
+    pivot = torch.zeros(len(w_in), dtype=torch.float64) if pivot is None else pivot.double()
+    refined = (w_in @ pivoted_exp(doc["delta"].double(), pivot)).numpy()
     train_in = w_in.numpy()
     others = [i for i in range(len(scene.frames)) if i not in set(train_idx)]
     poses = {i: refined[k] for k, i in enumerate(train_idx)}
@@ -262,16 +302,19 @@ TEST_POSE_OPT_RULE = ("as above, then each test camera's SE(3) optimised against
 
 def optimise_test_pose(model: Any, background: Tensor, world_from_cam: np.ndarray, intr: Intrinsics,
                        photo: np.ndarray, steps: int, *, lr: float = 2e-3, batch: int = 2048,
-                       seed: int = 0) -> tuple[np.ndarray, dict[str, float]]:  # fmt: skip
+                       seed: int = 0, centre: np.ndarray | None = None
+                       ) -> tuple[np.ndarray, dict[str, float]]:  # fmt: skip
     """One test camera world_from_cam [4, 4] refined against its photo [H, W, 3] (composited on `background`
-    [3]) by `steps` Adam steps on a correction of the camera (`CameraOpt`), the field (`model`, a FieldModel)
-    frozen; each step renders `batch` random pixels. Returns the refined camera and its correction's size."""
+    [3]) by `steps` Adam steps on a correction of the camera (`CameraOpt`, pivoted at the depth of `centre` [3],
+    the scene centre; None: about the camera centre), the field (`model`, a FieldModel) frozen; each step
+    renders `batch` random pixels. Returns the refined camera and its correction's size."""
     from radiance.camera import generate_rays
 
     if photo.shape[:2] != (intr.h, intr.w) or photo.ndim != 3 or photo.shape[2] != 3:
         raise ValueError(f"expected photo [{intr.h}, {intr.w}, 3], got {tuple(photo.shape)}")
     device = background.device
-    cam = CameraOpt(np.asarray(world_from_cam, dtype=np.float64)[None]).to(device)
+    w = np.asarray(world_from_cam, dtype=np.float64)[None]
+    cam = CameraOpt(w, pivot=None if centre is None else pivot_depths(w, np.asarray(centre))).to(device)
     opt = torch.optim.Adam([cam.delta], lr=lr, betas=(0.9, 0.99))
     o_all, d_all = generate_rays(intr, torch.as_tensor(np.asarray(world_from_cam, dtype=np.float64)))
     o_all, d_all = o_all.to(device, torch.float32), d_all.to(device, torch.float32)

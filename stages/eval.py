@@ -230,7 +230,8 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
             intr = intr.scaled(w / intr.w)
         pose = scene.frames[i].world_from_cam
         if pose_steps:
-            pose, moved = optimise_test_pose(trained.model, bg_t, pose, intr, photo, pose_steps)
+            pose, moved = optimise_test_pose(trained.model, bg_t, pose, intr, photo, pose_steps,
+                                             centre=np.asarray(scene.aabb, dtype=np.float64).mean(0))  # fmt: skip
             test_pose_moves.append(moved)
         t0 = time.perf_counter()
         view = _render_scored(trained, intr, pose, device, photo, half, background)

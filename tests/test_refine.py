@@ -14,7 +14,14 @@ import torch
 from benchmarks.bench_refine import perturb_scene
 from data.transforms import read_scene
 from model import load_trained
-from model.camera_opt import TEST_POSE_OPT_RULE, CameraOpt, CameraSchedule, align_test_poses
+from model.camera_opt import (
+    TEST_POSE_OPT_RULE,
+    CameraOpt,
+    CameraSchedule,
+    align_test_poses,
+    pivot_depths,
+    pivoted_exp,
+)
 from radiance.align import pose_errors
 from radiance.camera import Intrinsics, generate_rays
 from radiance.se3 import se3_exp, se3_log, so3_exp, so3_log
@@ -77,7 +84,7 @@ def _camera(seed: int) -> np.ndarray:
 def test_corrections_equal_rays_of_the_refined_cameras():
     intr = Intrinsics(w=8, h=6, fx=7.0, fy=7.0, cx=4.0, cy=3.0)
     poses = np.stack([_camera(s) for s in range(3)])
-    cams = CameraOpt(poses, focal=True).double()
+    cams = CameraOpt(poses, focal=True, pivot=np.array([0.0, 2.0, 5.0])).double()
     with torch.no_grad():
         cams.delta.copy_(torch.randn(3, 6, generator=torch.Generator().manual_seed(1), dtype=torch.float64) * 0.1)
         cams.log_focal.fill_(math.log(1.1))
@@ -90,6 +97,27 @@ def test_corrections_equal_rays_of_the_refined_cameras():
         o_ref, d_ref = generate_rays(scaled, torch.as_tensor(refined[k]))
         assert torch.allclose(o2, o_ref.expand_as(d_ref).double(), atol=1e-12)
         assert torch.allclose(d2, d_ref.double(), atol=1e-12)
+
+
+def test_pivoted_corrections_turn_about_the_pivot():
+    """About a pivot at depth p the correction is the conjugate T(p) exp(xi) T(-p): a pure rotation keeps the
+    pivot (0, 0, -p) where it is, p = 0 is the plain exponential, and the pivot depth is the scene centre's."""
+    xi = torch.randn(4, 6, generator=torch.Generator().manual_seed(3), dtype=torch.float64) * 0.2
+    depth = torch.tensor([0.0, 1.0, 3.0, 10.0], dtype=torch.float64)
+    m = pivoted_exp(xi, depth)
+    shift = torch.eye(4, dtype=torch.float64).repeat(4, 1, 1)
+    shift[:, 2, 3] = -depth
+    assert torch.allclose(m, shift @ se3_exp(xi) @ torch.linalg.inv(shift), atol=1e-12)
+    assert torch.allclose(pivoted_exp(xi, torch.zeros(4, dtype=torch.float64)), se3_exp(xi), atol=1e-15)
+    rot = torch.cat([xi[:, :3], torch.zeros(4, 3, dtype=torch.float64)], dim=1)
+    pivot = torch.stack([torch.zeros(4), torch.zeros(4), -depth, torch.ones(4)], dim=1).double()  # [4, 4]
+    assert torch.allclose((pivoted_exp(rot, depth) @ pivot[:, :, None])[..., 0], pivot, atol=1e-12)
+    cam = np.eye(4)
+    cam[:3, 3] = [0.0, 0.0, 4.0]  # looking down -z at the origin from 4 away; a point behind gets 0
+    assert np.allclose(pivot_depths(cam[None], np.zeros(3)), [4.0])
+    assert np.allclose(pivot_depths(cam[None], np.array([1.0, 0.0, 5.0])), [0.0])
+    xi.requires_grad_()
+    assert torch.autograd.gradcheck(lambda x: pivoted_exp(x, depth), (xi,))
 
 
 def test_zero_corrections_leave_rays_and_schedule_waits():

@@ -42,7 +42,7 @@ from data.stop import stop_on_signals
 from data.transforms import Scene, read_scene
 from model.appearance import EVAL_RULE as APPEARANCE_EVAL_RULE
 from model.appearance import Appearance
-from model.camera_opt import CameraOpt, CameraSchedule, pose_report, write_refined_transforms
+from model.camera_opt import CameraOpt, CameraSchedule, pivot_depths, pose_report, write_refined_transforms
 from model.checkpoint import read_checkpoint, restore_appearance, restore_background, restore_contraction
 from model.device import cpu_threads, resolve_device
 from model.field_model import ModelSettings, build_model, choose_scene_model, scene_ndc
@@ -423,7 +423,9 @@ def _camera_opt(config: Config, scene: Scene, train_idx: tuple[int, ...], state:
     if not config.refine_poses:
         return None
     poses = np.stack([scene.frames[i].world_from_cam for i in train_idx])
-    cameras = CameraOpt(poses, focal=config.refine_focal, schedule=CameraSchedule(lr=config.camera_lr)).to(device)
+    pivot = pivot_depths(poses, np.asarray(scene.aabb, dtype=np.float64).mean(0))
+    cameras = CameraOpt(poses, focal=config.refine_focal, schedule=CameraSchedule(lr=config.camera_lr), pivot=pivot)
+    cameras = cameras.to(device)
     if state is not None and state.get("camera_opt") is not None:
         cameras.load_dict(state["camera_opt"])
     return cameras
