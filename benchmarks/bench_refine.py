@@ -9,10 +9,12 @@ time budget: exact poses, perturbed poses, perturbed poses with `--refine-poses`
 Goals: median rotation error < 0.2 deg and PSNR within 0.5 dB of the exact-pose run.
 
 Appearance: the same scene, every training image multiplied by a random exposure gain in [0.6, 1.4] and a random
-per-channel colour cast in [0.85, 1.15] (clipped to [0, 1]; alpha kept), test images unchanged. Two runs of the
-same budget: without and with `--appearance`, each evaluated with the mean code (whole test views) and with
-NeRF-W's rule (`eval --appearance-rule half`: code fitted on the left half, right half scored; the run without
-codes is scored on the same right halves). Goal: >= 2 dB on the test views.
+per-channel colour cast in [0.85, 1.15] (clipped to [0, 1]; alpha kept). Two protocols (`--test-views`):
+"varied", NeRF-W's, where every test photo has its own gain and cast too (photos of a real capture do), and
+"clean", where the test photos are the clean renders (the clean scene bounds what any run can score). Per
+protocol two runs of the same budget: without and with `--appearance`, each evaluated with the mean code (whole
+test views) and with NeRF-W's rule (`eval --appearance-rule half`: code fitted on the left half, right half
+scored; the run without codes is scored on the same right halves). Goal: >= 2 dB on the test views.
 
 Run:  make bench-refine  (= .venv/bin/python -m benchmarks.bench_refine --out runs/bench/refine)
 """
@@ -59,22 +61,24 @@ def perturb_scene(src: Path, dst: Path, rot_deg: float, trans_frac: float, seed:
 
 
 def degrade_scene(src: Path, dst: Path, gain: tuple[float, float] = (0.6, 1.4), cast: float = 0.15,
-                  seed: int = 0) -> Path:  # fmt: skip
-    """Copy the scene folder src to dst with each training image times a random gain in `gain` and a random
-    per-channel cast in [1 - cast, 1 + cast] (clipped; alpha kept). Test images are left as they are."""
+                  seed: int = 0, splits: tuple[str, ...] = ("train",)) -> Path:  # fmt: skip
+    """Copy the scene folder src to dst with each image of `splits` times a random gain in `gain` and a random
+    per-channel cast in [1 - cast, 1 + cast] (clipped; alpha kept). Other images are left as they are. Each
+    split draws from its own generator, so the training images are the same whichever splits are degraded."""
     import imageio.v3 as iio
 
     if dst.exists():
         shutil.rmtree(dst)
     shutil.copytree(src, dst)
     scene = read_scene(dst)
-    rng = np.random.default_rng(seed)
-    for i in scene.split("train"):
-        path = scene.image_path(i)
-        img = load_image(path)
-        factor = rng.uniform(*gain) * rng.uniform(1 - cast, 1 + cast, size=3)
-        img[..., :3] = np.clip(img[..., :3] * factor, 0.0, 1.0)
-        iio.imwrite(path, np.round(img * 255).astype(np.uint8))
+    for k, split in enumerate(splits):
+        rng = np.random.default_rng(seed + 1000 * k if split != "train" else seed)
+        for i in scene.split(split):
+            path = scene.image_path(i)
+            img = load_image(path)
+            factor = rng.uniform(*gain) * rng.uniform(1 - cast, 1 + cast, size=3)
+            img[..., :3] = np.clip(img[..., :3] * factor, 0.0, 1.0)
+            iio.imwrite(path, np.round(img * 255).astype(np.uint8))
     return dst
 
 
@@ -116,15 +120,20 @@ def bench_poses(out: Path, seconds: float, size: int, views: int, rot_deg: float
     return res
 
 
-def bench_appearance(out: Path, seconds: float, size: int, views: int) -> dict:
+def bench_appearance(out: Path, seconds: float, size: int, views: int, test_views: str) -> dict:
+    """test_views: "varied" (NeRF-W's protocol: the test photos have their own exposure and cast, as photos of a
+    real capture do) or "clean" (test photos as rendered: the clean scene is the ceiling)."""
     clean = out / "scene"
     if not (clean / "transforms.json").is_file():
         nerfpipe("scene", f"{clean} --kind rgba --size {size} --views {views}")
-    varied = degrade_scene(clean, out / "scene_appearance")
-    res = {"without": _train_eval(varied, out / "appearance_off", seconds),
-           "with": _train_eval(varied, out / "appearance_on", seconds, "--appearance")}  # fmt: skip
+    splits = ("train", "test") if test_views == "varied" else ("train",)
+    tag = f"_{test_views}"
+    varied = degrade_scene(clean, out / f"scene_appearance{tag}", splits=splits)
+    res: dict = {"test_views": test_views,
+                 "without": _train_eval(varied, out / f"appearance_off{tag}", seconds),
+                 "with": _train_eval(varied, out / f"appearance_on{tag}", seconds, "--appearance")}  # fmt: skip
     res["gain_db"] = round(res["with"]["eval_psnr"] - res["without"]["eval_psnr"], 3)
-    for key, name in (("without", "appearance_off"), ("with", "appearance_on")):  # NeRF-W's rule, same runs
+    for key, name in (("without", f"appearance_off{tag}"), ("with", f"appearance_on{tag}")):  # NeRF-W's rule
         ev = nerfpipe("eval", f"{out / name} {out / name}/eval_half.json --appearance-rule half").result
         res[key]["eval_psnr_half_rule"] = round(ev["psnr"], 3)
     res["gain_db_half_rule"] = round(res["with"]["eval_psnr_half_rule"] - res["without"]["eval_psnr_half_rule"], 3)
@@ -148,6 +157,12 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--views", type=int, default=32)
     p.add_argument("--rot-deg", type=float, default=3.0)
     p.add_argument("--trans-frac", type=float, default=0.03)
+    p.add_argument(
+        "--test-views",
+        choices=["varied", "clean", "both"],
+        default="both",
+        help="appearance part: test photos with their own exposure and cast (NeRF-W), clean, or both",
+    )
     a = p.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
     BUDGET["args"] = f"--max-seconds {a.seconds}" if a.steps is None else f"--max-steps {a.steps} --max-seconds 1e6"
@@ -155,7 +170,8 @@ def main(argv: list[str] | None = None) -> dict:
     if a.part in ("poses", "both"):
         res["poses"] = bench_poses(a.out, a.seconds, a.size, a.views, a.rot_deg, a.trans_frac)
     if a.part in ("appearance", "both"):
-        res["appearance"] = bench_appearance(a.out, a.seconds, a.size, a.views)
+        for tv in ("varied", "clean") if a.test_views == "both" else (a.test_views,):
+            res[f"appearance_{tv}"] = bench_appearance(a.out, a.seconds, a.size, a.views, tv)
     (a.out / f"summary_{a.part}.json").write_text(json.dumps(res, indent=2))
     print(json.dumps(res, indent=2))
     return res

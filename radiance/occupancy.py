@@ -23,7 +23,10 @@ from torch import Tensor
 
 from radiance.aabb import as_aabb, ray_aabb_intersect
 
-__all__ = ["OccupancyGrid", "march_bounds", "march_rays", "march_rays_reference", "query_reference"]
+__all__ = ["OccupancyGrid", "march_bounds", "march_rays", "march_rays_reference", "query_reference", "occupied_span"]
+
+SPAN_FACTORS = (4, 1)
+"""`occupied_span`'s passes: coarse cells this many fine cells a side, each pass within the span of the last."""
 
 
 class OccupancyGrid(torch.nn.Module):
@@ -154,6 +157,81 @@ def query_reference(grid: OccupancyGrid, x: Tensor) -> Tensor:
         ijk = [min(max(math.floor((p[k] - lo[k]) / (hi[k] - lo[k]) * g), 0), g - 1) for k in range(3)]
         out.append(bool(grid.binary[ijk[0], ijk[1], ijk[2]]))
     return torch.tensor(out, dtype=torch.bool)
+
+
+def _coarse_dilated(binary: Tensor, factor: int) -> Tensor:
+    """[G, G, G] bool -> [Gc, Gc, Gc] bool, Gc = ceil(G / factor): a coarse cell is set when any fine cell of it
+    or of its 26 neighbours is (max-pool, then a 3 x 3 x 3 dilation)."""
+    x = binary[None, None].to(torch.float32)  # [1, 1, G, G, G]
+    x = torch.nn.functional.max_pool3d(x, factor, stride=factor, ceil_mode=True)
+    return torch.nn.functional.max_pool3d(x, 3, stride=1, padding=1)[0, 0] > 0
+
+
+@torch.no_grad()
+def occupied_span(
+    grid: OccupancyGrid,
+    rays_o: Tensor,  # [R, 3]
+    rays_d: Tensor,  # [R, 3] unit
+    t0: Tensor,  # [R]
+    t1: Tensor,  # [R]
+    factors: tuple[int, ...] = SPAN_FACTORS,
+) -> tuple[Tensor, Tensor]:
+    """A conservative span [first, last] [R], [R] of each ray's occupied points within [t0, t1]: every t in
+    [t0, t1] whose point `grid.query` calls occupied has first <= t <= last; first > last when there is none.
+
+    The ray is sampled every h (0.9 of the smallest coarse-cell side, `factor` fine cells) against the coarse
+    grid dilated by one cell (`_coarse_dilated`), samples outside the box clamped onto its border cells. An
+    occupied point is within h / 2 of a sample, hence at most one coarse cell from it on every axis, so that
+    sample is set; first / last are the first / last set sample -+ h / 2. Rays should be clipped to the box
+    first (`march_bounds`): beyond it the clamping only widens the span.
+    Costs about (t1 - t0) / h queries a ray, `factor` x fewer than marching at half a fine cell. With several
+    `factors` (coarse to fine) each pass samples only the span the last one found, a conservative span itself."""
+    if rays_o.ndim != 2 or rays_o.shape != rays_d.shape or t0.shape != rays_o.shape[:1] or t1.shape != t0.shape:
+        raise ValueError(f"expected rays [R, 3] and t0, t1 [R], got {tuple(rays_o.shape)}, {tuple(rays_d.shape)}, "
+                         f"{tuple(t0.shape)}, {tuple(t1.shape)}")  # fmt: skip
+    if not factors or min(factors) < 1:
+        raise ValueError(f"expected factors >= 1, got {factors}")
+    first, last = t0, t1
+    for factor in factors:
+        first, last = _span_pass(grid, rays_o, rays_d, first, last, factor)
+    return first, last
+
+
+def _coarse_cached(grid: OccupancyGrid, factor: int) -> Tensor:
+    """`_coarse_dilated(grid.binary, factor)`, kept until the grid's binary changes (its version counter)."""
+    cache = grid.__dict__.setdefault("_span_cache", {})
+    key = (factor, grid.binary._version, grid.binary.data_ptr(), grid.binary.device)
+    if key not in cache:
+        cache.clear() if len(cache) > 4 else None
+        cache[key] = _coarse_dilated(grid.binary, factor)
+    return cache[key]
+
+
+def _span_pass(grid, rays_o, rays_d, t0, t1, factor) -> tuple[Tensor, Tensor]:
+    """One pass of `occupied_span` at coarse cells `factor` fine cells a side, on the rays whose span is open."""
+    coarse = _coarse_cached(grid, factor)
+    gc = coarse.shape[0]
+    lo, hi = grid.aabb[0].to(rays_o), grid.aabb[1].to(rays_o)
+    h = 0.9 * float((grid.cell_size * factor).min())
+    first = torch.full_like(t0, math.inf)
+    last = torch.full_like(t0, -math.inf)
+    rows = torch.nonzero(t1 > t0)[:, 0]  # [A]
+    if rows.numel() == 0:
+        return first, last
+    a, length = t0[rows], t1[rows] - t0[rows]  # [A]
+    n = int(math.ceil(float(length.max()) / h)) + 1
+    chunk = max(1, (1 << 22) // n)  # rays per pass: about 4 M points
+    big = torch.tensor(math.inf, dtype=t0.dtype, device=t0.device)
+    for i in range(0, rows.numel(), chunk):
+        r = rows[i : i + chunk]
+        t = torch.minimum(a[i : i + chunk, None] + h * torch.arange(n, dtype=t0.dtype, device=t0.device), t1[r, None])
+        x = rays_o[r, None] + rays_d[r, None] * t[..., None]  # [C, n, 3]
+        fine = torch.floor((x - lo) / (hi - lo) * grid.resolution).long().clamp(0, grid.resolution - 1)
+        ijk = fine // factor
+        hit = coarse.view(-1)[(ijk[..., 0] * gc + ijk[..., 1]) * gc + ijk[..., 2]]  # [C, n]
+        first[r] = torch.maximum(torch.where(hit, t, big).amin(dim=1) - 0.5 * h, t0[r])
+        last[r] = torch.minimum(torch.where(hit, t, -big).amax(dim=1) + 0.5 * h, t1[r])
+    return first, last
 
 
 def march_bounds(grid: OccupancyGrid, rays_o: Tensor, rays_d: Tensor, near, far) -> tuple[Tensor, Tensor]:

@@ -20,6 +20,7 @@ Conventions:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -39,7 +40,7 @@ from radiance.compositing import (
     render_weights,
 )
 from radiance.contraction import Contraction, contraction_chord_scale, march_contracted, t_of_s, warped_range
-from radiance.occupancy import OccupancyGrid, march_bounds, march_rays
+from radiance.occupancy import OccupancyGrid, march_bounds, march_rays, occupied_span
 from radiance.safe import safe_div
 from radiance.samplers import resample_intervals, stratified_intervals
 
@@ -273,7 +274,9 @@ def render_marched(
 class _Steps:
     """Uniform steps of a march, per ray: u = u0 + k step while u < u_end (the last step ends at u_end); u is t
     (box) or the warped distance s (contracted). `warp(u [A, S], rows [A]) -> t`, `point(x [M, 3]) -> field
-    and occupancy position`, `scale(rows [M], t0 [M], t1 [M]) -> field density to world density` (or None)."""
+    and occupancy position`, `scale(rows [M], t0 [M], t1 [M]) -> field density to world density` (or None).
+    `k_first`, `k_stop` [R] (float, whole numbers): only steps k_first <= k < k_stop are taken, the others being
+    known to be empty (`_skip_empty`); u is still u0 + k step, so the steps taken are the plain twin's."""
 
     u0: Tensor  # [R]
     u_end: Tensor  # [R]
@@ -281,6 +284,8 @@ class _Steps:
     warp: Callable[[Tensor, Tensor], Tensor]
     point: Callable[[Tensor], Tensor]
     scale: Callable[[Tensor, Tensor, Tensor], Tensor] | None = None
+    k_first: Tensor | None = None  # [R]
+    k_stop: Tensor | None = None  # [R]
 
 
 def _box_steps(rays_o, rays_d, grid, near, far, step_size) -> _Steps:
@@ -293,6 +298,16 @@ def _box_steps(rays_o, rays_d, grid, near, far, step_size) -> _Steps:
         t_near, t_far = ray_aabb_segment(rays_o, rays_d, box, near_t, far_t)
     t0, t1 = march_bounds(grid, rays_o, rays_d, t_near, torch.maximum(t_far, t_near))
     return _Steps(t0, t1, step_size, lambda u, rows: u, lambda x: x)
+
+
+def _skip_empty(steps: _Steps, grid: OccupancyGrid, rays_o: Tensor, rays_d: Tensor) -> _Steps:
+    """Box steps limited to each ray's `occupied_span`: the steps before the span's first step and after its last
+    have their midpoints in empty cells (no density, no weight), so leaving them out changes nothing."""
+    first, last = occupied_span(grid, rays_o, rays_d, steps.u0, steps.u_end)  # [R]
+    k_first = torch.floor((first - steps.u0) / steps.step).clamp(min=0)  # last step starting at or before first
+    k_stop = torch.floor((last - steps.u0) / steps.step) + 1  # one past the last step starting at or before last
+    k_stop = torch.where(last >= first, k_stop, k_first)  # nothing occupied: no steps
+    return dataclasses.replace(steps, k_first=k_first, k_stop=k_stop)
 
 
 def _contracted_steps(rays_o, rays_d, contraction, near, step_size) -> _Steps:
@@ -320,16 +335,18 @@ def _march_terminating(
     tau, acc, depth = (torch.zeros(n, **like) for _ in range(3))  # [R] optical depth, sum w, sum w t
     median = torch.full((n,), math.inf, **like) if with_median else None
     log_t_min = -math.log(min_transmittance) if min_transmittance > 0 else math.inf
-    alive = torch.nonzero(steps.u0 < steps.u_end)[:, 0]  # [A]
+    k_first = steps.k_first if steps.k_first is not None else torch.zeros(n, **like)  # [R]
+    k_stop = steps.k_stop if steps.k_stop is not None else torch.full((n,), math.inf, **like)  # [R]
+    alive = torch.nonzero((steps.u0 + k_first * steps.step < steps.u_end) & (k_first < k_stop))[:, 0]  # [A]
     picks: list[tuple[Tensor, Tensor, Tensor]] = []  # colour candidates: rows, field points, weights
     n_samples, k0 = 0, 0
     while alive.numel():
-        k = torch.arange(k0, k0 + segment, **like)  # [S]
+        k = k_first[alive, None] + torch.arange(k0, k0 + segment, **like)  # [A, S]
         u_end = steps.u_end[alive, None]  # [A, 1]
         u_a = steps.u0[alive, None] + k * steps.step  # [A, S]
         u_b = torch.minimum(u_a + steps.step, u_end)
         t0, t1 = steps.warp(u_a, alive), steps.warp(u_b, alive)  # [A, S]
-        valid = u_a < u_end  # [A, S]
+        valid = (u_a < u_end) & (k < k_stop[alive, None])  # [A, S]
         t_mid = torch.where(valid, 0.5 * (t0 + t1), 0.0)  # steps past the end: no inf t (0 x inf in the depth)
         x = steps.point((rays_o[alive, None] + rays_d[alive, None] * t_mid[..., None]).reshape(-1, 3))  # [A S, 3]
         occ = torch.nonzero(valid.reshape(-1) & grid.query(x))[:, 0]  # [M] flat indices
@@ -358,7 +375,8 @@ def _march_terminating(
                 pick = torch.nonzero(w.reshape(-1) > color_threshold)[:, 0]
                 picks.append((alive[pick // segment], x[pick], w.reshape(-1)[pick]))
         k0 += segment
-        nxt = steps.u0[alive] + float(k0) * steps.step < steps.u_end[alive]
+        k_next = k_first[alive] + float(k0)
+        nxt = (steps.u0[alive] + k_next * steps.step < steps.u_end[alive]) & (k_next < k_stop[alive])
         alive = alive[nxt & (tau[alive] <= log_t_min)]  # T = exp(-tau) >= min_transmittance
     out = {"acc": acc, "depth": safe_div(depth, acc), "samples": n_samples}
     if median is not None:
@@ -399,7 +417,7 @@ def render_marched_terminating(
     outputs of `render_marched` (acc, depth, rgb when rgb_fn, depth_median with_median) and `samples`, the number
     of occupied samples whose density was evaluated; no per-sample outputs."""
     _check_rays(rays_o, rays_d)
-    steps = _box_steps(rays_o, rays_d, grid, near, far, step_size)
+    steps = _skip_empty(_box_steps(rays_o, rays_d, grid, near, far, step_size), grid, rays_o, rays_d)
     return _march_terminating(rays_o, rays_d, steps, grid, sigma_fn, rgb_fn, background=background,
                               color_threshold=color_threshold, color_per_ray=color_per_ray,
                               min_transmittance=min_transmittance, segment=segment,

@@ -5,7 +5,14 @@ import math
 import pytest
 import torch
 
-from radiance.occupancy import OccupancyGrid, march_rays, march_rays_reference, query_reference
+from radiance.occupancy import (
+    OccupancyGrid,
+    march_bounds,
+    march_rays,
+    march_rays_reference,
+    occupied_span,
+    query_reference,
+)
 from radiance.render import OccupancySampler, render_rays
 
 RADIUS, SIGMA = 0.6, 10.0
@@ -145,3 +152,32 @@ def test_empty_cells_follow_the_opacity_of_one_training_step(tmp_path):
         model.grid.density[0, 0, 0] = opacity / step
         model.grid.update(lambda x: model.grid.density.new_zeros(x.shape[0]), step=1, every=1)  # decay only
         assert bool(model.grid.binary[0, 0, 0]) == occupied
+
+
+@pytest.mark.parametrize("factors", [(1,), (3,), (8,), (4, 1)])
+def test_occupied_span_holds_every_occupied_point(factors):
+    """Every point along a ray that `query` calls occupied (dense sampling, 1/50 of a cell) lies in the span;
+    rays that miss all occupied cells get an empty span; sparse grids give spans much shorter than the box."""
+    gen = torch.Generator().manual_seed(sum(factors))
+    g = OccupancyGrid([-1.0, -0.5, -2.0, 1.0, 1.5, 0.0], resolution=24)
+    g.binary.copy_(torch.rand(24, 24, 24, generator=gen) < 0.0005)  # a few scattered cells
+    g.binary[10:13, 14:17, 6:9] = True  # and a compact object
+    n = 400
+    o = torch.randn(n, 3, generator=gen) * 3
+    target = g.aabb[0] + torch.rand(n, 3, generator=gen) * (g.aabb[1] - g.aabb[0])
+    d = torch.nn.functional.normalize(target - o, dim=1)
+    t0, t1 = march_bounds(g, o, d, 0.0, 100.0)  # clipped to the box, as the renderer does
+    first, last = occupied_span(g, o, d, t0, t1, factors)
+    t = t0[:, None] + (t1 - t0)[:, None] * torch.linspace(0, 1, 20000)  # [n, 20000]
+    occ = g.query((o[:, None] + d[:, None] * t[..., None]).reshape(-1, 3)).reshape(n, -1)
+    inf = torch.tensor(math.inf)
+    lo, hi = torch.where(occ, t, inf).amin(1), torch.where(occ, t, -inf).amax(1)
+    hit = occ.any(1)
+    assert hit.sum() > 10 and (~hit).sum() > 10
+    assert bool((first[hit] <= lo[hit]).all()) and bool((last[hit] >= hi[hit]).all())
+    assert bool((first >= t0).all()) and bool((last <= t1).all())
+    span = (last - first).clamp(min=0)
+    if min(factors) <= 3:  # coarse cells small against the box: misses skip most of it (factor 8: 3 x 3 x 3 cells)
+        assert float(span[~hit].mean()) < 0.5 * float((t1 - t0)[~hit].mean())
+    with pytest.raises(ValueError, match="expected rays"):
+        occupied_span(g, o, d, t0[:3], t1, factors)
