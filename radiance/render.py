@@ -322,13 +322,16 @@ def _contracted_steps(rays_o, rays_d, contraction, near, step_size) -> _Steps:
 
 def _march_terminating(
     rays_o, rays_d, steps: _Steps, grid, sigma_fn, rgb_fn, *, background, color_threshold, color_per_ray,
-    min_transmittance, segment, with_median,
+    min_transmittance, segment, with_median, color_keep=None,
 ) -> dict:  # fmt: skip
     """Front-to-back marching in slabs of `segment` steps over the rays still alive (transmittance before the
     slab >= min_transmittance, steps left): occupancy, density on occupied steps, then the slab's weights from
     the optical depth carried over; acc, depth and the median accumulate per ray, colour candidates are kept.
     Colour is evaluated once at the end, chosen by `_shade_packed`'s rule (weight above color_threshold, at most
-    color_per_ray x R of the largest), so with min_transmittance = 0 the result is the plain twin's."""
+    color_per_ray x R of the largest), so with min_transmittance = 0 the result is the plain twin's.
+    color_keep (the viewer's coarse preview): of those, colour only the samples whose weight is >= color_keep and
+    each ray's largest, and scale each ray's colour by acc / (the coloured samples' weight), so that leaving out
+    the faint samples does not darken the ray."""
     if not 0 <= min_transmittance < 1 or segment < 1:
         raise ValueError(f"expected min_transmittance in [0, 1) and segment >= 1, got {min_transmittance}, {segment}")
     n, like = rays_o.shape[0], dict(dtype=rays_o.dtype, device=rays_o.device)
@@ -386,8 +389,13 @@ def _march_terminating(
             picks.append((torch.zeros(0, dtype=torch.long, device=acc.device), acc.new_zeros(0, 3), acc.new_zeros(0)))
         rows, x, w = (torch.cat([p[i] for p in picks]) for i in range(3))
         keep = _colour_samples(w, n, color_threshold, color_per_ray, 0.0)  # the twin's rule (the picks pass it)
+        if color_keep is not None:  # fewer: above color_keep or the ray's largest weight
+            largest = torch.zeros(n, **like).scatter_reduce(0, rows, w, "amax")  # [R]
+            keep = (keep & (w >= color_keep)) | (w >= largest[rows])
         rows, x, w = rows[keep], x[keep], w[keep]
         rgb = accumulate(w, rgb_fn(x, rays_d[rows]), rows, n) if rows.numel() else acc.new_zeros(n, 3)
+        if color_keep is not None:  # the coloured samples stand for all of the ray's weight
+            rgb = rgb * safe_div(acc, accumulate(w, None, rows, n))[:, None]
         out["rgb"] = rgb if background is None else rgb + (1 - acc)[:, None] * background.to(rgb)
     return out
 
@@ -409,6 +417,7 @@ def render_marched_terminating(
     min_transmittance: float = 1e-3,
     segment: int = 32,
     with_median: bool = False,
+    color_keep: float | None = None,
 ) -> dict:
     """`render_marched` for inference, with early ray termination: the same steps (occupancy marching at
     `step_size`, no jitter), taken front to back in slabs of `segment` steps over the rays whose transmittance
@@ -421,7 +430,7 @@ def render_marched_terminating(
     return _march_terminating(rays_o, rays_d, steps, grid, sigma_fn, rgb_fn, background=background,
                               color_threshold=color_threshold, color_per_ray=color_per_ray,
                               min_transmittance=min_transmittance, segment=segment,
-                              with_median=with_median)  # fmt: skip
+                              with_median=with_median, color_keep=color_keep)  # fmt: skip
 
 
 @torch.no_grad()
@@ -441,6 +450,7 @@ def render_contracted_terminating(
     min_transmittance: float = 1e-3,
     segment: int = 32,
     with_median: bool = False,
+    color_keep: float | None = None,
 ) -> dict:
     """`render_contracted` for inference with early ray termination, as `render_marched_terminating` is for
     `render_marched`: the same warped steps (no jitter), slab by slab while the transmittance is >=
@@ -450,7 +460,7 @@ def render_contracted_terminating(
     return _march_terminating(rays_o, rays_d, steps, grid, sigma_fn, rgb_fn, background=background,
                               color_threshold=color_threshold, color_per_ray=color_per_ray,
                               min_transmittance=min_transmittance, segment=segment,
-                              with_median=with_median)  # fmt: skip
+                              with_median=with_median, color_keep=color_keep)  # fmt: skip
 
 
 def render_contracted(

@@ -252,6 +252,33 @@ def test_terminating_march_matches_its_plain_twin():
         render_marched_terminating(o, d, sigma_fn=sigma, min_transmittance=1.0, **kw)
 
 
+def test_coarse_colour_rule_keeps_the_full_weight():
+    """color_keep (the viewer's coarse preview): a constant-colour field keeps its colour exactly (the coloured
+    samples stand for the ray's whole weight; faint rays keep their largest sample) with far fewer colour
+    queries, where the same threshold as a plain colour threshold darkens the rays."""
+    o, d = blob_rays(48, seed=4)
+    grid = blob_grid()
+    bg = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
+    colour = torch.tensor([0.9, 0.5, 0.2], dtype=torch.float64)
+    queried = []
+
+    def rgb(x, d):
+        queried.append(x.shape[0])
+        return colour.expand(x.shape[0], 3)
+
+    kw = dict(grid=grid, sigma_fn=lambda x: 20 * blob_sigma(x), rgb_fn=rgb, near=0.5, far=5.0, step_size=0.004,
+              background=bg)  # fmt: skip
+    exact = render_marched_terminating(o, d, min_transmittance=0.0, **kw)
+    coarse = render_marched_terminating(o, d, min_transmittance=0.0, color_keep=0.02, **kw)
+    dark = render_marched_terminating(o, d, min_transmittance=0.0, color_threshold=0.02, **kw)
+    want = exact["acc"][:, None] * colour + (1 - exact["acc"][:, None]) * bg
+    hit = exact["acc"] > 1e-3
+    assert (exact["acc"][hit] < 0.5).any()  # faint rays too
+    torch.testing.assert_close(coarse["rgb"][hit], want[hit], atol=1e-9, rtol=0)
+    assert float((want - dark["rgb"]).abs().max()) > 0.05
+    assert queried[1] < 0.5 * queried[0]
+
+
 def test_colour_samples_threshold_budget_and_floor():
     """Which samples get a colour: above the threshold, at most per_ray x R of the largest, and at least
     min_per_ray x R of the largest when fewer pass (a faint batch at initialisation still gets a gradient)."""
