@@ -98,7 +98,8 @@ def bench_poses(out: Path, seconds: float, size: int, views: int, rot_deg: float
     from radiance.align import pose_errors
 
     exact = out / "scene"
-    nerfpipe("scene", f"{exact} --kind rgba --size {size} --views {views}")
+    if not (exact / "transforms.json").is_file():
+        nerfpipe("scene", f"{exact} --kind rgba --size {size} --views {views}")
     noisy = perturb_scene(exact, out / "scene_perturbed", rot_deg, trans_frac)
     truth = read_scene(exact)
     train_idx = truth.split("train")
