@@ -87,7 +87,7 @@ BUDGET = {"args": "--max-seconds 120"}
 
 
 def _train_eval(scene: Path, run: Path, seconds: float, extra: str = "") -> dict:
-    out = nerfpipe("train", f"{scene} {run} {BUDGET['args']} --threads 1 {extra}".strip())
+    out = nerfpipe("train", f"{scene} {run} {BUDGET['args']} --threads 1 --overwrite {extra}".strip())
     ev = nerfpipe("eval", f"{run} {run}/eval.json").result
     return {"steps": out.steps, "train_seconds": round(out.seconds, 1), "eval_psnr": round(ev["psnr"], 3),
             "eval_ssim": round(ev["ssim"], 4), "test_poses": ev.get("test_poses")}  # fmt: skip

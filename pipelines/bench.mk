@@ -1,7 +1,7 @@
 # Benchmarks (not tests): they read ../shared/data and print figures. Speed goals live here.
 BENCH_OUT ?= runs/bench
-.PHONY: bench bench-poses bench-train bench-ndc bench-mesh bench-turntable bench-refine
-bench: bench-poses bench-train bench-ndc bench-mesh bench-turntable bench-refine
+.PHONY: bench bench-poses bench-train bench-ndc bench-mesh bench-turntable bench-refine bench-view
+bench: bench-poses bench-train bench-ndc bench-mesh bench-turntable bench-refine bench-view
 
 bench-poses: $(INSTALLED)
 	$(VENV)/bin/python -m benchmarks.bench_poses --out $(BENCH_OUT)/poses
@@ -31,3 +31,9 @@ bench-turntable: $(INSTALLED)
 # issue 17: train --refine-poses on 3 deg / 3 % perturbed cameras, --appearance on per-view gains and casts (120 s runs)
 bench-refine: $(INSTALLED)
 	$(VENV)/bin/python -m benchmarks.bench_refine --out $(BENCH_OUT)/refine
+
+# issue 16: the viewer's 256 px preview (coarse / refined) against render's path, on lego_400's run from bench-train
+VIEW_RUN ?= $(BENCH_OUT)/train/lego_400/fast
+bench-view: $(INSTALLED)
+	@test -f $(VIEW_RUN)/checkpoint.pt || { echo "bench-view: no trained run at $(VIEW_RUN) (make bench-train makes it, or VIEW_RUN=DIR)"; exit 2; }
+	$(VENV)/bin/python -m benchmarks.bench_view $(VIEW_RUN)

@@ -86,7 +86,8 @@ def test_corrections_equal_rays_of_the_refined_cameras():
     poses = np.stack([_camera(s) for s in range(3)])
     cams = CameraOpt(poses, focal=True, pivot=np.array([0.0, 2.0, 5.0])).double()
     with torch.no_grad():
-        cams.delta.copy_(torch.randn(3, 6, generator=torch.Generator().manual_seed(1), dtype=torch.float64) * 0.1)
+        cams.load_dict({"delta": torch.randn(3, 6, generator=torch.Generator().manual_seed(1)).double() * 0.1,
+                        "pivot": cams.pivot, "log_focal": cams.log_focal.detach()})  # fmt: skip
         cams.log_focal.fill_(math.log(1.1))
     refined = cams.refined()
     scaled = Intrinsics(w=8, h=6, fx=7.7, fy=7.7, cx=4.0, cy=3.0)
@@ -203,12 +204,12 @@ def test_perturbed_poses_are_recovered(tiny, tmp_path):
     truth = np.stack([exact.frames[i].world_from_cam for i in idx])
     before = pose_errors(np.stack([perturbed.frames[i].world_from_cam for i in idx]), truth).median_rotation_deg
     run = tmp_path / "run"
-    out = train.run(tiny_config(tiny[1], run, max_steps=300, max_seconds=1e5, batch_rays=512, refine_poses=True,
-                            camera_lr=3e-3, log_every=100))  # fmt: skip
+    out = train.run(tiny_config(tiny[1], run, max_steps=600, max_seconds=1e5, batch_rays=512, refine_poses=True,
+                            log_every=100))  # fmt: skip
     trained = load_trained(run, "cpu")
     after = pose_errors(np.stack([trained.scene.frames[i].world_from_cam for i in idx]), truth).median_rotation_deg
     assert 2.5 < before < 3.5  # 3 degrees each, a little of it absorbed by the alignment
-    assert after < 0.7 * before, (before, after)  # 3.07 -> 1.70 deg after 191 steps at lr 3e-3
+    assert after < 0.7 * before, (before, after)  # 3.07 -> 1.49 deg after 600 steps (pivoted corrections)
     written = json.loads((run / "transforms.json").read_text())  # image paths relative to the run directory
     assert len(written["frames"]) == len(exact.frames)
     assert (run / written["frames"][0]["file_path"]).resolve() == perturbed.image_path(0)
