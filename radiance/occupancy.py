@@ -209,12 +209,11 @@ def occupied_span(
 
 def _coarse_cached(grid: OccupancyGrid, factor: int) -> Tensor:
     """`_coarse_dilated(grid.binary, factor)`, kept until the grid's binary changes (its version counter)."""
-    cache = grid.__dict__.setdefault("_span_cache", {})
-    key = (factor, grid.binary._version, grid.binary.data_ptr(), grid.binary.device)
-    if key not in cache:
-        cache.clear() if len(cache) > 4 else None
-        cache[key] = _coarse_dilated(grid.binary, factor)
-    return cache[key]
+    cache = grid.__dict__.setdefault("_span_cache", {})  # factor -> (binary's key, coarse grid)
+    key = (grid.binary._version, grid.binary.data_ptr(), grid.binary.shape, grid.binary.device)
+    if factor not in cache or cache[factor][0] != key:
+        cache[factor] = (key, _coarse_dilated(grid.binary, factor))
+    return cache[factor][1]
 
 
 def _span_pass(grid, rays_o, rays_d, t0, t1, factor) -> tuple[Tensor, Tensor]:

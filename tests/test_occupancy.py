@@ -181,3 +181,6 @@ def test_occupied_span_holds_every_occupied_point(factors):
         assert float(span[~hit].mean()) < 0.5 * float((t1 - t0)[~hit].mean())
     with pytest.raises(ValueError, match="expected rays"):
         occupied_span(g, o, d, t0[:3], t1, factors)
+    g.binary.copy_(torch.zeros_like(g.binary))  # the cached coarse grids follow the grid's updates
+    first, last = occupied_span(g, o, d, t0, t1, factors)
+    assert bool((first > last).all())
