@@ -114,8 +114,8 @@ def _render_fast(
     its early-terminating twin otherwise."""
     if infer is not None:
         out = render_marched_terminating(
-            rays_o, rays_d, grid=grid, sigma_fn=field.density_inference, rgb_fn=_rgb_fn(field, True), near=near,
-            far=far, step_size=step_size * infer.step_scale, background=background, with_median=with_median,
+            rays_o, rays_d, grid=grid, sigma_fn=field.density_inference, rgb_fn=_rgb_fn(field), near=near, far=far,
+            step_size=step_size * infer.step_scale, background=background, with_median=with_median,
             min_transmittance=_min_transmittance(infer, rays_o), **_colour_rule(infer),
         )  # fmt: skip
         return {**out, "samples": torch.tensor(float(out["samples"]))}
@@ -135,13 +135,11 @@ def _min_transmittance(infer: Inference, rays_o: Tensor) -> float:
     return eps(rays_o.dtype) if infer.min_transmittance is None else infer.min_transmittance
 
 
-def _rgb_fn(field: TensoRF, inference: bool = False):
-    """The field's colour as the renderers' rgb_fn (None for a density-only field); `inference`: its no-grad
-    `color_inference`."""
+def _rgb_fn(field: TensoRF):
+    """The field's colour as the renderers' rgb_fn (None for a density-only field)."""
     if not field.has_color:
         return None
-    color = field.color_inference if inference else field.color
-    return lambda x, d: color(x, d if field.view_dependent else None)
+    return lambda x, d: field.color(x, d if field.view_dependent else None)
 
 
 def _render_fast_contracted(
@@ -162,9 +160,9 @@ def _render_fast_contracted(
     early-terminating twin otherwise."""
     if infer is not None:
         out = render_contracted_terminating(
-            rays_o, rays_d, grid=grid, contraction=contraction, sigma_fn=field.density_inference,
-            rgb_fn=_rgb_fn(field, True), near=near, step_size=step_size * infer.step_scale, background=background,
-            with_median=with_median, min_transmittance=_min_transmittance(infer, rays_o), **_colour_rule(infer),
+            rays_o, rays_d, grid=grid, contraction=contraction, sigma_fn=field.density_inference, rgb_fn=_rgb_fn(field),
+            near=near, step_size=step_size * infer.step_scale, background=background, with_median=with_median,
+            min_transmittance=_min_transmittance(infer, rays_o), **_colour_rule(infer),
         )  # fmt: skip
         return {**out, "samples": torch.tensor(float(out["samples"]))}
     out = render_contracted(

@@ -162,7 +162,6 @@ class TensoRF(Field):
         self.density_shift, self.density_scale, self.init_std = density_shift, density_scale, init_std
         r = self.resolution
         self._volume: tuple | None = None  # density_volume's cache: (factors' key, volume)
-        self._app_last: tuple | None = None  # color_inference's cache: (planes' key, channels-last planes)
         self.density_planes = nn.Parameter(init_std * torch.randn(3, density_rank, r, r))
         self.density_lines = nn.Parameter(init_std * torch.randn(3, density_rank, r, 1))
         if has_color:
@@ -226,30 +225,7 @@ class TensoRF(Field):
         if not self.has_color:
             raise ValueError("this field is density-only (has_color=False)")
         xn = self.normalize(x).clamp(-1, 1)
-        return self._color_head(_vm_features(self.app_planes, self.app_lines, xn), x, d)
-
-    @torch.no_grad()
-    def color_inference(self, x: Tensor, d: Tensor | None) -> Tensor:
-        """`color` (no gradient) with the appearance planes in channels-last layout, cached until they change:
-        grid_sample's CPU forward reads a texel's channels contiguously then, about 4x faster at 48 channels
-        (for training, whose backward is slower that way, `color` keeps the planes as they are)."""
-        check_points(x)
-        if not self.has_color:
-            raise ValueError("this field is density-only (has_color=False)")
-        planes = self.app_planes
-        key = (planes.data_ptr(), planes._version, planes.shape, planes.dtype, planes.device)
-        if self._app_last is None or self._app_last[0] != key:
-            self._app_last = (key, planes.detach().contiguous(memory_format=torch.channels_last))
-        xn = self.normalize(x).clamp(-1, 1)
-        if xn.shape[0] == 0:
-            return x.new_zeros(0, 3)
-        plane_uv, line_uv = _vm_inputs(xn)
-        p = F.grid_sample(self._app_last[1], plane_uv[:, :, None, :], mode="bilinear", align_corners=True)
-        ln = F.grid_sample(self.app_lines.detach(), line_uv[:, :, None, :], mode="bilinear", align_corners=True)
-        return self._color_head((p * ln)[..., 0], x, d)
-
-    def _color_head(self, f: Tensor, x: Tensor, d: Tensor | None) -> Tensor:
-        """Appearance features f [3, Ra, N] at points x [N, 3], directions d -> rgb [N, 3]."""
+        f = _vm_features(self.app_planes, self.app_lines, xn)  # [3, Ra, N]
         feat = self.basis(f.permute(2, 0, 1).reshape(x.shape[0], 3 * self.app_rank))  # [N, app_dim]
         parts = [feat]
         if self.feat_freqs:
