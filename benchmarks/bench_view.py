@@ -1,11 +1,11 @@
 """Viewer render speed: rays/s of `render`'s path (`model.render_view`) against the viewer's preview
 (`model.preview.render_preview`, refined and coarse) on evenly spaced test cameras of a trained run, at 256 px.
 
-    .venv/bin/python -m benchmarks.bench_view RUN_DIR [--size 256] [--threads 2] [--views 8] [--repeats 2]
+    .venv/bin/python -m benchmarks.bench_view RUN_DIR [--size 256] [--threads 2] [--views 8] [--repeats 2] [--rounds 2]
 
-Each kind renders every chosen view `repeats` times, the kinds taking turns view by view (so that a machine whose
-speed drifts slows them alike). Prints per kind the median and largest seconds per frame and rays/s at the median;
-then how far the previews are from `render_view` (largest rgb difference of the refined preview: early ray
+Each kind renders every chosen view `repeats` times in a row, as the viewer does (a stream of coarse frames while
+the camera moves); the kinds take turns `rounds` times, so that a machine whose speed drifts slows them alike.
+Prints per kind the median and largest seconds per frame and rays/s at the median; then how far the previews are from `render_view` (largest rgb difference of the refined preview: early ray
 termination, at most about 1e-3) and the coarse preview's PSNR against the refined one. Goal (issue 16): the
 coarse 256 px preview in <= 0.5 s on 2 CPU cores.
 """
@@ -31,6 +31,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--views", type=int, default=8)
     ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--rounds", type=int, default=2)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     cpu = torch.device("cpu")
@@ -47,17 +48,18 @@ def main(argv: list[str] | None = None) -> dict:
     }
     times: dict[str, list[float]] = {name: [] for name in kinds}
     images: dict[str, dict[int, np.ndarray]] = {name: {} for name in kinds}
-    for k in views:
-        for _ in range(args.repeats):
-            for name, fn in kinds.items():
-                t0 = time.perf_counter()
-                images[name][k] = fn(k)
-                times[name].append(time.perf_counter() - t0)
+    for _ in range(args.rounds):
+        for name, fn in kinds.items():
+            for k in views:
+                for _ in range(args.repeats):
+                    t0 = time.perf_counter()
+                    images[name][k] = fn(k)
+                    times[name].append(time.perf_counter() - t0)
     res: dict = {"size": [intr.w, intr.h], "views": views, "threads": args.threads}
     for name, ts in times.items():
         med = statistics.median(ts)
         res[name] = {"median_s": round(med, 3), "max_s": round(max(ts), 3), "rays_per_s": round(rays / med)}
-        print(f"{name}: {intr.w}x{intr.h}, {len(views)} views x {args.repeats}: median {med:.3f} s "
+        print(f"{name}: {intr.w}x{intr.h}, {len(ts)} frames: median {med:.3f} s "
               f"(largest {max(ts):.3f} s), {rays / med:.0f} rays/s", flush=True)  # fmt: skip
     ref, fine, coarse = (images[name] for name in kinds)
     diff = max(float(np.abs(fine[k] - ref[k]).max()) for k in views)
