@@ -5,9 +5,10 @@
 
 Each kind renders every chosen view `repeats` times in a row, as the viewer does (a stream of coarse frames while
 the camera moves); the kinds take turns `rounds` times, so that a machine whose speed drifts slows them alike.
-Prints per kind the median and largest seconds per frame and rays/s at the median; then how far the previews are from `render_view` (largest rgb difference of the refined preview: early ray
-termination, at most about 1e-3) and the coarse preview's PSNR against the refined one. Goal (issue 16): the
-coarse 256 px preview in <= 0.5 s on 2 CPU cores.
+Prints per kind the median and largest seconds per frame and rays/s at the median; then how far the previews are
+from `render_view` (largest rgb difference of the refined preview: early ray termination, at most about 1e-3) and
+the coarse preview's PSNR against the refined one. Goal (issue 16): the coarse 256 px preview in <= 0.5 s on 2 CPU
+cores.
 """
 
 from __future__ import annotations
