@@ -2,6 +2,7 @@
 (`model.preview.render_preview`, refined and coarse) on evenly spaced test cameras of a trained run, at 256 px.
 
     .venv/bin/python -m benchmarks.bench_view RUN_DIR [--size 256] [--threads 2] [--views 8] [--repeats 2] [--rounds 2]
+        [--device auto|cpu|cuda]      (issue 16's GPU goal: --device cuda --size 800, >= 30 frames/s coarse)
 
 Each kind renders every chosen view `repeats` times in a row, as the viewer does (a stream of coarse frames while
 the camera moves); the kinds take turns `rounds` times, so that a machine whose speed drifts slows them alike.
@@ -20,7 +21,7 @@ import time
 import numpy as np
 import torch
 
-from model import load_trained, render_view
+from model import load_trained, render_view, resolve_device
 from model.cameras import camera_path
 from model.preview import render_preview
 
@@ -33,17 +34,18 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--views", type=int, default=8)
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--device", default="cpu", help="auto, cpu, cuda, cuda:N")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
-    cpu = torch.device("cpu")
-    trained = load_trained(args.run_dir, cpu)
+    dev = resolve_device(args.device)
+    trained = load_trained(args.run_dir, dev)
     cams = camera_path(trained.scene, "test")
     intr = cams.intrinsics[0].scaled(args.size / max(cams.intrinsics[0].w, cams.intrinsics[0].h))
     views = np.unique(np.linspace(0, len(cams.names) - 1, args.views).round().astype(int)).tolist()
-    render_view(trained, intr.scaled(0.1), cams.world_from_cams[0], cpu)  # warm-up (caches, allocator)
+    render_view(trained, intr.scaled(0.1), cams.world_from_cams[0], dev)  # warm-up (caches, allocator)
     rays = intr.w * intr.h
     kinds = {
-        "render_view (render stage)": lambda k: render_view(trained, intr, cams.world_from_cams[k], cpu)["rgb"],
+        "render_view (render stage)": lambda k: render_view(trained, intr, cams.world_from_cams[k], dev)["rgb"],
         "preview, refined": lambda k: render_preview(trained, intr, cams.world_from_cams[k])["rgb"],
         "preview, coarse": lambda k: render_preview(trained, intr, cams.world_from_cams[k], coarse=True)["rgb"],
     }
@@ -56,12 +58,12 @@ def main(argv: list[str] | None = None) -> dict:
                     t0 = time.perf_counter()
                     images[name][k] = fn(k)
                     times[name].append(time.perf_counter() - t0)
-    res: dict = {"size": [intr.w, intr.h], "views": views, "threads": args.threads}
+    res: dict = {"size": [intr.w, intr.h], "views": views, "threads": args.threads, "device": str(dev)}
     for name, ts in times.items():
         med = statistics.median(ts)
         res[name] = {"median_s": round(med, 3), "max_s": round(max(ts), 3), "rays_per_s": round(rays / med)}
-        print(f"{name}: {intr.w}x{intr.h}, {len(ts)} frames: median {med:.3f} s "
-              f"(largest {max(ts):.3f} s), {rays / med:.0f} rays/s", flush=True)  # fmt: skip
+        print(f"{name} on {dev}: {intr.w}x{intr.h}, {len(ts)} frames: median {med:.3f} s (largest {max(ts):.3f} s), "
+              f"{rays / med:.0f} rays/s, {1 / med:.1f} frames/s", flush=True)  # fmt: skip
     ref, fine, coarse = (images[name] for name in kinds)
     diff = max(float(np.abs(fine[k] - ref[k]).max()) for k in views)
     mse = [float(((coarse[k] - fine[k]) ** 2).mean()) for k in views]
