@@ -66,24 +66,20 @@ class OccupancyGrid(torch.nn.Module):
         return torch.stack([self.aabb[0] + lo * self.cell_size, self.aabb[0] + hi * self.cell_size])
 
     def cell_index(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        """x [N, 3] -> (cell index [N, 3] long, clamped into the grid; inside-the-box mask [N])."""
+        """x [N, 3] -> (cell index [N, 3], whole numbers in x's float dtype, clamped into the grid; inside-the-box
+        mask [N])."""
         if x.ndim != 2 or x.shape[-1] != 3:
             raise ValueError(f"expected x [N, 3], got {tuple(x.shape)}")
         lo, hi = self.aabb[0].to(x), self.aabb[1].to(x)
         inside = ((x >= lo) & (x <= hi)).all(dim=-1)  # [N]
-        idx = torch.floor((x - lo) / (hi - lo) * self.resolution).long().clamp(0, self.resolution - 1)
-        return idx, inside
+        return torch.floor((x - lo) / (hi - lo) * self.resolution).clamp_(0, self.resolution - 1), inside
 
     def query(self, x: Tensor) -> Tensor:
-        """Occupancy of points x [N, 3] -> bool [N] (False outside the box). The cells of `cell_index`, with the
-        flat index taken as a float dot product where it is exact (G^3 <= 2^24) and looked up by index_select
-        (about 2x the three long index tensors and aten::index on CPU)."""
-        if x.ndim != 2 or x.shape[-1] != 3:
-            raise ValueError(f"expected x [N, 3], got {tuple(x.shape)}")
+        """Occupancy of points x [N, 3] -> bool [N] (False outside the box): the cells of `cell_index`, the flat
+        index taken as a float dot product where it is exact (G^3 <= 2^24) and looked up by index_select (about
+        2x three long index tensors and aten::index on CPU)."""
+        ijk, inside = self.cell_index(x)
         g = self.resolution
-        lo, hi = self.aabb[0].to(x), self.aabb[1].to(x)
-        inside = ((x >= lo) & (x <= hi)).all(dim=-1)  # [N]
-        ijk = torch.floor((x - lo) / (hi - lo) * g).clamp_(0, g - 1)  # [N, 3] as cell_index
         if g**3 <= 2**24:
             flat = (ijk @ torch.tensor([g * g, g, 1], dtype=x.dtype, device=x.device)).long()
         else:
