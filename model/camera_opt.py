@@ -130,12 +130,17 @@ class CameraOpt(nn.Module):
         self.register_buffer("world_from_cam", w)  # [V, 4, 4] float64, the input cameras
         self.register_buffer("pivot", piv)  # [V] float64, depth of each correction's pivot on the optical axis
         self.raw = nn.Parameter(torch.zeros(w.shape[0], 6))  # [V, 6] what Adam moves: delta / step_scale
-        orbit = ORBIT_STEP if bool((piv > 0).any()) else 1.0
-        self.register_buffer("step_scale", torch.tensor([orbit, orbit, 1.0, 1.0, 1.0, 1.0]))  # [6]
         self.log_focal = nn.Parameter(torch.zeros(1), requires_grad=focal)  # shared focal scale exp(log_focal)
         self.focal = focal
         self.schedule = schedule or CameraSchedule()
         self.opt: torch.optim.Adam | None = None
+
+    @property
+    def step_scale(self) -> Tensor:
+        """[6] how far each of (omega, v) moves per unit of Adam's variable: the orbit angles at ORBIT_STEP when the
+        corrections have pivots, all 1 without."""
+        orbit = ORBIT_STEP if bool((self.pivot > 0).any()) else 1.0
+        return torch.tensor([orbit, orbit, 1.0, 1.0, 1.0, 1.0], dtype=self.raw.dtype, device=self.raw.device)
 
     @property
     def delta(self) -> Tensor:
@@ -211,8 +216,8 @@ class CameraOpt(nn.Module):
 
     def load_dict(self, doc: dict[str, Any]) -> None:
         with torch.no_grad():
+            self.pivot.copy_(_pivot(doc))
             self.raw.copy_(doc["delta"] / self.step_scale)
-            self.pivot.copy_(doc["pivot"] if doc.get("pivot") is not None else torch.zeros_like(self.pivot))
             self.log_focal.copy_(doc["log_focal"])
         if doc.get("optimizer") is not None:
             self.optimizer().load_state_dict(doc["optimizer"])
@@ -246,14 +251,18 @@ def align_test_poses(train_in: np.ndarray, train_refined: np.ndarray, other: np.
     return mapped, record
 
 
+def _pivot(doc: dict[str, Any]) -> Tensor:
+    """The pivot depths [V] float64 of a stored `CameraOpt.to_dict`; runs from before the pivot have none: 0."""
+    pivot = doc.get("pivot")
+    return torch.zeros(len(doc["world_from_cam"]), dtype=torch.float64) if pivot is None else pivot.double()
+
+
 def refined_scene(scene: Scene, doc: dict[str, Any], train_idx: tuple[int, ...]) -> tuple[Scene, dict[str, Any]]:
     """The scene as the run sees it after refinement: training frames at their refined poses, every other frame
     mapped into the refined frame by `align_test_poses`, focal lengths times the shared focal scale. Returns the
     scene and a record of what was done (for eval's JSON and the manifest)."""
     w_in = doc["world_from_cam"].double()
-    pivot = doc.get("pivot")
-    pivot = torch.zeros(len(w_in), dtype=torch.float64) if pivot is None else pivot.double()
-    refined = (w_in @ pivoted_exp(doc["delta"].double(), pivot)).numpy()
+    refined = (w_in @ pivoted_exp(doc["delta"].double(), _pivot(doc))).numpy()
     train_in = w_in.numpy()
     others = [i for i in range(len(scene.frames)) if i not in set(train_idx)]
     poses = {i: refined[k] for k, i in enumerate(train_idx)}

@@ -214,6 +214,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         from model.camera_opt import TEST_POSE_OPT_RULE, optimise_test_pose
     bg_t = torch.as_tensor(background, dtype=torch.float32, device=device)
     test_pose_moves: list[dict[str, float]] = []
+    centre = np.asarray(scene.aabb, dtype=np.float64).mean(0)  # test-pose corrections turn about its depth
     has_appearance = getattr(getattr(trained, "model", None), "appearance", None) is not None
     for k, i in enumerate(idx):
         photo = load_masked_image(scene, i)  # masked-out pixels transparent, as in training (data.masks)
@@ -230,8 +231,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
             intr = intr.scaled(w / intr.w)
         pose = scene.frames[i].world_from_cam
         if pose_steps:
-            pose, moved = optimise_test_pose(trained.model, bg_t, pose, intr, photo, pose_steps,
-                                             centre=np.asarray(scene.aabb, dtype=np.float64).mean(0))  # fmt: skip
+            pose, moved = optimise_test_pose(trained.model, bg_t, pose, intr, photo, pose_steps, centre=centre)
             test_pose_moves.append(moved)
         t0 = time.perf_counter()
         view = _render_scored(trained, intr, pose, device, photo, half, background)
