@@ -86,6 +86,13 @@ BUDGET = {"args": "--max-seconds 120"}
 """The training budget of every run (main sets it: seconds, or steps on a machine shared with other work)."""
 
 
+def _scene(out: Path, size: int, views: int) -> Path:
+    """`nerfpipe scene --kind rgba` at out/scene, made anew (deterministic, seconds) so that a folder left by a run
+    at another --size or --views is never reused."""
+    nerfpipe("scene", f"{out / 'scene'} --kind rgba --size {size} --views {views} --overwrite")
+    return out / "scene"
+
+
 def _train_eval(scene: Path, run: Path, seconds: float, extra: str = "") -> dict:
     out = nerfpipe("train", f"{scene} {run} {BUDGET['args']} --threads 1 --overwrite {extra}".strip())
     ev = nerfpipe("eval", f"{run} {run}/eval.json").result
@@ -97,9 +104,7 @@ def bench_poses(out: Path, seconds: float, size: int, views: int, rot_deg: float
     from model import load_trained
     from radiance.align import pose_errors
 
-    exact = out / "scene"
-    if not (exact / "transforms.json").is_file():
-        nerfpipe("scene", f"{exact} --kind rgba --size {size} --views {views}")
+    exact = _scene(out, size, views)
     noisy = perturb_scene(exact, out / "scene_perturbed", rot_deg, trans_frac)
     truth = read_scene(exact)
     train_idx = truth.split("train")
@@ -124,9 +129,7 @@ def bench_poses(out: Path, seconds: float, size: int, views: int, rot_deg: float
 def bench_appearance(out: Path, seconds: float, size: int, views: int, test_views: str) -> dict:
     """test_views: "varied" (NeRF-W's protocol: the test photos have their own exposure and cast, as photos of a
     real capture do) or "clean" (test photos as rendered: the clean scene is the ceiling)."""
-    clean = out / "scene"
-    if not (clean / "transforms.json").is_file():
-        nerfpipe("scene", f"{clean} --kind rgba --size {size} --views {views}")
+    clean = _scene(out, size, views)
     splits = ("train", "test") if test_views == "varied" else ("train",)
     tag = f"_{test_views}"
     varied = degrade_scene(clean, out / f"scene_appearance{tag}", splits=splits)
