@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import shutil
 from pathlib import Path
 
@@ -21,6 +22,7 @@ from radiance.align import pose_errors, umeyama
 from stages import poses
 from stages.poses import colmap as sfm
 from stages.poses.attempts import ladder
+from stages.poses.choice import candidate, choose
 from stages.poses.images import blurriest, near_duplicates, screen_image
 from stages.poses.report import RunState
 from stages.poses.video import extract_frames
@@ -119,6 +121,48 @@ def test_synthetic_outputs_and_report(synthetic):
     assert out.working_size == SIZE and report["working_size"]["size"] == SIZE
     assert [a["name"] for a in report["attempts"]] == ["as configured"] and report["attempts"][0]["kept"]
     assert len(out.attempts) == 1
+    # the model checks itself: no EXIF focal (PNG renders), so the field of view stands in for it
+    assert report["check"] == out.check == "ok" and report["attempts"][0]["check"] == "ok"
+    names = ["field_of_view", "distortion", "principal_point", "reprojection_error", "track_length"]
+    assert [c["name"] for c in report["checks"]] == [*names, "registered_fraction"]
+    assert report["focal_prior"]["exif"] == "absent" and "absent" in report["focal_prior"]["says"]
+    assert report["focal_prior"]["cameras"]["1"]["source"] == "absent"
+    assert report["images"]["frame_0000.png"]["exif_focal"] == "absent"
+    assert "the only attempt" in report["choice"] and "cameras pass the checks" in report["choice"]
+    assert report["ladder"]["stopped"].startswith(f"'as configured' registered {VIEWS}/{VIEWS}")
+    manifest = json.loads((colmap / "manifest.json").read_text())
+    assert manifest["check"] == "ok" and manifest["checks"] == report["checks"]
+    assert manifest["used"]["choice"] == report["choice"]
+
+
+def test_choice_rejects_a_degenerate_copy_of_the_synthetic_model(synthetic):
+    """The synthetic set's model against a copy with its focal length x 1.4 and k1 = -2.5 (a degenerate
+    self-calibration, like a 4000 px turntable capture's f = 10,450 px, k1 = -2.56 against EXIF 7,540 px): both
+    register every view, the sane one is kept and the choice says why."""
+    from stages.scene import FOV_X_DEG
+
+    good = pycolmap.Reconstruction(synthetic["out"].sparse)
+    (camera_id,) = good.cameras
+    truth = SIZE / 2 / math.tan(math.radians(FOV_X_DEG / 2))  # the renders' focal length (px): the EXIF stand-in
+    assert good.cameras[camera_id].focal_length == pytest.approx(truth, rel=0.02)  # self-calibrated: 1.1 % low
+    bad = pycolmap.Reconstruction(good)
+    cam = bad.cameras[camera_id]
+    cam.params = [cam.params[0] * 1.4, *cam.params[1:3], -2.5]
+    for priors, failed in [({camera_id: truth}, "focal_vs_exif = "), ({}, "distortion = ")]:
+        cands = [candidate("as configured", bad, priors, VIEWS), candidate("more features", good, priors, VIEWS)]
+        assert cands[0].registered == cands[1].registered == VIEWS and cands[1].sane and not cands[0].sane
+        chosen = choose(cands, total=VIEWS)
+        assert chosen.index == 1 and chosen.warning is None
+        assert chosen.sentence.startswith(f"kept 'more features' ({VIEWS}/{VIEWS} registered), whose cameras pass")
+        assert f"'as configured' ({VIEWS}/{VIEWS}) failed {failed}" in chosen.sentence
+    # without an EXIF prior the distortion alone gives it away: 181 px corners / 428 px focal, k1 -2.5 -> 45 %
+    assert _by_name(cands[0].checks)["distortion"].value == pytest.approx(44.7, abs=1.0)
+    with_prior = _by_name(candidate("as configured", bad, {camera_id: truth}, VIEWS).checks)
+    assert with_prior["focal_vs_exif"].value == pytest.approx(40, abs=3)  # x 1.4 on a focal within 2 % of truth
+
+
+def _by_name(checks) -> dict:
+    return {c.name: c for c in checks}
 
 
 # ---------------------------------------------------------------- retries
@@ -153,6 +197,8 @@ def test_retry_recovers_a_starved_first_attempt(tmp_path):
     assert not retries[0]["options"]["guided_matching"]  # pycolmap's defaults: the retry that sufficed here
     assert first["registered"] < out.registered == max(a["registered"] for a in report["attempts"])
     assert out.registered >= 0.8 * out.total  # so the ladder stopped there
+    assert report["ladder"]["stopped"].startswith("'more features' registered") and report["check"] == "ok"
+    assert first["check"] is None and retries[0]["check"] == "ok"  # attempt 1 made no model to check
     assert [a["kept"] for a in report["attempts"]].count(True) == 1
     assert "100 px, 100 features" in first["settings"] and "8192 features" in retries[0]["settings"]
     assert out.registered >= _pycolmap_defaults_registered(photos, tmp_path / "pycolmap")
@@ -301,6 +347,7 @@ def test_unrelated_images_fail_with_report(tmp_path):
     _assert_nothing_complete(tmp_path / "s")
     report = json.loads((tmp_path / "s" / "poses_report.json").read_text())
     assert report["status"] == "failed" and report["images"]["n0.png"]["features"] > 100
+    assert report["check"] is None and report["checks"] == []  # no model: nothing checked, nothing passed
     # every retry was made (so each way of reusing a database ran) and the error says so
     attempts = report["attempts"]
     assert [a["name"] for a in attempts] == ["as configured", "more features", "relaxed mapper", "guided matching"]

@@ -1,12 +1,17 @@
 """Stage `poses`: a folder of photos or a video -> a COLMAP sparse model, in-process with pycolmap.
 
-Steps: upright copies of the photos (EXIF orientation applied; COLMAP ignores it) or the sharpest frame per
-window of a video -> screening (blur, exposure, near-duplicates; `drop_blurry` removes the blurriest) ->
-the SIFT working size (`max_image_size`, or the smallest of 1000 / 1600 / 3200 px where SIFT finds enough
-features) -> SIFT -> exhaustive or sequential matching -> incremental mapping -> the LARGEST model (most
-registered images), never blindly model 0 -> under 80 % registered, retries with pycolmap's size and
-feature cap, then a relaxed mapper, then guided matching (`attempts`), keeping the attempt that registered
-most -> with a shared camera, one last bundle adjustment that also refines the principal point.
+Steps: upright copies of the photos (EXIF orientation applied; COLMAP ignores it) and each photo's EXIF focal
+length, or the sharpest frame per window of a video -> screening (blur, exposure, near-duplicates;
+`drop_blurry` removes the blurriest) -> the SIFT working size (`max_image_size`, or the smallest of 1000 / 1600
+/ 3200 px where SIFT finds enough features) -> SIFT, the cameras given the EXIF focal prior (`exif`) ->
+exhaustive or sequential matching -> incremental mapping -> the LARGEST model (most registered images), never
+blindly model 0 -> its cameras and structure checked (`quality`: focal against EXIF or a plausible field of
+view, distortion, principal point, reprojection error, track length) -> under 80 % registered or a camera
+check failed, retries with pycolmap's size and feature cap, then a relaxed mapper, then guided matching,
+within a time budget (`attempts`, `choice`), keeping the attempt that registered most among those whose
+cameras pass the checks (a failing one only when all fail, marked suspect) -> with a shared camera, one last
+bundle adjustment that also refines the principal point -> the written model's checks: `check` ("ok" |
+"suspect") and `checks` in poses_report.json and colmap/manifest.json, a warning line per failed check.
 
 Outputs (COLMAP conventions: OpenCV camera axes, `cam_from_world` poses, binary model):
   SCENE_DIR/colmap/images/          upright copies / video frames: the image folder of the model
@@ -21,8 +26,11 @@ Outputs (COLMAP conventions: OpenCV camera axes, `cam_from_world` poses, binary 
                                     under a temporary name and renamed into place complete, so colmap/
                                     exists only after a success
   SCENE_DIR/poses_report.json       also on failure (status "failed" and the error): counts, per-image
-                                    features / matches / observations / screening, why images were left out,
-                                    how the working size was chosen, each attempt's settings and result
+                                    features / matches / observations / screening / EXIF focal, why images
+                                    were left out, the focal prior ("absent" when no EXIF gives one), how the
+                                    working size was chosen, each attempt's settings, result and checks, the
+                                    `choice` (why the kept attempt won), why the ladder stopped, and the
+                                    written model's `check` / `checks` (`status` stays "ok" | "failed")
 
 A rerun first moves an earlier colmap/ (with its poses_report.json inside) to SCENE_DIR/colmap.previous/: a
 failed rerun leaves no colmap/ that looks current, yet loses nothing (the error says where the old model is);
@@ -34,9 +42,10 @@ the stage with a one-line error that asks for --masks (the mapper would otherwis
 model the background); a model whose registered cameras all sit at one place is refused the same way
 (`report.check_static_matches`, `report.check_static_cameras`). With --masks the background has no features.
 
-Modules: `images` (upright copies, screening), `video` (frame picking), `colmap` (the pycolmap steps, the
-working size and the principal-point refinement), `attempts` (the retry ladder), `report` (run state,
-registration checks, poses_report.json, phase timer).
+Modules: `images` (upright copies, screening), `exif` (the EXIF focal prior, given to COLMAP's cameras), `video`
+(frame picking), `colmap` (the pycolmap steps, the working size and the principal-point refinement), `attempts`
+(the retry ladder), `quality` (the checks of a model), `choice` (which attempt to keep, when to stop), `report`
+(run state, registration checks, poses_report.json, phase timer).
 """
 
 from __future__ import annotations
@@ -55,11 +64,14 @@ from rich.console import Console
 from rich.progress import Progress
 
 from data.atomic import write_json
+from data.checks import verdict
 from data.errors import UserError
 from data.masks import match_masks, read_mask, write_binary_mask
 from data.rundir import MetricsLog, config_to_json, write_manifest
 from stages.poses import colmap as sfm
-from stages.poses.attempts import ladder, run_attempts
+from stages.poses import quality
+from stages.poses.attempts import ladder, prior_focals, run_attempts
+from stages.poses.exif import ZOOM_SPREAD, exif_focal
 from stages.poses.images import (
     IMAGE_SUFFIXES,
     blurriest,
@@ -108,6 +120,9 @@ class Config:
     - min_model_size: pycolmap 10, here 3 (colmap.MIN_MODEL_SIZE): small separate models are reported.
     - Random seeds (RANSAC, mapper) are set from `seed`, so runs repeat.
     - Retries (`max_attempts`): pycolmap has none; see stages.poses.attempts.
+    - Focal prior: pycolmap reads it from the EXIF of the file it extracts, which a photo converted to PNG
+      (TIFF, BMP, WebP) has lost; here each original photo's EXIF prior is written into the cameras before
+      matching (stages.poses.exif), and every model's cameras are checked against it (stages.poses.quality).
     Feature cap, matcher and verification options, and mapper thresholds are pycolmap's in the first two
     attempts; bundle adjustment options are pycolmap's throughout.
     """
@@ -124,9 +139,9 @@ class Config:
     """SIFT features kept per image, the coarsest scales first (pycolmap's 8192; matching time grows with its
     square; fox at 1000 px finds 942-1812, so the cap only binds on larger working sizes)."""
     max_attempts: int = 4
-    """Settings to try while under 80 % of the images register: 1 = no retry, 2 = also pycolmap's 3200 px
-    and 8192 features, 3 = also relaxed mapper thresholds, 4 = also guided matching (see
-    stages.poses.attempts)."""
+    """Settings to try while under 80 % of the images register or a camera check fails: 1 = no retry, 2 = also
+    pycolmap's 3200 px and 8192 features, 3 = also relaxed mapper thresholds, 4 = also guided matching (see
+    stages.poses.attempts; a time budget may stop it earlier once a usable model exists)."""
     matcher: Literal["auto", "exhaustive", "sequential"] = "auto"
     """Image pairs to match: 'auto' = exhaustive for photo folders, sequential for video."""
     single_camera: bool = True
@@ -172,6 +187,8 @@ class Outputs:
     """SIFT working size of the first attempt (long side, px)."""
     attempts: tuple[str, ...]
     """One line per attempt: name, registered, settings; the kept one is marked."""
+    check: str
+    """"ok" or "suspect": the kept model's verdict (stages.poses.quality; the failed checks are in the report)."""
 
 
 def _check(config: Config) -> str:
@@ -219,6 +236,9 @@ def _prepare_photos(folder: Path, images: Path, state: RunState) -> None:
             continue
         state.names[name] = str(src)
         state.screens[name] = screen_image(grey)
+        prior = exif_focal(src)  # the original's EXIF: a copy converted to PNG has none
+        if prior is not None:
+            state.exif_focal[name] = prior
     if state.skipped:
         state.warnings.append(f"skipped {len(state.skipped)} undecodable file(s): {', '.join(state.skipped)}")
 
@@ -278,6 +298,16 @@ def _screen(config: Config, images: Path, state: RunState) -> list[str]:
     for n in keep:
         state.sizes[n] = _image_size(images / n)
     return keep
+
+
+def _warn_zoom(state: RunState) -> None:
+    """A warning per camera whose photos' EXIF focal lengths differ (a zoom moved): one focal cannot fit all."""
+    for camera_id, info in state.focal_prior.items():
+        if info.get("spread", 0.0) > ZOOM_SPREAD:
+            state.warnings.append(
+                f"the photos sharing camera {camera_id} have EXIF focal lengths up to {info['spread']:.0%} apart "
+                "(a zoom lens moved?): one shared focal length cannot fit them all; try single_camera=False"
+            )
 
 
 def _write_masks(mask_dir: Path, names: list[str], out: Path, state: RunState) -> None:
@@ -384,9 +414,11 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         check_features(state.stats)
         check_registered(state, matcher)
         check_static_cameras(state.model, masked)
+        _warn_zoom(state)
         if config.single_camera:
             with phase("principal_point"):
                 state.model, state.principal_point = sfm.refine_principal_point(state.model, config.num_threads)
+        state.checks = quality.model_checks(state.model, prior_focals(state.focal_prior), len(state.stats.features))
         (build / "sparse").mkdir()
         state.model.write_binary(str(build / "sparse"))
         shutil.rmtree(build / "models")
@@ -401,11 +433,11 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
             used={"matcher": matcher, "principal_point": state.principal_point,
                   "camera_groups": [len(g) for g in groups], "pycolmap": pycolmap.__version__,
                   "working_size": state.working_size, "masks": str(config.masks) if masked else None,
-                  "stationary_matches": state.stationary,
-                  "attempts": [{k: a[k] for k in ("name", "registered", "total", "kept", "settings")}
-                               for a in state.attempts]},
+                  "stationary_matches": state.stationary, "focal_prior": report["focal_prior"],
+                  "attempts": [{k: a[k] for k in ("name", "registered", "total", "kept", "check", "settings")}
+                               for a in state.attempts], "choice": state.choice, "ladder": state.ladder},
             left_out={**state.skipped, **report["not_registered"]}, version=VERSION,
-            config=config_to_json(config),
+            config=config_to_json(config), **verdict(state.checks),
         )  # fmt: skip
         os.replace(build, colmap_dir)
     except BaseException as e:
@@ -425,7 +457,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         colmap_dir=colmap_dir, sparse=colmap_dir / "sparse", images=colmap_dir / "images",
         database=colmap_dir / "database.db", report=report_path, registered=report["registered"],
         total=report["total"], mean_reprojection_error=float(report["mean_reprojection_error_px"]),
-        working_size=state.working_size["size"],
+        working_size=state.working_size["size"], check=report["check"],
         attempts=tuple(f"{a['name']}: {a['registered']}/{a['total']} registered{' (kept)' if a['kept'] else ''}; "
                        f"{a['settings']}" for a in state.attempts),
     )  # fmt: skip

@@ -1,7 +1,8 @@
-"""The retry ladder of the poses stage: which settings each attempt uses when too few images register.
+"""The retry ladder of the poses stage: which settings each attempt uses, when it stops, which model it keeps.
 
-Attempt 1 runs the Config as given. While the best so far registers under WARN_FRACTION of the images, the
-stage tries, cheapest first:
+Attempt 1 runs the Config as given. Until `choice.stop_reason` says stop (an attempt registered WARN_FRACTION,
+80 %, of the images AND its cameras pass `quality`'s checks; or, with a usable model in hand, the retries spent
+their time budget), the stage tries, cheapest first:
   2. "more features": pycolmap's defaults: SIFT at 3200 px (or the first attempt's size if larger; never
      above the photos' own size) and a cap of 8192 features (or the first attempt's if larger; doubled when
      that would repeat attempt 1's extraction), plain matching, the default mapper;
@@ -9,10 +10,14 @@ stage tries, cheapest first:
      (costs only the mapping);
   4. "guided matching": attempt 2's features, matched again with guided matching (more inliers per pair;
      verification also keeps pairs with as few inliers as the relaxed mapper accepts), relaxed mapper.
-The stage keeps the model with the most registered images over all attempts. Attempt 2 is pycolmap's own
-defaults (bar first_octave, see `colmap.SMALL_IMAGE`, and the seeds), so a set that ends under 80 % should
-not end with fewer images than pycolmap's defaults register (a set at 80 %+ after attempt 1 is not retried).
-tests/test_poses.py checks this on a small synthetic set; COLMAP's randomness makes it no proof.
+Every extraction's cameras get the photos' EXIF focal prior before matching (`exif`). Every attempt's model is
+checked (`quality`), and `choice.choose` keeps the one that registered most among those whose cameras pass the
+checks and that registered at least FAIL_FRACTION (40 %); only when there is none, the most registered, marked
+suspect with a warning. Attempt 2 is pycolmap's own defaults (bar first_octave, see `colmap.SMALL_IMAGE`, and
+the seeds) and is never skipped for time, so a set that ends under 80 % should not end with fewer images than
+pycolmap's defaults register unless their model failed a camera check (a set at 80 %+ with sane cameras after
+attempt 1 is not retried). tests/test_poses.py checks this on a small synthetic set; COLMAP's randomness makes
+it no proof.
 """
 
 from __future__ import annotations
@@ -28,12 +33,22 @@ from typing import Literal
 import numpy as np
 import pycolmap
 
+from data.checks import verdict
 from data.rundir import config_to_json
 from stages.poses import colmap as sfm
+from stages.poses.choice import RETRY_BUDGET, RETRY_MIN_SECONDS, candidate, choose, retry_budget, stop_reason
 from stages.poses.colmap import PYCOLMAP_MAX_IMAGE_SIZE, PYCOLMAP_MAX_NUM_FEATURES, RELAXED_MAPPER, SfmSettings
+from stages.poses.exif import apply_focal_priors
 from stages.poses.report import WARN_FRACTION, PhaseTimer, RunState, textured
 
-__all__ = ["Attempt", "ladder", "describe", "run_attempts"]
+__all__ = ["Attempt", "ladder", "describe", "run_attempts", "prior_focals", "LADDER_RULE"]
+
+LADDER_RULE = (
+    f"stop at an attempt that registers >= {WARN_FRACTION:.0%} of the images and whose cameras pass the checks; "
+    f"once a usable model (cameras passing) exists, start no retry after the retries took max({RETRY_BUDGET:g} x "
+    f"the first attempt's time, {RETRY_MIN_SECONDS:g} s) (retry_budget_s)"
+)
+"""The ladder's stopping rule, as poses_report.json states it (`choice.stop_reason`)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -80,13 +95,16 @@ def run_attempts(
     plan: list[Attempt], build: Path, images: Path, groups: list[list[str]], long_sides: list[int],
     state: RunState, phase: PhaseTimer, after_matching: Callable[[Path], None] | None = None,
 ) -> None:  # fmt: skip
-    """Run `plan` until an attempt registers WARN_FRACTION of the images. Leaves the kept attempt's (most
-    registered images, then most points) statistics and models in `state`, its database at
-    build/database.db, and one record per attempt in `state.attempts`. `after_matching(database)` runs once,
-    after the first attempt's matching (it may raise to stop before mapping)."""
+    """Run `plan` until `choice.stop_reason` says stop. Leaves the kept attempt's (`choice.choose`) statistics,
+    models and camera priors in `state`, its database at build/database.db, one record per attempt (with its
+    checks) in `state.attempts`, and the choice and the ladder's stop in `state.choice` / `state.ladder`.
+    Each extraction gets the photos' EXIF focal priors (`exif.apply_focal_priors`, before matching).
+    `after_matching(database)` runs once, after the first attempt's matching (it may raise to stop before mapping)."""
     total = sum(len(g) for g in groups)
-    best = None  # (registered, points), index, database, statistics, models, model
+    results, candidates, seconds = [], [], []  # per attempt: (database, statistics, models, model, priors)
     db = extracted = build / "database.db"
+    priors: dict[int, dict] = {}
+    stopped = f"every attempt allowed was made (max_attempts {len(plan)})"
     for k, attempt in enumerate(plan, 1):
         phase.attempt, t0, s = k, time.perf_counter(), attempt.settings
         state.model, models = None, {}
@@ -97,6 +115,7 @@ def run_attempts(
                     _copy_features(extracted, db)
                 else:
                     sfm.extract(db, images, groups, long_sides, s)
+                    priors = apply_focal_priors(db, {n: p.focal_px for n, p in state.exif_focal.items()})
                     extracted = db
                 state.stats = sfm.database_stats(db)
             if textured(state.stats):
@@ -110,27 +129,41 @@ def run_attempts(
                 models = sfm.reconstruct(db, images, build / "models" / str(k), s)
                 if models:
                     state.model = max(models.values(), key=lambda m: (m.num_reg_images(), m.num_points3D()))
-        reg = state.model.num_reg_images() if state.model is not None else 0
-        key = (reg, state.model.num_points3D() if state.model is not None else 0)
+        found = candidate(attempt.name, state.model, prior_focals(priors), total)
+        seconds.append(time.perf_counter() - t0)
         state.attempts.append({
-            "attempt": k, "name": attempt.name, "registered": reg, "total": total,
+            "attempt": k, "name": attempt.name, "registered": found.registered, "total": total,
             "models_found": sorted((m.num_reg_images() for m in models.values()), reverse=True),
             "features_median": float(np.median(list(state.stats.features.values()))) if state.stats.features else 0,
-            "seconds": round(time.perf_counter() - t0, 3), "reused": attempt.reuse, "kept": False,
+            "seconds": round(seconds[-1], 3), "reused": attempt.reuse, "kept": False,
+            "cameras_pass": found.sane,
+            **(verdict(found.checks) if state.model is not None else {"check": None, "checks": []}),
             "settings": describe(s, max(long_sides)), "options": config_to_json(s),
         })  # fmt: skip
-        if best is None or key > best[0]:
-            best = (key, k - 1, db, state.stats, models, state.model)
-        if reg >= WARN_FRACTION * total:
+        results.append((db, state.stats, models, state.model, priors))
+        candidates.append(found)
+        reason = stop_reason(candidates, total, seconds)
+        if reason is not None:
+            stopped = reason
             break
-    assert best is not None  # plan is never empty
-    _, index, kept_db, state.stats, state.all_models, state.model = best
-    state.attempts[index]["kept"] = True
-    state.models = state.attempts[index]["models_found"]
+    chosen = choose(candidates, total)
+    kept_db, state.stats, state.all_models, state.model, state.focal_prior = results[chosen.index]
+    state.attempts[chosen.index]["kept"] = True
+    state.models = state.attempts[chosen.index]["models_found"]
+    state.choice = chosen.sentence
+    if chosen.warning is not None:
+        state.warnings.append(chosen.warning)
+    state.ladder = {"stopped": stopped, "retry_budget_s": round(retry_budget(seconds[0]), 1),
+                    "rule": LADDER_RULE}  # fmt: skip
     phase.attempt = 1
     os.replace(kept_db, build / "database.db")
     for other in build.glob("database.*.db"):
         other.unlink()
+
+
+def prior_focals(cameras: dict[int, dict]) -> dict[int, float | None]:
+    """camera id -> prior focal px (None: absent), from `exif.apply_focal_priors`' record."""
+    return {c: info["prior_px"] for c, info in cameras.items()}
 
 
 def _copy_features(src: Path, dst: Path) -> None:

@@ -2,7 +2,8 @@
 
 `RunState` collects what one run saw (copies, screening, timings, the attempts, SfM statistics and the
 chosen model: those of the attempt being run, then of the attempt kept);
-`build_report` turns it into poses_report.json (also written on failure); `check_features` and
+`build_report` turns it into poses_report.json (also written on failure; with the written model's checks from
+`quality`, the EXIF focal prior and why the kept attempt won); `check_features` and
 `check_registered` turn too few textured or registered images into one-line UserErrors that say why.
 """
 
@@ -18,9 +19,11 @@ import pycolmap
 from rich.console import Console
 from rich.progress import Progress
 
+from data.checks import Check, check_line, verdict
 from data.errors import UserError
 from data.rundir import MetricsLog, config_to_json
 from stages.poses.colmap import DatabaseStats
+from stages.poses.exif import FocalPrior
 from stages.poses.images import Screen
 
 if TYPE_CHECKING:
@@ -29,7 +32,7 @@ if TYPE_CHECKING:
 __all__ = [
     "MIN_REGISTERED", "FAIL_FRACTION", "WARN_FRACTION", "MIN_FEATURES", "RunState", "PhaseTimer",
     "textured", "check_features", "check_registered", "build_report", "print_summary", "STATIC_FRACTION",
-    "STATIC_SPREAD", "stationary_matches", "check_static_matches", "check_static_cameras",
+    "STATIC_SPREAD", "stationary_matches", "check_static_matches", "check_static_cameras", "focal_prior_record",
 ]  # fmt: skip
 
 MIN_REGISTERED = 3
@@ -76,6 +79,11 @@ class RunState:
     attempts: list[dict[str, Any]] = field(default_factory=list)  # one record per attempt (stages.poses.attempts)
     masks: dict[str, str] = field(default_factory=dict)  # copy name -> its mask file (poses --masks)
     stationary: dict[str, Any] = field(default_factory=dict)  # check_static_matches' figures
+    exif_focal: dict[str, FocalPrior] = field(default_factory=dict)  # copy name -> its photo's EXIF focal prior
+    focal_prior: dict[int, dict[str, Any]] = field(default_factory=dict)  # camera id -> prior (exif.apply_...)
+    checks: list[Check] | None = None  # stages.poses.quality's checks of the model written; None: no model
+    choice: str = ""  # why the kept attempt won (stages.poses.choice)
+    ladder: dict[str, Any] = field(default_factory=dict)  # why the retry ladder stopped, its time budget
 
 
 def textured(stats: DatabaseStats) -> bool:
@@ -152,6 +160,9 @@ def _per_image(state: RunState) -> dict[str, Any]:
                          underexposed=round(sc.underexposed, 4), flags=sc.flags())  # fmt: skip
         if name in state.duplicates:
             entry["near_duplicate_of"] = state.duplicates[name]
+        prior = state.exif_focal.get(name)
+        entry["exif_focal"] = "absent" if prior is None else {"focal_px": round(prior.focal_px, 2),
+                                                              "source": prior.source}  # fmt: skip
         if stats is not None and name in stats.features:
             entry.update(features=stats.features[name], verified_pairs=stats.verified_pairs[name],
                          matches=stats.matches[name])  # fmt: skip
@@ -171,9 +182,12 @@ def build_report(config: Config, state: RunState, status: str, error: str | None
     registered = rec.num_reg_images() if rec is not None else 0
     total = len(stats.features) if stats is not None else len(state.sizes)
     blur = sorted(state.screens[n].blur for n in state.screens)
+    checked = verdict(state.checks) if state.checks is not None else {"check": None, "checks": []}
     return {
         "status": status,
         "error": error,
+        **checked,
+        "choice": state.choice or None,
         "input": str(config.input),
         "registered": registered,
         "total": total,
@@ -193,8 +207,10 @@ def build_report(config: Config, state: RunState, status: str, error: str | None
             for c, cam in (rec.cameras.items() if rec is not None else [])
         },  # fmt: skip
         "principal_point": state.principal_point,
+        "focal_prior": focal_prior_record(state),
         "working_size": state.working_size,
         "attempts": state.attempts,
+        "ladder": state.ladder or None,
         "timings_s": {k: round(v, 3) for k, v in state.timings.items()},
         "warnings": state.warnings,
         "screening": {
@@ -225,6 +241,29 @@ def print_summary(console: Console, report: dict[str, Any]) -> None:
     )
     for w in report["warnings"]:
         console.print(f"[yellow]warning:[/yellow] {w}")
+    for c in report["checks"]:
+        if not c["ok"]:
+            console.print(f"[yellow]warning:[/yellow] {check_line('poses', 'colmap/sparse', c)}")
+
+
+def focal_prior_record(state: RunState) -> dict[str, Any]:
+    """poses_report.json "focal_prior": whether the photos' EXIF gave a focal length, and each camera's prior."""
+    values = [p.focal_px for p in state.exif_focal.values()]
+    photos = len(state.names)
+    if values:
+        says = ("COLMAP's cameras start from the EXIF focal length (has_prior_focal_length) and the focal_vs_exif "
+                "check compares the model's with it")  # fmt: skip
+    else:
+        says = ("absent: no photo's EXIF gives a focal length (FocalLengthIn35mmFilm, or FocalLength with "
+                "FocalPlaneXResolution), so COLMAP starts from 1.2 x the long side and calibrates it alone; the "
+                "field_of_view check stands in for the EXIF one")  # fmt: skip
+    return {
+        "exif": f"{len(values)} of {photos} photos" if values else "absent",
+        "focal_px_median": round(float(np.median(values)), 2) if values else None,
+        "sources": sorted({p.source for p in state.exif_focal.values()})[:5],
+        "says": says,
+        "cameras": {str(c): info for c, info in state.focal_prior.items()},
+    }
 
 
 class PhaseTimer:

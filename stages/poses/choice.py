@@ -1,0 +1,134 @@
+"""Which attempt of the poses stage's retry ladder to keep, and when the ladder stops.
+
+Keep (`choose`): among the attempts whose model is USABLE (registered >= FAIL_FRACTION of the images, 40 %, and
+MIN_REGISTERED) and whose cameras pass `quality.CAMERA_CHECKS`, the one that registered most (then most 3D
+points, then the earliest). A model that fails a camera check is kept only when no such attempt exists: then
+the one that registered most, with a warning naming the failed checks and their figures (the stage's verdict is
+"suspect"). The `choice` sentence of poses_report.json says why the kept one won and what was passed over.
+
+Stop (`stop_reason`, asked after each attempt):
+  - an attempt registered >= WARN_FRACTION (80 %) and its cameras pass the checks: good enough, stop. A model at
+    80 %+ whose camera fails a check does NOT stop the ladder;
+  - time: once a usable, sane model is in hand, no retry starts after the retries have spent
+    max(RETRY_BUDGET x the first attempt's seconds, RETRY_MIN_SECONDS). The second attempt (pycolmap's own
+    defaults) is always allowed, so a set that ends under 80 % never ends with fewer images than they register;
+    the budget bounds attempts 3-4 (relaxed mapper, guided matching), which a usable model makes optional. With
+    no usable, sane model every attempt is made: the alternative is a failed or a suspect result.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import pycolmap
+
+from data.checks import Check
+from stages.poses import quality
+from stages.poses.report import FAIL_FRACTION, MIN_REGISTERED, WARN_FRACTION
+
+__all__ = [
+    "Candidate", "Choice", "candidate", "choose", "stop_reason", "usable", "retry_budget", "RETRY_BUDGET",
+    "RETRY_MIN_SECONDS",
+]  # fmt: skip
+
+RETRY_BUDGET = 10.0
+"""Retries may take this many times the first attempt's seconds once a usable, sane model exists. Attempt 2
+(3200 px, 8192 features) alone often costs 5-30x an attempt at 1000 px (extraction follows the pixels,
+exhaustive matching the square of the features), so this mostly decides whether attempts 3-4 run."""
+RETRY_MIN_SECONDS = 60.0
+"""... but never less than this: on a small set, whose first attempt takes seconds, retries are cheap."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class Candidate:
+    """One attempt's kept model, as the choice sees it."""
+
+    name: str
+    registered: int
+    points: int
+    checks: tuple[Check, ...]
+    """`quality.model_checks` of the model (empty when the attempt made none)."""
+
+    @property
+    def sane(self) -> bool:
+        """It has a model whose cameras pass every camera check."""
+        return self.registered > 0 and quality.cameras_pass(list(self.checks))
+
+
+@dataclass(frozen=True, kw_only=True)
+class Choice:
+    index: int
+    """Position of the kept attempt in the candidates."""
+    sentence: str
+    """Why it won (poses_report.json "choice")."""
+    warning: str | None
+    """Set when the kept model fails a camera check."""
+
+
+def candidate(name: str, rec: pycolmap.Reconstruction | None, priors: dict[int, float | None], total: int) -> Candidate:
+    """The Candidate of an attempt's model `rec` (None: it made none); `priors`: camera id -> EXIF focal px."""
+    if rec is None:
+        return Candidate(name=name, registered=0, points=0, checks=())
+    checks = tuple(quality.model_checks(rec, priors, total))
+    return Candidate(name=name, registered=rec.num_reg_images(), points=rec.num_points3D(), checks=checks)
+
+
+def usable(registered: int, total: int) -> bool:
+    """Enough registered images that the stage writes the model (the stage fails under this)."""
+    return registered >= max(MIN_REGISTERED, FAIL_FRACTION * total)
+
+
+def choose(candidates: Sequence[Candidate], total: int) -> Choice:
+    """The attempt to keep (see the module docstring); `candidates` in the order they were made, not empty."""
+    if not candidates:
+        raise ValueError("expected at least one candidate")
+    order = sorted(range(len(candidates)), key=lambda i: (-candidates[i].registered, -candidates[i].points, i))
+    pool = [i for i in order if candidates[i].sane and usable(candidates[i].registered, total)]
+    k = pool[0] if pool else order[0]
+    kept = candidates[k]
+    head = f"kept '{kept.name}' ({kept.registered}/{total} registered"
+    if kept.registered == 0:
+        return Choice(index=k, sentence=f"{head}): no attempt registered any image", warning=None)
+    if pool:
+        over = order[: order.index(k)]  # attempts that registered more: each failed a camera check
+        if not over:
+            only = "the only attempt" if len(candidates) == 1 else "the most registered"
+            return Choice(index=k, sentence=f"{head}, {only}), and its cameras pass the checks", warning=None)
+        passed = "; ".join(
+            f"'{candidates[i].name}' ({candidates[i].registered}/{total}) failed "
+            f"{quality.failed(list(candidates[i].checks), camera_only=True)}"
+            for i in over
+        )
+        sentence = f"{head}), whose cameras pass the checks, over attempts that registered as many or more: {passed}"
+        return Choice(index=k, sentence=sentence, warning=None)
+    bad = quality.failed(list(kept.checks), camera_only=True) or "none"
+    others = "no other attempt" if len(candidates) > 1 else "no attempt"
+    why = f"{others} that registered at least {FAIL_FRACTION:.0%} of the images passes the camera checks"
+    if kept.sane:  # it passes, but too few registered: the stage fails on the count
+        return Choice(index=k, sentence=f"{head}), the most registered; {why}", warning=None)
+    return Choice(
+        index=k,
+        sentence=f"{head}), the most registered, although its camera failed {bad}: {why}",
+        warning=f"the kept model's camera failed {bad}, and {why}: check the intrinsics before trusting the poses",
+    )
+
+
+def stop_reason(candidates: Sequence[Candidate], total: int, seconds: Sequence[float]) -> str | None:
+    """Why the ladder stops after the attempts made so far (`seconds`: each one's time), or None to go on."""
+    for c in candidates:
+        if c.sane and c.registered >= WARN_FRACTION * total:
+            enough = f"{c.registered}/{total} (>= {WARN_FRACTION:.0%})"
+            return f"'{c.name}' registered {enough} and its cameras pass the checks"
+    usable_sane = [c for c in candidates if c.sane and usable(c.registered, total)]
+    if len(candidates) >= 2 and usable_sane:
+        spent, budget = sum(seconds[1:]), retry_budget(seconds[0])
+        if spent >= budget:
+            return (f"the retries took {spent:.0f} s, over their budget of {budget:.0f} s, and '{usable_sane[0].name}' "
+                    f"is usable ({usable_sane[0].registered}/{total} registered, cameras pass the checks)")  # fmt: skip
+    return None
+
+
+def retry_budget(first_seconds: float) -> float:
+    """Seconds the retries may take, once a usable, sane model exists, after a first attempt of `first_seconds`."""
+    return max(RETRY_BUDGET * first_seconds, RETRY_MIN_SECONDS)
