@@ -34,6 +34,24 @@ def world_from_cam_from_llff(poses_bounds: np.ndarray) -> np.ndarray:
     return out
 
 
+def _image_dir(root: Path, images: Path | None) -> Path:
+    """The image folder: `images` as given, else relative to the dataset (`--images images_8`, as LLFF names its
+    downscaled copies); without it `images/`, else the largest of the `images_F/` copies the dataset ships
+    (the NeRF data's fern ships images_4 and images_8 only)."""
+    if images is not None:
+        given = Path(images)
+        for cand in (given, root / given):
+            if cand.is_dir():
+                return cand
+        raise UserError(f"{given}: image folder not found (neither as given nor in {root})")
+    if (root / "images").is_dir():
+        return root / "images"
+    copies = sorted((int(p.name[7:]), p) for p in root.glob("images_*") if p.is_dir() and p.name[7:].isdigit())
+    if not copies:
+        raise UserError(f"{root}: no images/ (nor images_F/) folder next to poses_bounds.npy")
+    return copies[0][1]
+
+
 def load(source: Path, *, images: Path | None = None) -> Source:
     root = source.parent if source.is_file() else source
     pb_path = root / "poses_bounds.npy"
@@ -45,9 +63,7 @@ def load(source: Path, *, images: Path | None = None) -> Source:
         raise UserError(f"{pb_path}: expected an [N, 17] array, got shape {pb.shape}")
     if not np.isfinite(pb).all():
         raise UserError(f"{pb_path}: contains NaN or infinity")
-    image_dir = Path(images) if images is not None else root / "images"
-    if not image_dir.is_dir():
-        raise UserError(f"{image_dir}: image folder not found (LLFF expects images/ next to poses_bounds.npy)")
+    image_dir = _image_dir(root, images)
     files = sorted(p for p in image_dir.iterdir() if p.is_file() and p.suffix.lower() in _EXTS)
     if len(files) != len(pb):
         raise UserError(f"{image_dir}: {len(files)} images but {pb_path.name} has {len(pb)} poses")
