@@ -38,6 +38,7 @@ import dataclasses
 import functools
 import importlib
 import inspect
+import json
 import sys
 import textwrap
 import types
@@ -360,6 +361,26 @@ def _run_stage(command: str, values: Mapping[str, Any]) -> None:
     with _progress() as progress:
         out = module.run(config, **({"progress": progress} if takes_progress else {}))
     typer.echo(STAGES[command].summary(out))
+    for line in _suspect_lines(command, out):
+        typer.echo(line, err=True)
+
+
+def _suspect_lines(command: str, out: Any) -> list[str]:
+    """One line per failed self-check (`data.checks`) in the manifest or report the stage wrote, if any."""
+    from data.checks import check_line
+
+    lines = []
+    for name in ("manifest", "report"):
+        path = getattr(out, name, None)
+        if not isinstance(path, Path) or path.suffix != ".json" or not path.is_file():
+            continue
+        try:
+            doc = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+        if doc.get("check") == "suspect":
+            lines += [f"suspect: {check_line(command, path.name, c)}" for c in doc.get("checks", []) if not c["ok"]]
+    return lines
 
 
 @functools.cache
