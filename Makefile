@@ -64,8 +64,10 @@ include pipelines/xray.mk
 all: $(INSTALLED)
 ifneq ($(PHOTOS),)
 all: $(PIPELINE_OUTPUTS)
+	$(SUSPECTS)
 else ifneq ($(POSED),)
 all: $(PIPELINE_OUTPUTS)
+	$(SUSPECTS)
 else ifneq ($(XRAY),)
 all: $(XRAY_OUTPUTS)
 else

@@ -58,3 +58,9 @@ $(OUT)/mesh.ply: $(RUN_DIR)/manifest.json $(call stage_code,mesh) | $(INSTALLED)
 
 COMMON_OUTPUTS := $(RUN_DIR)/manifest.json $(OUT)/video.mp4 $(OUT)/depth/manifest.json $(OUT)/eval.json \
 	$(OUT)/mesh.ply
+
+# The chain's last word: one line per failed self-check in the records under OUT (poses_report.json and every
+# manifest / report; `check`, `checks`: data/checks.py), or "self-checks: all N ok". A suspect result is reported,
+# not an error (exit 0). Run by the root Makefile's `all` recipe once PIPELINE_OUTPUTS are built: it is never a
+# prerequisite of a file, and it runs on every `make all`, even when nothing was rebuilt.
+SUSPECTS = $(VENV)/bin/python pipelines/suspects.py $(call shquote,$(OUT))

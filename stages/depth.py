@@ -17,29 +17,48 @@ Outputs under OUT_DIR, per view NAME (image stem, or frame_00000... for the turn
   cameras.json            each view's camera in the source frame (OpenGL world_from_cam) + intrinsics
   depth.mp4               (--video) the coloured depth maps as a video
   metrics.csv, manifest.json (written last)
+
+Self-check (manifest.json `check`: ok | suspect, `checks`: `data.checks`), from the renders the maps come from:
+- `depth_coverage`: share of the median view's pixels with depth (accumulation >= `acc_threshold`, finite, > 0), at
+  least `MIN_COVERAGE`: an object on a plain background leaves much of a view without depth, only (almost) none is
+  suspect (views that miss the object, or an empty field).
+- `depth_beyond_far`: share of the pixels with depth whose ray distance exceeds the scene's far bound
+  (transforms.json `far`: the farthest sparse point, the dataset's bounds, or the box seen from the cameras), at
+  most `MAX_BEYOND_FAR`: most of the depth lies where the capture says nothing is (background at infinity,
+  fog). Only for runs whose rays march past that bound (contracted and NDC runs); a box run's rays stop there,
+  so the check is left out (manifest `left_out`).
+- `non_finite`: pixels whose opacity, or whose depth where it is opaque enough, is NaN / inf: 0.
 """
 
 from __future__ import annotations
 
 import contextlib
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+import torch
 
 from data.atomic import atomic_path, write_json
+from data.checks import Check, verdict
 from data.errors import UserError
 from data.progress import NO_PROGRESS, Progress
 from data.rundir import MetricsLog, Stopwatch, config_to_json, output_folder, write_manifest
 from data.video import colorize, depth_legend_png, to_uint8, video_writer, write_png
 from model import camera_path, load_trained, render_view, resolve_device
+from radiance.camera import Intrinsics, generate_rays
 
 __all__ = ["Config", "Outputs", "VIEWS", "KINDS", "run", "depth_mm"]
 
 VIEWS = ("test", "train", "turntable")
 KINDS = ("expected", "median")
+MIN_COVERAGE = 0.05
+"""Self-check: at least this share of the median view's pixels has depth (the test sphere: a tenth)."""
+MAX_BEYOND_FAR = 0.5
+"""Self-check: at most this share of the pixels with depth may lie beyond the scene's far bound."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -113,6 +132,60 @@ def _global_range(paths: list[Path], max_samples: int = 1_000_000) -> tuple[floa
     return (lo, hi) if hi > lo else (lo, lo + max(1e-6, abs(lo) * 1e-3))
 
 
+def _far_bound(trained: Any) -> float | None:
+    """The scene's far bound (scene units) when the run's rays march past it (contracted, NDC), else None."""
+    far = float(trained.scene.far)
+    marched = float(getattr(getattr(trained, "model", None), "far", math.inf))  # a stand-in without one: unbounded
+    return far if math.isfinite(far) and marched > far * (1 + 1e-6) else None
+
+
+def _ray_distance(z: np.ndarray, intr: Intrinsics, world_from_cam: np.ndarray) -> np.ndarray:
+    """z-depth [H, W] (scene units) -> distance along each pixel's ray [H, W] (`render_view`'s cos factor undone)."""
+    pose = torch.as_tensor(np.asarray(world_from_cam, dtype=np.float64))
+    _, rays_d = generate_rays(intr, pose)  # [H * W, 3] unit
+    cos = (rays_d @ -pose[:3, 2]).reshape(z.shape).numpy()
+    return z / np.maximum(cos, 1e-9)
+
+
+class _DepthWatch:
+    """The self-check's figures (module doc), gathered view by view."""
+
+    def __init__(self, far: float | None) -> None:
+        self.far = far
+        self.coverage: list[float] = []  # per view: share of pixels with depth
+        self.valid = self.beyond = self.non_finite = 0
+
+    def add(self, view: dict[str, np.ndarray], z: np.ndarray, valid: np.ndarray, opaque: np.ndarray,
+            intr: Intrinsics, world_from_cam: np.ndarray) -> None:  # fmt: skip
+        """z: the exported kind's z-depth [H, W] (scene units); valid: pixels with depth; opaque: acc >= threshold."""
+        self.non_finite += int((~np.isfinite(view["acc"]) | (opaque & ~np.isfinite(z))).sum())
+        self.coverage.append(float(valid.mean()))
+        self.valid += int(valid.sum())
+        if self.far is not None and valid.any():
+            self.beyond += int((_ray_distance(z, intr, world_from_cam)[valid] > self.far).sum())
+
+    def checks(self) -> tuple[list[Check], dict[str, str]]:
+        """(checks, left_out: the checks that do not apply and why)."""
+        out = [Check.lower(
+            "depth_coverage", float(np.median(self.coverage)) if self.coverage else math.nan, MIN_COVERAGE,
+            "the median view has (almost) no depth: the views miss the object, or the field is empty",
+        )]  # fmt: skip
+        left_out = {}
+        if self.far is None:
+            left_out["check depth_beyond_far"] = "the run's rays stop at the scene's far bound (box run) or it has none"
+        elif not self.valid:
+            left_out["check depth_beyond_far"] = "no pixel has depth"
+        else:
+            out.append(Check.upper(
+                "depth_beyond_far", self.beyond / self.valid, MAX_BEYOND_FAR,
+                "most of the depth lies beyond the scene's far bound, where the capture saw nothing: background or "
+                "fog at infinity, not the scene",
+            ))  # fmt: skip
+        out.append(Check.upper("non_finite", self.non_finite, 0, "NaN or inf opacity or depth: the field's output is "
+                               "broken there (written as 0 = no depth)"))  # fmt: skip
+        return out, left_out
+
+
 def run(config: Config, progress: Progress | None = None) -> Outputs:
     """Hold out_dir (one writer; an earlier output needs --overwrite) and run the stage (`_run`)."""
     with output_folder(config.out_dir, overwrite=config.overwrite):
@@ -144,12 +217,15 @@ def _run(config: Config, progress: Progress | None = None) -> Outputs:
     cameras_doc: dict[str, Any] = {}
     progress = progress or NO_PROGRESS
     task = progress.add_task(f"depth {config.views}", total=2 * len(cams.names))
+    watch = _DepthWatch(_far_bound(trained))
     for k, name in enumerate(cams.names):
         intr, pose = cams.intrinsics[k], cams.world_from_cams[k]
         t0 = time.perf_counter()
         view = render_view(trained, intr, pose, device)
         seconds = time.perf_counter() - t0
-        valid = (view["acc"] >= config.acc_threshold) & np.isfinite(view[key]) & (view[key] > 0)
+        opaque = view["acc"] >= config.acc_threshold
+        valid = opaque & np.isfinite(view[key]) & (view[key] > 0)
+        watch.add(view, view[key], valid, opaque, intr, pose)
         depth = np.where(valid, view[key] / scale, 0.0).astype(np.float32)
         files["depth"].append(_write_npy(out_dir / "depth" / f"{name}.npy", depth))
         files["depth_mm"].append(write_png(out_dir / "depth_mm" / f"{name}.png", depth_mm(depth)))
@@ -183,8 +259,9 @@ def _run(config: Config, progress: Progress | None = None) -> Outputs:
         "frames": cameras_doc,
     })  # fmt: skip
     metrics.save()
+    checks, left_out = watch.checks()
     manifest = write_manifest(
-        out_dir, stage="depth", started=started,
+        out_dir, stage="depth", started=started, left_out=left_out,
         inputs=[Path(config.run_dir) / "checkpoint.pt", Path(config.run_dir) / "config.json"],
         outputs=[*files["depth"], *files["depth_mm"], *color_paths, *files["accumulation"], cameras_path,
                  metrics.path, *([video_path] if video_path else [])],
@@ -193,7 +270,7 @@ def _run(config: Config, progress: Progress | None = None) -> Outputs:
               "background": f"accumulation < {config.acc_threshold} -> depth 0",
               "depth_mm": "round(depth * 1000), clipped to 65535 (assumes the user's units are metres)",
               "color_range_user_units": [lo, hi], "colormap": "turbo"},
-        config=config_to_json(config),
+        config=config_to_json(config), **verdict(checks),
     )  # fmt: skip
     return Outputs(
         out_dir=out_dir, names=cams.names, depth=tuple(files["depth"]), depth_mm=tuple(files["depth_mm"]),

@@ -25,10 +25,21 @@ the view is scored on the right half only -- runs without appearance are then sc
 the two compare on the same pixels (JSON `appearance`, `appearance_rule`, `scored_pixels`).
 
 Writes OUT.json, OUT.metrics.csv (per view: step, seconds, psnr, ssim, depth_mae) and OUT.manifest.json (last).
+
+Self-check (`check`: ok | suspect and `checks` (`data.checks`), in OUT.manifest.json and OUT.json):
+- `holdout_psnr`: the mean held-out PSNR, at least `MIN_PSNR` dB. Under it a render is hardly the photo whatever
+  the cause (too little training, wrong poses, a test split the cameras never saw).
+- `holdout_gap`: the run's train PSNR minus the held-out PSNR, at most `MAX_GAP_DB` dB. The train PSNR is the last
+  `train_psnr` of the run's metrics.csv (the training batches' colour loss over the last logging interval, at the
+  training resolution: what the field fits); OUT.json's `train_psnr` / `train_psnr_from` say which row. A field
+  that explains its training photos far better than photos it did not see has overfitted them (too few or too
+  similar views), or the held-out cameras disagree with the training ones (bad poses, a wrong test split). Left out
+  when the run has no train PSNR.
 """
 
 from __future__ import annotations
 
+import csv
 import math
 import time
 from dataclasses import dataclass
@@ -39,6 +50,7 @@ import numpy as np
 import torch
 
 from data.atomic import write_json
+from data.checks import HOLDOUT_FLOOR_DB, HOLDOUT_GAP_DB, Check, verdict
 from data.errors import UserError
 from data.ground_truth import GroundTruth, read_ground_truth
 from data.masks import load_masked_image
@@ -52,14 +64,21 @@ from radiance.align import umeyama
 from radiance.compositing import over_background
 from radiance.metrics import psnr
 
-__all__ = ["Config", "Outputs", "run", "ssim", "lpips_status", "GroundTruth", "read_ground_truth", "align_to"]
+__all__ = [
+    "Config", "Outputs", "run", "ssim", "lpips_status", "GroundTruth", "read_ground_truth", "align_to", "train_psnr",
+    "self_checks",
+]  # fmt: skip
 
 ALEXNET_WEIGHTS = "alexnet-owt-7be5be79.pth"
 """torchvision's AlexNet checkpoint file name, which lpips loads from the torch hub cache."""
 SAME_FRAME_TOL = 1e-4
+"""Camera centres within this fraction of the ground-truth extent: the run is already in the GT frame."""
 TEST_POSE_STEPS = 100
 """Default `--test-pose-steps` for runs trained with --refine-poses (each step renders 2048 of the photo's pixels)."""
-"""Camera centres within this fraction of the ground-truth extent: the run is already in the GT frame."""
+MIN_PSNR = HOLDOUT_FLOOR_DB
+"""Self-check: the held-out PSNR (dB) under which the renders are suspect in themselves (`data.checks`)."""
+MAX_GAP_DB = HOLDOUT_GAP_DB
+"""Self-check: how far (dB) the held-out PSNR may fall under the run's train PSNR (`data.checks`)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -269,6 +288,10 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         "scored_pixels": "right half of each test view (--appearance-rule half)" if half else "whole views",
     }  # fmt: skip
     result.update(_depth_summary(gt, alignment, abs_errors, covered, gt_pixels))
+    train = train_psnr(config.run_dir)
+    result["train_psnr"], result["train_psnr_from"] = train if train is not None else (None, "no metrics.csv value")
+    checked = verdict(self_checks(result["psnr"], train))
+    result.update(checked)
     write_json(out, result)
     metrics.save()
     manifest = write_manifest(
@@ -281,9 +304,40 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
                                            "appearance_rule": config.appearance_rule},
         left_out={**({"lpips": lpips_reason} if lpips_reason else {}),
                   **({} if gt else {"depth": "no --ground-truth given"})},
-        config=config_to_json(config),
+        config=config_to_json(config), **checked,
     )  # fmt: skip
     return Outputs(out=out, metrics=metrics.path, manifest=manifest, result=result)
+
+
+def train_psnr(run_dir: Path) -> tuple[float, str] | None:
+    """The last `train_psnr` in RUN_DIR/metrics.csv and where it comes from, or None (no file, no value)."""
+    path = Path(run_dir) / "metrics.csv"
+    if not path.is_file():
+        return None
+    with open(path, newline="") as f:
+        rows = [r for r in csv.DictReader(f) if (r.get("train_psnr") or "").strip()]
+    if not rows:
+        return None
+    try:
+        return float(rows[-1]["train_psnr"]), f"{path.name}, step {rows[-1].get('step', '?')}"
+    except ValueError:
+        return None
+
+
+def self_checks(psnr_value: float | None, train: tuple[float, str] | None) -> list[Check]:
+    """The held-out PSNR against its floor and (when the run has one) against the train PSNR (module doc)."""
+    held_out = math.nan if psnr_value is None else float(psnr_value)
+    checks = [Check.lower("holdout_psnr", held_out, MIN_PSNR, "the renders of the held-out views hardly resemble "
+                          "the photos: too little training, bad poses or a test split the cameras never saw",
+                          unit=" dB")]  # fmt: skip
+    if train is not None:
+        checks.append(Check.upper(
+            "holdout_gap", train[0] - held_out, MAX_GAP_DB,
+            f"the held-out views score far under the training views ({train[0]:.1f} dB, {train[1]}): the field "
+            "overfitted its photos, or the held-out cameras disagree with the training ones (poses, test split)",
+            unit=" dB",
+        ))  # fmt: skip
+    return checks
 
 
 def _render_scored(trained, intr, pose, device, photo: np.ndarray, half: bool, background: np.ndarray) -> dict:

@@ -28,6 +28,16 @@ Outputs stack side by side: rgb | depth (z-depth, turbo over one range for the w
 preview pass: 1st-99th percentile over pixels with opacity >= 0.5) | accumulation (grey).
 Next to OUT.mp4: `OUT.metrics.csv` (frame, seconds, rays/s, psnr) and `OUT.manifest.json` (written last).
 Cameras and rendering come from the trained-run library (`model`).
+
+Self-check (`OUT.manifest.json` `check`: ok | suspect, `checks`: `data.checks`), from what every frame's render
+already returns (opacity per ray), gathered while the video is written:
+- `empty_frames`: share of the median frame's pixels with accumulated opacity < `EMPTY_ACC`, at most `MAX_EMPTY`.
+  An object on a plain background leaves much of each frame empty, so the limit is high: only a video of (almost)
+  nothing fails it (the camera path misses the object, or the field is empty).
+- `still_frames` (two frames or more): share of consecutive frame pairs whose mean absolute RGB difference is under
+  `STILL_DIFF` (half a grey level of the 8-bit video), at most `MAX_STILL`: a path that does not move, or nothing to
+  see.
+- `non_finite`: NaN / inf values in the colour, the opacity or (when shown) the depth of opaque pixels: 0.
 """
 
 from __future__ import annotations
@@ -40,6 +50,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from data.checks import Check, verdict
 from data.errors import UserError
 from data.progress import NO_PROGRESS, Progress
 from data.rundir import MetricsLog, Stopwatch, config_to_json, sidecar, write_manifest
@@ -63,6 +74,15 @@ slower sequence: 25 of 120 frames at 30 fps would last under a second) but not b
 PREVIEW_RAYS = 16384
 """Pixels per preview view for the rays/s measurement (two chunks of the fast field)."""
 PREVIEW_VIEWS = 3
+EMPTY_ACC = 0.05
+"""A pixel whose accumulated opacity is below this shows (almost) nothing of the field: background only."""
+MAX_EMPTY = 0.95
+"""Self-check: at most this share of the median frame's pixels may be empty. The test sphere (an object on a white
+background at the training distance) covers a tenth of its frames; a path that misses the object covers ~0."""
+STILL_DIFF = 0.5 / 255
+"""Two consecutive frames whose mean absolute RGB difference is below this look the same in the 8-bit video."""
+MAX_STILL = 0.9
+"""Self-check: at most this share of consecutive frame pairs may look the same."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -242,6 +262,45 @@ def _within_budget(trained: Renderable, cams: CameraPath, config: Config, device
     }  # fmt: skip
 
 
+class _FrameWatch:
+    """The self-check's figures (module doc), gathered frame by frame: one previous frame is kept, nothing more."""
+
+    def __init__(self, shows_depth: bool) -> None:
+        self.shows_depth = shows_depth
+        self.empty: list[float] = []  # per frame: share of pixels with accumulation < EMPTY_ACC
+        self.pairs = self.still = self.non_finite = 0
+        self._last: np.ndarray | None = None
+
+    def add(self, view: dict[str, np.ndarray]) -> None:
+        rgb, acc = view["rgb"], view["acc"]  # [H, W, 3], [H, W]
+        bad = ~np.isfinite(rgb).all(-1) | ~np.isfinite(acc)
+        if self.shows_depth:
+            bad |= (acc >= OPAQUE) & ~np.isfinite(view["depth"])
+        self.non_finite += int(bad.sum())
+        self.empty.append(float(np.mean(~(acc >= EMPTY_ACC))))  # NaN opacity counts as empty
+        rgb = np.clip(np.nan_to_num(rgb, nan=0.0), 0.0, 1.0)
+        if self._last is not None and self._last.shape == rgb.shape:
+            self.pairs += 1
+            self.still += bool(np.abs(rgb - self._last).mean() < STILL_DIFF)
+        self._last = rgb
+
+    def checks(self) -> list[Check]:
+        out = [Check.upper(
+            "empty_frames", float(np.median(self.empty)) if self.empty else math.nan, MAX_EMPTY,
+            f"the median frame shows almost nothing (accumulation < {EMPTY_ACC:g}): the camera path misses the "
+            "object, or the field is empty",
+        )]  # fmt: skip
+        if self.pairs:
+            out.append(Check.upper(
+                "still_frames", self.still / self.pairs, MAX_STILL,
+                "nearly every frame repeats the one before: the camera path does not move, or there is nothing to see",
+            ))  # fmt: skip
+        out.append(Check.upper("non_finite", self.non_finite, 0, "NaN or inf in the rendered colour, opacity or "
+                               "depth (the video shows them as black or white): the field's output is broken "
+                               "there"))  # fmt: skip
+        return out
+
+
 def run(config: Config, progress: Progress | None = None) -> Outputs:
     started = time.time()
     outputs = parse_outputs(config.outputs)
@@ -279,11 +338,13 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         budget["fps"] = {"asked": config.fps, "chosen": round(fps, 3),
                          "reason": f"{len(cams.names)} of {asked_frames} frames: slower, to keep the length asked for "
                                    f"(at least {min(config.fps, MIN_FPS):g} fps)"}  # fmt: skip
+    watch = _FrameWatch(shows_depth="depth" in outputs)
     with video_writer(out, fps=fps) as video:
         for k in range(len(cams.names)):
             t0 = time.perf_counter()
             view = render_view(trained, cams.intrinsics[k], cams.world_from_cams[k], device)
             seconds = time.perf_counter() - t0
+            watch.add(view)
             panels = []
             for kind in outputs:
                 if kind == "rgb":
@@ -314,7 +375,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
               "fps": fps, "size_hw": list(size), "codec": "h264 yuv420p crf 18 (odd sizes padded by edge)",
               **({"depth_range_user_units": [lo, hi], "depth_colormap": "turbo", "depth_background":
                   f"black where accumulation < {OPAQUE}"} if "depth" in outputs else {})},
-        config=config_to_json(config),
+        config=config_to_json(config), **verdict(watch.checks()),
     )  # fmt: skip
     return Outputs(video=out, frames=tuple(frame_paths), metrics=metrics.path, manifest=manifest,
                    n_frames=len(cams.names), size=(int(size[0]), int(size[1])))  # fmt: skip

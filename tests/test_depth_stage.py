@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
+from types import SimpleNamespace
 
 import cv2
 import imageio.v2 as iio
@@ -15,9 +17,9 @@ from data.errors import UserError
 from model import render_view
 
 try:  # the analytic stand-in lives with the render tests
-    from test_render_stage import SPHERE_RADIUS, sphere_run  # noqa: F401  (fixture)
+    from test_render_stage import SPHERE_RADIUS, SphereRun, sphere_run  # noqa: F401  (fixture)
 except ImportError:  # tests/ imported as a package
-    from tests.test_render_stage import SPHERE_RADIUS, sphere_run  # noqa: F401
+    from tests.test_render_stage import SPHERE_RADIUS, SphereRun, sphere_run  # noqa: F401
 
 
 def test_depth_maps_in_user_units_and_consistent_pngs(sphere_run, tmp_path):
@@ -65,6 +67,70 @@ def test_turntable_median_depth_with_video(sphere_run, tmp_path):
     frames = [f for f in reader.iter_data()]
     reader.close()
     assert len(frames) == 3 and frames[0].shape == (12, 16, 3)
+
+
+def _checks(manifest) -> tuple[dict, dict[str, dict]]:
+    """A manifest and its checks by name."""
+    doc = json.loads(manifest.read_text())
+    return doc, {c["name"]: c for c in doc["checks"]}
+
+
+def test_self_check_passes_the_sphere(sphere_run, tmp_path):
+    run_dir, _ = sphere_run
+    doc, checks = _checks(depth_stage.run(depth_stage.Config(run_dir=run_dir, out_dir=tmp_path / "d")).manifest)
+    assert doc["check"] == "ok" and set(checks) == {"depth_coverage", "depth_beyond_far", "non_finite"}, checks
+    assert 0.05 < checks["depth_coverage"]["value"] < 0.2  # the sphere covers ~10 % of each view
+    assert checks["depth_beyond_far"]["value"] == 0  # hits at 2.5-3 scene units, far bound 10
+
+
+def _run_with(monkeypatch, run_dir, tmp_path, fake) -> tuple[dict, dict[str, dict]]:
+    monkeypatch.setattr(depth_stage, "load_trained", lambda run_dir, device: fake)
+    return _checks(depth_stage.run(depth_stage.Config(run_dir=run_dir, out_dir=tmp_path / "d")).manifest)
+
+
+def test_self_check_flags_depth_beyond_the_far_bound(sphere_run, tmp_path, monkeypatch):
+    run_dir, fake = sphere_run
+    near = dataclasses.replace(fake.scene, far=2.0)  # the sphere's front is 2.5 scene units from every camera
+    doc, checks = _run_with(monkeypatch, run_dir, tmp_path, SphereRun(scene=near))
+    assert doc["check"] == "suspect" and checks["depth_beyond_far"]["value"] == 1.0
+    assert not checks["depth_beyond_far"]["ok"] and checks["depth_coverage"]["ok"] and checks["non_finite"]["ok"]
+
+
+def test_self_check_leaves_out_the_far_bound_of_a_box_run(sphere_run, tmp_path, monkeypatch):
+    run_dir, fake = sphere_run
+    near = dataclasses.replace(fake.scene, far=2.0)
+    box_run = SphereRun(scene=near)
+    box_run.model = SimpleNamespace(far=near.far)  # rays stop at the far bound: nothing can lie beyond it
+    doc, checks = _run_with(monkeypatch, run_dir, tmp_path, box_run)
+    assert "depth_beyond_far" not in checks and "check depth_beyond_far" in doc["left_out"]
+
+
+@dataclasses.dataclass
+class _EmptyRun(SphereRun):
+    """A field with nothing in it: every ray misses."""
+
+    def render_rays(self, rays_o, rays_d):
+        out = super().render_rays(rays_o, rays_d)
+        return {**out, "rgb": self.background.expand_as(out["rgb"]), "acc": torch.zeros_like(out["acc"])}
+
+
+@dataclasses.dataclass
+class _NaNDepthRun(SphereRun):
+    """The sphere with NaN depth where it is hit on its left half (a broken field)."""
+
+    def render_rays(self, rays_o, rays_d):
+        out = super().render_rays(rays_o, rays_d)
+        bad = (rays_o + 3 * rays_d)[:, 0] < 0
+        return {**out, "depth": torch.where(bad, torch.nan, out["depth"])}
+
+
+def test_self_check_flags_an_empty_field_and_non_finite_depth(sphere_run, tmp_path, monkeypatch):
+    run_dir, fake = sphere_run
+    doc, checks = _run_with(monkeypatch, run_dir, tmp_path / "empty", _EmptyRun(scene=fake.scene))
+    assert doc["check"] == "suspect" and checks["depth_coverage"]["value"] == 0 and not checks["depth_coverage"]["ok"]
+    assert "depth_beyond_far" not in checks and doc["left_out"]["check depth_beyond_far"] == "no pixel has depth"
+    doc, checks = _run_with(monkeypatch, run_dir, tmp_path / "nan", _NaNDepthRun(scene=fake.scene))
+    assert doc["check"] == "suspect" and checks["non_finite"]["value"] > 0 and not checks["non_finite"]["ok"]
 
 
 def test_depth_mm_rounds_clips_and_keeps_zero():

@@ -3,6 +3,7 @@ ground truth), user errors, and an integration run: a short real training clears
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -17,9 +18,9 @@ from data.errors import UserError
 from model import render_view
 
 try:  # the analytic stand-in lives with the render tests
-    from test_render_stage import sphere_run  # noqa: F401  (fixture)
+    from test_render_stage import SphereRun, sphere_run  # noqa: F401  (fixture)
 except ImportError:  # tests/ imported as a package
-    from tests.test_render_stage import sphere_run  # noqa: F401
+    from tests.test_render_stage import SphereRun, sphere_run  # noqa: F401
 
 KEYS = {
     "run_dir", "split", "n_views", "psnr", "ssim", "lpips", "lpips_unavailable", "rays_per_second", "render_seconds",
@@ -111,6 +112,53 @@ def test_missing_run_dir(tmp_path):
         eval_stage.run(eval_stage.Config(run_dir=tmp_path / "nope", out=tmp_path / "e.json"))
 
 
+def _write_metrics(run_dir: Path, *train_psnrs: str) -> None:
+    """A run's metrics.csv with these train_psnr values (blank: a row without one), as train writes it."""
+    rows = [f"{25 * (k + 1)},{k + 1.0},0.01,{v},,0.01,10,0.5" for k, v in enumerate(train_psnrs)]
+    header = "step,seconds,loss,train_psnr,test_psnr,lr,samples_per_ray,skip_fraction"
+    (run_dir / "metrics.csv").write_text("\n".join([header, *rows]) + "\n")
+
+
+def test_self_check_without_a_train_psnr_checks_the_floor_only(sphere_run, tmp_path):
+    run_dir, _ = sphere_run
+    out = eval_stage.run(eval_stage.Config(run_dir=run_dir, out=tmp_path / "e.json"))
+    manifest = json.loads(out.manifest.read_text())
+    assert manifest["check"] == out.result["check"] == "ok"
+    assert [c["name"] for c in manifest["checks"]] == ["holdout_psnr"] and out.result["train_psnr"] is None
+
+
+def test_self_check_flags_a_held_out_psnr_far_under_the_train_psnr(sphere_run, tmp_path):
+    run_dir, _ = sphere_run
+    held_out = eval_stage.run(eval_stage.Config(run_dir=run_dir, out=tmp_path / "a.json")).result["psnr"]
+    _write_metrics(run_dir, "20.0", f"{held_out + eval_stage.MAX_GAP_DB - 1:.3f}", "")  # the last row has none
+    close = eval_stage.run(eval_stage.Config(run_dir=run_dir, out=tmp_path / "b.json")).result
+    gap = {c["name"]: c for c in close["checks"]}["holdout_gap"]
+    assert close["check"] == "ok" and gap["ok"] and gap["value"] == pytest.approx(eval_stage.MAX_GAP_DB - 1, abs=0.01)
+    assert close["train_psnr_from"] == "metrics.csv, step 50"
+    _write_metrics(run_dir, f"{held_out + eval_stage.MAX_GAP_DB + 1:.3f}")
+    far = eval_stage.run(eval_stage.Config(run_dir=run_dir, out=tmp_path / "c.json"))
+    manifest = json.loads(far.manifest.read_text())
+    assert manifest["check"] == "suspect" and [c["name"] for c in manifest["checks"] if not c["ok"]] == ["holdout_gap"]
+
+
+@dataclasses.dataclass
+class _BlackRun(SphereRun):
+    """Renders black everywhere: nothing like the (mostly white) photos."""
+
+    def render_rays(self, rays_o, rays_d):
+        out = super().render_rays(rays_o, rays_d)
+        return {**out, "rgb": torch.zeros_like(out["rgb"])}
+
+
+def test_self_check_flags_a_low_held_out_psnr(sphere_run, tmp_path, monkeypatch):
+    run_dir, fake = sphere_run
+    monkeypatch.setattr(eval_stage, "load_trained", lambda run_dir, device: _BlackRun(scene=fake.scene))
+    doc = eval_stage.run(eval_stage.Config(run_dir=run_dir, out=tmp_path / "e.json")).result
+    floor = {c["name"]: c for c in doc["checks"]}["holdout_psnr"]
+    assert doc["psnr"] < eval_stage.MIN_PSNR and doc["check"] == "suspect" and not floor["ok"]
+    assert floor["limit"] == ">= 15 dB"
+
+
 def test_lpips_status_reports_a_reason_when_unavailable():
     fn, reason = eval_stage.lpips_status()
     assert (fn is None) == (reason is not None)
@@ -139,6 +187,7 @@ def test_short_training_gives_depth_near_ground_truth(tmp_path):
     assert doc["depth_alignment"]["method"] == "none"
     assert doc["depth_mae"] < DEPTH_MAE_M, doc["depth_mae"]
     assert doc["depth_coverage"] > 0.9
+    assert doc["check"] == "ok" and {c["name"] for c in doc["checks"]} == {"holdout_psnr", "holdout_gap"}, doc
     # a constant guess (the median ground-truth depth) is far worse: the test has teeth
     gts = [np.load(p) for p in sorted((scene_dir / "ground_truth" / "depth").glob("*.npy"))]
     valid = np.concatenate([g[g > 0] for g in gts])

@@ -15,6 +15,7 @@ from benchmarks.mesh_metrics import chamfer_distance, surface_points
 from benchmarks.standin import StandIn
 from data.errors import UserError
 from stages import mesh
+from stages.mesh.checks import MAX_BOX_FILL, box_fill, component_faces, mesh_checks
 from stages.mesh.cleanup import mesh_stats
 
 
@@ -66,6 +67,10 @@ def test_standin_meshes_to_its_exact_surface_in_the_source_frame(tmp_path):
     assert [st["step"] for st in report["steps"]][0] == "marching_cubes"
     assert report["threshold"]["value"] == pytest.approx(out.threshold)
     assert report["peak_rss_mb"] > 0 and report["timing_seconds"]["total"] > 0
+    checks = {c["name"]: c for c in report["checks"]}
+    assert report["check"] == "ok" and set(checks) == {"box_fill", "large_components"}, checks
+    assert checks["box_fill"]["value"] == pytest.approx(0.35, abs=0.02)  # y: the sphere's -0.35 .. 0.35 in [-1, 1]
+    assert checks["large_components"]["value"] == 1
 
 
 def test_mirroring_transform_keeps_faces_outward(tmp_path):
@@ -160,6 +165,63 @@ def test_bbox_in_the_user_frame_crops_there(tmp_path):
     assert mid[0] < m.bounds[1, 0] <= mid[0] + 1.5 * h and m.bounds[0, 0] == pytest.approx(lo[0], abs=h)
 
 
+def _box_mesh(extents) -> tuple[np.ndarray, np.ndarray]:
+    box = trimesh.creation.box(extents=extents)
+    return np.asarray(box.vertices), np.asarray(box.faces)
+
+
+def _checks(verts, faces, aabb=((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))) -> dict[str, object]:
+    return {c.name: c for c in mesh_checks(np.asarray(verts), np.asarray(faces), np.asarray(aabb))}
+
+
+def test_self_check_tells_an_object_from_a_slab_across_the_box():
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+    checks = _checks(ball.vertices, ball.faces)
+    assert all(c.ok for c in checks.values()) and checks["box_fill"].value == pytest.approx(0.5, abs=0.01)
+    # a tilted slab cut by the box (the real capture's wall, left open): it reaches across every axis, though thin
+    verts, faces = trimesh.remesh.subdivide_to_size(*_box_mesh((4.0, 4.0, 0.2)), max_edge=0.05)
+    verts = verts @ trimesh.transformations.rotation_matrix(np.radians(35), [1.0, 1.0, 0.0])[:3, :3].T
+    slab = trimesh.Trimesh(verts, faces[(np.abs(verts[faces]) <= 1).all(axis=(1, 2))])  # the part inside the box
+    fill = box_fill(slab.vertices, np.array([[-1.0] * 3, [1.0] * 3]))
+    assert (fill > MAX_BOX_FILL).all(), fill
+    assert not _checks(slab.vertices, slab.faces)["box_fill"].ok
+    # the same slab in a box twice as big is a plate inside it: not the box's contents
+    assert _checks(slab.vertices, slab.faces, ((-2.0, -2.0, -2.0), (2.0, 2.0, 2.0)))["box_fill"].ok
+
+
+def test_self_check_counts_large_components():
+    balls = [trimesh.creation.icosphere(subdivisions=1, radius=0.1).apply_translation([x, y, 0.0])
+             for x in np.linspace(-0.8, 0.8, 4) for y in np.linspace(-0.6, 0.6, 3)]  # fmt: skip
+    many = trimesh.util.concatenate(balls)
+    assert component_faces(many.faces).tolist() == [80] * 12
+    assert not _checks(many.vertices, many.faces)["large_components"].ok
+    few = trimesh.util.concatenate(balls[:3])
+    assert _checks(few.vertices, few.faces)["large_components"].value == 3
+    small = [trimesh.creation.icosphere(subdivisions=0, radius=0.05).apply_translation(b.centroid) for b in balls]
+    body = trimesh.creation.icosphere(subdivisions=4, radius=0.3)  # 5120 faces; 20 per speck: 0.4 % each
+    specks = trimesh.util.concatenate([body, *small])
+    assert _checks(specks.vertices, specks.faces)["large_components"].value == 1
+
+
+class _WallAndBlob(StandIn):
+    """The stand-in's objects in front of (and fused with) a thick wall that crosses the box diagonally."""
+
+    def sdf(self, x):
+        normal = torch.tensor([1.0, 1.0, 1.0], dtype=x.dtype) / 3**0.5
+        return torch.minimum(super().sdf(x), (x @ normal - 0.1).abs() - 0.08)
+
+
+def test_self_check_flags_a_wall_meshed_with_the_object(tmp_path):
+    s = _WallAndBlob(tmp_path)
+    out = mesh.extract(s, mesh.Config(run_dir=tmp_path, out=tmp_path / "m.ply", resolution=40, threshold=50.0,
+                                      colors=False))  # fmt: skip
+    report = json.loads(out.report.read_text())
+    checks = {c["name"]: c for c in report["checks"]}
+    assert report["final"]["components"] == 1  # one piece, like the real capture's slab
+    assert report["check"] == "suspect" and not checks["box_fill"]["ok"] and checks["box_fill"]["value"] > 0.95
+    assert checks["large_components"]["ok"]
+
+
 def test_parse_helpers_and_bad_config():
     assert mesh.parse_threshold("auto") == "auto" and mesh.parse_threshold("2.5") == 2.5
     assert mesh.parse_bbox("auto") is None and mesh.parse_bbox("0,0,0,1,1,1") == (0, 0, 0, 1, 1, 1)
@@ -223,6 +285,7 @@ def test_short_training_meshes_near_the_ground_truth(tmp_path):
     pred = surface_points(np.asarray(m.vertices), np.asarray(m.faces), 40_000)
     pred = pred[visible_points(pred, src.out_dir)]
     assert chamfer_distance(pred, gt) < TRAINED_CHAMFER * _diag(gt)
+    assert report["check"] == "ok", report["checks"]  # objects on their slab, not the box
 
 
 def test_volume_sampling_refuses_nan_density_and_caps_inf():

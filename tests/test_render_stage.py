@@ -132,6 +132,63 @@ def test_test_path_replays_dataset_cameras_with_psnr(sphere_run, tmp_path):
     assert len(psnrs) == res.n_frames and min(psnrs) > 40  # the images are this renderer's own output
 
 
+def _checks(manifest: Path) -> tuple[str, dict[str, dict]]:
+    """A manifest's verdict and its checks by name."""
+    doc = json.loads(manifest.read_text())
+    return doc["check"], {c["name"]: c for c in doc["checks"]}
+
+
+def test_self_check_passes_the_sphere_turntable(sphere_run, tmp_path):
+    run_dir, _ = sphere_run
+    res = render_stage.run(render_stage.Config(run_dir=run_dir, out=tmp_path / "v.mp4", frames=6,
+                                               outputs=("rgb", "depth")))  # fmt: skip
+    check, checks = _checks(res.manifest)
+    assert check == "ok" and set(checks) == {"empty_frames", "still_frames", "non_finite"}, checks
+    assert 0.8 < checks["empty_frames"]["value"] < render_stage.MAX_EMPTY  # the sphere covers ~10 % of a frame
+    assert checks["still_frames"]["value"] == 0 and checks["non_finite"]["value"] == 0
+
+
+def test_self_check_flags_a_path_that_misses_the_object(sphere_run, tmp_path):
+    run_dir, _ = sphere_run
+    # 100 user units away the sphere (radius 0.25 user units) is a tenth of a pixel: every frame is background
+    res = render_stage.run(render_stage.Config(run_dir=run_dir, out=tmp_path / "far.mp4", frames=4, radius=100.0))
+    check, checks = _checks(res.manifest)
+    assert check == "suspect" and not checks["empty_frames"]["ok"] and checks["empty_frames"]["value"] > 0.99
+    assert not checks["still_frames"]["ok"]  # all background: nothing changes either
+    assert checks["non_finite"]["ok"]
+
+
+def test_self_check_flags_a_camera_path_that_stands_still(sphere_run, tmp_path):
+    run_dir, _ = sphere_run
+    pose = paths.look_at(np.array([0.0, -3.0, 1.0]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    entry = {"camera_to_world": pose.reshape(-1).tolist(), "fov": 40.0, "aspect": 1.0}
+    path = tmp_path / "still.json"
+    path.write_text(json.dumps({"camera_path": [entry] * 4, "render_width": 24, "render_height": 24, "fps": 10}))
+    res = render_stage.run(render_stage.Config(run_dir=run_dir, out=tmp_path / "s.mp4", path=str(path)))
+    check, checks = _checks(res.manifest)
+    assert check == "suspect" and checks["still_frames"]["value"] == 1.0 and not checks["still_frames"]["ok"]
+    assert checks["empty_frames"]["ok"]  # the sphere is in view: only the stillness is wrong
+
+
+@dataclass
+class _NaNSphere(SphereRun):
+    """The sphere with NaN colour on its left half (a broken field)."""
+
+    def render_rays(self, rays_o, rays_d):
+        out = super().render_rays(rays_o, rays_d)
+        out["rgb"] = torch.where((rays_o + 3 * rays_d)[:, :1] < 0, torch.nan, out["rgb"])
+        return out
+
+
+def test_self_check_flags_non_finite_colour(sphere_run, tmp_path, monkeypatch):
+    run_dir, fake = sphere_run
+    monkeypatch.setattr(render_stage, "load_trained", lambda run_dir, device: _NaNSphere(scene=fake.scene))
+    res = render_stage.run(render_stage.Config(run_dir=run_dir, out=tmp_path / "n.mp4", frames=3))
+    check, checks = _checks(res.manifest)
+    assert check == "suspect" and checks["non_finite"]["value"] > 0 and not checks["non_finite"]["ok"]
+    assert checks["empty_frames"]["ok"] and checks["still_frames"]["ok"]
+
+
 def test_turntable_uses_training_median_radius_unless_given(sphere_run):
     _, fake = sphere_run
     cams = camera_path(fake.scene, "turntable", frames=6)

@@ -23,6 +23,9 @@ Steps:
 7. Export in the output frame: `scene.source_from_scene()` for `--frame user` (winding reversed if it
    mirrors), identity for `--frame normalized`; written atomically, then `OUT.report.json` next to it
    (`mesh.ply` -> `mesh.report.json`, so several meshes in one folder keep their own reports).
+8. Self-check (`stages.mesh.checks`; the report's `check`: ok | suspect and `checks`): the mesh against the scene's
+   box (a mesh that spans it on every axis is the surroundings cut out by the box, a slab, not an object) and its
+   count of sizeable connected components.
 
 Frames: the scene (normalized, training) frame is where the field lives; the user (source) frame is the one
 `convert` started from: `p_scene = applied_scale * (applied_transform @ [p_src; 1])` (docs/DESIGN.md).
@@ -40,8 +43,10 @@ from typing import Any, Literal
 import numpy as np
 
 from data.atomic import atomic_path
+from data.checks import verdict
 from data.errors import UserError
 from data.rundir import config_to_json, write_manifest
+from stages.mesh.checks import mesh_checks
 from stages.mesh.cleanup import Cleanup, cleanup_mesh, mesh_stats, transform_mesh
 from stages.mesh.field_access import (
     as_np,
@@ -275,8 +280,8 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
 
     colors = None
     left_out: dict[str, str] = {}
+    v_scene, f_scene = transform_mesh(verts, faces, np.linalg.inv(out_from_scene))
     if config.colors and has_color(trained):
-        v_scene, f_scene = transform_mesh(verts, faces, np.linalg.inv(out_from_scene))
         colors = vertex_colors(trained, v_scene, f_scene, 1 << 16)
     elif config.colors:
         left_out["colors"] = "the field is density-only"
@@ -303,6 +308,7 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
         frame=config.frame, out_from_scene=out_from_scene.tolist(),
         winding_reversed=bool(np.linalg.det(out_from_grid[:3, :3]) < 0),
         timing_seconds=timing, peak_rss_mb=round(_peak_rss_mb(), 1), device=str(device),
+        **verdict(mesh_checks(v_scene, f_scene, as_np(trained.aabb))),
     )  # fmt: skip
     return Outputs(mesh=out, report=report, vertices=len(verts), faces=len(faces), threshold=level,
                    watertight=stats["watertight"], seconds=seconds)  # fmt: skip
