@@ -316,3 +316,17 @@ def test_sparse_depth_file_errors_are_one_line(tmp_path):
     write_sparse_depth(tmp_path / "oob.npz", np.zeros((2, 3)), {"a.png": np.array([0, 5])})
     with pytest.raises(UserError, match="outside"):
         read_sparse_depth(tmp_path / "oob.npz")
+
+
+def test_llff_image_folder_found_in_the_dataset(tmp_path):
+    """`convert fern --images images_8` (LLFF's name for its small copies) finds the folder in the dataset, and a
+    dataset without images/ uses its largest images_F copy."""
+    fx.make_llff(tmp_path / "src", n=9)
+    (tmp_path / "src" / "images").rename(tmp_path / "src" / "images_8")
+    scene = tmp_path / "scene"
+    run(Config(source=tmp_path / "src", scene_dir=scene, images=Path("images_8"), downscales=()))
+    used = json.loads((scene / "convert_manifest.json").read_text())["used"]
+    assert used["images"] == str(tmp_path / "src" / "images_8")
+    run(Config(source=tmp_path / "src", scene_dir=tmp_path / "scene2", downscales=()))
+    _fails("no_such_folder: image folder not found", source=tmp_path / "src", scene_dir=tmp_path / "s3",
+           images=Path("no_such_folder"))  # fmt: skip

@@ -55,6 +55,10 @@ def test_two_steps_write_every_file(rgba_scene, tmp_path, field):
     assert out.manifest.stat().st_mtime_ns >= out.checkpoint.stat().st_mtime_ns
     if field == "fast":
         assert "occupancy_skip_fraction" in manifest["used"]
+    # two steps: the self-check says so (held-out PSNR under the floor), with the figure and the rule
+    assert manifest["check"] == "suspect"
+    failed = {c["name"]: c for c in manifest["checks"] if not c["ok"]}
+    assert failed["holdout_psnr"]["value"] < 18 and failed["holdout_psnr"]["limit"] == ">= 18 dB"
 
 
 def test_resume_continues_the_step_count(rgba_scene, tmp_path):
@@ -116,6 +120,8 @@ def test_short_training_clears_a_psnr_floor(tmp_path):
                             resolution=(24, 48), occupancy_resolution=32, log_every=50, eval_every=0))  # fmt: skip
     # A white image scores ~11 dB on this scene; measured 22.7 dB after 300 steps (seed 1).
     assert out.test_psnr is not None and out.test_psnr > PSNR_FLOOR, out.test_psnr
+    checks = {c["name"]: c for c in json.loads(out.manifest.read_text())["checks"]}
+    assert checks["holdout_psnr"]["ok"] and checks["holdout_gap"]["ok"], checks
 
 
 def test_fused_adam_matches_its_plain_twin():

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from data.transforms import read_scene
 from model.background import Background
 from stages import convert as convert_stage
 from stages import scene as scene_stage
@@ -108,3 +109,47 @@ def test_room_scene_contraction_beats_the_box(tmp_path):
     used = json.loads(auto.manifest.read_text())["used"]
     assert used["scene_model"] == "contract" and used["background"]["mode"] == "random"
     assert auto.test_psnr > box.test_psnr + 0.3, (auto.test_psnr, box.test_psnr)
+
+
+@pytest.mark.parametrize(("layout", "kind"), [("orbit", "box"), ("forward", "ndc"), ("room", "contract")])
+def test_each_kind_of_capture_gets_its_own_rules(tmp_path, layout, kind):
+    """scene --layout orbit|forward|room: the scene model is chosen first, then that kind's grid, step and TV rules
+    (`RULES`), each reason naming its kind; no rule of one kind applies to another."""
+    from stages.train.defaults import NDC_MIN_STEP_VOXELS, NDC_SAMPLES, RULES, resolve_defaults
+    from stages.train.views import load_views
+
+    src, scene_dir = tmp_path / "src", tmp_path / "scene"
+    scene_kind = "rgba" if layout == "orbit" else "posed"
+    scene_stage.run(scene_stage.Config(out_dir=src, kind=scene_kind, layout=layout, size=48, views=12, seed=0))
+    convert_stage.run(convert_stage.Config(source=src, scene_dir=scene_dir, downscales=()))
+    scene = read_scene(scene_dir)
+    idx = scene.split("train")
+    config = train.Config(scene_dir=scene_dir, run_dir=tmp_path / "run")
+    found = resolve_defaults(config, scene, load_views(scene, idx), idx, torch.device("cpu"), 1.0)
+    assert found.scene_model == kind and found.reasons["scene_model"].startswith(kind)
+    assert found.tv == RULES[kind].tv()[0]
+    if kind == "ndc":  # the march takes NDC_SAMPLES steps across z' in [-1, 1], whatever the grid
+        assert "z'" in found.reasons["step_ratio"] and "image" in found.reasons["resolution"]
+        from model.field_model import scene_ndc
+
+        poses = np.stack([f.world_from_cam for f in scene.frames])
+        box = scene_ndc(scene).box(poses, [scene.frame_intrinsics(i) for i in range(len(scene.frames))])
+        step = float(np.mean(box[1] - box[0])) / found.resolution[1] * found.step_ratio
+        assert 2.0 / step == pytest.approx(NDC_SAMPLES) or found.step_ratio == NDC_MIN_STEP_VOXELS
+    else:
+        assert "object" in found.reasons["resolution"] and "z'" not in found.reasons["step_ratio"]
+    assert (found.tv > 0) == (kind != "box")
+
+
+def test_plain_colour_clears_only_the_background_around_the_object():
+    """A white object on a whitened background: only the white region that touches the image border becomes
+    transparent; the object's own white face (inside, enclosed by other colours) stays opaque."""
+    img = np.full((20, 24, 3), 255, np.uint8)
+    img[4:16, 6:18] = (200, 30, 30)  # the object
+    img[7:13, 9:15] = 255  # its white face, enclosed by the object's red
+    views = _views([img])
+    share = views.mask_colour((1.0, 1.0, 1.0))
+    alpha = views.rgba[:, 3].reshape(20, 24).numpy()
+    assert (alpha[7:13, 9:15] == 255).all() and (alpha[4:16, 6:18] == 255).all()
+    assert (alpha[:4] == 0).all() and (alpha[:, :6] == 0).all()
+    assert share == pytest.approx((20 * 24 - 12 * 12) / (20 * 24))

@@ -33,6 +33,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from data.checks import verdict
 from data.errors import Interrupted, UserError
 from data.progress import NO_PROGRESS, Progress
 from data.rundir import MetricsLog, output_folder, write_config, write_manifest
@@ -45,10 +46,11 @@ from model.appearance import Appearance
 from model.camera_opt import CameraOpt, CameraSchedule, pivot_depths, pose_report, write_refined_transforms
 from model.checkpoint import read_checkpoint, restore_appearance, restore_background, restore_contraction
 from model.device import cpu_threads, resolve_device
-from model.field_model import ModelSettings, build_model, choose_scene_model, scene_ndc
+from model.field_model import ModelSettings, build_model, scene_ndc
 from radiance.contraction import Contraction
 from radiance.ndc import NDC
-from stages.train.defaults import contracted_resolution, resolve_defaults
+from stages.train.checks import train_checks
+from stages.train.defaults import resolve_defaults
 from stages.train.loop import DepthRays, Loop, TrainingDiverged, evaluate_psnr, make_optimizer
 from stages.train.report import per_view_report, plot_psnr, used_and_left_out
 from stages.train.views import auto_downscale, evenly_spaced, load_views
@@ -58,8 +60,6 @@ __all__ = ["Config", "Outputs", "run", "TrainingDiverged", "evenly_spaced"]
 VERSION = "1"
 DEPTH_LOSS = 0.01
 """Default `--depth-loss` weight where sparse points exist (contracted scenes)."""
-TV_REAL = 0.01
-"""Default `--tv` weight for contracted and NDC scenes (TensoRF's LLFF setting: 1.0 x its 1e-2 plane factor)."""
 METRICS = ["step", "seconds", "loss", "train_psnr", "test_psnr", "lr", "samples_per_ray", "skip_fraction"]
 
 
@@ -115,13 +115,15 @@ class Config:
     view_dependent: bool | None = None
     """Colour depends on view direction (None: on for every scene; off suits Lambertian scenes)."""
     resolution: tuple[int, int] | None = None
-    """fast: grid resolution per axis at the start and at the end (coarse-to-fine upsampling). None: from the
-    object's size in pixels (stages.train.defaults; lego_100 -> 64,160, lego_400 -> 96,300)."""
+    """fast: grid resolution per axis at the start and at the end (coarse-to-fine upsampling). None: the scene
+    kind's rule (stages.train.defaults.RULES): objects and contracted scenes from the object's size in pixels
+    (lego_100 -> 64,160, lego_400 -> 96,300), forward-facing (NDC) scenes from the image's width."""
     upsample_at: tuple[float, ...] | None = None
     """fast: run-progress fractions at which the grid is upsampled (geometric steps to the final size). None:
     0.05,0.1,0.2,0.3; with refine_poses 0.2,0.3,0.4,0.5 (coarse-to-fine, `stages.train.defaults`)."""
     step_ratio: float | None = None
-    """fast: marching step in voxels of the final grid (None: 2 below a 200 grid, else 1)."""
+    """fast: marching step in voxels of the final grid (None: the scene kind's rule: objects 2 below a 200 grid,
+    else 1; contracted 2 on CPU; NDC a fixed number of steps across inverse depth)."""
     render_step_factor: float = 0.5
     """fast: evaluation and rendering march at this fraction of the training step. The field is continuous, so
     finer quadrature at inference only costs render time: lego_100 after 120 s (trained at 2 voxels) 31.94 ->
@@ -134,8 +136,9 @@ class Config:
     """fast: weight of the L1 sparsity prior on the density factors."""
     tv: float | None = None
     """fast: weight of TensoRF's total-variation prior on the field's planes (`TensoRF.tv`; TensoRF's LLFF setting
-    is 0.01). None: 0.01 for contracted and NDC scenes (real captures, where a VM field otherwise paints streaks
-    and floaters into sparsely seen space: fox held-out 13.7 -> 17.8 dB), 0 for box scenes (objects)."""
+    is 0.01). None: the scene kind's rule (stages.train.defaults.RULES): 0.01 for contracted scenes (real captures,
+    where a VM field otherwise paints streaks and floaters into sparsely seen space: fox held-out 13.7 -> 17.8 dB),
+    NDC's own measured weight, 0 for box scenes (objects)."""
     depth_loss: float | None = None
     """fast, contracted scenes: weight of DS-NeRF's depth loss on rays through the sparse points each training
     photo observed (transforms.json's `sparse_depth_path`, written by `convert` from COLMAP; data.sparse_depth).
@@ -203,6 +206,8 @@ def _validate(config: Config) -> None:
         raise UserError(f"expected lr > 0, got {config.lr}")
     if not config.distortion >= 0:
         raise UserError(f"expected distortion >= 0, got {config.distortion}")
+    if config.tv is not None and not config.tv >= 0:
+        raise UserError(f"--tv: expected >= 0, got {config.tv}")
     if config.resume and config.overwrite:
         raise UserError("pass either --resume (continue the run) or --overwrite (replace it), not both")
     if config.checkpoint_every < 1 or not config.checkpoint_seconds >= 0:
@@ -264,9 +269,13 @@ def _run(config: Config, progress: Progress) -> Outputs:
                                        loop.eval_rays_per_second, loop.device)  # fmt: skip
     outputs += [run_dir / f for f in used["per_view"]["files"]]
     outputs += _refinement_records(loop, scene, train_idx, used, left_out)
+    checks = train_checks(rows=loop.metrics.rows, test_psnr=test_psnr, per_view=used["per_view"],
+                          occupied=None if loop.model.grid is None else 1.0 - loop.model.grid.skip_fraction,
+                          scene_model=used["scene_model"], pose=used.get("pose_refinement"))  # fmt: skip
     inputs = [scene_path / "transforms.json"] if scene_path.is_dir() else [scene_path]
     manifest = write_manifest(run_dir, stage="train", started=started, inputs=inputs, outputs=outputs, used=used,
-                              left_out=left_out, version=VERSION, checkpoint_sha256=loop.ckpt_sha256)  # fmt: skip
+                              left_out=left_out, version=VERSION, checkpoint_sha256=loop.ckpt_sha256,
+                              **verdict(checks))  # fmt: skip
     return Outputs(run_dir=run_dir, checkpoint=loop.ckpt_path, metrics=loop.metrics.path, plot=plot,
                    manifest=manifest, steps=loop.step, seconds=seconds, test_psnr=test_psnr)  # fmt: skip
 
@@ -309,27 +318,13 @@ def _setup(config: Config, progress: Progress) -> tuple[Loop, Scene, Path, dict]
     test = load_views(scene, test_idx, downscale) if test_idx else None
     found = resolve_defaults(config, scene, train, train_idx, device, downscale)
     if found.plain_colour is not None:
-        for views in (train, test) if test is not None else (train,):
-            views.mask_colour(found.plain_colour)
-    model_kind, model_reason = choose_scene_model(config.scene_model, scene, plain_background=found.plain_background)
-    if model_kind == "contract" and config.field != "fast":
-        model_kind, model_reason = "box", "the vanilla field samples the box only (no contraction)"
-    resolution, step_ratio = found.resolution, found.step_ratio
-    if model_kind == "contract" and config.resolution is None:
-        resolution = contracted_resolution(found.resolution, device)
-        step_ratio = config.step_ratio or (2.0 if device.type == "cpu" else found.step_ratio)
-    if config.tv is not None and not config.tv >= 0:
-        raise UserError(f"--tv: expected >= 0, got {config.tv}")
-    tv = config.tv if config.tv is not None else (TV_REAL if model_kind in ("contract", "ndc") else 0.0)
-    tv_reason = (
-        "given"
-        if config.tv is not None
-        else f"{TV_REAL} for {model_kind} scenes (real captures)"
-        if tv
-        else "0 for box scenes (objects)"
-    )
+        shares = [views.mask_colour(found.plain_colour) for views in ((train, test) if test is not None else (train,))]
+        found.reasons["background"] += (f"; {shares[0]:.1%} of the training pixels (the plain colour's regions "
+                                        "that touch the image border) made transparent")  # fmt: skip
+    model_kind, model_reason = found.scene_model, found.reasons["scene_model"]
+    resolution, step_ratio, tv = found.resolution, found.step_ratio, found.tv
     if config.distortion > 0 and model_kind != "contract":
-        raise UserError(f"--distortion applies to contracted scenes only (this one is {model_kind}: {model_reason})")
+        raise UserError(f"--distortion applies to contracted scenes only (this one is {model_reason})")
     depth_rays, depth_weight, depth_reason = _depth_rays(config, scene, train_idx, model_kind)
     resolved = dataclasses.replace(config, resolution=resolution, step_ratio=step_ratio, tv=tv, depth_loss=depth_weight,
                                    batch_rays=found.batch_rays, downscale=downscale,
@@ -376,8 +371,7 @@ def _setup(config: Config, progress: Progress) -> tuple[Loop, Scene, Path, dict]
                 batch_rays=found.batch_rays, gen=gen, device=device, metrics=metrics, ckpt_path=ckpt_path,
                 progress=progress, step=step, seconds_before=seconds_before, lr_factor=lr_factor,
                 cameras=cameras, depth_rays=depth_rays)  # fmt: skip
-    record = {**found.reasons, "scene_model": f"{model_kind}: {model_reason}", "tv": tv_reason,
-              "depth_loss": depth_reason,
+    record = {**found.reasons, "depth_loss": depth_reason,
               "resolved": {"resolution": list(resolution), "step_ratio": step_ratio,
                            "batch_rays": found.batch_rays, "background": model.background.describe(),
                            "tv": tv}}  # fmt: skip

@@ -11,21 +11,32 @@ One rule, written once, for both devices:
   colour", measured on the forward-facing test scene (48 px, 400 steps): fixed white 24.64 dB, random 24.58 dB,
   learned 21.67 dB (the learned colour went dark and the field transparent).
 - **Scene model** (`--scene-model auto`, `model.field_model.choose_scene_model`): NDC for forward-facing
-  captures, the box for alpha or a plain background, contraction otherwise.
-- **Grid resolution** (`--resolution`, final size): 1.6 x the object's size in pixels (the scene box's longest
-  side projected at the median camera distance with the median focal length, at most the image's long side),
-  clamped to [96, 300]; the start size is 0.32 x that, clamped to [64, 128]. Contracted scenes double both (half
-  the grid covers the box), final at most 256 on CPU and 384 on CUDA, start at most 128; their marching step stays
-  2 voxels on CPU. Measured on CPU: lego_100 (box ~100 px) -> (64, 160) was the best of (48, 128), (64, 160), (64,
-  192) in 120 s; lego_400 (box ~400 px) -> (96, 300) gave 32.5 dB in 900 s. On CUDA the start size is at least 128
-  (issue 14's H100 measurement: (128, 300) with 8192 rays, 33.9 dB vs 28.3 dB for (64, 160) in 240 s).
+  captures, the box for alpha or a plain background, contraction otherwise. It is chosen before the grid, step and
+  priors, which are then each kind's own (`RULES`): no rule measured on one kind of capture applies to another.
+- **Box scenes (objects; measured on lego_100, lego_400, the synthetic scenes)**, `BoxRules`: final grid 1.6 x the
+  object's size in pixels (the scene box's longest side projected at the median camera distance with the median
+  focal length, at most the image's long side), clamped to [96, 300]; the start size is 0.32 x that, clamped to
+  [64, 128]. Measured on CPU: lego_100 (box ~100 px) -> (64, 160) was the best of (48, 128), (64, 160), (64, 192)
+  in 120 s; lego_400 (box ~400 px) -> (96, 300) gave 32.5 dB in 900 s. On CUDA the start size is at least 128
+  (issue 14's H100 measurement: (128, 300) with 8192 rays, 33.9 dB vs 28.3 dB for (64, 160) in 240 s). March: 2
+  voxels of the final grid below 200 voxels, 1 from there on (lego_400 used 1 at 300). No TV prior (objects on a
+  clean background have no sparsely seen space to fill).
+- **Contracted scenes (unbounded real captures; measured on the fox)**, `ContractRules`: the box rule doubled (half
+  the grid covers the inner box), final at most 256 on CPU and 384 on CUDA, start at most 128; the march stays
+  2 voxels on CPU. TV 0.01 (TensoRF's real-capture setting: fox held-out 13.7 -> 17.8 dB).
+- **NDC scenes (forward-facing captures; measured on the LLFF fern)**, `NDCRules`: the field's x, y span the
+  mean camera's image, so the grid follows the training image's width in pixels, not an object's size:
+  one voxel every NDC_PIXELS_PER_VOXEL pixels of the image width, clamped to [NDC_MIN, NDC_MAX], start NDC_START; z'
+  (inverse depth) needs far fewer steps than x, y have texels, so the march takes NDC_SAMPLES steps across z'
+  in [-1, 1] whatever the grid (the object rule gave fern 207 samples a ray: 1,112 steps in 300 s, 17.99 dB),
+  but no finer than NDC_MIN_STEP_VOXELS voxel: the occupancy grid's empty rule is an opacity per step, so steps
+  much finer than the grid empty every cell before the field has grown (the 48 px forward test scene at a 48 grid:
+  0.6 voxel 23.1 dB, 0.4 voxel 9.6 dB). TV NDC_TV. Figures in NDCRules' docstring.
 - **Pose refinement** (`--refine-poses`): coarse-to-fine as BARF anneals its frequencies, in the grid's terms
   (its resolution is its frequency band): the grid starts at a quarter of the final size (at least 16) and is
   upsampled at `REFINE_UPSAMPLE_AT` instead of `UPSAMPLE_AT`, so the cameras first register to a smooth field.
   48 px scene, 3 deg / 3 % perturbations, 400 steps: median rotation error 1.40 deg with the usual (64, 96) grid
   upsampled at 5-30 %, 0.84 deg with (24, 96) upsampled at 20-50 %.
-- **Marching step** (`--step-ratio`): 2 voxels of the final grid below 200 voxels, 1 voxel from there on
-  (lego_400 used 1 at 300).
 - **Batch** (`--batch-rays`): 1024 rays on CPU (more small steps beat fewer big ones in a fixed time: 22.6 vs
   18.1 dB after 30 s on a 128 px scene), 8192 on CUDA (issue 14's H100 figure).
 """
@@ -44,8 +55,11 @@ from stages.train.views import Views
 __all__ = [
     "UPSAMPLE_AT",
     "REFINE_UPSAMPLE_AT",
+    "RULES",
+    "BoxRules",
+    "NDCRules",
+    "ContractRules",
     "Defaults",
-    "contracted_resolution",
     "detect_plain_colour",
     "object_size_px",
     "resolve_defaults",
@@ -62,8 +76,11 @@ PLAIN_TOLERANCE = 4 / 255
 
 @dataclass(frozen=True)
 class Defaults:
+    scene_model: str
+    """box | ndc | contract."""
     resolution: tuple[int, int]
     step_ratio: float
+    tv: float
     batch_rays: int
     background: Background
     plain_background: bool
@@ -134,28 +151,146 @@ def object_size_px(scene: Scene, train_idx: tuple[int, ...]) -> float:
     return float(min(focal * side / max(dist - side / 2, side / 2), long_side))
 
 
+@dataclass(frozen=True)
+class Need:
+    """What a kind's rules read: the scene, its training views' indices, the downscale and the device."""
+
+    scene: Scene
+    train_idx: tuple[int, ...]
+    downscale: float
+    cuda: bool
+    refine_poses: bool
+
+
+class BoxRules:
+    """Objects in their box (module doc): measured on lego_100, lego_400 and the synthetic object scenes."""
+
+    kind = "box"
+    TV = 0.0
+
+    def resolution(self, need: Need) -> tuple[tuple[int, int], str]:
+        size = object_size_px(need.scene, need.train_idx) / need.downscale
+        r1 = int(min(300, max(96, round(1.6 * size))))
+        r0 = int(min(128, max(128 if need.cuda else 64, round(0.32 * r1))))
+        return (r0, r1), f"object ~{size:.0f} px across: final 1.6 x size in [96, 300], start 0.32 x"
+
+    def step_ratio(self, resolution: tuple[int, int], need: Need) -> tuple[float, str]:
+        return (2.0 if resolution[1] < 200 else 1.0), "2 voxels below a 200 grid, 1 from there on (objects)"
+
+    def tv(self) -> tuple[float, str]:
+        return self.TV, "0 for box scenes (objects on a clean background)"
+
+
+class ContractRules(BoxRules):
+    """Unbounded captures, contracted (module doc): measured on the fox."""
+
+    kind = "contract"
+    TV = 0.01
+
+    def resolution(self, need: Need) -> tuple[tuple[int, int], str]:
+        (r0, r1), why = super().resolution(need)
+        cap = 384 if need.cuda else 256
+        return (min(2 * r0, 128), min(2 * r1, cap)), f"{why}; doubled (half the grid covers the box), at most {cap}"
+
+    def step_ratio(self, resolution: tuple[int, int], need: Need) -> tuple[float, str]:
+        if not need.cuda:
+            return 2.0, "2 voxels on CPU (a room is full of surfaces the grid cannot skip: samples bound a step)"
+        ratio, _ = super().step_ratio((resolution[0], resolution[1] // 2), need)  # the box rule's grid
+        return ratio, "the box rule's step on the inner box's share of the grid (CUDA)"
+
+    def tv(self) -> tuple[float, str]:
+        return self.TV, f"{self.TV} for contracted scenes (real captures: fox held-out 13.7 -> 17.8 dB)"
+
+
+NDC_PIXELS_PER_VOXEL = 4.0
+NDC_MIN, NDC_MAX, NDC_START = 96, 300, 64
+NDC_SAMPLES = 64
+NDC_MIN_STEP_VOXELS = 1.0
+NDC_TV = 0.01
+
+
+class NDCRules:
+    """Forward-facing captures in NDC (module doc): measured on the LLFF fern (images_8, 504x378, 17 training
+    views, 3 held out; `convert fern --images images_8`, `train --max-steps 2000 --threads 1`, two runs side by
+    side on the 2-core machine, held-out PSNR on 4096 test pixels every 250 steps, then the 3 full views):
+    | final grid, march (samples a ray), TV, lr        | step 750 | step 1000 | 2000 (full views) |
+    | 160, 2 voxels (62), 0.01, 0.03  <- this rule     | 20.74    | 21.00     | 21.10 dB          |
+    | 160, 2 voxels (62), 0, 0.03                      | 20.28    | 20.55     | -                 |
+    | 160, 2 voxels (62), 0.01, 0.02                   | 19.66    | -         | -                 |
+    | 200, 64 steps (63), 0.01, 0.03                   | 20.44    | -         | -                 |
+    | 300, 96 steps (96), 0.01, 0.03                   | 19.00    | -         | -                 |
+    A finer grid learns slower per step and costs more a step (Adam over every texel: 17 M parameters at 300), so
+    within a CPU budget the coarser one wins; the old object rule (300, 1 voxel, 207 samples) made 1,112 steps in
+    300 s and 17.99 dB. The fern at 504 px -> a voxel every 4 px gives 160. Measured at 300 s in
+    docs/BENCH_REAL.md."""
+
+    kind = "ndc"
+
+    def resolution(self, need: Need) -> tuple[tuple[int, int], str]:
+        from model.field_model import scene_ndc
+
+        scene, idx = need.scene, need.train_idx
+        ndc = scene_ndc(scene)
+        poses = np.stack([f.world_from_cam for f in scene.frames])
+        box = ndc.box(poses, [scene.frame_intrinsics(i) for i in range(len(scene.frames))])
+        side = float(np.mean(box[1] - box[0]))
+        width = float(np.median([scene.frame_intrinsics(i).w for i in idx])) / need.downscale
+        r1 = int(min(NDC_MAX, max(NDC_MIN, round(side * width / (2.0 * NDC_PIXELS_PER_VOXEL)))))
+        r0 = min(NDC_START, r1)
+        why = (f"image {width:.0f} px wide: a voxel every {NDC_PIXELS_PER_VOXEL:g} px across it (NDC box side "
+               f"{side:.2f}), final in [{NDC_MIN}, {NDC_MAX}], start {r0}")  # fmt: skip
+        return (r0, r1), why
+
+    def step_ratio(self, resolution: tuple[int, int], need: Need) -> tuple[float, str]:
+        from model.field_model import scene_ndc
+
+        scene = need.scene
+        poses = np.stack([f.world_from_cam for f in scene.frames])
+        box = scene_ndc(scene).box(poses, [scene.frame_intrinsics(i) for i in range(len(scene.frames))])
+        voxel = float(np.mean(box[1] - box[0])) / resolution[1]
+        ratio = (2.0 / NDC_SAMPLES) / voxel
+        why = f"{NDC_SAMPLES} steps across z' in [-1, 1] (forward-facing)"
+        if ratio < NDC_MIN_STEP_VOXELS:
+            ratio, why = NDC_MIN_STEP_VOXELS, f"{why}, at least {NDC_MIN_STEP_VOXELS:g} voxel (a coarse grid)"
+        return ratio, why
+
+    def tv(self) -> tuple[float, str]:
+        return NDC_TV, f"{NDC_TV} for NDC scenes (forward-facing real captures)"
+
+
+RULES = {"box": BoxRules(), "ndc": NDCRules(), "contract": ContractRules()}
+"""Each kind of scene's grid, step and prior rules."""
+
+
 def resolve_defaults(config, scene: Scene, views: Views, train_idx, device: torch.device, downscale: float) -> Defaults:
-    """The Config's None / auto values resolved from the scene and the device (see the module doc)."""
+    """The Config's None / auto values resolved from the scene and the device (see the module doc): the
+    background, then the scene model, then that kind's grid, step and priors."""
+    from model.field_model import choose_scene_model
+
     has_alpha = scene.has_alpha or views.any_transparent()
     background, plain, bg_reason = _background(config.background, views, has_alpha)
     limit = 1600 if device.type == "cuda" else 800
     why = " (asked for)" if config.downscale else f": long side <= {limit} px"
     reasons = {"background": bg_reason, "downscale": f"{downscale:g}{why}"}
     cuda = device.type == "cuda"
+    kind, kind_why = choose_scene_model(config.scene_model, scene, plain_background=plain)
+    if kind == "contract" and config.field != "fast":
+        kind, kind_why = "box", "the vanilla field samples the box only (no contraction)"
+    reasons["scene_model"] = f"{kind}: {kind_why}"
+    rules = RULES[kind]
+    need = Need(scene=scene, train_idx=tuple(train_idx), downscale=downscale, cuda=cuda,
+                refine_poses=bool(getattr(config, "refine_poses", False)))  # fmt: skip
     if config.resolution is not None:
         resolution, reasons["resolution"] = tuple(config.resolution), "asked for"
     else:
-        size = object_size_px(scene, train_idx) / downscale
-        r1 = int(min(300, max(96, round(1.6 * size))))
-        r0 = int(min(128, max(128 if cuda else 64, round(0.32 * r1))))
-        reasons["resolution"] = f"object ~{size:.0f} px across: final 1.6 x size in [96, 300], start 0.32 x"
-        if getattr(config, "refine_poses", False):
+        (r0, r1), reasons["resolution"] = rules.resolution(need)
+        if need.refine_poses:
             r0 = max(16, round(r1 / 4))
             reasons["resolution"] += "; --refine-poses: start at a quarter of the final size (coarse-to-fine)"
         resolution = (r0, r1)
     if getattr(config, "upsample_at", None) is not None:
         upsample_at, reasons["upsample_at"] = tuple(config.upsample_at), "asked for"
-    elif getattr(config, "refine_poses", False):
+    elif need.refine_poses:
         upsample_at = REFINE_UPSAMPLE_AT
         reasons["upsample_at"] = "--refine-poses: later upsamplings, the cameras register to a coarse grid first"
     else:
@@ -163,8 +298,11 @@ def resolve_defaults(config, scene: Scene, views: Views, train_idx, device: torc
     if config.step_ratio is not None:
         step_ratio, reasons["step_ratio"] = float(config.step_ratio), "asked for"
     else:
-        step_ratio = 2.0 if resolution[1] < 200 else 1.0
-        reasons["step_ratio"] = "2 voxels below a 200 grid, 1 from there on"
+        step_ratio, reasons["step_ratio"] = rules.step_ratio(resolution, need)
+    if config.tv is not None:
+        tv, reasons["tv"] = float(config.tv), "given"
+    else:
+        tv, reasons["tv"] = rules.tv()
     if config.batch_rays is not None:
         batch, reasons["batch_rays"] = int(config.batch_rays), "asked for"
     else:
@@ -173,14 +311,6 @@ def resolve_defaults(config, scene: Scene, views: Views, train_idx, device: torc
     plain_colour = None
     if config.background == "auto" and plain and not has_alpha:
         plain_colour = tuple(float(v) for v in background.eval_colour())
-    return Defaults(resolution=resolution, step_ratio=step_ratio, batch_rays=batch, background=background,
-                    plain_background=plain, reasons=reasons, upsample_at=upsample_at,
+    return Defaults(scene_model=kind, resolution=resolution, step_ratio=step_ratio, tv=tv, batch_rays=batch,
+                    background=background, plain_background=plain, reasons=reasons, upsample_at=upsample_at,
                     plain_colour=plain_colour)  # fmt: skip
-
-
-def contracted_resolution(resolution: tuple[int, int], device: torch.device) -> tuple[int, int]:
-    """Contracted scenes: half the grid covers the inner box, so twice the size, at most 256 on CPU (the room
-    is full of surfaces the occupancy grid cannot skip: samples per ray, not the grid, bound a CPU step) and
-    384 on CUDA; the start at most 128."""
-    cap = 384 if device.type == "cuda" else 256
-    return min(2 * resolution[0], 128), min(2 * resolution[1], cap)

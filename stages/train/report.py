@@ -227,6 +227,6 @@ def per_view_report(
     }  # fmt: skip
     write_json(run_dir / "per_view.json", doc)
     return {"files": ["per_view.json", "per_view_worst.png"], "median_psnr": doc["median_psnr"],
-            "worst": [[v["file"], v["psnr"]] for v in shown[:3]], "suspect": suspect,
+            "worst": [[v["file"], v["psnr"]] for v in shown[:3]], "suspect": suspect, "views_total": len(views),
             "seconds": doc["seconds"], "budget_seconds": doc["budget_seconds"],
             "downscale": round(factor, 3)}  # fmt: skip

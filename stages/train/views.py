@@ -100,13 +100,24 @@ class Views:
         c = self.rgba[idx].to(device).float() / 255.0
         return o.to(device), d.to(device), c[:, :3], c[:, 3]
 
-    def mask_colour(self, colour: tuple[float, float, float], tolerance: int = 4, chunk: int = 1 << 22) -> None:
-        """Pixels within `tolerance` (of 255) of `colour` on every channel become transparent (alpha 0)."""
+    def mask_colour(self, colour: tuple[float, float, float], tolerance: int = 4) -> float:
+        """Pixels within `tolerance` (of 255) of `colour` on every channel AND connected to the image's border through
+        such pixels become transparent (alpha 0): the background around the object, not the object's own parts of
+        that colour (a white carton on a whitened background keeps its white faces; a rule on colour alone made
+        them transparent: 15.3 dB held-out). Returns the share of pixels made transparent."""
+        import cv2
+
         c = torch.tensor([round(v * 255) for v in colour], dtype=torch.int16)
-        for i in range(0, self.n_rays, chunk):  # in chunks: the int16 copy would be 1.5x the images
-            part = self.rgba[i : i + chunk]
-            close = ((part[:, :3].to(torch.int16) - c).abs() <= tolerance).all(dim=1)
-            part[close, 3] = 0
+        cleared = 0
+        for v, (h, w) in enumerate(self.shapes):
+            part = self.rgba[int(self.offsets[v]) : int(self.offsets[v + 1])]
+            close = ((part[:, :3].to(torch.int16) - c).abs() <= tolerance).all(dim=1).reshape(h, w)
+            _, labels = cv2.connectedComponents(close.numpy().astype(np.uint8), connectivity=8)
+            edge = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+            background = torch.from_numpy(np.isin(labels, edge[edge != 0]).reshape(-1))  # label 0: other colours
+            part[background, 3] = 0
+            cleared += int(background.sum())
+        return cleared / max(self.n_rays, 1)
 
     def any_transparent(self, chunk: int = 1 << 22) -> bool:
         """Whether any pixel has alpha < 255 (in chunks: a mask of every pixel would be a quarter of the images)."""

@@ -1,0 +1,97 @@
+"""The train stage's self-check of its run (`data.checks`): the manifest's `check` and `checks`.
+
+Each rule, its limit and why (figures from `make bench-real`, docs/BENCH_REAL.md, and the cases of issue 27):
+- **holdout_psnr** >= data.checks.HOLDOUT_FLOOR_DB on the full test images (eval applies the same floor).
+- **holdout_gap**: the training PSNR at the end (the last LAST_ROWS logged rows) minus the held-out PSNR,
+  <= data.checks.HOLDOUT_GAP_DB: a field that reproduces its photos but not the held-out ones has learned the
+  photos, not the scene (mis-posed or too few views, a background rule that erased the object).
+- **still_improving**: the training PSNR's rise over the last RISE_WINDOW of the run's time, <= RISE_DB: a run
+  still climbing steeply when the budget ran out is undertrained (more --max-seconds would change the result).
+- **unexplained_views**: training views more than report.SUSPECT_DB under the median view (per_view.json), at most
+  UNEXPLAINED_SHARE of them: many is a capture the field could not explain (blur, exposure, poses).
+- **occupied_share** (fast field): the share of occupancy cells left occupied at the end, <= FOG_SHARE in box
+  scenes (an object fills a fraction of its box; a fog of density everywhere is not a surface: lego 0.05-0.2),
+  and > 0 everywhere (an empty field renders nothing).
+- **pose corrections** (--refine-poses): the guard's record (`model.camera_opt.pose_report`): refinement pulled
+  back or stopped is reported with its figures.
+Checks that do not apply (no test split, no refinement) are left out.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from data.checks import HOLDOUT_FLOOR_DB, HOLDOUT_GAP_DB, Check
+
+__all__ = ["train_checks", "HOLDOUT_FLOOR_DB", "GAP_DB", "RISE_DB"]
+
+GAP_DB = HOLDOUT_GAP_DB
+LAST_ROWS = 4
+RISE_WINDOW = 0.2
+RISE_DB = 1.0
+UNEXPLAINED_SHARE = 0.2
+FOG_SHARE = 0.6
+
+
+def _series(rows: list[dict], key: str) -> list[tuple[float, float]]:
+    return [(float(r["seconds"]), float(r[key])) for r in rows if r.get(key) not in (None, "")]
+
+
+def _train_psnr_end(rows: list[dict]) -> float:
+    pts = _series(rows, "train_psnr")
+    return float(np.mean([p for _, p in pts[-LAST_ROWS:]])) if pts else math.nan
+
+
+def _rise(rows: list[dict]) -> float | None:
+    """Mean training PSNR over the last RISE_WINDOW of the run's time minus over the window before it."""
+    pts = _series(rows, "train_psnr")
+    if len(pts) < 8:
+        return None
+    end = pts[-1][0]
+    last = [p for s, p in pts if s > end * (1 - RISE_WINDOW)]
+    before = [p for s, p in pts if end * (1 - 2 * RISE_WINDOW) < s <= end * (1 - RISE_WINDOW)]
+    if not last or not before:
+        return None
+    return float(np.mean(last) - np.mean(before))
+
+
+def train_checks(*, rows: list[dict], test_psnr: float | None, per_view: dict[str, Any] | None,
+                 occupied: float | None, scene_model: str, pose: dict[str, Any] | None) -> list[Check]:  # fmt: skip
+    """The run's checks from its metrics rows, final held-out PSNR, per-view report, occupied cell share (None
+    without a grid), scene model and pose-refinement record (None without refinement)."""
+    out: list[Check] = []
+    if test_psnr is not None:
+        out.append(Check.lower("holdout_psnr", test_psnr, HOLDOUT_FLOOR_DB, unit=" dB",
+                               says="the field reproduces the held-out photos poorly (poses, background rule or "
+                                    "too little training)"))  # fmt: skip
+        gap = _train_psnr_end(rows) - test_psnr
+        out.append(Check.upper("holdout_gap", gap, GAP_DB, unit=" dB",
+                               says="training photos are reproduced far better than held-out ones: the field learned "
+                                    "the photos, not the scene (mis-posed or too few views)"))  # fmt: skip
+    rise = _rise(rows)
+    if rise is not None:
+        out.append(Check.upper("still_improving", rise, RISE_DB, unit=" dB",
+                               says=f"training PSNR still rose this much over the last {RISE_WINDOW:.0%} of the run: "
+                                    "undertrained, more --max-seconds would change the result"))  # fmt: skip
+    if per_view and per_view.get("views_total"):
+        share = len(per_view.get("suspect", [])) / per_view["views_total"]
+        out.append(Check.upper("unexplained_views", share, UNEXPLAINED_SHARE,
+                               says="many training views are far under the median view's PSNR (per_view_worst.png): "
+                                    "blur, exposure or poses the field cannot explain"))  # fmt: skip
+    if occupied is not None:
+        out.append(Check.lower("occupied_share_min", occupied, 1e-4,
+                               says="the occupancy grid is empty: the field renders nothing"))  # fmt: skip
+        if scene_model == "box":
+            out.append(Check.upper("occupied_share", occupied, FOG_SHARE,
+                                   says="most of the box is occupied: a fog of density rather than an object "
+                                        "(the background rule or the box may be wrong)"))  # fmt: skip
+    if pose is not None and "guard" in pose:
+        guard = pose["guard"]
+        out.append(Check(name="pose_corrections", ok=not guard.get("suspect"),
+                         value=guard.get("summary", ""), limit=guard.get("limit", ""),
+                         says="pose refinement hit its bounds: corrections beyond what a capture's poses can be "
+                              "off by were pulled back or refinement was stopped"))  # fmt: skip
+    return out
