@@ -3,6 +3,12 @@ BENCH_OUT ?= runs/bench
 .PHONY: bench bench-poses bench-train bench-ndc bench-mesh bench-turntable bench-refine bench-view
 bench: bench-poses bench-train bench-ndc bench-mesh bench-turntable bench-refine bench-view
 
+# issue 27: every real capture in ../shared/data through make PHOTOS= / POSED= (fox, lego_400, tiny npz, fern);
+# one table, docs/BENCH_REAL.md, with the commit it was measured at (~1 h on 2 cores). A default changes only with it.
+.PHONY: bench-real
+bench-real: $(INSTALLED)
+	$(VENV)/bin/python -m benchmarks.bench_real --out $(BENCH_OUT)/real
+
 bench-poses: $(INSTALLED)
 	$(VENV)/bin/python -m benchmarks.bench_poses --out $(BENCH_OUT)/poses
 
