@@ -18,11 +18,27 @@ The focal scale s = exp(log_s) multiplies fx and fy of every camera: a ray's dir
 the original intrinsics is kept as it was). Corrections start at zero (the identity): with refinement off the
 rays are untouched.
 
+Adam's steps (`step_scale`): the orbit angles at ORBIT_STEP of the rate, the translation at TRANSLATION_STEP times
+the camera's distance to the scene centre (the same share of the distance at any scene scale). After every step
+`CameraOpt.fix_gauge` removes the part of the corrections that moves all cameras by one similarity (`gauge_basis`:
+rotation, translation and scale of the world, to first order): the field could follow such a motion, so the photos
+hardly resist it, and Adam lets it drift; the input cameras' frame is kept instead.
+
+Trust region (`TrustRegion`, applied after every camera step by `CameraOpt.guard`): the size of a correction is
+its rotation angle theta_k (degrees) and its camera-centre displacement tau_k as a fraction of the camera's distance
+d_k to the scene centre (both independent of the pivot: they measure the refined camera against the input one). A
+correction past a bound is projected back onto it (the rotation angle scaled down about the same axis, the centre
+displacement shortened along its direction) and that camera's Adam moments are zeroed; when the median over
+cameras of max(theta_k / max_rotation, tau_k / max_translation) passes `stop_median`, refinement stops for the
+rest of the run: every correction (and the focal scale) goes back to zero and the field keeps training on the
+input cameras. `guard_record` is what the manifest gets (`pose_report`'s "guard").
+
 Test views: the field learns in the frame the refined cameras define, which may drift from the input frame by a
-small rigid motion (the gauge is free). `align_test_poses` fits a similarity (Umeyama on camera centres) from the
-input training cameras to the refined ones and maps every other camera through it (nerfstudio's and NeRF--'s
-alternative to optimising test poses against the frozen field: it needs no render time, cannot fit the test
-photos' content, and with zero-mean pose noise on many cameras it recovers the frame to a fraction of the noise).
+small rigid motion (`fix_gauge` holds the first-order similarity, not its higher orders). `align_test_poses` fits a
+similarity (Umeyama on camera centres) from the input training cameras to the refined ones and maps every other
+camera through it (nerfstudio's and NeRF--'s alternative to optimising test poses against the frozen field: it
+needs no render time, cannot fit the test photos' content, and with zero-mean pose noise on many cameras it
+recovers the frame to a fraction of the noise).
 """
 
 from __future__ import annotations
@@ -42,18 +58,25 @@ from torch import Tensor, nn
 from data.transforms import Scene, write_scene
 from radiance.align import umeyama
 from radiance.camera import Intrinsics
-from radiance.se3 import se3_exp
+from radiance.se3 import hat, se3_exp, se3_log, so3_exp
 
 __all__ = [
     "ORBIT_STEP",
+    "TRANSLATION_STEP",
     "CameraSchedule",
+    "TrustRegion",
+    "GuardLog",
     "pivot_depths",
+    "correction_sizes",
+    "project_corrections",
     "pivoted_exp",
     "CameraOpt",
     "refined_scene",
     "align_test_poses",
     "corrections_record",
     "pose_report",
+    "guard_record",
+    "GUARD_RULE",
     "write_refined_transforms",
     "TEST_POSE_RULE",
     "TEST_POSE_OPT_RULE",
@@ -61,10 +84,18 @@ __all__ = [
 ]
 
 
-ORBIT_STEP = 0.1
+ORBIT_STEP = 0.3
 """With pivots, the orbit angles (omega_x, omega_y) move at this fraction of the learning rate: Adam steps each
 coordinate by about the rate whatever its gradient's size, and an orbit, seen only through parallax, has a noisy
-gradient while the field is rough (at the full rate some runs lost a camera)."""
+gradient while the field is rough (at the full rate some runs lost a camera). At 0.1 (before 2026-12) the orbit
+was still far from its true value at the end of the posed 100 px scene's 1200 steps (median rotation error 0.95
+deg, 0.41 at 0.3); at 0.5 it overshot (the median camera 4.9 % off its input centre at step 266)."""
+TRANSLATION_STEP = 0.4
+"""With pivots, the translation (v) moves at this fraction of the learning rate times the camera's distance to
+the scene centre, so a step is the same share of the distance at any scene scale (before 2026-12 it was the rate in
+scene units: the tuned 0.01 a step at the bench scenes' 2.4 m, but 4 % of the distance a step on the same scene at
+`scene --scale 0.1`, where the corrections ran to 20-60 % of the distance in 100 steps and ended worse than the
+input poses). 0.4 keeps the bench scenes' step (0.4 x 2.4 ~ 1)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -72,11 +103,16 @@ class CameraSchedule:
     """Learning rates and warm-up of the camera optimiser."""
 
     lr: float = 1e-2
-    """Adam learning rate of the rotation (radians) and translation (scene units) corrections at full strength."""
+    """Adam learning rate of the corrections at full strength: radians for the rotation (the orbit at
+    `ORBIT_STEP` of it), `TRANSLATION_STEP` x the camera's distance to the scene centre for the translation."""
     focal_lr: float = 1e-3
     """Adam learning rate of the log focal scale."""
-    delay: float = 0.02
-    """Run-progress fraction before the cameras move (the field first needs a rough shape to register to)."""
+    delay: float = 0.1
+    """Run-progress fraction before the cameras move (the field first needs a rough shape to register to). At
+    0.02 (before 2026-12) the cameras moved while the field was a fog and walked away from the truth first (posed
+    100 px scene, 1200 steps: median rotation error 2.95 -> 3.6 deg by step 100, camera centres 5 % off at step
+    118); at 0.1 they start from a field of ~18 dB and the error falls from the start (0.95 deg at the end, against
+    1.28)."""
     warmup: float = 0.05
     """Run-progress fraction over which the learning rate ramps linearly from 0 to `lr` (after `delay`)."""
     decay: float = 0.01
@@ -91,6 +127,60 @@ class CameraSchedule:
             return 0.0
         ramp = min(1.0, (frac - self.delay) / self.warmup) if self.warmup > 0 else 1.0
         return ramp * self.decay**frac
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrustRegion:
+    """How far refinement may move a camera (`CameraOpt.guard`; module docstring). The bounds sit far beyond what
+    the poses of a capture that registered can be off by, and beyond what joint refinement can recover, so a
+    correction that reaches them is the optimiser chasing the field's noise, not a pose error."""
+
+    max_rotation_deg: float = 10.0
+    """Largest rotation of a correction, degrees. COLMAP poses of a capture that registers are off by well under
+    a degree (bench_poses: within 0.3 deg of instant-ngp's COLMAP poses), the refine benchmark perturbs by 3, and
+    joint refinement from a rough field recovers a few degrees (NeRF--, and BARF's ~15 deg only with its
+    coarse-to-fine encoding): past 10 deg a camera has left the basin it can be registered from."""
+    max_translation: float = 0.15
+    """Largest displacement of the camera centre, as a fraction of the camera's distance to the scene centre
+    (its pivot depth). 5x the benchmark's 3 % and far more than a registered capture is off by; about what a turn
+    about the scene centre at the rotation bound moves a camera (2 sin 5 deg = 17 %): a lower bound would pull back
+    orbits the rotation bound allows. (At 10 %, runs that recovered their poses passed half the bound on the way:
+    the orbit moves the centre by up to 5 % while it converges.)"""
+    stop_median: float = 0.5
+    """Refinement stops (every correction reset to zero) when the median camera's correction passes this share of
+    its bound (the larger of its rotation and translation shares): a few cameras at the bound can be a few bad
+    poses, most of them is the whole refinement running away. The benchmark's 3 deg / 3 % sits at 0.3."""
+
+    def __post_init__(self) -> None:
+        if not (self.max_rotation_deg > 0 and self.max_translation > 0 and 0 < self.stop_median <= 1):
+            raise ValueError(f"expected bounds > 0 and 0 < stop_median <= 1, got {self}")
+
+
+@dataclass
+class GuardLog:
+    """What the guard did during a run (kept in the checkpoint, so a resumed run continues it)."""
+
+    pulled_back: int = 0
+    """Camera-steps at which a correction was projected back onto a bound."""
+    cameras: list[int] = dataclasses.field(default_factory=list)
+    """Indices (into the training cameras) of the cameras pulled back at least once, ascending."""
+    first_step: int | None = None
+    """Training step of the first pull-back."""
+    stopped_at: int | None = None
+    """Training step at which refinement stopped (None: it ran to the end)."""
+    at_stop: dict[str, float] | None = None
+    """The corrections' sizes when it stopped (they are zero afterwards)."""
+    largest_rotation_deg: float = 0.0
+    """Largest rotation any correction reached (before a pull-back), degrees."""
+    largest_translation: float = 0.0
+    """Largest centre displacement any correction reached (before a pull-back), fraction of its distance."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, doc: dict[str, Any] | None) -> GuardLog:
+        return cls() if doc is None else cls(**{k: doc[k] for k in doc if k in cls.__dataclass_fields__})
 
 
 def pivot_depths(world_from_cam: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -115,11 +205,87 @@ def pivoted_exp(delta: Tensor, pivot: Tensor) -> Tensor:
     return torch.cat([torch.cat([m[:, :3, :3], t[:, :, None]], dim=2), m[:, 3:]], dim=1)
 
 
+def correction_sizes(delta: Tensor, pivot: Tensor, distance: Tensor) -> tuple[Tensor, Tensor]:
+    """Corrections delta [V, 6] about pivots [V] -> (rotation angle [V] in radians, |omega|; camera-centre
+    displacement [V] as a fraction of distance [V]). Both compare the refined camera with the input one, whatever
+    the pivot (the centre moves by the translation of `pivoted_exp`, in the camera's frame)."""
+    moved = pivoted_exp(delta, pivot)[:, :3, 3].norm(dim=1)
+    return delta[:, :3].norm(dim=1), moved / distance.to(delta)
+
+
+def project_corrections(delta: Tensor, pivot: Tensor, distance: Tensor,
+                        region: TrustRegion) -> tuple[Tensor, Tensor]:  # fmt: skip
+    """Corrections delta [V, 6] -> (the same projected onto `region`, mask [V] of those that moved). A rotation past
+    its bound is scaled down about the same axis, keeping the camera centre where it was; a centre displacement past
+    its bound is shortened along its direction, keeping the rotation."""
+    theta, moved = correction_sizes(delta, pivot, distance)
+    max_rot = math.radians(region.max_rotation_deg)
+    over = (theta > max_rot) | (moved > region.max_translation)
+    if not bool(over.any()):
+        return delta, over
+    one = torch.ones_like(theta)
+    omega = delta[:, :3] * torch.minimum(one, max_rot / theta.clamp_min(1e-300))[:, None]
+    t = pivoted_exp(delta, pivot)[:, :3, 3]  # [V, 3] centre displacement, camera frame
+    t = t * torch.minimum(one, region.max_translation / moved.clamp_min(1e-300))[:, None]
+    target = torch.eye(4, dtype=delta.dtype, device=delta.device).repeat(len(delta), 1, 1)
+    target[:, :3, :3], target[:, :3, 3] = so3_exp(omega), t
+    shift = torch.eye(4, dtype=delta.dtype, device=delta.device).repeat(len(delta), 1, 1)
+    shift[:, 2, 3] = -pivot.to(delta)  # T(p); target = T(p) se3_exp(xi) T(-p)
+    xi = se3_log(torch.linalg.inv(shift) @ target @ shift)
+    return torch.where(over[:, None], xi, delta), over
+
+
+def gauge_basis(world_from_cam: Tensor, pivot: Tensor) -> Tensor:
+    """The 7 directions [V, 6, 7] in which corrections (omega, v) about pivots [V] move every camera of
+    world_from_cam [V, 4, 4] together by one small similarity (to first order): a rotation Omega (columns 0-2), a
+    translation tau (3-5) and a scale lambda (6) of the world, all about the mean camera centre c. For camera k
+    with R_k its rotation and a_k = R_k^T (c_k - c): omega = R_k^T Omega; v = omega x (a_k - p_k e_z) + R_k^T tau +
+    lambda a_k (the centre moves by v + p_k omega x e_z in the camera frame, `pivoted_exp` to first order)."""
+    rot, centres = world_from_cam[:, :3, :3], world_from_cam[:, :3, 3]
+    rt = rot.transpose(1, 2)  # [V, 3, 3]
+    a = (rt @ (centres - centres.mean(0))[:, :, None])[..., 0]  # [V, 3]
+    arm = a.clone()
+    arm[:, 2] = arm[:, 2] - pivot.to(a)
+    basis = torch.zeros(len(rot), 6, 7, dtype=rot.dtype, device=rot.device)
+    basis[:, :3, :3] = rt
+    basis[:, 3:, :3] = -hat(arm) @ rt  # omega x arm = -arm^ omega
+    basis[:, 3:, 3:6] = rt
+    basis[:, 3:, 6] = a
+    return basis
+
+
+def _gauge_projector(world_from_cam: Tensor, pivot: Tensor, distance: Tensor) -> tuple[Tensor | None, Tensor | None]:
+    """(G [V * 6, 7], S [7, V * 6]) with G S delta the similarity part of the flattened corrections delta [V * 6]
+    (`gauge_basis`, least squares with rotations in radians and translations in units of each camera's distance);
+    (None, None) below 3 cameras, where a similarity is most of what the cameras can do."""
+    if len(world_from_cam) < 3:
+        return None, None
+    basis = gauge_basis(world_from_cam, pivot).reshape(-1, 7)  # [V * 6, 7]
+    weight = torch.cat([torch.ones_like(distance)[:, None].expand(-1, 3), 1 / distance[:, None].expand(-1, 3)], 1)
+    weight = weight.reshape(-1)  # [V * 6]
+    return basis, torch.linalg.pinv(basis * weight[:, None], rtol=1e-10) * weight[None, :]
+
+
+def _distances(world_from_cam: Tensor, pivot: Tensor) -> Tensor:
+    """Each camera's distance [V] to the scene centre, the unit of the translation step and bound: its pivot depth
+    (the centre's depth on its optical axis: the distance for a camera that looks at the centre). Cameras without
+    a pivot, or whose axis passes so far from the centre that its depth is under half the median pivot, take the
+    median pivot; with no pivot at all, the RMS distance of the camera centres from their mean (1 for a single
+    camera): deterministic, in the capture's own scale."""
+    if bool((pivot > 0).any()):
+        median = float(pivot[pivot > 0].median())
+        return torch.where(pivot >= 0.5 * median, pivot, torch.full_like(pivot, median))
+    centres = world_from_cam[:, :3, 3]
+    spread = float((centres - centres.mean(0)).norm(dim=1).pow(2).mean().sqrt())
+    return torch.full_like(pivot, spread if spread > 0 else 1.0)
+
+
 class CameraOpt(nn.Module):
     """Corrections of V cameras; `forward(o, d, view)` moves a batch of their rays."""
 
     def __init__(self, world_from_cam: Tensor | np.ndarray, *, focal: bool = False,
-                 schedule: CameraSchedule | None = None, pivot: np.ndarray | None = None) -> None:  # fmt: skip
+                 schedule: CameraSchedule | None = None, pivot: np.ndarray | None = None,
+                 trust: TrustRegion | None = None) -> None:  # fmt: skip
         super().__init__()
         w = torch.as_tensor(np.asarray(world_from_cam), dtype=torch.float64)
         if w.ndim != 3 or w.shape[1:] != (4, 4):
@@ -129,18 +295,29 @@ class CameraOpt(nn.Module):
             raise ValueError(f"expected pivot depths [{w.shape[0]}], finite and >= 0, got {tuple(piv.shape)}")
         self.register_buffer("world_from_cam", w)  # [V, 4, 4] float64, the input cameras
         self.register_buffer("pivot", piv)  # [V] float64, depth of each correction's pivot on the optical axis
+        self.register_buffer("distance", _distances(w, piv))  # [V] float64, unit of the translation bound
+        basis, solve = _gauge_projector(w, piv, self.distance)
+        self.register_buffer("gauge_basis", basis)  # [V * 6, 7] float64 (None below 3 cameras)
+        self.register_buffer("gauge_solve", solve)  # [7, V * 6] float64: the gauge part of the flattened corrections
         self.raw = nn.Parameter(torch.zeros(w.shape[0], 6))  # [V, 6] what Adam moves: delta / step_scale
         self.log_focal = nn.Parameter(torch.zeros(1), requires_grad=focal)  # shared focal scale exp(log_focal)
         self.focal = focal
         self.schedule = schedule or CameraSchedule()
+        self.trust = trust or TrustRegion()
+        self.log = GuardLog()
+        self.steps = 0  # camera steps taken (the guard's step when the loop gives none)
         self.opt: torch.optim.Adam | None = None
 
     @property
     def step_scale(self) -> Tensor:
-        """[6] how far each of (omega, v) moves per unit of Adam's variable: the orbit angles at ORBIT_STEP when the
-        corrections have pivots, all 1 without."""
-        orbit = ORBIT_STEP if bool((self.pivot > 0).any()) else 1.0
-        return torch.tensor([orbit, orbit, 1.0, 1.0, 1.0, 1.0], dtype=self.raw.dtype, device=self.raw.device)
+        """[V, 6] how far each of (omega, v) moves per unit of Adam's variable: with pivots, the orbit angles at
+        ORBIT_STEP and the translation at TRANSLATION_STEP x the camera's distance; all 1 without (runs from before
+        the pivot)."""
+        scale = torch.ones(len(self.pivot), 6, dtype=self.raw.dtype, device=self.raw.device)
+        if bool((self.pivot > 0).any()):
+            scale[:, :2] = ORBIT_STEP
+            scale[:, 3:] = TRANSLATION_STEP * self.distance[:, None].to(scale)
+        return scale
 
     @property
     def delta(self) -> Tensor:
@@ -174,15 +351,77 @@ class CameraOpt(nn.Module):
         o_new = o + (rot @ corr[:, :3, 3:4])[..., 0]
         return o_new, d_new
 
-    def step(self, frac: float) -> None:
-        """One Adam step on the gradients left by the field's backward pass, at the schedule's rate for frac."""
+    def step(self, frac: float, step: int | None = None) -> None:
+        """One Adam step on the gradients left by the field's backward pass, at the schedule's rate for frac, then
+        the guard (`step`: the training step it records; None: the camera steps so far). Once the guard has stopped
+        refinement, the gradients are dropped and nothing moves."""
         opt = self.optimizer()
-        k = self.schedule.factor(frac)
+        self.steps += 1
+        k = self.schedule.factor(frac) if self.log.stopped_at is None else 0.0
         for g in opt.param_groups:
             g["lr"] = g["base_lr"] * k
         if k > 0:
             opt.step()
+            self.fix_gauge()
+            self.guard(self.steps if step is None else step)
         opt.zero_grad(set_to_none=True)
+
+    @torch.no_grad()
+    def fix_gauge(self) -> None:
+        """Remove from the corrections the part that moves every camera by one similarity (`gauge_basis`): the
+        field could follow it, so the photos barely resist it, and Adam, which steps every direction by about the
+        rate whatever its gradient, lets it drift (bench scenes: cameras 5 % further out, the object 5 % bigger,
+        half the translation bound spent on nothing). Zero-mean pose noise has no such part to recover."""
+        if self.gauge_basis is None:
+            return
+        scale = self.step_scale.double()
+        delta = (self.raw.double() * scale).reshape(-1)
+        delta = delta - self.gauge_basis @ (self.gauge_solve @ delta)
+        self.raw.copy_((delta.reshape(-1, 6) / scale).to(self.raw))
+
+    @torch.no_grad()
+    def guard(self, step: int) -> None:
+        """The trust region (module docstring): stop refinement when the median correction passes
+        `trust.stop_median` of its bound, else project the corrections past a bound onto it and zero those
+        cameras' Adam moments."""
+        if self.log.stopped_at is not None:
+            return
+        delta = self.delta.detach().double()
+        theta, moved = correction_sizes(delta, self.pivot, self.distance)
+        rot_deg = torch.rad2deg(theta)
+        self.log.largest_rotation_deg = max(self.log.largest_rotation_deg, float(rot_deg.max()))
+        self.log.largest_translation = max(self.log.largest_translation, float(moved.max()))
+        share = torch.maximum(rot_deg / self.trust.max_rotation_deg, moved / self.trust.max_translation)
+        median = float(torch.quantile(share, 0.5))
+        if median > self.trust.stop_median:
+            self.log.at_stop = {"median_share": round(median, 4),
+                                "median_rotation_deg": round(float(torch.quantile(rot_deg, 0.5)), 4),
+                                "max_rotation_deg": round(float(rot_deg.max()), 4),
+                                "median_translation": round(float(torch.quantile(moved, 0.5)), 5),
+                                "max_translation": round(float(moved.max()), 5)}  # fmt: skip
+            self.stop(step)
+            return
+        projected, over = project_corrections(delta, self.pivot, self.distance, self.trust)
+        if not bool(over.any()):
+            return
+        self.raw[over] = (projected[over] / self.step_scale.double()[over]).to(self.raw)
+        state = self.optimizer().state.get(self.raw, {})
+        for key in ("exp_avg", "exp_avg_sq"):
+            if key in state:
+                state[key][over] = 0.0
+        idx = over.nonzero()[:, 0].tolist()
+        self.log.pulled_back += len(idx)
+        self.log.cameras = sorted(set(self.log.cameras) | set(idx))
+        self.log.first_step = step if self.log.first_step is None else self.log.first_step
+
+    @torch.no_grad()
+    def stop(self, step: int) -> None:
+        """End refinement at training `step`: corrections and focal scale back to zero (the input cameras), Adam's
+        state dropped; later steps move nothing."""
+        self.raw.zero_()
+        self.log_focal.zero_()
+        self.optimizer().state.clear()
+        self.log.stopped_at = step
 
     @torch.no_grad()
     def refined(self) -> np.ndarray:
@@ -212,7 +451,8 @@ class CameraOpt(nn.Module):
         return {"world_from_cam": self.world_from_cam.cpu(), "delta": self.delta.detach().cpu(),
                 "pivot": self.pivot.cpu(),
                 "log_focal": self.log_focal.detach().cpu(), "focal": self.focal,
-                "optimizer": self.optimizer().state_dict()}  # fmt: skip
+                "optimizer": self.optimizer().state_dict(), "guard": self.log.to_dict(),
+                "steps": self.steps}  # fmt: skip
 
     def load_dict(self, doc: dict[str, Any]) -> None:
         with torch.no_grad():
@@ -221,6 +461,8 @@ class CameraOpt(nn.Module):
             self.log_focal.copy_(doc["log_focal"])
         if doc.get("optimizer") is not None:
             self.optimizer().load_state_dict(doc["optimizer"])
+        self.log = GuardLog.from_dict(doc.get("guard"))  # runs from before the guard have none
+        self.steps = int(doc.get("steps", 0))
 
 
 def corrections_record(world_from_cam: np.ndarray, refined: np.ndarray, names: list[str]) -> list[dict[str, Any]]:
@@ -286,9 +528,55 @@ def _focal_times(intr: Intrinsics | None, scale: float) -> Intrinsics | None:
     return dataclasses.replace(intr, fx=intr.fx * scale, fy=intr.fy * scale)
 
 
+def guard_record(cameras: CameraOpt, names: list[str]) -> dict[str, Any]:
+    """The guard's record for the manifest (`pose_report`'s "guard"): its bounds, what it pulled back, whether and
+    when it stopped refinement, the corrections' sizes, and "suspect": the reasons to distrust the refinement
+    (empty when it stayed well inside its bounds), with "summary" and "limit" for the train stage's self-check."""
+    trust, log = cameras.trust, cameras.log
+    with torch.no_grad():
+        theta, moved = correction_sizes(cameras.delta.detach().double(), cameras.pivot, cameras.distance)
+    rot_deg = torch.rad2deg(theta)
+    share = torch.maximum(rot_deg / trust.max_rotation_deg, moved / trust.max_translation)
+    median = float(torch.quantile(share, 0.5))
+    suspect = []
+    if log.stopped_at is not None:
+        at = log.at_stop or {}
+        suspect.append(f"refinement stopped at step {log.stopped_at}: the median correction reached "
+                       f"{at.get('median_share', float('nan')):.2f} of its bound (median "
+                       f"{at.get('median_rotation_deg', float('nan')):.2f} deg, "
+                       f"{100 * at.get('median_translation', float('nan')):.1f} % of the distance); the input "
+                       "cameras were kept")  # fmt: skip
+    if log.cameras:
+        suspect.append(f"{len(log.cameras)} of {len(names)} cameras pulled back onto a bound ({log.pulled_back} "
+                       f"times, first at step {log.first_step})")  # fmt: skip
+    summary = "; ".join(suspect) if suspect else (f"within bounds: median correction {median:.2f} of its bound, "
+                                                  f"largest {float(share.max()):.2f}")  # fmt: skip
+    return {
+        "bounds": {"max_rotation_deg": trust.max_rotation_deg, "max_translation": trust.max_translation,
+                   "stop_median": trust.stop_median},
+        "rule": GUARD_RULE,
+        "pulled_back": log.pulled_back, "cameras_pulled_back": [names[i] for i in log.cameras],
+        "first_pulled_back_step": log.first_step,
+        "stopped": log.stopped_at is not None, "stopped_at_step": log.stopped_at, "at_stop": log.at_stop,
+        "largest_rotation_deg": round(log.largest_rotation_deg, 4),
+        "largest_translation": round(log.largest_translation, 5),
+        "median_share": round(median, 4), "max_share": round(float(share.max()), 4),
+        "suspect": suspect, "summary": summary,
+        "limit": (f"no correction past {trust.max_rotation_deg:g} deg or {100 * trust.max_translation:g} % of the "
+                  f"distance to the scene centre; median below {trust.stop_median:g} of that"),
+    }  # fmt: skip
+
+
+GUARD_RULE = ("trust region: a correction past max_rotation_deg or max_translation (a fraction of the camera's "
+              "distance to the scene centre) is projected back onto the bound and its Adam moments zeroed; when "
+              "the median correction passes stop_median of its bound, refinement stops and every correction goes "
+              "back to zero (the input cameras)")  # fmt: skip
+
+
 def pose_report(cameras: CameraOpt, scene: Scene, train_idx: tuple[int, ...]) -> dict[str, Any]:
     """The manifest's record of the refinement: per-camera corrections, their median and largest sizes, the
-    focal scale, and how test views are placed in the refined frame."""
+    focal scale, how test views are placed in the refined frame, and the guard's record ("guard",
+    `guard_record`)."""
     refined = cameras.refined()
     names = [scene.frames[i].file_path for i in train_idx]
     per_camera = corrections_record(cameras.world_from_cam.cpu().numpy(), refined, names)
@@ -299,7 +587,7 @@ def pose_report(cameras: CameraOpt, scene: Scene, train_idx: tuple[int, ...]) ->
         "median_rotation_deg": float(np.median(rot)), "max_rotation_deg": float(rot.max()),
         "median_translation": float(np.median(trans)), "max_translation": float(trans.max()),
         "schedule": dataclasses.asdict(cameras.schedule),
-        "test_poses": TEST_POSE_RULE, "per_camera": per_camera,
+        "test_poses": TEST_POSE_RULE, "guard": guard_record(cameras, names), "per_camera": per_camera,
     }  # fmt: skip
 
 

@@ -16,9 +16,13 @@ from data.transforms import read_scene
 from model import load_trained
 from model.camera_opt import (
     TEST_POSE_OPT_RULE,
+    TRANSLATION_STEP,
     CameraOpt,
     CameraSchedule,
+    TrustRegion,
     align_test_poses,
+    correction_sizes,
+    guard_record,
     pivot_depths,
     pivoted_exp,
 )
@@ -144,6 +148,164 @@ def test_test_poses_follow_a_similarity_of_the_training_cameras():
     assert np.allclose(mapped[0], expected, atol=1e-9) and record["scale"] == pytest.approx(2.0)
 
 
+def _ring(n: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """n cameras on a circle of radius 3 looking at the origin, and their pivot depths (3)."""
+    poses = []
+    for k in range(n):
+        a = 2 * math.pi * k / n
+        back = np.array([math.cos(a), math.sin(a), 0.0])  # +z of the camera: away from the origin
+        right = np.cross([0.0, 0.0, 1.0], back)
+        m = np.eye(4)
+        m[:3, :3] = np.stack([right, np.cross(back, right), back], axis=1)
+        m[:3, 3] = 3 * back
+        poses.append(m)
+    poses = np.stack(poses)
+    return poses, pivot_depths(poses, np.zeros(3))
+
+
+def _set_delta(cams: CameraOpt, delta: torch.Tensor) -> None:
+    with torch.no_grad():
+        cams.raw.copy_(delta / cams.step_scale)
+
+
+def _sizes(cams: CameraOpt) -> tuple[np.ndarray, np.ndarray]:
+    theta, moved = correction_sizes(cams.delta.detach().double(), cams.pivot, cams.distance)
+    return np.degrees(theta.numpy()), moved.numpy()
+
+
+def test_guard_pulls_back_corrections_past_the_bound():
+    """A rotation past 10 deg goes back onto the bound about the same axis with the camera centre kept; a centre
+    displacement past 10 % of the distance is shortened onto it with the rotation kept; the others are untouched,
+    those cameras' Adam moments are zeroed, and the record names them."""
+    poses, pivot = _ring(5)
+    cams = CameraOpt(poses, pivot=pivot, trust=TrustRegion(max_rotation_deg=10.0, max_translation=0.1)).double()
+    assert np.allclose(pivot, 3.0) and np.allclose(cams.distance.numpy(), 3.0)
+    delta = torch.zeros(5, 6, dtype=torch.float64)
+    delta[0] = torch.tensor([0.05, -0.02, 0.36, 0.05, 0.0, 0.01])  # 20.9 deg, mostly a roll; centre 1.7 %
+    delta[1, 3:] = torch.tensor([0.6, 0.3, -0.2])  # moves the centre by 0.7 = 23 % of 3
+    delta[2] = torch.tensor([0.01, 0.0, 0.02, 0.03, -0.02, 0.01])  # small: inside
+    _set_delta(cams, delta)
+    centre_before = pivoted_exp(cams.delta.detach(), cams.pivot)[0, :3, 3].clone()
+    cams.raw.grad = torch.ones_like(cams.raw)
+    cams.optimizer().step()  # Adam moments exist for every camera
+    _set_delta(cams, delta)
+    cams.guard(step=7)
+    rot, moved = _sizes(cams)
+    assert rot[0] == pytest.approx(10.0, abs=1e-9) and moved[1] == pytest.approx(0.1, abs=1e-9)
+    after = cams.delta.detach()
+    axis = delta[0, :3] / delta[0, :3].norm()
+    assert torch.allclose(after[0, :3] / after[0, :3].norm(), axis, atol=1e-12)  # same axis
+    assert torch.allclose(pivoted_exp(after, cams.pivot)[0, :3, 3], centre_before, atol=1e-12)  # centre kept
+    assert torch.allclose(after[1, :3], delta[1, :3], atol=1e-12)  # rotation (none) kept
+    assert torch.allclose(after[2:], delta[2:], atol=1e-12)
+    state = cams.optimizer().state[cams.raw]
+    assert (state["exp_avg"][:2] == 0).all() and (state["exp_avg_sq"][:2] == 0).all()
+    assert (state["exp_avg"][2:] != 0).all()
+    assert cams.log.pulled_back == 2 and cams.log.cameras == [0, 1] and cams.log.first_step == 7
+    assert cams.log.stopped_at is None and cams.log.largest_rotation_deg == pytest.approx(20.856, abs=1e-3)
+    record = guard_record(cams, [f"c{k}" for k in range(5)])
+    assert record["cameras_pulled_back"] == ["c0", "c1"] and record["pulled_back"] == 2 and not record["stopped"]
+    assert record["bounds"] == {"max_rotation_deg": 10.0, "max_translation": 0.1, "stop_median": 0.5}
+    assert len(record["suspect"]) == 1 and "2 of 5 cameras pulled back" in record["summary"]
+
+
+def test_guard_stops_refinement_and_resets_to_the_input_cameras():
+    """When the median correction passes half its bound, every correction goes back to zero, the record says at
+    which step and how large they were, later steps move nothing, and a reload keeps the stop."""
+    poses, pivot = _ring(5)
+    cams = CameraOpt(poses, pivot=pivot, focal=True, schedule=CameraSchedule(delay=0.0, warmup=0.0)).double()
+    delta = torch.zeros(5, 6, dtype=torch.float64)
+    delta[:, 2] = math.radians(6.0)  # every camera rolled by 6 deg: 0.6 of the bound
+    _set_delta(cams, delta)
+    with torch.no_grad():
+        cams.log_focal.fill_(0.05)
+    cams.guard(step=12)
+    assert cams.log.stopped_at == 12 and cams.log.at_stop["median_rotation_deg"] == pytest.approx(6.0)
+    assert (cams.raw == 0).all() and float(cams.log_focal.detach()) == 0.0
+    assert np.allclose(cams.refined(), poses, atol=1e-12)
+    cams.raw.grad = torch.ones_like(cams.raw)
+    cams.step(0.5, step=13)
+    assert (cams.raw == 0).all()
+    record = guard_record(cams, [f"c{k}" for k in range(5)])
+    assert record["stopped"] and record["stopped_at_step"] == 12 and record["median_share"] == 0.0
+    assert "stopped at step 12" in record["suspect"][0]
+    again = CameraOpt(poses, pivot=pivot, focal=True).double()
+    again.load_dict(cams.to_dict())
+    assert again.log.stopped_at == 12
+    again.raw.grad = torch.ones_like(again.raw)
+    again.step(0.5)
+    assert (again.raw == 0).all()
+
+
+def test_translation_unit_is_the_distance_to_the_scene_centre():
+    """The translation steps and bounds are in units of each camera's distance to the scene centre (its pivot
+    depth): the same share of it at any scene scale; a camera without a pivot takes the median one."""
+    poses, pivot = _ring(5)
+    pivot[0] = 0.0
+    small = poses.copy()
+    small[:, :3, 3] *= 0.1
+    for w, p, d in ((poses, pivot, 3.0), (small, 0.1 * pivot, 0.3)):
+        cams = CameraOpt(w, pivot=p)
+        assert np.allclose(cams.distance.numpy(), d)
+        assert torch.allclose(cams.step_scale[:, 3:], torch.full((5, 3), TRANSLATION_STEP * d))
+    assert np.allclose(CameraOpt(poses).distance.numpy(), 3.0)  # no pivots: the cameras' spread about their mean
+
+
+def test_guard_leaves_corrections_inside_the_bounds():
+    """The benchmark's perturbation (3 deg, 3 %) is well inside: nothing pulled back, no stop, no suspicion."""
+    poses, pivot = _ring(5)
+    cams = CameraOpt(poses, pivot=pivot).double()
+    delta = torch.randn(5, 6, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    delta[:, :3] *= math.radians(3.0) / delta[:, :3].norm(dim=1, keepdim=True)
+    delta[:, 3:] *= 0.03 * 3 / delta[:, 3:].norm(dim=1, keepdim=True)
+    _set_delta(cams, delta)
+    cams.guard(step=1)
+    assert torch.allclose(cams.delta.detach(), delta, atol=1e-15) and cams.log.pulled_back == 0
+    record = guard_record(cams, [f"c{k}" for k in range(5)])
+    assert record["suspect"] == [] and not record["stopped"] and record["median_share"] < 0.5
+
+
+def test_gauge_basis_is_a_common_similarity_and_fix_gauge_removes_it():
+    """gauge_basis g is, to first order, the correction that moves every camera by one small similarity (rotation,
+    translation, scale of the world); fix_gauge removes such a part and keeps what is left."""
+    poses, _ = _camera_ring_3d()
+    pivot = pivot_depths(poses, np.array([0.1, -0.2, 0.0]))
+    cams = CameraOpt(poses, pivot=pivot).double()
+    g = torch.tensor([0.3, -0.2, 0.5, 1.0, -0.4, 0.2, 0.6], dtype=torch.float64) * 1e-6
+    w = torch.as_tensor(poses)
+    centre = w[:, :3, 3].mean(0)
+    rot = so3_exp(g[None, :3])[0]
+    moved = w.clone()
+    moved[:, :3, :3] = rot @ w[:, :3, :3]
+    moved[:, :3, 3] = (1 + g[6]) * (w[:, :3, 3] - centre) @ rot.T + centre + g[3:6]
+    shift = torch.eye(4, dtype=torch.float64).repeat(len(w), 1, 1)
+    shift[:, 2, 3] = -cams.pivot
+    exact = se3_log(torch.linalg.inv(shift) @ torch.linalg.inv(w) @ moved @ shift)  # [V, 6] about the pivots
+    first_order = (cams.gauge_basis @ g).reshape(-1, 6)
+    assert float((exact - first_order).abs().max()) < 1e-5 * float(first_order.abs().max())
+    common = (cams.gauge_basis @ (g * 2e4)).reshape(-1, 6)  # about a degree and 2 % of the distance
+    own = torch.randn(len(w), 6, generator=torch.Generator().manual_seed(4), dtype=torch.float64) * 0.02
+    own = own - (cams.gauge_basis @ (cams.gauge_solve @ own.reshape(-1))).reshape(-1, 6)  # no common part
+    _set_delta(cams, own + common)
+    cams.fix_gauge()
+    assert torch.allclose(cams.delta.detach(), own, atol=1e-12)
+
+
+def _camera_ring_3d(n: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """n cameras at several heights around the origin, looking at it (OpenGL axes)."""
+    poses = []
+    for k in range(n):
+        a, elev = 2 * math.pi * k / n, math.radians(15 + 30 * (k % 3) / 2)
+        back = np.array([math.cos(a) * math.cos(elev), math.sin(a) * math.cos(elev), math.sin(elev)])
+        right = np.cross([0.0, 0.0, 1.0], back)
+        right /= np.linalg.norm(right)
+        m = np.eye(4)
+        m[:3, :3] = np.stack([right, np.cross(back, right), back], axis=1)
+        m[:3, 3] = (2.5 + 0.1 * k) * back
+        poses.append(m)
+    return np.stack(poses), np.zeros(3)
+
+
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory) -> tuple[Path, Path]:
     root = tmp_path_factory.mktemp("refine")
@@ -215,6 +377,7 @@ def test_perturbed_poses_are_recovered(tiny, tmp_path):
     assert (run / written["frames"][0]["file_path"]).resolve() == perturbed.image_path(0)
     used = json.loads(out.manifest.read_text())["used"]["pose_refinement"]
     assert len(used["per_camera"]) == len(idx) and used["median_rotation_deg"] > 1.0
+    assert not used["guard"]["stopped"] and used["guard"]["suspect"] == [], used["guard"]
     assert trained.pose_refinement["test_poses"]["method"] == "similarity"
     plain = eval_stage.run(eval_stage.Config(run_dir=run, out=tmp_path / "e.json", device="cpu", views=1,
                                              test_pose_steps=0)).result  # fmt: skip

@@ -226,7 +226,8 @@ class Loop:
             model.field.add_tv_grad_(cfg.tv, TV_TEXELS, self.gen)
         self.opt.step()
         if self.cameras is not None:
-            self.cameras.step(max(self.step / max(cfg.max_steps, 1), self.elapsed() / cfg.max_seconds))
+            frac = max(self.step / max(cfg.max_steps, 1), self.elapsed() / cfg.max_seconds)
+            self.cameras.step(frac, step=self.step + 1)  # the guard records the step it acts at
         self.step += 1
         self._losses.append(mse)
         per_ray = float(out["samples"]) / o.shape[0]
