@@ -123,7 +123,7 @@ def row(capture: Capture, out: Path, wall: float | None) -> dict:
         "seconds": {stage: round(d["wall_seconds"]) for stage, d in docs.items() if d and "wall_seconds" in d},
         "end_to_end_s": None if wall is None else round(wall),
         "video": f"{render.get('frames', '?')} frames {size[1]}x{size[0]}" if size else "-",
-        "mesh_faces": mesh.get("faces", mesh.get("used", {}).get("faces")),
+        "mesh_faces": mesh.get("final", {}).get("faces"),
         "checks": checks, "suspect": suspect,
     }  # fmt: skip
 

@@ -156,7 +156,7 @@ def test_self_check_flags_a_low_held_out_psnr(sphere_run, tmp_path, monkeypatch)
     doc = eval_stage.run(eval_stage.Config(run_dir=run_dir, out=tmp_path / "e.json")).result
     floor = {c["name"]: c for c in doc["checks"]}["holdout_psnr"]
     assert doc["psnr"] < eval_stage.MIN_PSNR and doc["check"] == "suspect" and not floor["ok"]
-    assert floor["limit"] == ">= 15 dB"
+    assert floor["limit"] == f">= {eval_stage.MIN_PSNR:g} dB"
 
 
 def test_lpips_status_reports_a_reason_when_unavailable():
