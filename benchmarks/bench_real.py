@@ -151,8 +151,10 @@ def markdown(rows: list[dict], commit: str, load: str) -> str:
         secs = ", ".join(f"{k} {v}" for k, v in r["seconds"].items())
         checks = "all ok" if not r["suspect"] else "; ".join(r["suspect"])
         e2e = f"{r['end_to_end_s']} s" if r["end_to_end_s"] is not None else "-"
-        lines.append(f"| {r['capture']} | {r['kind']} | {r['registered']} | {r['pose_error']} | {r['psnr']} dB | "
-                     f"{r['ssim']} | {r['steps']} | {secs} | {e2e} | {r['video']} | {r['mesh_faces']} | {checks} | "
+        psnr = f"{r['psnr']:.2f} dB" if r["psnr"] is not None else "-"
+        ssim = f"{r['ssim']:.3f}" if r["ssim"] is not None else "-"
+        lines.append(f"| {r['capture']} | {r['kind']} | {r['registered']} | {r['pose_error']} | {psnr} | "
+                     f"{ssim} | {r['steps']} | {secs} | {e2e} | {r['video']} | {r['mesh_faces']} | {checks} | "
                      f"{r['goal']} |")  # fmt: skip
     return "\n".join(lines) + "\n"
 
