@@ -42,6 +42,10 @@ class Field(nn.Module):
         """x [N, 3], d [N, 3] unit (or None when not view dependent) -> rgb [N, 3] in [0, 1]."""
         raise NotImplementedError
 
+    def touch(self) -> None:
+        """Say that the parameters changed in place without bumping their version counters (torch's fused Adam does
+        not: `p._version` stays put), so that caches keyed on them are rebuilt. No cache here: nothing to do."""
+
     def forward(self, x: Tensor, d: Tensor | None = None) -> tuple[Tensor, Tensor | None]:
         """x [N, 3], d [N, 3] | None -> (sigma [N], rgb [N, 3] | None)."""
         check_points(x)

@@ -162,6 +162,7 @@ class TensoRF(Field):
         self.density_shift, self.density_scale, self.init_std = density_shift, density_scale, init_std
         r = self.resolution
         self._volume: tuple | None = None  # density_volume's cache: (factors' key, volume)
+        self._edits = 0  # bumped by `touch` (fused Adam leaves the version counters as they are)
         self.density_planes = nn.Parameter(init_std * torch.randn(3, density_rank, r, r))
         self.density_lines = nn.Parameter(init_std * torch.randn(3, density_rank, r, 1))
         if has_color:
@@ -199,8 +200,8 @@ class TensoRF(Field):
         float rounding) from 8 values a point instead of 3 x (4 + 2) x density_rank. Kept until the factors
         change (their version counters: optimizer steps, loads and upsampling all bump or replace them)."""
         planes, lines = self.density_planes, self.density_lines
-        key = (planes.data_ptr(), planes._version, lines.data_ptr(), lines._version, planes.shape, planes.dtype,
-               planes.device)  # fmt: skip
+        key = (planes.data_ptr(), planes._version, lines.data_ptr(), lines._version, self._edits, planes.shape,
+               planes.dtype, planes.device)  # fmt: skip
         if self._volume is None or self._volume[0] != key:
             with torch.no_grad():
                 p, ln = planes.detach(), lines.detach()[..., 0]  # [3, C, R, R], [3, C, R]
@@ -209,6 +210,12 @@ class TensoRF(Field):
                 vol += torch.einsum("czy,cx->zyx", p[2], ln[2])  # plane (y, z), line x
             self._volume = (key, vol[None, None].contiguous())
         return self._volume[1]
+
+    def touch(self) -> None:
+        """The factors changed in place behind their version counters (a fused Adam step): rebuild the volume. Before
+        this, a training run's periodic and final held-out PSNR read the volume of the first evaluation after the
+        last upsampling (lego_400: 30.73 dB at the end of training against 33.17 from the saved checkpoint)."""
+        self._edits += 1
 
     @torch.no_grad()
     def density_inference(self, x: Tensor) -> Tensor:

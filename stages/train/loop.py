@@ -225,6 +225,7 @@ class Loop:
         if model.kind == "fast" and (cfg.tv or 0) > 0:
             model.field.add_tv_grad_(cfg.tv, TV_TEXELS, self.gen)
         self.opt.step()
+        model.field.touch()  # fused Adam leaves the version counters: the field's inference caches must know
         if self.cameras is not None:
             frac = max(self.step / max(cfg.max_steps, 1), self.elapsed() / cfg.max_seconds)
             self.cameras.step(frac, step=self.step + 1)  # the guard records the step it acts at

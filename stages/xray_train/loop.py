@@ -73,6 +73,7 @@ def train_step(
     opt.zero_grad(set_to_none=True)
     loss.backward()
     opt.step()
+    model.touch()  # fused Adam leaves the version counters: inference caches must know
     if hasattr(model, "clamp_"):
         model.clamp_()
     return float(data.detach()), float(loss.detach())
