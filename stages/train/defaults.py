@@ -219,9 +219,12 @@ class NDCRules:
     | 160, 2 voxels (62), 0.01, 0.02                   | 19.66    | -         | -                 |
     | 200, 64 steps (63), 0.01, 0.03                   | 20.44    | -         | -                 |
     | 300, 96 steps (96), 0.01, 0.03                   | 19.00    | -         | -                 |
-    A finer grid learns slower per step and costs more a step (Adam over every texel: 17 M parameters at 300), so
-    within a CPU budget the coarser one wins; the old object rule (300, 1 voxel, 207 samples) made 1,112 steps in
-    300 s and 17.99 dB. The fern at 504 px -> a voxel every 4 px gives 160. Measured at 300 s in
+    (The step-1000 and 2000 columns were read through the stale density volume that b63efaf fixed: the density
+    of step 750, the first evaluation after the last upsampling; the step-750 column, where the ranking is read,
+    is the current field for every row.) A finer grid learns slower per step and costs more a step (Adam over
+    every texel: 17 M parameters at 300), so within a CPU budget the coarser one wins; the old object rule (300,
+    1 voxel, 207 samples) made 1,112 steps in 300 s and 17.99 dB. The fern at 504 px -> a voxel every 4 px gives
+    160. Measured at 300 s in
     docs/BENCH_REAL.md."""
 
     kind = "ndc"
