@@ -230,14 +230,8 @@ class NDCRules:
     kind = "ndc"
 
     def resolution(self, need: Need) -> tuple[tuple[int, int], str]:
-        from model.field_model import scene_ndc
-
-        scene, idx = need.scene, need.train_idx
-        ndc = scene_ndc(scene)
-        poses = np.stack([f.world_from_cam for f in scene.frames])
-        box = ndc.box(poses, [scene.frame_intrinsics(i) for i in range(len(scene.frames))])
-        side = float(np.mean(box[1] - box[0]))
-        width = float(np.median([scene.frame_intrinsics(i).w for i in idx])) / need.downscale
+        side = _ndc_box_side(need.scene)
+        width = float(np.median([need.scene.frame_intrinsics(i).w for i in need.train_idx])) / need.downscale
         r1 = int(min(NDC_MAX, max(NDC_MIN, round(side * width / (2.0 * NDC_PIXELS_PER_VOXEL)))))
         r0 = min(NDC_START, r1)
         why = (f"image {width:.0f} px wide: a voxel every {NDC_PIXELS_PER_VOXEL:g} px across it (NDC box side "
@@ -245,13 +239,7 @@ class NDCRules:
         return (r0, r1), why
 
     def step_ratio(self, resolution: tuple[int, int], need: Need) -> tuple[float, str]:
-        from model.field_model import scene_ndc
-
-        scene = need.scene
-        poses = np.stack([f.world_from_cam for f in scene.frames])
-        box = scene_ndc(scene).box(poses, [scene.frame_intrinsics(i) for i in range(len(scene.frames))])
-        voxel = float(np.mean(box[1] - box[0])) / resolution[1]
-        ratio = (2.0 / NDC_SAMPLES) / voxel
+        ratio = (2.0 / NDC_SAMPLES) / (_ndc_box_side(need.scene) / resolution[1])
         why = f"{NDC_SAMPLES} steps across z' in [-1, 1] (forward-facing)"
         if ratio < NDC_MIN_STEP_VOXELS:
             ratio, why = NDC_MIN_STEP_VOXELS, f"{why}, at least {NDC_MIN_STEP_VOXELS:g} voxel (a coarse grid)"
@@ -259,6 +247,15 @@ class NDCRules:
 
     def tv(self) -> tuple[float, str]:
         return NDC_TV, f"{NDC_TV} for NDC scenes (forward-facing real captures)"
+
+
+def _ndc_box_side(scene: Scene) -> float:
+    """Mean side of the NDC box the field will span (`model.field_model.build_model`'s box), for both NDC rules."""
+    from model.field_model import scene_ndc
+
+    poses = np.stack([f.world_from_cam for f in scene.frames])
+    box = scene_ndc(scene).box(poses, [scene.frame_intrinsics(i) for i in range(len(scene.frames))])
+    return float(np.mean(box[1] - box[0]))
 
 
 RULES = {"box": BoxRules(), "ndc": NDCRules(), "contract": ContractRules()}
