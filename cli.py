@@ -38,7 +38,6 @@ import dataclasses
 import functools
 import importlib
 import inspect
-import json
 import sys
 import textwrap
 import types
@@ -367,19 +366,14 @@ def _run_stage(command: str, values: Mapping[str, Any]) -> None:
 
 def _suspect_lines(command: str, out: Any) -> list[str]:
     """One line per failed self-check (`data.checks`) in the manifest or report the stage wrote, if any."""
-    from data.checks import check_line
+    from data.checks import read_failed
 
     lines = []
     for name in ("manifest", "report"):
         path = getattr(out, name, None)
-        if not isinstance(path, Path) or path.suffix != ".json" or not path.is_file():
-            continue
-        try:
-            doc = json.loads(path.read_text())
-        except (OSError, ValueError):
-            continue
-        if doc.get("check") == "suspect":
-            lines += [f"suspect: {check_line(command, path.name, c)}" for c in doc.get("checks", []) if not c["ok"]]
+        if isinstance(path, Path) and path.suffix == ".json" and path.is_file():
+            with contextlib.suppress(OSError, ValueError, KeyError, TypeError, AttributeError):
+                lines += [f"suspect: {line}" for line in read_failed(command, path, path.name)[0]]
     return lines
 
 

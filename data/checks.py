@@ -14,12 +14,14 @@ a result is left out of the list (a box run has no pose corrections to bound), n
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
-__all__ = ["Check", "verdict", "check_line", "HOLDOUT_FLOOR_DB", "HOLDOUT_GAP_DB"]
+__all__ = ["Check", "verdict", "check_line", "read_failed", "HOLDOUT_FLOOR_DB", "HOLDOUT_GAP_DB"]
 
 HOLDOUT_FLOOR_DB = 18.0
 """train's and eval's floor on the held-out PSNR (dB). Every run of the real-capture table (docs/BENCH_REAL.md)
@@ -70,3 +72,11 @@ def verdict(checks: Iterable[Check]) -> dict[str, Any]:
 def check_line(stage: str, where: str, check: dict[str, Any]) -> str:
     """One line for a failed check record (as stored in a manifest): who, what, figure, rule, meaning."""
     return f"{stage} ({where}): {check['name']} = {check['value']} (expected {check['limit']}): {check['says']}"
+
+
+def read_failed(stage: str, path: Path, where: str | None = None) -> tuple[list[str], int]:
+    """(one `check_line` per failed check, naming the record as `where` (default: its path), number of checks) of
+    the record at `path`; OSError / ValueError / KeyError / TypeError / AttributeError when it cannot be read as a
+    record with checks. Used by the CLI after each stage and by `pipelines/suspects.py` after a chain."""
+    checks = json.loads(Path(path).read_text()).get("checks") or []
+    return [check_line(stage, where or str(path), c) for c in checks if not c["ok"]], len(checks)

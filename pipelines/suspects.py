@@ -14,11 +14,10 @@ is built.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
-from data.checks import check_line
+from data.checks import read_failed
 
 __all__ = ["RECORDS", "summary", "main"]
 
@@ -42,12 +41,11 @@ def summary(out: str | Path) -> list[str]:
         if not path.is_file():
             continue
         try:
-            checks = json.loads(path.read_text()).get("checks") or []
-            failed = [check_line(stage, str(path), c) for c in checks if not c["ok"]]
+            failed, n = read_failed(stage, path)
         except (OSError, ValueError, AttributeError, TypeError, KeyError) as exc:
             lines.append(f"{stage} ({path}): cannot read its self-checks ({type(exc).__name__}: {exc})")
             continue
-        n_checks += len(checks)
+        n_checks += n
         lines += failed
     if lines:
         return lines
