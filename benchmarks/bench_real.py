@@ -35,6 +35,8 @@ ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
 sys.path.insert(0, str(ROOT))
 
+from pipelines.suspects import RECORDS  # noqa: E402
+
 __all__ = ["CAPTURES", "main"]
 
 
@@ -66,15 +68,9 @@ CAPTURES = (
 
 NOTES = "<!-- notes: kept when the table is re-measured -->"
 
-STAGE_FILES = {
-    "poses": "scene/colmap/manifest.json",
-    "convert": "scene/convert_manifest.json",
-    "train": "run/manifest.json",
-    "render": "video.manifest.json",
-    "depth": "depth/manifest.json",
-    "eval": "eval.manifest.json",
-    "mesh": "mesh.report.json",
-}
+STAGE_FILES = {**dict(RECORDS), "poses": "scene/colmap/manifest.json"}
+"""Each stage's record under OUT (`pipelines.suspects.RECORDS`), the poses stage's manifest (its wall seconds)
+in place of its report, which `row` reads for the registered count."""
 
 
 def _read(path: Path) -> dict | None:
