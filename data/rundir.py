@@ -201,9 +201,9 @@ def _claimed(folder: Path, *, overwrite: bool, resume: bool, marks: Iterable[str
         previous = None
         if found and not resume:
             if not overwrite:
-                how = "--resume to continue it or --overwrite" if "checkpoint.pt" in found else "--overwrite"
+                how = "resume=True to continue it or overwrite=True" if "checkpoint.pt" in found else "overwrite=True"
                 raise UserError(f"{folder} already holds an earlier output ({', '.join(found)}); "
-                                f"pass {how} to replace it")  # fmt: skip
+                                f"set {how} to replace it")  # fmt: skip
             previous = previous_folder(folder)
             shutil.rmtree(previous, ignore_errors=True)
             previous.mkdir()

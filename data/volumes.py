@@ -64,7 +64,7 @@ def check_volume(data: np.ndarray, name: str) -> np.ndarray:
 
 def _check_spacing(spacing, name: str) -> tuple[float, float, float]:
     if spacing is None:
-        raise UserError(f"{name}: this format has no voxel size: give one (--voxel-size, in mm)")
+        raise UserError(f"{name}: this format has no voxel size: give one (voxel_size, in mm)")
     s = np.broadcast_to(np.asarray(spacing, dtype=np.float64), (3,))
     if not (np.isfinite(s).all() and (s > 0).all()):
         raise UserError(f"{name}: voxel size must be > 0 and finite, got {tuple(s.tolist())}")
@@ -86,13 +86,13 @@ def _read_mat(path: Path, key: str | None) -> np.ndarray:
             raise UserError(f"{path}: no variable {key!r} (3-D variables: {sorted(arrays)})")
         return np.asarray(mat[key])
     if len(arrays) != 1:
-        raise UserError(f"{path}: expected exactly one 3-D variable, found {sorted(arrays)}: name one (--key)")
+        raise UserError(f"{path}: expected exactly one 3-D variable, found {sorted(arrays)}: name one (key=NAME)")
     return next(iter(arrays.values()))
 
 
 def _read_raw(path: Path, shape, dtype: str | None) -> np.ndarray:
     if shape is None or dtype is None:
-        raise UserError(f"{path}: a raw volume needs its shape and dtype (--shape NX,NY,NZ --dtype float32)")
+        raise UserError(f"{path}: a raw volume needs its shape and dtype (shape=(NX, NY, NZ), dtype=float32)")
     try:
         dt = np.dtype(dtype)
     except TypeError:

@@ -145,7 +145,7 @@ def path_from_file(file: str | Path, downscale: float = 1.0) -> CameraPath:
     """A recorded camera path (`data.camera_path`): one camera per entry, pinhole intrinsics from the file's
     render size and vertical field of view (fx = fy, centred), scaled by 1/downscale."""
     if not downscale > 0:
-        raise UserError(f"--downscale: expected > 0, got {downscale}")
+        raise UserError(f"downscale: expected > 0, got {downscale}")
     doc = read_camera_path(file)
     intr = []
     for fov in doc.fovs_deg:
@@ -169,13 +169,13 @@ def camera_path(
     if is_path_file(kind):
         return path_from_file(kind, downscale)
     if kind not in PATHS:
-        raise UserError(f"--path: unknown path {kind!r}; expected one of {', '.join(PATHS)} or a FILE.json")
+        raise UserError(f"path: unknown path {kind!r}; expected one of {', '.join(PATHS)} or a FILE.json")
     if not downscale > 0:
-        raise UserError(f"--downscale: expected > 0, got {downscale}")
+        raise UserError(f"downscale: expected > 0, got {downscale}")
     if kind in ("test", "train"):
         idx = scene.split(kind) or (scene.split("val") if kind == "test" else ())
         if not idx:
-            raise UserError(f"--path {kind}: the run's scene ({scene.root}) has no {kind} split")
+            raise UserError(f"path={kind}: the run's scene ({scene.root}) has no {kind} split")
         poses = np.stack([scene.frames[i].world_from_cam for i in idx])
         intr = tuple(_scaled(scene.frame_intrinsics(i), downscale, keep_distortion=True) for i in idx)
         names = tuple(Path(scene.frames[i].file_path).stem for i in idx)
@@ -183,11 +183,11 @@ def camera_path(
         return CameraPath(world_from_cams=poses, intrinsics=intr, names=names, frame_indices=tuple(idx),
                           used={"path": kind, "split": split})  # fmt: skip
     if frames < 1:
-        raise UserError(f"--frames: expected >= 1, got {frames}")
+        raise UserError(f"frames: expected >= 1, got {frames}")
     if radius is not None and not radius > 0:
-        raise UserError(f"--radius: expected > 0, got {radius}")
+        raise UserError(f"radius: expected > 0, got {radius}")
     if elevation is not None and not -90 < elevation < 90:
-        raise UserError(f"--elevation: expected degrees in (-90, 90), got {elevation}")
+        raise UserError(f"elevation: expected degrees in (-90, 90), got {elevation}")
     train_idx = scene.split("train") or tuple(range(len(scene.frames)))
     train_poses = np.stack([scene.frames[i].world_from_cam for i in train_idx])
     intr = _scaled(training_intrinsics(scene), downscale, keep_distortion=False)
@@ -226,7 +226,7 @@ def camera_path(
         try:
             poses = paths.trajectory(train_poses[order], frames, centre=orbit.centre, up=orbit.up, sigma=sigma)
         except ValueError as exc:  # a path through the point it looks at
-            raise UserError(f"--path trajectory: {exc}; use --path turntable") from None
+            raise UserError(f"path=trajectory: {exc}; use path=turntable") from None
         used.update(
             order=why, keyframes=len(order), smoothing_sigma_keyframes=sigma,
             length_scene=round(paths.path_length(poses[:, :3, 3]), 4),
@@ -242,7 +242,7 @@ def camera_path(
         try:
             poses = paths.spiral(train_poses, frames)
         except ValueError as exc:
-            raise UserError(f"--path spiral: {exc}; use --path turntable") from None
+            raise UserError(f"path=spiral: {exc}; use path=turntable") from None
         used.update(focus_scene=paths.focus_point(train_poses).tolist(), rotations=2, radii_percentile=90)
     names = tuple(f"frame_{k:05d}" for k in range(len(poses)))
     return CameraPath(world_from_cams=poses, intrinsics=(intr,) * len(poses), names=names, frame_indices=None,

@@ -21,11 +21,11 @@ def resolve_device(name: str | torch.device) -> torch.device:
     try:
         dev = torch.device(name)
     except RuntimeError:
-        raise UserError(f"--device: unknown device {name!r} (expected auto, cpu, cuda, cuda:N)") from None
+        raise UserError(f"device: unknown device {name!r} (expected auto, cpu, cuda, cuda:N)") from None
     if dev.type not in ("cpu", "cuda"):
-        raise UserError(f"--device: unknown device {name!r} (expected auto, cpu, cuda, cuda:N)")
+        raise UserError(f"device: unknown device {name!r} (expected auto, cpu, cuda, cuda:N)")
     if dev.type == "cuda" and not torch.cuda.is_available():
-        raise UserError(f"--device: {name} requested but torch sees no CUDA device")
+        raise UserError(f"device: {name} requested but torch sees no CUDA device")
     return dev
 
 

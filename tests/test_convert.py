@@ -243,7 +243,7 @@ def test_bad_inputs(tmp_path):
     _fails("the source is the output itself", source=tmp_path / "same", scene_dir=tmp_path / "same")
 
     fx.make_colmap(tmp_path / "noimg" / "sparse" / "0", None, 4)
-    _fails("pass the image folder with --images", source=tmp_path / "noimg", scene_dir=scene)
+    _fails(r"give the image folder \(images=FOLDER\)", source=tmp_path / "noimg", scene_dir=scene)
     fx.make_colmap(tmp_path / "fish" / "sparse", tmp_path / "fish" / "images", 4, model="OPENCV_FISHEYE")
     _fails("OPENCV_FISHEYE model", source=tmp_path / "fish", scene_dir=scene)
 

@@ -103,7 +103,7 @@ def test_grid_model_is_the_fast_field_on_a_plane():
     [(dict(freqs=-1), "--freqs"), (dict(sweep=(2, 2)), "--sweep"), (dict(sweep=(0, 99)), "--sweep"),
      (dict(steps=0), "--steps"), (dict(max_seconds=0.0), "--max-seconds"), (dict(lr=-1.0), "--lr"),
      (dict(batch=0), "--batch"), (dict(encoding="hash"), "--encoding"), (dict(grid_resolution=1), "--grid-resolution"),
-     (dict(device="tpu"), "--device"), (dict(threads=0), "--threads")],
+     (dict(device="tpu"), "device"), (dict(threads=0), "--threads")],
 )  # fmt: skip
 def test_bad_options_are_one_line_naming_the_field(smooth_image, tmp_path, kw, field):
     with pytest.raises(UserError) as e:

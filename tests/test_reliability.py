@@ -112,7 +112,7 @@ def test_signal_during_train_leaves_a_checkpoint_to_resume(scene_dir, tmp_path, 
         assert len(lines) == 1 and "Traceback" not in err, err
         assert lines[0].startswith(f"error: interrupted ({signal.Signals(signum).name}) at step {state['step']} ")
         assert "continue with --resume" in lines[0]
-    with pytest.raises(UserError, match="--resume to continue it or --overwrite"):
+    with pytest.raises(UserError, match="resume=True to continue it or overwrite=True"):
         train.run(_config(scene_dir, run_dir))  # an interrupted run is not silently replaced
     out = train.run(_config(scene_dir, run_dir, resume=True, max_steps=state["step"] + 2))
     assert out.steps == state["step"] + 2 and out.manifest.is_file()
@@ -192,7 +192,7 @@ def test_other_folder_stages_refuse_a_finished_output(finished_run, tmp_path):
 
     out = tmp_path / "s"
     scene_stage.run(scene_stage.Config(out_dir=out, kind="rgba", size=16, views=4))
-    with pytest.raises(UserError, match=r"already holds an earlier output \(manifest.json\); pass --overwrite"):
+    with pytest.raises(UserError, match=r"already holds an earlier output \(manifest.json\); set overwrite=True"):
         scene_stage.run(scene_stage.Config(out_dir=out, kind="rgba", size=16, views=4))
     scene_stage.run(scene_stage.Config(out_dir=out, kind="rgba", size=16, views=5, overwrite=True))
     assert len(read_scene(out).frames) == 5 and not (tmp_path / "s.previous").exists()

@@ -106,7 +106,7 @@ def _image_dir(model: Path, source: Path, names: list[str], override: Path | Non
             return c
     raise UserError(
         f"{model}: none of the model's images (e.g. {names[0]!r}) found in "
-        f"{', '.join(str(c) for c in dict.fromkeys(candidates))}; pass the image folder with --images"
+        f"{', '.join(str(c) for c in dict.fromkeys(candidates))}; give the image folder (images=FOLDER)"
     )
 
 

@@ -27,7 +27,7 @@ from stages.poses.exif import FocalPrior
 from stages.poses.images import Screen
 
 if TYPE_CHECKING:
-    from stages.poses import Config
+    from stages.poses.config import Config
 
 __all__ = [
     "MIN_REGISTERED", "FAIL_FRACTION", "WARN_FRACTION", "MIN_FEATURES", "RunState", "PhaseTimer",

@@ -1,10 +1,12 @@
-"""The scene stage's files: depth .npy, mesh .ply, transforms.json, and the NeRF-synthetic (Blender) layout."""
+"""The scene stage's files: PNG images and masks, depth .npy, mesh .ply, transforms.json, and the NeRF-synthetic
+(Blender) layout."""
 
 from __future__ import annotations
 
 import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 import trimesh
 
@@ -12,8 +14,8 @@ from data.atomic import atomic_path, write_json
 from data.transforms import Frame, Scene, write_scene
 from radiance.camera import Intrinsics
 
-__all__ = ["TEST_EVERY", "BLENDER_SPLITS", "write_npy", "write_mesh", "write_transforms", "views", "blender_split",
-           "write_blender"]  # fmt: skip
+__all__ = ["TEST_EVERY", "BLENDER_SPLITS", "png", "grey_png", "write_npy", "write_mesh", "write_transforms", "views",
+           "blender_split", "write_blender"]  # fmt: skip
 
 TEST_EVERY = 8
 BLENDER_SPLITS = ("train", "val", "test")
@@ -79,3 +81,24 @@ def write_blender(out_dir: Path, rel: list[str], world_from_cam: np.ndarray, fov
         for s, f in frames.items()
         if f
     )
+
+
+def _to_u8(x: np.ndarray) -> np.ndarray:
+    return np.round(np.clip(x, 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def png(rgb: np.ndarray, alpha: np.ndarray | None) -> bytes:
+    img = _to_u8(rgb)[..., ::-1]  # RGB -> BGR for OpenCV
+    if alpha is not None:
+        img = np.concatenate([img, _to_u8(alpha)[..., None]], axis=-1)
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img))
+    if not ok:
+        raise RuntimeError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def grey_png(x: np.ndarray) -> bytes:
+    ok, buf = cv2.imencode(".png", _to_u8(x))
+    if not ok:
+        raise RuntimeError("PNG encoding failed")
+    return buf.tobytes()

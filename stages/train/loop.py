@@ -1,4 +1,5 @@
-"""The optimisation loop of `train`: schedules, one step, recovery from non-finite losses, logging, checkpoints.
+"""The optimisation loop of `train`: its step on `model.loop.TrainingLoop` (the one loop every mode shares), the
+coarse-to-fine schedule, evaluation and checkpoints.
 
 Progress through the run is the larger of the step and the wall-clock fractions (max_steps, max_seconds), so a
 time budget gets the whole schedule: the learning rate decays exponentially to `lr_decay` over it and the fast
@@ -15,7 +16,6 @@ from __future__ import annotations
 
 import copy
 import math
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -26,13 +26,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from data.errors import Interrupted
 from data.progress import Progress
 from data.rundir import MetricsLog
 from data.stop import StopRequest
 from model.camera_opt import CameraOpt
 from model.checkpoint import save_checkpoint
 from model.field_model import FieldModel
+from model.loop import Budget, Clock, LoopSettings, Schedule, TrainingDiverged, TrainingLoop
 from radiance.compositing import over_background
 from radiance.fields import Field
 from radiance.metrics import psnr_from_mse
@@ -61,10 +61,6 @@ TV_TEXELS = 4096
 """Random texels per plane in each step's total-variation estimate (`TensoRF.tv`)."""
 
 
-class TrainingDiverged(RuntimeError):
-    """The loss went non-finite repeatedly, even after restoring the last good state with a lower LR."""
-
-
 def make_optimizer(model: FieldModel | Field, lr: float, *, fused: bool = True) -> torch.optim.Adam:
     """Adam over the field (and a learned background colour, at lr); `fused` (one kernel per group, the
     same update up to float rounding) is the fast path: the plain per-tensor loop took half of a fast-field
@@ -77,11 +73,6 @@ def make_optimizer(model: FieldModel | Field, lr: float, *, fused: bool = True) 
     if isinstance(model, FieldModel) and model.appearance is not None:
         groups += model.appearance.param_groups(lr)
     return torch.optim.Adam(groups, betas=(0.9, 0.99), fused=fused)
-
-
-def _set_lr(opt: torch.optim.Optimizer, base: float) -> None:
-    for g in opt.param_groups:
-        g["lr"] = base * g.get("lr_scale", 1.0)
 
 
 def upsample_schedule(resolution: tuple[int, int], upsample_at: tuple[float, ...]) -> list[tuple[float, int]]:
@@ -112,7 +103,8 @@ def evaluate_psnr(model: FieldModel, views: Views, idx: Tensor, bg: Tensor, devi
 
 @dataclass
 class Loop:
-    """One training run's mutable state; `run()` steps until the step or time budget is spent."""
+    """One training run's mutable state and its step (`model.loop.Stepper`); `run()` steps until the step or time
+    budget is spent."""
 
     config: Any  # stages.train.Config
     model: FieldModel
@@ -135,12 +127,12 @@ class Loop:
     eval_rays_per_second: float | None = None
     stop: StopRequest | None = None  # polled between steps (data.stop)
     ckpt_sha256: str | None = None  # of the last checkpoint written
-    _ckpt_wall: float = 0.0  # time.perf_counter() at the last checkpoint
-    _paused: float = 0.0
-    _t_start: float = 0.0
     _losses: list[float] = field(default_factory=list)
     cameras: CameraOpt | None = None  # pose refinement (train --refine-poses; model.camera_opt)
     depth_rays: DepthRays | None = None  # sparse-point depth supervision (train --depth-loss)
+    _loop: TrainingLoop | None = None  # while run() runs
+    _schedule: list[tuple[float, int]] = field(default_factory=list)  # upsampling still to come
+    _task: Any = None  # the progress display's task
 
     def test_rays(self) -> Callable | None:
         """The map of test rays into the refined cameras' frame (None without pose refinement)."""
@@ -148,56 +140,43 @@ class Loop:
 
     def elapsed(self) -> float:
         """Training seconds so far (across resumes, evaluation excluded)."""
-        return self.seconds_before + time.perf_counter() - self._t_start - self._paused
+        return self._loop.clock() if self._loop is not None else self.seconds_before
+
+    def settings(self) -> LoopSettings:
+        """The shared loop's settings from the train config."""
+        cfg = self.config
+        return LoopSettings(name="train", budget=Budget(max_steps=cfg.max_steps, max_seconds=cfg.max_seconds),
+                            schedule=Schedule(lr=self.base_lr, decay=cfg.lr_decay),
+                            checkpoint_every=cfg.checkpoint_every,
+                            checkpoint_seconds=getattr(cfg, "checkpoint_seconds", 0.0),
+                            checkpoint_path=self.ckpt_path)  # fmt: skip
 
     def run(self) -> float:
         """Train until max_steps or max_seconds; refresh the occupancy grid; checkpoint. Returns seconds."""
         cfg = self.config
-        schedule = upsample_schedule(cfg.resolution, cfg.upsample_at)
-        self._t_start = self._ckpt_wall = time.perf_counter()
-        good = self._snapshot()
-        failures = 0
-        task = self.progress.add_task("train", total=cfg.max_seconds)
+        self._schedule = upsample_schedule(cfg.resolution, cfg.upsample_at)
+        self._loop = TrainingLoop(self.settings(), self, Clock(self.seconds_before), self.stop)
+        self._task = self.progress.add_task("train", total=cfg.max_seconds)
         self.model.field.train()
-        while self.step < cfg.max_steps:
-            if self.stop is not None and self.stop.signum is not None:
-                self._interrupted()
-            frac = max(self.step / max(cfg.max_steps, 1), self.elapsed() / cfg.max_seconds)
-            if frac >= 1.0:
-                break
-            if self.model.kind == "fast":
-                while schedule and frac >= schedule[0][0]:
-                    _, res = schedule.pop(0)
-                    if res > self.model.field.resolution:
-                        self.model.field.upsample(res)
-                        self.opt = make_optimizer(self.model, self.base_lr)
-                        good = self._snapshot()
-                self.model.grid.update(self.model.field.density, self.step, every=cfg.occupancy_every,
-                                       warmup_steps=64)  # fmt: skip
-            lr = self.base_lr * self.lr_factor * cfg.lr_decay**frac
-            _set_lr(self.opt, lr)
-            if not self._step():
-                failures += 1
-                good = self._recover(good, failures)
-                continue
-            if self.step % 100 == 0:
-                good = self._snapshot()
-            self._log(lr, task)
-            every_s = getattr(cfg, "checkpoint_seconds", 0.0)
-            if self.step % cfg.checkpoint_every == 0 or (
-                every_s > 0 and time.perf_counter() - self._ckpt_wall >= every_s
-            ):
-                self._checkpoint()
-                self.metrics.save()
-        seconds = self.elapsed()
-        if self.model.grid is not None:
-            # Every cell once more: the saved grid must match the final field (render and mesh skip by it), not a
-            # partial refresh from before the last steps moved the surface.
-            self.model.grid.update(self.model.field.density, self.step, full=True, points_per_cell=4)
-        self._checkpoint(seconds)
-        return seconds
+        return self._loop.run()
 
-    def _step(self) -> bool:
+    def prepare(self, fraction: float) -> bool:
+        """Fast fields: upsample at the schedule's fractions (a new optimiser), refresh the occupancy grid. True
+        when the grid was upsampled."""
+        if self.model.kind != "fast":
+            return False
+        upsampled = False
+        while self._schedule and fraction >= self._schedule[0][0]:
+            _, res = self._schedule.pop(0)
+            if res > self.model.field.resolution:
+                self.model.field.upsample(res)
+                self.opt = make_optimizer(self.model, self.base_lr)
+                upsampled = True
+        self.model.grid.update(self.model.field.density, self.step, every=self.config.occupancy_every,
+                               warmup_steps=64)  # fmt: skip
+        return upsampled
+
+    def train_step(self, lr: float) -> bool:
         """One optimiser step on a random batch of rays; False (and no update) when the loss is not finite."""
         cfg, model = self.config, self.model
         idx = torch.randint(self.train.n_rays, (self.batch_rays,), generator=self.gen)
@@ -227,12 +206,10 @@ class Loop:
         self.opt.step()
         model.field.touch()  # fused Adam leaves the version counters: the field's inference caches must know
         if self.cameras is not None:
-            frac = max(self.step / max(cfg.max_steps, 1), self.elapsed() / cfg.max_seconds)
-            self.cameras.step(frac, step=self.step + 1)  # the guard records the step it acts at
-        self.step += 1
+            self.cameras.step(self._loop.fraction(), step=self.step + 1)  # the guard records the step it acts at
         self._losses.append(mse)
         per_ray = float(out["samples"]) / o.shape[0]
-        self.samples_per_ray = 0.9 * self.samples_per_ray + 0.1 * per_ray if self.step > 1 else per_ray
+        self.samples_per_ray = 0.9 * self.samples_per_ray + 0.1 * per_ray if self.step > 0 else per_ray
         if model.grid is not None:
             self.skip_fraction = model.grid.skip_fraction
         return True
@@ -250,21 +227,15 @@ class Loop:
         return depth_nll_loss(out["weights"], out["t_starts"], out["t_ends"], out["ray_indices"], depth,
                               DEPTH_SIGMA * depth)  # fmt: skip
 
-    def _snapshot(self) -> tuple[dict, dict, int]:
-        return copy.deepcopy(self.model.field.state_dict()), copy.deepcopy(self.opt.state_dict()), self.step
+    def snapshot(self) -> tuple[dict, dict]:
+        return copy.deepcopy(self.model.field.state_dict()), copy.deepcopy(self.opt.state_dict())
 
-    def _recover(self, good: tuple[dict, dict, int], failures: int) -> tuple[dict, dict, int]:
-        if failures >= 3:
-            raise TrainingDiverged(f"loss is not finite at step {self.step} after {failures} restores with lower "
-                                   f"learning rates; last checkpoint kept in {self.ckpt_path}")  # fmt: skip
-        field_state, opt_state, self.step = good
+    def restore(self, snapshot: tuple[dict, dict]) -> None:
+        field_state, opt_state = snapshot
         self.model.field.load_state_dict(field_state)
         self.opt.load_state_dict(opt_state)
-        self.lr_factor *= 0.5
-        print(f"train: non-finite loss; restored step {self.step}, learning rate x{self.lr_factor}", file=sys.stderr)
-        return good
 
-    def _log(self, lr: float, task: Any) -> None:
+    def log(self, lr: float) -> None:
         """A metrics row every log_every steps, with the held-out PSNR every eval_every steps."""
         cfg = self.config
         evaluate = self.test is not None and cfg.eval_every > 0 and self.step % cfg.eval_every == 0
@@ -277,29 +248,32 @@ class Loop:
                "samples_per_ray": f"{self.samples_per_ray:.2f}",
                "skip_fraction": f"{self.skip_fraction:.4f}"}  # fmt: skip
         if evaluate:
-            t_eval = time.perf_counter()
-            bg = self.model.background.eval_colour().detach()
-            psnr = evaluate_psnr(self.model, self.test, self.eval_px, bg, self.device, self.test_rays())
-            row["test_psnr"] = f"{psnr:.3f}"
-            spent = time.perf_counter() - t_eval
-            self._paused += spent
+            with self._loop.clock.paused():
+                t_eval = time.perf_counter()
+                bg = self.model.background.eval_colour().detach()
+                psnr = evaluate_psnr(self.model, self.test, self.eval_px, bg, self.device, self.test_rays())
+                row["test_psnr"] = f"{psnr:.3f}"
+                spent = time.perf_counter() - t_eval
             self.eval_rays_per_second = self.eval_px.numel() / max(spent, 1e-6)
         self.model.field.train()
         self.metrics.append(**row)
         self._losses = []
-        self.progress.update(task, completed=min(row["seconds"], cfg.max_seconds),
+        self.progress.update(self._task, completed=min(row["seconds"], cfg.max_seconds),
                              description=f"train step {self.step}, {row['train_psnr']} dB")  # fmt: skip
 
-    def _checkpoint(self, seconds: float | None = None) -> None:
-        seconds = self.elapsed() if seconds is None else seconds
+    def checkpoint(self, seconds: float) -> None:
+        """checkpoint.pt and metrics.csv at the current step (periodic, and on Ctrl-C or SIGTERM)."""
+        self._save(seconds)
+        self.metrics.save()
+
+    def finish(self, seconds: float) -> None:
+        """The final occupancy grid and checkpoint."""
+        if self.model.grid is not None:
+            # Every cell once more: the saved grid must match the final field (render and mesh skip by it), not a
+            # partial refresh from before the last steps moved the surface.
+            self.model.grid.update(self.model.field.density, self.step, full=True, points_per_cell=4)
+        self._save(seconds)
+
+    def _save(self, seconds: float) -> None:
         self.ckpt_sha256 = save_checkpoint(self.ckpt_path, self.model, self.opt, self.step, seconds, self.lr_factor,
                                            self.gen.get_state(), self.cameras)  # fmt: skip
-        self._ckpt_wall = time.perf_counter()
-
-    def _interrupted(self) -> None:
-        """Save the current step (checkpoint, metrics) and stop with one line."""
-        seconds = self.elapsed()
-        self._checkpoint(seconds)
-        self.metrics.save()
-        raise Interrupted(f"interrupted ({self.stop.name}) at step {self.step} after {seconds:.1f} s; continue with "
-                          f"--resume (checkpoint {self.ckpt_path})", self.stop.signum)  # fmt: skip

@@ -1,6 +1,6 @@
 """Stage `xray-train`: fit an attenuation field to X-ray projections (a projection scene) -> an X-ray run.
 
-    nerfpipe xray-train SCENE RUN_DIR [--field grid|tensorf] [--max-seconds 600] [--tv 0.0] [--threads N]
+    nerfpipe xray-train SCENE RUN_DIR [--field grid|tensorf] [--max-seconds 600] [--tv 0.0] [--threads N] [--resume]
 
 SCENE: a projection scene folder (`xray-simulate`), a NAF / SAX-NeRF `*.pickle`, or an R2-Gaussian folder
 (data.projections.read_any). The field is density-only (attenuation mu per length unit, no colour, no view
@@ -13,13 +13,20 @@ every `eval_every` training seconds the field is sampled on the scene grid and s
 PSNR (the test views re-projected through that volume with the exact voxel projector) and, when the ground
 truth is known, 3-D PSNR / SSIM (radiance.ct_metrics). Evaluation pauses the clock.
 
+The loop is the one `train` runs (`model.loop.TrainingLoop`; the step is `stages.xray_train.loop.XraySteps`):
+the budget, the learning-rate decay, checkpoints every `checkpoint_seconds` and at the end, Ctrl-C or SIGTERM
+(a checkpoint at the current step, then one line and exit 130/143; continue with `--resume`), and recovery from a
+non-finite loss (the last good state at half the learning rate; the third time the run stops).
+
 Run directory (model.xray): config.json, checkpoint.pt, metrics.csv, psnr_vs_time.png, volume.npy (mu on the
 scene grid, float32, 1 / length unit), manifest.json (last; says what was used and what was left out and why).
+A folder holding a run (checkpoint.pt or manifest.json) is refused unless `--resume` (continue it: the step, the
+training seconds, the learning-rate factor, the schedule and the random state go on from the checkpoint; the
+manifest is removed until the run ends again) or `--overwrite`.
 """
 
 from __future__ import annotations
 
-import math
 import resource
 import time
 from dataclasses import dataclass
@@ -34,27 +41,17 @@ from data.errors import UserError
 from data.progress import NO_PROGRESS, Progress
 from data.projections import ProjectionScene, read_any
 from data.rundir import MetricsLog, config_to_json, output_folder, write_manifest
+from data.stop import stop_on_signals
 from data.volumes import write_npy
 from model.device import cpu_threads, resolve_device
-from model.xray import (
-    attenuation_field,
-    field_line_integrals,
-    field_volume,
-    grid_shape_at,
-    samples_for,
-    save_xray_checkpoint,
-)
-from radiance.aabb import ray_aabb_intersect
-from radiance.ct_metrics import data_range, psnr_3d, psnr_projections, ssim_3d
-from radiance.metrics import psnr_from_mse
-from radiance.xray import detector_rays, rays_for_pixels, siddon_project
-from stages.xray_train.loop import Batches, Clock, LoopState, make_optimizer, sart_step, set_lr, train_step
+from model.loop import TrainingLoop
+from stages.xray_train.loop import XraySteps, evaluate
 from stages.xray_train.report import plot_metrics
+from stages.xray_train.setup import start
 
 __all__ = ["Config", "Outputs", "run"]
 
 VERSION = "1"
-DEFAULT_LR = {("adam", "grid"): 0.02, ("adam", "tensorf"): 0.02, ("sart", "grid"): 0.5}
 METRICS = ["step", "seconds", "loss", "train_psnr", "test_proj_psnr", "psnr_3d", "ssim_3d", "lr", "resolution"]
 
 
@@ -102,6 +99,9 @@ class Config:
     """Held-out views re-projected at each periodic evaluation (all of them at the end)."""
     log_every: int = 25
     """Write a metrics row every this many steps."""
+    checkpoint_seconds: float = 60.0
+    """Write checkpoint.pt every this many seconds of wall-clock time, so a killed run loses at most that (0: only
+    at the end and on Ctrl-C or SIGTERM)."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """"auto": CUDA when available, else CPU."""
     seed: int = 0
@@ -110,6 +110,9 @@ class Config:
     """CPU: torch intra-op threads (None: torch's default)."""
     overwrite: bool = False
     """Replace an earlier output in run_dir (set aside in RUN_DIR.previous/ until this one is written)."""
+    resume: bool = False
+    """Continue from run_dir/checkpoint.pt (an interrupted run, or a finished one with a larger budget): the step
+    count, training seconds, optimiser state and random state continue."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -144,222 +147,112 @@ def _validate(config: Config) -> None:
         raise UserError(f"optimizer: sart needs the grid field (linear in its voxels), got field {config.field!r}")
     if config.threads is not None and config.threads < 1:
         raise UserError(f"threads: expected >= 1, got {config.threads}")
-
-
-def _mu_ref(scene: ProjectionScene, gen: torch.Generator, n: int = 65536) -> float:
-    """Twice the mean attenuation the training rays see: sum p / sum chord over a random subset."""
-    train = torch.as_tensor(scene.split("train"))
-    proj = torch.from_numpy(scene.projections).reshape(scene.geometry.n_views, -1)
-    views = train[torch.randint(0, train.numel(), (n,), generator=gen)]
-    pixels = torch.randint(0, proj.shape[1], (n,), generator=gen)
-    o, d = rays_for_pixels(scene.geometry, views, pixels, dtype=torch.float64)
-    t0, t1, hit = ray_aabb_intersect(o, d, torch.as_tensor(scene.grid.box))
-    chord = float((t1 - t0)[hit].sum())
-    total = float(proj[views, pixels][hit].clamp(min=0).sum())
-    mean = total / chord if chord > 0 else 0.0
-    return 2 * mean if mean > 0 else 1.0 / float(np.linalg.norm(np.asarray(scene.grid.shape) * scene.grid.spacing))
-
-
-def _schedule(config: Config, grid_longest: int) -> list[int]:
-    start, end = config.resolution or (max(2, grid_longest // 4), grid_longest)
-    k = len(config.upsample_at)
-    return [round(math.exp(math.log(start) + (math.log(end) - math.log(start)) * i / k)) for i in range(k + 1)]
-
-
-@torch.no_grad()
-def _evaluate(model, scene: ProjectionScene, test_views: list[int]) -> dict:
-    """Sample the field on the grid; 3-D PSNR/SSIM (with ground truth) and re-projected test-view PSNR."""
-    vol = field_volume(model, scene.grid).cpu()
-    out = {"volume": vol}
-    if scene.volume is not None:
-        out["psnr_3d"] = psnr_3d(vol.numpy(), scene.volume)
-        out["ssim_3d"] = ssim_3d(vol.numpy(), scene.volume)
-    if test_views:
-        nv, nu = scene.geometry.detector_shape
-        pred = []
-        for v in test_views:
-            o, d = detector_rays(scene.geometry, v)
-            pred.append(siddon_project(vol, scene.grid.spacing, scene.grid.center, o, d).reshape(nv, nu).numpy())
-        out["test_proj_psnr"] = psnr_projections(np.stack(pred), scene.projections[test_views])
-    return out
-
-
-def _evenly(ids: tuple[int, ...], k: int) -> list[int]:
-    if k <= 0 or not ids:
-        return []
-    if k >= len(ids):
-        return list(ids)
-    return [ids[int(i)] for i in np.linspace(0, len(ids) - 1, k).round()]
+    if not config.checkpoint_seconds >= 0:
+        raise UserError(f"checkpoint_seconds: expected >= 0, got {config.checkpoint_seconds}")
+    if config.resume and config.overwrite:
+        raise UserError("pass either --resume (continue the run) or --overwrite (replace it), not both")
 
 
 def run(config: Config, progress: Progress | None = None) -> Outputs:
     """See the module doc; torch's CPU threads are set to config.threads for the call and restored after."""
-    with output_folder(config.run_dir, overwrite=config.overwrite):
-        with cpu_threads(config.threads):
-            return _run(config, progress)
-
-
-def _run(config: Config, progress: Progress | None) -> Outputs:
-    started = time.time()
-    progress = progress or NO_PROGRESS
     _validate(config)
-    device = resolve_device(config.device)
-    scene = read_any(config.scene)
-    torch.manual_seed(config.seed)
-    gen = torch.Generator().manual_seed(config.seed)
-    mu_ref = _mu_ref(scene, gen)
-    schedule = _schedule(config, max(scene.grid.shape))
-    lr = config.lr if config.lr is not None else DEFAULT_LR[config.optimizer, config.field]
-    model = attenuation_field(
-        scene.grid, kind=config.field, resolution=schedule[0], rank=config.rank, mu_ref=mu_ref
-    ).to(device)
-    opt = make_optimizer(model, lr)
+    marks = ("checkpoint.pt", "manifest.json")
+    with output_folder(config.run_dir, overwrite=config.overwrite, resume=config.resume, marks=marks):
+        with cpu_threads(config.threads):
+            return _run(config, progress or NO_PROGRESS)
 
-    def samples_at(level: int) -> int:  # the step follows the current voxel size (coarse grids: fewer samples)
-        coarse = scene.grid.shape[0] * scene.grid.spacing[0] / grid_shape_at(scene.grid, schedule[level])[0]
-        return samples_for(scene.grid, config.step_ratio * coarse / scene.grid.spacing[0])
 
-    n_samples = samples_at(0)
-    box = torch.as_tensor(scene.grid.box, dtype=torch.float32, device=device)
-    batches = Batches(
-        geometry=scene.geometry,
-        projections=torch.from_numpy(scene.projections).reshape(scene.geometry.n_views, -1),
-        train_views=torch.as_tensor(scene.split("train")),
-        generator=gen,
-    )
-    p_range = data_range(scene.projections[list(scene.split("train"))])
-    test_all = list(scene.split("test"))
-    test_periodic = _evenly(tuple(test_all), config.eval_test_views)
-
-    def unit_integrals(o, d):  # line integrals of theta = 1 (mu = mu_ref) over the box: SART's row sums
-        t0, t1, hit = ray_aabb_intersect(o, d, box)
-        return torch.where(hit, (t1 - t0) * mu_ref, torch.zeros_like(t0))
-
-    def render(o, d):
-        return field_line_integrals(model, o, d, box, n_samples, jitter=True, generator=gen)
-
-    run_dir = Path(config.run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    cfg_json = {**config_to_json(config), "scene": str(config.scene), "scene_abs": str(Path(config.scene).resolve())}
-    write_json(run_dir / "config.json", cfg_json)
-    log = MetricsLog(run_dir / "metrics.csv", METRICS)
-    state = LoopState()
-    clock = Clock()
-    next_eval = config.eval_every if config.eval_every > 0 else math.inf
-    upsample_at = list(config.upsample_at)
-    level = 0
-    task = progress.add_task("xray-train", total=config.max_seconds)
-    recent: list[float] = []
-    cur_lr = lr
-    while state.step < config.max_steps and clock() < config.max_seconds:
-        frac = max(state.step / config.max_steps, clock() / config.max_seconds)
-        while level < len(upsample_at) and frac >= upsample_at[level]:
-            level += 1
-            if config.field == "grid":
-                model.upsample(grid_shape_at(scene.grid, schedule[level]))
-            else:
-                model.upsample(schedule[level])
-            opt = make_optimizer(model, lr)
-            n_samples = samples_at(level)
-        cur_lr = lr * config.lr_decay**frac
-        set_lr(opt, cur_lr)
-        batch = batches.draw(config.batch_rays, device)
-        if config.optimizer == "sart":
-            data_loss = loss = sart_step(model, batch, render, unit_integrals, cur_lr)
-        else:
-            data_loss, loss = train_step(model, opt, batch, render, config.tv)
-        if not math.isfinite(loss):
-            raise RuntimeError(f"training diverged at step {state.step} (loss {loss})")
-        state.step += 1
-        recent.append(data_loss)
-        if state.step % config.log_every == 0 or clock() >= next_eval:
-            row = {
-                "step": state.step,
-                "seconds": round(clock(), 3),
-                "loss": float(np.mean(recent)),
-                "train_psnr": round(psnr_from_mse(float(np.mean(recent)) / p_range**2), 3),
-                "lr": cur_lr,
-                "resolution": schedule[level],
-            }
-            recent = []
-            if clock() >= next_eval:
-                clock.pause()
-                ev = _evaluate(model, scene, test_periodic)
-                row.update({k: round(v, 4) for k, v in ev.items() if k != "volume"})
-                next_eval += config.eval_every
-                clock.resume()
-            log.append(**row)
-            if "psnr_3d" in row or "test_proj_psnr" in row:
-                log.save()  # the curve so far is on disk while a long run goes on
-            progress.update(task, completed=min(clock(), config.max_seconds))
-    seconds = clock()
-    clock.pause()
-
-    final = _evaluate(model, scene, test_all)
-    log.append(
-        step=state.step,
-        seconds=round(seconds, 3),
-        resolution=schedule[level],
-        lr=cur_lr,
-        **{k: round(v, 4) for k, v in final.items() if k != "volume"},
-    )
+def _run(config: Config, progress: Progress) -> Outputs:
+    started = time.time()
+    steps = _setup(config, progress)
+    resumed_from = (steps.step, steps.clock.before)
+    with stop_on_signals() as stop:
+        seconds = TrainingLoop(steps.settings(), steps, steps.clock, stop).run()
+    scene, run_dir = steps.scene, Path(config.run_dir)
+    final = evaluate(steps.model, scene, list(scene.split("test")))
+    steps.metrics.append(step=steps.step, seconds=round(seconds, 3), resolution=steps.schedule[steps.level],
+                         lr=steps.lr, **{k: round(v, 4) for k, v in final.items() if k != "volume"})  # fmt: skip
     volume_path = write_npy(run_dir / "volume.npy", final["volume"].numpy().astype(np.float32))
-    ckpt = run_dir / "checkpoint.pt"
-    save_xray_checkpoint(
-        ckpt,
-        model,
-        opt,
-        step=state.step,
-        seconds=seconds,
-        mu_ref=mu_ref,
-        n_samples_render=samples_for(scene.grid, 0.5 * config.step_ratio),
-    )
-    metrics = log.save()
-    plot = plot_metrics(log.rows, run_dir / "psnr_vs_time.png")
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    metrics = steps.metrics.save()
+    plot = plot_metrics(steps.metrics.rows, run_dir / "psnr_vs_time.png")
+    used = _used(steps, seconds, final)
+    if config.resume:
+        used["resumed_from"] = {"step": resumed_from[0], "seconds": round(resumed_from[1], 2)}
     manifest = write_manifest(
         run_dir,
         stage="xray-train",
         started=started,
         version=VERSION,
         inputs=[Path(config.scene) / "projections.json" if Path(config.scene).is_dir() else config.scene],
-        outputs=[ckpt, volume_path, metrics, plot],
-        used={
-            "field": model.config(),
-            "renderer": "radiance.render.render_attenuation (Beer-Lambert, compositing core)",
-            "loss": "mean squared error of line integrals -log(I/I0)" + (f" + {config.tv} * TV" if config.tv else ""),
-            "samples_per_ray": [samples_at(i) for i in range(len(schedule))],
-            "mu_ref": mu_ref,
-            "resolution_schedule": schedule,
-            "train_views": len(scene.split("train")),
-            "test_views": len(test_all),
-            "steps": state.step,
-            "seconds": round(seconds, 2),
-            "device": str(device),
-            "threads": torch.get_num_threads(),
-            "peak_rss_mb": round(peak_mb, 1),
-            "final": {k: v for k, v in final.items() if k != "volume"},
-            "noise": scene.noise,
-        },
-        left_out={
-            "colour": "X-ray detectors measure one attenuated intensity per pixel: the field is density only",
-            "view direction": "attenuation mu(x) is isotropic: no view-dependent term",
-            "background": "Beer-Lambert has no emission, so nothing is composited over a background",
-            "occupancy grid / empty-space skipping": "every sample inside the box counts towards the line integral",
-            **({} if scene.volume is not None else {"3-D PSNR/SSIM": "the scene has no ground-truth volume"}),
-            **({} if test_all else {"held-out projection PSNR": "the scene has no test split"}),
-        },
+        outputs=[steps.ckpt_path, volume_path, metrics, plot],
+        used=used,
+        left_out=_left_out(scene),
     )
     return Outputs(
         run_dir=run_dir,
-        checkpoint=ckpt,
+        checkpoint=steps.ckpt_path,
         volume=volume_path,
         metrics=metrics,
         plot=plot,
         manifest=manifest,
-        steps=state.step,
+        steps=steps.step,
         seconds=seconds,
         psnr_3d=final.get("psnr_3d"),
         ssim_3d=final.get("ssim_3d"),
         test_proj_psnr=final.get("test_proj_psnr"),
     )
+
+
+def _setup(config: Config, progress: Progress) -> XraySteps:
+    """Read the scene, build the field (or read it back with --resume), write config.json; the run's step."""
+    device = resolve_device(config.device)
+    scene = read_any(config.scene)
+    torch.manual_seed(config.seed)
+    gen = torch.Generator().manual_seed(config.seed)
+    begin = start(config, scene, device, gen)
+    run_dir = Path(config.run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "manifest.json").unlink(missing_ok=True)  # resumed: not a finished run until the end
+    cfg_json = {**config_to_json(config), "scene": str(config.scene), "scene_abs": str(Path(config.scene).resolve())}
+    write_json(run_dir / "config.json", cfg_json)
+    metrics = MetricsLog(run_dir / "metrics.csv", METRICS)
+    if config.resume:
+        metrics.load()
+        metrics.rows = [r for r in metrics.rows if int(r["step"]) <= begin.step]
+    return XraySteps(config=config, scene=scene, begin=begin, gen=gen, device=device, metrics=metrics,
+                     progress=progress)  # fmt: skip
+
+
+def _used(steps: XraySteps, seconds: float, final: dict) -> dict:
+    config, scene = steps.config, steps.scene
+    used = {
+        "field": steps.model.config(),
+        "renderer": "radiance.render.render_attenuation (Beer-Lambert, compositing core)",
+        "loss": "mean squared error of line integrals -log(I/I0)" + (f" + {config.tv} * TV" if config.tv else ""),
+        "samples_per_ray": steps.samples,
+        "mu_ref": steps.mu_ref,
+        "resolution_schedule": steps.schedule,
+        "train_views": len(scene.split("train")),
+        "test_views": len(scene.split("test")),
+        "steps": steps.step,
+        "seconds": round(seconds, 2),
+        "device": str(steps.device),
+        "threads": torch.get_num_threads(),
+        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+        "final": {k: v for k, v in final.items() if k != "volume"},
+        "noise": scene.noise,
+    }
+    if steps.lr_factor != 1.0:
+        used["lr_factor"] = steps.lr_factor  # non-finite losses halved the learning rate (model.loop)
+    return used
+
+
+def _left_out(scene: ProjectionScene) -> dict:
+    return {
+        "colour": "X-ray detectors measure one attenuated intensity per pixel: the field is density only",
+        "view direction": "attenuation mu(x) is isotropic: no view-dependent term",
+        "background": "Beer-Lambert has no emission, so nothing is composited over a background",
+        "occupancy grid / empty-space skipping": "every sample inside the box counts towards the line integral",
+        **({} if scene.volume is not None else {"3-D PSNR/SSIM": "the scene has no ground-truth volume"}),
+        **({} if scene.split("test") else {"held-out projection PSNR": "the scene has no test split"}),
+    }

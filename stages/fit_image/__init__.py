@@ -12,8 +12,9 @@ Models (one per entry, trained one after another, each on its own clock):
   MLP and sigmoid as in 3-D, the same learning rates (grids at lr, MLP at lr / 20). Bilinear lookups into
   R x R cells instead of a deep MLP: why the fast field converges in seconds, not minutes.
 Every step draws `batch` random pixels (all of them when the image has fewer) and takes one Adam step on their
-mean squared error. PSNR is measured on the whole image every `eval_every` steps and at the end; the clock
-(`seconds`) counts training only, as `train` does.
+mean squared error, on the loop `train` runs (`model.loop.TrainingLoop`: the step and time budget, the clock, and
+a non-finite loss restoring the last good state at half the learning rate). PSNR is measured on the whole image
+every `eval_every` steps and at the end; the clock (`seconds`) counts training only, as `train` does.
 
 Conventions: pixel (col i, row j) has its centre at (i + 0.5, j + 0.5) (docs/DESIGN.md); u = 2 (i + 0.5) / W - 1,
 v = 2 (j + 0.5) / H - 1, both in (-1, 1). Frequencies are 2^k without pi, as `positional_encoding` writes them.
@@ -30,27 +31,30 @@ Outputs under OUT_DIR:
 
 from __future__ import annotations
 
+import copy
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import torch
 from torch import Tensor, nn
 
-from data.atomic import atomic_path, write_json
+from data.atomic import write_json
 from data.errors import UserError
 from data.progress import NO_PROGRESS, Progress
 from data.rundir import MetricsLog, output_folder, write_config, write_manifest
 from data.transforms import load_image
 from data.video import to_uint8, write_png
 from model.device import cpu_threads, resolve_device
+from model.loop import Budget, Clock, LoopSettings, Schedule, TrainingLoop
 from radiance.compositing import over_background
-from radiance.fields import TensoRF
-from radiance.fields.encodings import encoded_size, positional_encoding
 from radiance.metrics import psnr_from_mse
+from stages.fit_image.models import FourierMLP, GridImage, parameters, pixel_coords
+from stages.fit_image.plots import montage, plot
 
 __all__ = ["Config", "Outputs", "ModelResult", "run", "pixel_coords", "FourierMLP", "GridImage", "MAX_FREQS"]
 
@@ -58,7 +62,6 @@ VERSION = "1"
 ENCODINGS = ("fourier", "grid", "both")
 MAX_FREQS = 20
 """Largest L: 2^19 (u, v) already varies by 2^19 radians across the image; fp32 keeps no more."""
-GRID_RANK = 16
 """Grid model: VM components per axis (3 x 16 features into the basis)."""
 EVAL_CHUNK = 1 << 16
 METRICS = ["step", "seconds", "model", "loss", "psnr"]
@@ -129,61 +132,6 @@ class Outputs:
 
 
 # ---------------------------------------------------------------------------------------------- models
-def pixel_coords(h: int, w: int) -> Tensor:
-    """[H * W, 2] (u, v) of the pixel centres, row-major, in (-1, 1) (see the module doc)."""
-    u = (torch.arange(w, dtype=torch.float32) + 0.5) * (2.0 / w) - 1.0
-    v = (torch.arange(h, dtype=torch.float32) + 0.5) * (2.0 / h) - 1.0
-    vv, uu = torch.meshgrid(v, u, indexing="ij")
-    return torch.stack([uu.reshape(-1), vv.reshape(-1)], dim=-1)
-
-
-class FourierMLP(nn.Module):
-    """gamma(u, v) with L frequencies -> ReLU MLP -> sigmoid RGB."""
-
-    def __init__(self, freqs: int, hidden: int = 256, layers: int = 4) -> None:
-        super().__init__()
-        self.freqs = freqs
-        sizes = [encoded_size(2, freqs), *[hidden] * (layers - 1), 3]
-        mods: list[nn.Module] = []
-        for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:], strict=True)):
-            mods += [nn.Linear(a, b)] + ([nn.ReLU(inplace=True)] if i < len(sizes) - 2 else [])
-        self.mlp = nn.Sequential(*mods)
-
-    def forward(self, uv: Tensor) -> Tensor:  # uv [N, 2] -> rgb [N, 3]
-        return torch.sigmoid(self.mlp(positional_encoding(uv, self.freqs)))
-
-    def param_groups(self, lr: float) -> list[dict]:
-        return [{"params": list(self.parameters()), "lr": lr}]
-
-
-class GridImage(nn.Module):
-    """The fast field (TensoRF) on the plane z = 0, colour only, no view dependence."""
-
-    def __init__(self, resolution: int) -> None:
-        super().__init__()
-        self.field = TensoRF(aabb=[[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], resolution=resolution, density_rank=1,
-                             app_rank=GRID_RANK, view_dependent=False)  # fmt: skip
-        # Density is never queried: leave its factors out of the optimizer and the parameter count.
-        self.field.density_planes.requires_grad_(False)
-        self.field.density_lines.requires_grad_(False)
-
-    def forward(self, uv: Tensor) -> Tensor:  # uv [N, 2] -> rgb [N, 3]
-        return self.field.color(torch.cat([uv, torch.zeros_like(uv[:, :1])], dim=-1), None)
-
-    def param_groups(self, lr: float) -> list[dict]:
-        return [{**g, "params": [p for p in g["params"] if p.requires_grad]} for g in self.field.param_groups(lr)]
-
-
-def _parameters(model: nn.Module) -> int:
-    """Parameters the image depends on (of the grid's xz / yz planes and z line only what z = 0 reads)."""
-    if isinstance(model, GridImage):
-        f, r = model.field, model.field.resolution
-        rows = 1 if r % 2 else 2  # z = 0 falls on one row (odd R) or between two (even R)
-        grid = f.app_planes.shape[1] * (r * (r + 2 * rows) + 2 * r + rows)  # planes xy, xz, yz; lines x, y, z
-        return grid + sum(p.numel() for p in (*f.basis.parameters(), *f.mlp.parameters()))
-    return sum(p.numel() for p in model.parameters() if p.requires_grad)
-
-
 # ---------------------------------------------------------------------------------------------- checks
 def _validate(config: Config) -> None:
     if config.encoding not in ENCODINGS:
@@ -238,21 +186,69 @@ def _predict(model: nn.Module, coords: Tensor) -> Tensor:
     return torch.cat([model(c) for c in coords.split(EVAL_CHUNK)])
 
 
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
+@dataclass(kw_only=True)
+class _Steps:
+    """One model's fit: its step on the shared loop (`model.loop.Stepper`; no checkpoints, no schedule)."""
+
+    model: nn.Module
+    opt: torch.optim.Optimizer
+    coords: Tensor  # [P, 2]
+    target: Tensor  # [P, 3]
+    config: Config
+    gen: torch.Generator
+    clock: Clock
+    record: Callable[[int, float, float | str], float]  # (step, seconds, loss) -> whole-image PSNR, logged
+    progress: Progress
+    task: Any
+    step: int = 0
+    lr_factor: float = 1.0
+    loss: float = math.nan
+
+    def prepare(self, fraction: float) -> bool:
+        return False
+
+    def train_step(self, lr: float) -> bool:
+        n, batch = self.coords.shape[0], self.config.batch
+        idx = torch.randint(n, (batch,), generator=self.gen, device=self.coords.device) if n > batch else None
+        x, y = (self.coords, self.target) if idx is None else (self.coords[idx], self.target[idx])
+        err = torch.mean((self.model(x) - y) ** 2)
+        loss = float(err.detach())  # synchronises
+        if not math.isfinite(loss):
+            return False
+        self.opt.zero_grad(set_to_none=True)
+        err.backward()
+        self.opt.step()
+        self.loss = loss
+        return True
+
+    def log(self, lr: float) -> None:
+        self.progress.advance(self.task)
+        every = self.config.eval_every
+        if every and self.step % every == 0 and self.step < self.config.steps:
+            seconds = self.clock()
+            with self.clock.paused():
+                self.record(self.step, seconds, round(self.loss, 6))
+
+    def snapshot(self) -> tuple[dict, dict]:
+        return copy.deepcopy(self.model.state_dict()), copy.deepcopy(self.opt.state_dict())
+
+    def restore(self, snapshot: tuple[dict, dict]) -> None:
+        self.model.load_state_dict(snapshot[0])
+        self.opt.load_state_dict(snapshot[1])
+
+    def checkpoint(self, seconds: float) -> None:
+        pass  # fit-image keeps no checkpoint: a run is seconds long
+
+    def finish(self, seconds: float) -> None:
+        pass
 
 
 def _fit(model: nn.Module, lr: float, coords: Tensor, target: Tensor, config: Config, log: MetricsLog, name: str,
          progress: Progress) -> tuple[Tensor, int, float, float]:  # fmt: skip
-    """Train one model; returns (prediction [P, 3], steps, seconds, final PSNR)."""
-    device = coords.device
-    n = coords.shape[0]
-    gen = torch.Generator(device=device).manual_seed(config.seed)
-    opt = torch.optim.Adam(model.param_groups(lr))
-    task = progress.add_task(f"fit {name}", total=config.steps)
+    """Train one model on the shared loop (`model.loop`: budget, clock, non-finite recovery); returns
+    (prediction [P, 3], steps, seconds, final PSNR)."""
 
-    def evaluate(step: int, seconds: float, loss: float | str) -> float:
+    def record(step: int, seconds: float, loss: float | str) -> float:
         model.eval()
         pred = _predict(model, coords)
         value = psnr_from_mse(float(torch.mean((pred - target) ** 2)))
@@ -260,27 +256,18 @@ def _fit(model: nn.Module, lr: float, coords: Tensor, target: Tensor, config: Co
         log.append(step=step, seconds=round(seconds, 4), model=name, loss=loss, psnr=round(value, 4))
         return value
 
-    seconds, step, loss = 0.0, 0, math.nan
-    evaluate(0, 0.0, "")
-    while step < config.steps and seconds < config.max_seconds:
-        _sync(device)
-        t0 = time.perf_counter()
-        idx = torch.randint(n, (config.batch,), generator=gen, device=device) if n > config.batch else None
-        x, y = (coords, target) if idx is None else (coords[idx], target[idx])
-        err = torch.mean((model(x) - y) ** 2)
-        opt.zero_grad(set_to_none=True)
-        err.backward()
-        opt.step()
-        loss = float(err.detach())  # synchronises
-        seconds += time.perf_counter() - t0
-        step += 1
-        progress.advance(task)
-        if not math.isfinite(loss):
-            raise RuntimeError(f"{name}: loss is {loss} at step {step} (lower --lr)")
-        if config.eval_every and step % config.eval_every == 0 and step < config.steps:
-            evaluate(step, seconds, round(loss, 6))
-    final = evaluate(step, seconds, round(loss, 6))
-    return _predict(model, coords), step, seconds, final
+    gen = torch.Generator(device=coords.device).manual_seed(config.seed)
+    opt = torch.optim.Adam(model.param_groups(lr))
+    task = progress.add_task(f"fit {name}", total=config.steps)
+    record(0, 0.0, "")
+    clock = Clock()
+    steps = _Steps(model=model, opt=opt, coords=coords, target=target, config=config, gen=gen, clock=clock,
+                   record=record, progress=progress, task=task)  # fmt: skip
+    settings = LoopSettings(name=f"fit-image {name}", budget=Budget(max_steps=config.steps,
+                            max_seconds=config.max_seconds), schedule=Schedule(lr=lr))  # fmt: skip
+    seconds = TrainingLoop(settings, steps, clock).run()
+    final = record(steps.step, seconds, round(steps.loss, 6))
+    return _predict(model, coords), steps.step, seconds, final
 
 
 def run(config: Config, progress: Progress | None = None) -> Outputs:
@@ -313,76 +300,24 @@ def _run(config: Config, progress: Progress) -> Outputs:
         recon = pred.reshape(h, w, 3).cpu().numpy()
         path = write_png(out_dir / f"{name}.png", to_uint8(recon))
         recons.append(recon)
-        results.append(ModelResult(name=name, label=label, reconstruction=path, parameters=_parameters(model),
+        results.append(ModelResult(name=name, label=label, reconstruction=path, parameters=parameters(model),
                                    steps=steps, seconds=seconds, psnr=final))  # fmt: skip
-    montage = _montage(out_dir / "montage.png", image, recons, results)
-    plot = _plot(out_dir / "psnr_vs_time.png", log.rows, results, Path(config.image).name)
+    montage_path = montage(out_dir / "montage.png", image, recons, results)
+    plot_path = plot(out_dir / "psnr_vs_time.png", log.rows, results, Path(config.image).name)
     summary = write_json(out_dir / "summary.json", {
         "image": str(config.image), "width": w, "height": h, "device": str(device),
         "models": [{"name": r.name, "label": r.label, "encoding": r.name.split("_")[0], "parameters": r.parameters,
                     "steps": r.steps, "seconds": round(r.seconds, 3), "psnr": round(r.psnr, 3)} for r in results],
     })  # fmt: skip
-    outputs = [out_dir / "config.json", log.path, montage, plot, summary, *(r.reconstruction for r in results)]
+    outputs = [out_dir / "config.json", log.path, montage_path, plot_path, summary]
+    outputs += [r.reconstruction for r in results]
     manifest = write_manifest(out_dir, stage="fit-image", started=started, inputs=[config.image], outputs=outputs,
                               used={"device": str(device), "models": [r.name for r in results],
                                     "pixels": h * w, "batch": min(config.batch, h * w),
                                     "threads": torch.get_num_threads()},
                               version=VERSION)  # fmt: skip
-    return Outputs(out_dir=out_dir, models=tuple(results), montage=montage, plot=plot, metrics=log.path,
+    return Outputs(out_dir=out_dir, models=tuple(results), montage=montage_path, plot=plot_path, metrics=log.path,
                    summary=summary, manifest=manifest)  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------------- figures
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _montage(path: Path, image: np.ndarray, recons: list[np.ndarray], results: list[ModelResult]) -> Path:
-    """Ground truth and each reconstruction in one row (wrapping after 4), titled with PSNR and seconds."""
-    plt = _pyplot()
-    panels = [(image, "ground truth")] + [
-        (img, f"{r.label}\n{r.psnr:.1f} dB, {r.seconds:.1f} s") for img, r in zip(recons, results, strict=True)
-    ]
-    cols = min(len(panels), 4)
-    rows = math.ceil(len(panels) / cols)
-    h, w = image.shape[:2]
-    side = max(2.5, min(w, 512) / 100)
-    fig, axes = plt.subplots(rows, cols, figsize=(side * cols, side * h / w * rows + 0.6 * rows), dpi=100,
-                             squeeze=False)  # fmt: skip
-    try:
-        for ax in axes.flat:
-            ax.axis("off")
-        for ax, (img, title) in zip(axes.flat, panels, strict=False):
-            ax.imshow(np.clip(img, 0, 1), interpolation="nearest")
-            ax.set_title(title, fontsize=9)
-        fig.tight_layout()
-        with atomic_path(path, suffix=".png") as tmp:
-            fig.savefig(tmp, format="png")
-    finally:
-        plt.close(fig)
-    return path
-
-
-def _plot(path: Path, rows: list[dict], results: list[ModelResult], title: str) -> Path:
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120)
-    try:
-        for r in results:
-            pts = [(row["seconds"], row["psnr"]) for row in rows if row["model"] == r.name]
-            ax.plot(*zip(*pts, strict=True), "o-", ms=3, label=f"{r.label} ({r.parameters:,} params)")
-        ax.set_xlabel("training seconds")
-        ax.set_ylabel("PSNR (dB)")
-        ax.set_title(f"fit-image {title}: PSNR vs time")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-        fig.tight_layout()
-        with atomic_path(path, suffix=".png") as tmp:
-            fig.savefig(tmp, format="png")
-    finally:
-        plt.close(fig)
-    return path

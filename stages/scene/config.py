@@ -1,0 +1,76 @@
+"""The scene stage's interface: its `Config` (with the validation of a config) and its `Outputs`."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from data.errors import UserError
+
+__all__ = ["Config", "Outputs", "check"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class Config:
+    out_dir: Path
+    """Folder to write the scene into (created; one that holds an earlier scene needs --overwrite)."""
+    kind: Literal["photos", "posed", "rgba", "blender"] = "posed"
+    """photos: bare images for COLMAP; posed: images + transforms.json; rgba: transparent background + alpha;
+    blender: the NeRF-synthetic layout (transforms_{train,val,test}.json, RGBA PNGs in train/ val/ test/)."""
+    size: int = 64
+    """Image width = height, pixels."""
+    views: int = 24
+    """Number of cameras."""
+    seed: int = 0
+    """Picks the textures and the camera jitter; same seed, byte-identical output."""
+    layout: Literal["orbit", "forward", "room", "turntable"] = "orbit"
+    """orbit, forward, room or turntable. orbit: cameras all round the scene on a hemisphere (a 360-degree capture).
+    turntable: the objects turn on their slab in front of a fixed camera and a fixed room (one full turn over the
+    views); truth poses are object-relative and masks/ holds each view's object mask (white = object;
+    stages.scene.turntable); kinds photos, posed (mask_path per frame) and rgba (the object alone).
+    room: the orbit inside a textured room (floor and walls 4 m away; transforms.json's aabb is the objects'
+    box, so the room lies beyond it: an unbounded capture). forward: cameras on a
+    jittered grid in one plane, all looking the same way at the scene, with a textured wall 4 m behind it (an
+    LLFF-style forward-facing capture: content from ~1.5 m to ~7 m)."""
+    scale: float = 1.0
+    """Multiply every length (objects, cameras, depth, mesh) by this; the images do not change."""
+    overwrite: bool = False
+    """Replace an earlier scene in out_dir (set aside in OUT_DIR.previous/ until this one is written)."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class Outputs:
+    out_dir: Path
+    """The scene folder."""
+    images: tuple[Path, ...]
+    """The rendered images, in view order."""
+    transforms: Path | None
+    """transforms.json (None for kind=photos and blender)."""
+    masks: tuple[Path, ...] = ()
+    """layout=turntable: masks/<stem>.png per view (white = object), in view order; empty otherwise."""
+    split_files: tuple[Path, ...]
+    """kind=blender: the transforms_<split>.json written; empty otherwise."""
+    cameras: Path
+    """ground_truth/cameras.json."""
+    depths: tuple[Path, ...]
+    """ground_truth/depth/*.npy, in view order."""
+    mesh: Path
+    """ground_truth/mesh.ply."""
+    manifest: Path
+    """manifest.json (written last)."""
+
+
+def check(config: Config) -> None:
+    if config.size < 8 or config.views < 1:
+        raise UserError(f"scene: expected --size >= 8 and --views >= 1, got size={config.size}, views={config.views}")
+    if config.kind not in ("photos", "posed", "rgba", "blender"):
+        raise UserError(f"scene: expected --kind photos|posed|rgba|blender, got {config.kind!r}")
+    if config.layout not in ("orbit", "forward", "room", "turntable"):
+        raise UserError(f"scene: expected --layout orbit|forward|room|turntable, got {config.layout!r}")
+    if config.layout == "turntable" and config.kind == "blender":
+        raise UserError("scene: --layout turntable writes kinds photos, posed or rgba, not blender")
+    scale = float(config.scale)
+    if not (math.isfinite(scale) and scale > 0):
+        raise UserError(f"scene: expected --scale > 0 (finite), got {config.scale!r}")

@@ -1,0 +1,85 @@
+"""Structure rules read from the source (issue 28): small stage modules, and library errors that name no CLI flag.
+
+- No module under stages/ is over `MAX_STAGE_LINES` lines: a stage that grows is split into modules with one job
+  each inside its package.
+- An error raised in radiance/, data/ or model/ names an option as its config field (`refine_poses`) or says what
+  to do, never as a CLI flag (`--refine-poses`): those packages are called by stages, tests and scripts as much as
+  by the CLI, and cli.py is where a flag's name belongs. Checked on the string constants inside `raise`
+  statements (f-string parts included), read with `ast`.
+"""
+
+from __future__ import annotations
+
+import ast
+import re
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+MAX_STAGE_LINES = 400
+LIBRARIES = ("radiance", "data", "model")
+FLAG = re.compile(r"(?<![\w-])--[a-z]")
+"""A CLI flag: two dashes then a lower-case letter, not inside a word (`NeRF--`, `a--b` are no flags)."""
+
+PENDING = {"stages/train/__init__.py"}
+"""Stage modules still over MAX_STAGE_LINES while another change splits them; the lead empties this set."""
+PENDING_FLAG_MESSAGES = {
+    "model/field_model.py", "model/trained.py", "model/checkpoint.py", "model/camera_opt.py", "radiance/render.py",
+    "radiance/occupancy.py", "radiance/contraction.py", "radiance/ndc.py",
+    "model/loop.py",  # new while this rule was written: raises "continue with --resume"
+}  # fmt: skip
+"""Library modules under other edits when this rule came in, not yet checked for flag-naming errors; the lead
+empties this set."""
+
+
+def _sources(*tops: str) -> list[Path]:
+    return sorted(p for top in tops for p in (ROOT / top).rglob("*.py") if "__pycache__" not in p.parts)
+
+
+def _rel(path: Path) -> str:
+    return path.relative_to(ROOT).as_posix()
+
+
+def flag_messages(source: str, where: str = "<string>") -> list[str]:
+    """'where:line: text' for each string constant inside a `raise` statement that names a CLI flag."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Raise) and node.exc is not None:
+            for sub in ast.walk(node.exc):
+                if isinstance(sub, ast.Constant) and isinstance(sub.value, str) and FLAG.search(sub.value):
+                    found.append((node.lineno, sub.value))
+    return [f"{where}:{line}: {text!r}" for line, text in sorted(found)]
+
+
+def test_checker_finds_flags_in_raised_messages():
+    """The checker itself: a flag in a raised message (plain or f-string) is found; the field's name, a flag in a
+    docstring, a comment or a non-raised string, and dashes inside words are not."""
+    bad = (
+        "def f(x):\n"
+        "    if x:\n"
+        '        raise UserError(f"--frames: expected >= 1, got {x}")\n'
+        '    raise ValueError("a bad path; use --path turntable")\n'
+    )
+    assert [m.split(":")[1] for m in flag_messages(bad)] == ["3", "4"]
+    good = (
+        '"""Docstring: `render --path`."""\n'
+        "HELP = 'train --refine-poses'  # not raised\n"
+        "def f(x):\n"
+        "    # --comment\n"
+        '    raise UserError(f"frames: expected >= 1, got {x} (NeRF--, a--b, -- c, --1)")\n'
+    )
+    assert flag_messages(good) == []
+
+
+def test_stage_modules_stay_small():
+    sizes = {_rel(p): len(p.read_text(encoding="utf-8").splitlines()) for p in _sources("stages")}
+    assert sizes, "no stage sources found"
+    over = {path: n for path, n in sizes.items() if n > MAX_STAGE_LINES and path not in PENDING}
+    assert not over, f"stage modules over {MAX_STAGE_LINES} lines (split them into modules with one job): {over}"
+
+
+def test_library_errors_name_no_cli_flag():
+    found = []
+    for path in _sources(*LIBRARIES):
+        if _rel(path) not in PENDING_FLAG_MESSAGES:
+            found += flag_messages(path.read_text(encoding="utf-8"), _rel(path))
+    assert not found, "errors naming a CLI flag (name the config field instead):\n" + "\n".join(found)
