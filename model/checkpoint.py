@@ -2,10 +2,10 @@
 
 The file holds tensors and primitive containers only, so it loads with `torch.load(weights_only=True)`:
 format, field_config (the field's constructor arguments), field (state dict), occupancy (state dict or None),
-ndc (`radiance.ndc.NDC.to_dict()` or None), contraction (`radiance.contraction.Contraction.to_dict()` or None),
-background ({mode, state}: `model.background.Background`), optimizer (state dict), step, seconds, lr_factor, rng,
-nerfpipe_version (the version that wrote it). Checkpoints without contraction/background (older runs) load as box
-runs on white.
+space (`radiance.space.Space.to_dict()`: the scene space, its box and bounds), background ({mode, state}:
+`model.background.Background`), optimizer (state dict), step, seconds, lr_factor, rng,
+nerfpipe_version (the version that wrote it). Checkpoints written before `space` held `ndc` and `contraction`
+(each a dict or None) and took the box and bounds from the scene: `restore_space` reads them so.
 
 Integrity: `save_checkpoint` serialises into memory, writes the bytes atomically (`data.atomic`: a full disk is one
 line naming the file, the previous checkpoint stays) and returns their sha256, which `train` records in the run's
@@ -14,8 +14,8 @@ checkpoint without a manifest, an interrupted run's, has nothing to check agains
 (another nerfpipe version's layout, an X-ray run's) or of an unknown field kind is refused naming what was expected.
 appearance (`model.appearance.Appearance.to_dict()` or None), camera_opt (`model.camera_opt.CameraOpt.to_dict()`
 or None: the pose corrections of `train --refine-poses`).
-Checkpoints without contraction/background (older runs) load as box runs on white; without appearance or
-camera_opt, as runs without them.
+Checkpoints without background (older runs) load as runs on white; without appearance or camera_opt, as runs
+without them.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -35,13 +36,15 @@ from data.rundir import sha256_file, versions
 from model.appearance import Appearance
 from model.background import Background
 from radiance.contraction import Contraction
+from radiance.ndc import NDC
+from radiance.space import Box, Contracted, NDCSpace, Space, space_from_dict
 
 __all__ = [
     "CHECKPOINT_FORMAT",
     "save_checkpoint",
     "read_checkpoint",
     "restore_background",
-    "restore_contraction",
+    "restore_space",
     "restore_appearance",
     "load_state",
 ]
@@ -68,8 +71,7 @@ def save_checkpoint(
         "field_config": model.field.config(),
         "field": model.field.state_dict(),
         "occupancy": model.grid.state_dict() if model.grid is not None else None,
-        "ndc": model.ndc.to_dict() if model.ndc is not None else None,
-        "contraction": model.contraction.to_dict() if model.contraction is not None else None,
+        "space": model.space.to_dict(),
         "background": {"mode": model.background.mode, "state": model.background.state_dict()},
         "optimizer": opt.state_dict(),
         "step": step,
@@ -146,6 +148,18 @@ def restore_appearance(state: dict, device: torch.device | str) -> Appearance | 
     return Appearance.from_dict(doc).to(device) if doc is not None else None
 
 
-def restore_contraction(state: dict) -> Contraction | None:
-    doc = state.get("contraction")
-    return Contraction.from_dict(doc) if doc is not None else None
+def restore_space(state: dict, scene_space: Callable[[type[Space]], Space]) -> Space:
+    """The checkpoint's scene space. A checkpoint from before `space` (NDC and contraction stored alone, box and
+    bounds taken from the scene) is read as it was trained: `scene_space(kind)` builds what the scene gives."""
+    doc = state.get("space")
+    if doc is not None:
+        try:
+            return space_from_dict(doc)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise UserError(f"checkpoint: unreadable scene space ({exc})") from None
+    if state.get("ndc") is not None:
+        base = scene_space(NDCSpace)
+        return NDCSpace(ndc=NDC.from_dict(state["ndc"]), box=base.box)  # type: ignore[attr-defined]
+    if state.get("contraction") is not None:
+        return Contracted(contraction=Contraction.from_dict(state["contraction"]), near=scene_space(Contracted).near)
+    return scene_space(Box)

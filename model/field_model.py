@@ -1,15 +1,16 @@
-"""A field with what it needs to be rendered: occupancy grid, box, near/far, marching step, NDC wrapping.
+"""A field with what it needs to be rendered: its scene space, occupancy grid and marching step.
 
 `FieldModel.render(o, d, background, train=...)` takes world rays (scene frame, unit directions, t = Euclidean
 distance; `radiance.camera`) and returns dict(rgb, depth, depth_median, acc, samples, ...) through the
 model-free renderers of `radiance.render`, given callbacks over the field: `fast` fields march the occupancy
 grid (`render_marched`), `vanilla` fields use the paper's stratified + importance sampling
-(`render_rays_hierarchical`). With an NDC map (forward-facing captures) the field lives in NDC of the mean
-camera and depths come back as distances along the world rays.
+(`render_rays_hierarchical`). The scene space (`radiance.space`: box, NDC, contracted) maps the rays in and the
+depths out and gives the march its steps; nothing here asks which space it is.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -22,23 +23,16 @@ from data.errors import UserError
 from data.transforms import Scene, is_forward_facing
 from model.appearance import Appearance
 from model.background import Background
-from radiance.aabb import ray_aabb_segment
-from radiance.contraction import CONTRACTED_BOX, Contraction, normalized_distance
+from radiance.contraction import Contraction
 from radiance.fields import Field, TensoRF, VanillaNeRF, make_field
 from radiance.ndc import NDC, fit_ndc
 from radiance.occupancy import OccupancyGrid
 from radiance.regularizers import distortion_loss
-from radiance.render import (
-    StratifiedSampler,
-    render_contracted,
-    render_contracted_terminating,
-    render_marched,
-    render_marched_terminating,
-    render_rays_hierarchical,
-)
+from radiance.render import ColourRule, Marcher, StratifiedSampler, render_marched, render_rays_hierarchical
 from radiance.safe import eps
+from radiance.space import FAR, SPACES, Box, Contracted, NDCSpace, Space
 
-__all__ = ["ModelSettings", "Inference", "FieldModel", "build_model", "scene_ndc", "choose_scene_model"]
+__all__ = ["ModelSettings", "Inference", "FieldModel", "build_model", "make_space", "choose_space", "scene_ndc"]
 
 COLOR_THRESHOLD = 1e-4
 """Weight above which a sample's colour is evaluated (TensoRF's rule), in training and inference."""
@@ -98,37 +92,29 @@ class Inference:
 
 def _render_fast(
     field: TensoRF,
-    grid: OccupancyGrid,
-    rays_o: Tensor,  # [R, 3]
+    marcher: Marcher,
+    rays_o: Tensor,  # [R, 3] march rays (`Space.to_march`)
     rays_d: Tensor,  # [R, 3] unit
     *,
-    near: float,
-    far: float,
-    step_size: float,
     background: Tensor,  # [3] or [R, 3]
     jitter: bool = False,
     with_median: bool = False,
     infer: Inference | None = None,
 ) -> dict[str, Tensor]:
-    """TensoRF + occupancy grid: radiance.render.render_marched over the field's density and colour (training),
-    its early-terminating twin otherwise."""
+    """TensoRF + occupancy grid in the marcher's space: radiance.render.render_marched over the field's density
+    and colour (training, and infer=None), early-terminating otherwise."""
     if infer is not None:
-        out = render_marched_terminating(
-            rays_o, rays_d, grid=grid, sigma_fn=field.density_inference, rgb_fn=_rgb_fn(field), near=near, far=far,
-            step_size=step_size * infer.step_scale, background=background, with_median=with_median,
-            min_transmittance=_min_transmittance(infer, rays_o), **_colour_rule(infer),
+        marcher = dataclasses.replace(marcher, step_size=marcher.step_size * infer.step_scale)
+        out = render_marched(
+            rays_o, rays_d, marcher=marcher, sigma_fn=field.density_inference, rgb_fn=_rgb_fn(field),
+            background=background, with_median=with_median, min_transmittance=_min_transmittance(infer, rays_o),
+            colour=ColourRule(threshold=COLOR_THRESHOLD, keep=infer.color_keep),
         )  # fmt: skip
         return {**out, "samples": torch.tensor(float(out["samples"]))}
-    out = render_marched(
-        rays_o, rays_d, grid=grid, sigma_fn=field.density, rgb_fn=_rgb_fn(field), near=near, far=far,
-        step_size=step_size, background=background, jitter=jitter, with_median=with_median,
-        color_threshold=COLOR_THRESHOLD, color_min_per_ray=TRAIN_COLOR_MIN_PER_RAY if jitter else 0.0,
-    )  # fmt: skip
+    colour = ColourRule(threshold=COLOR_THRESHOLD, min_per_ray=TRAIN_COLOR_MIN_PER_RAY if jitter else 0.0)
+    out = render_marched(rays_o, rays_d, marcher=marcher, sigma_fn=field.density, rgb_fn=_rgb_fn(field),
+                         background=background, jitter=jitter, with_median=with_median, colour=colour)  # fmt: skip
     return {**out, "samples": torch.tensor(float(out["ray_indices"].numel()))}
-
-
-def _colour_rule(infer: Inference) -> dict:
-    return {"color_threshold": COLOR_THRESHOLD, "color_keep": infer.color_keep}
 
 
 def _min_transmittance(infer: Inference, rays_o: Tensor) -> float:
@@ -140,37 +126,6 @@ def _rgb_fn(field: TensoRF):
     if not field.has_color:
         return None
     return lambda x, d: field.color(x, d if field.view_dependent else None)
-
-
-def _render_fast_contracted(
-    field: TensoRF,
-    grid: OccupancyGrid,
-    contraction: Contraction,
-    rays_o: Tensor,  # [R, 3]
-    rays_d: Tensor,  # [R, 3] unit
-    *,
-    near: float,
-    step_size: float,  # world units inside the inner box
-    background: Tensor,
-    jitter: bool = False,
-    with_median: bool = False,
-    infer: Inference | None = None,
-) -> dict[str, Tensor]:
-    """TensoRF in contracted space (unbounded scenes): radiance.render.render_contracted (training), its
-    early-terminating twin otherwise."""
-    if infer is not None:
-        out = render_contracted_terminating(
-            rays_o, rays_d, grid=grid, contraction=contraction, sigma_fn=field.density_inference, rgb_fn=_rgb_fn(field),
-            near=near, step_size=step_size * infer.step_scale, background=background, with_median=with_median,
-            min_transmittance=_min_transmittance(infer, rays_o), **_colour_rule(infer),
-        )  # fmt: skip
-        return {**out, "samples": torch.tensor(float(out["samples"]))}
-    out = render_contracted(
-        rays_o, rays_d, grid=grid, contraction=contraction, sigma_fn=field.density, rgb_fn=_rgb_fn(field),
-        near=near, step_size=step_size, background=background, jitter=jitter, with_median=with_median,
-        color_threshold=COLOR_THRESHOLD, color_min_per_ray=TRAIN_COLOR_MIN_PER_RAY if jitter else 0.0,
-    )  # fmt: skip
-    return {**out, "samples": torch.tensor(float(out["ray_indices"].numel()))}
 
 
 def _rgb_sigma(net, view_dependent: bool):
@@ -190,16 +145,14 @@ def _render_vanilla(
     rays_o: Tensor,  # [R, 3]
     rays_d: Tensor,  # [R, 3] unit
     *,
-    aabb: Tensor,  # [2, 3]
-    near: float,
-    far: float,
+    space: Space,
     background: Tensor,  # [3] or [R, 3]
     jitter: bool,
     generator: torch.Generator | None = None,
 ) -> dict[str, Tensor]:
-    """NeRF: n_coarse stratified samples in the box, n_fine importance samples, the fine net on all of them
-    (radiance.render.render_rays_hierarchical)."""
-    t_near, t_far = ray_aabb_segment(rays_o, rays_d, aabb, near, far)
+    """NeRF: n_coarse stratified samples in the space's box, n_fine importance samples, the fine net on all of
+    them (radiance.render.render_rays_hierarchical)."""
+    t_near, t_far = space.box_segment(rays_o, rays_d)
     out = render_rays_hierarchical(
         rays_o, rays_d, near=t_near, far=t_far, n_fine=field.n_fine, background=background,
         coarse_sampler=StratifiedSampler(n_samples=field.n_coarse, jitter=jitter, generator=generator),
@@ -214,15 +167,11 @@ def _render_vanilla(
 @dataclass
 class FieldModel:
     field: Field
-    grid: OccupancyGrid | None
-    kind: str
-    step_size: float  # training march step (inference: step_size * render_step_factor)
-    near: float
-    far: float
-    aabb: Tensor  # [2, 3] the field's box: scene frame, or NDC space when ndc is set
-    ndc: NDC | None = None
+    grid: OccupancyGrid | None  # over the space's field box (fast fields)
+    kind: str  # the field's kind: fast | vanilla
+    space: Space
+    step_size: float  # training march step, march units (inference: step_size * render_step_factor)
     render_step_factor: float = 1.0
-    contraction: Contraction | None = None
     background: Background | None = None
     appearance: Appearance | None = None  # per-image colour codes (train --appearance; model.appearance)
 
@@ -230,6 +179,15 @@ class FieldModel:
     def chunk(self) -> int:
         """Rays per evaluation chunk (vanilla: 256 samples x 256 activations per ray)."""
         return 8192 if self.kind == "fast" else 1024
+
+    @property
+    def near(self) -> float:
+        return self.space.near
+
+    @property
+    def far(self) -> float:
+        """Where rays end, in march units (scene distance in a box, NDC t in NDC, FAR when unbounded)."""
+        return self.space.far
 
     def render(
         self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, gen=None, median=False, view=None,
@@ -249,38 +207,36 @@ class FieldModel:
         return out
 
     def _render_world(self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, gen, median, infer):
-        if self.ndc is None:
-            return self._render(o, d, background, train=train, gen=gen, median=median, infer=infer)
-        o_n, d_n, valid = self.ndc.rays_to_ndc(o, d)
-        out = self._render(o_n, d_n, background, train=train, gen=gen, median=median, infer=infer)
+        o_m, d_m, valid = self.space.to_march(o, d)
+        out = self._render(o_m, d_m, background, train=train, gen=gen, median=median, infer=infer)
+        if valid is None:
+            return out
         for key in ("depth", "depth_median"):
             if key in out:
-                out[key] = self.ndc.world_t(o, d, o_n, d_n, out[key])
-        if not bool(valid.all()):  # rays away from the reference view see nothing (the dummy ray misses)
+                out[key] = self.space.depth_from_march(o, d, o_m, d_m, out[key])
+        if not bool(valid.all()):  # rays the space cannot map (NDC: away from the reference view) see nothing
             out["depth"] = torch.where(valid, out["depth"], torch.zeros_like(out["depth"]))
         return out
 
     def distortion(self, out: dict, o: Tensor, d: Tensor) -> Tensor:
-        """mip-NeRF 360's distortion loss of a training render `out` of rays o, d [R, 3], in the normalised
-        warped distance (radiance.contraction.normalized_distance). Contracted scenes only: the fog it removes
-        is what a short real capture grows near its cameras."""
-        if self.contraction is None or self.kind != "fast":
-            raise ValueError("distortion: expected a fast field in a contracted scene")
+        """mip-NeRF 360's distortion loss of a training render `out` of rays o, d [R, 3], in the space's normalised
+        distance (`Space.normalized_distance`; contracted: the warped distance). Only where the space defines it:
+        the fog it removes is what a short real capture grows near its cameras."""
+        if self.kind != "fast" or not self.space.distortion_loss:
+            raise ValueError(f"distortion: expected a fast field in a space with a distortion loss, got {self.kind} "
+                             f"in {self.space.name}")  # fmt: skip
         idx = out["ray_indices"]
-        s0 = normalized_distance(self.contraction, o, d, self.near, out["t_starts"], idx)
-        s1 = normalized_distance(self.contraction, o, d, self.near, out["t_ends"], idx)
+        s0 = self.space.normalized_distance(o, d, out["t_starts"], idx)
+        s1 = self.space.normalized_distance(o, d, out["t_ends"], idx)
         return distortion_loss(out["weights"], s0, s1, idx, o.shape[0])
 
     def _render(self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, gen, median, infer):
-        step = self.step_size if train else self.step_size * self.render_step_factor
-        fast = dict(step_size=step, background=background, jitter=train, with_median=median,
-                    infer=None if train else infer)  # fmt: skip
-        if self.kind == "fast" and self.contraction is not None:
-            return _render_fast_contracted(self.field, self.grid, self.contraction, o, d, near=self.near, **fast)
         if self.kind == "fast":
-            return _render_fast(self.field, self.grid, o, d, near=self.near, far=self.far, **fast)
-        return _render_vanilla(self.field, o, d, aabb=self.aabb, near=self.near, far=self.far, background=background,
-                              jitter=train, generator=gen)  # fmt: skip
+            step = self.step_size if train else self.step_size * self.render_step_factor
+            return _render_fast(self.field, Marcher(space=self.space, grid=self.grid, step_size=step), o, d,
+                                background=background, jitter=train, with_median=median,
+                                infer=None if train else infer)  # fmt: skip
+        return _render_vanilla(self.field, o, d, space=self.space, background=background, jitter=train, generator=gen)
 
 
 EMPTY_OPACITY = 0.003
@@ -289,21 +245,20 @@ EMPTY_OPACITY = 0.003
 depth off by 50 %), 0.003 -> 24.4 dB, 7.9 %."""
 
 
-def _step_size(aabb: Tensor, resolution: int, ratio: float) -> float:
-    return float((aabb[1] - aabb[0]).mean()) / resolution * ratio
-
-
-def choose_scene_model(scene_model: str, scene: Scene, *, plain_background: bool) -> tuple[str, str]:
-    """(box | ndc | contract, why). "auto": ndc when the cameras are forward-facing (all within 45 degrees of
-    their mean direction); box when the photos have alpha or a plain background colour (nothing to model
-    outside the object's box); contract otherwise (real photos see a background beyond the box)."""
+def choose_space(scene_model: str, scene: Scene, *, plain_background: bool) -> tuple[type[Space], str]:
+    """(the space's class, why) for `train --scene-model`. "auto": NDC when the cameras are forward-facing (all
+    within 45 degrees of their mean direction); the box when the photos have alpha or a plain background colour
+    (nothing to model outside the object's box); contracted otherwise (real photos see a background beyond the
+    box)."""
     if scene_model != "auto":
-        return scene_model, f"asked for (scene_model={scene_model})"
+        if scene_model not in SPACES:
+            raise UserError(f"unknown scene model {scene_model!r}: expected auto, {', '.join(SPACES)}")
+        return SPACES[scene_model], f"asked for (scene_model={scene_model})"
     if is_forward_facing(scene):
-        return "ndc", "forward-facing cameras (all within 45 degrees of their mean direction)"
+        return NDCSpace, "forward-facing cameras (all within 45 degrees of their mean direction)"
     if plain_background:
-        return "box", "images with alpha or a plain background colour: nothing to model outside the box"
-    return "contract", "opaque photos whose background is not a plain colour: space beyond the box is contracted"
+        return Box, "images with alpha or a plain background colour: nothing to model outside the box"
+    return Contracted, "opaque photos whose background is not a plain colour: space beyond the box is contracted"
 
 
 def scene_ndc(scene: Scene) -> NDC:
@@ -313,34 +268,37 @@ def scene_ndc(scene: Scene) -> NDC:
     return fit_ndc(np.stack([f.world_from_cam for f in scene.frames]), scene.frame_intrinsics(0), scene.near)
 
 
-def build_model(
-    settings: ModelSettings,
-    scene: Scene,
-    device: torch.device,
-    field_cfg: dict | None,
-    ndc: NDC | None = None,
-    contraction: Contraction | None = None,
-    background: Background | None = None,
-) -> FieldModel:
-    """The field, its occupancy grid (fast) and render settings. With `ndc`, the field's box is the NDC box
-    of the training cameras (near 0, far: the box's end at infinity); with `contraction`, the contracted cube
-    [-2, 2]^3 around the scene's box; otherwise the scene's aabb. `field_cfg` (a checkpoint's) rebuilds a saved
-    field; None makes a new one from `settings`."""
-    if ndc is not None and contraction is not None:
-        raise ValueError("expected at most one of ndc and contraction")
-    if contraction is not None and settings.field != "fast":
-        raise UserError("scene_model contract needs the fast field (vanilla samples the box only)")
-    if ndc is not None:
+def _box(rows) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    lo, hi = np.asarray(rows, dtype=np.float64).reshape(2, 3).tolist()
+    return tuple(lo), tuple(hi)  # type: ignore[return-value]
+
+
+def make_space(kind: type[Space], scene: Scene) -> Space:
+    """The space of class `kind` for `scene`: its box and near/far bounds (Box), the NDC of its mean camera and
+    the box of every training camera's frustum (NDCSpace), the contraction around its box (Contracted)."""
+    if kind is NDCSpace:
+        ndc = scene_ndc(scene)
         poses = np.stack([f.world_from_cam for f in scene.frames])
         intr = [scene.frame_intrinsics(i) for i in range(len(scene.frames))]
-        aabb = torch.as_tensor(ndc.box(poses, intr), dtype=torch.float32)
-        near, far = 0.0, 1e10
-    elif contraction is not None:
-        aabb = torch.tensor(CONTRACTED_BOX, dtype=torch.float32)
-        near, far = float(scene.near), 1e10
-    else:
-        aabb = torch.as_tensor(scene.aabb, dtype=torch.float32).reshape(2, 3)
-        near, far = float(scene.near), (scene.far if math.isfinite(scene.far) else 1e10)
+        return NDCSpace(ndc=ndc, box=_box(ndc.box(poses, intr)))
+    if kind is Contracted:
+        return Contracted(contraction=Contraction(scene.aabb), near=float(scene.near))
+    return Box(aabb=_box(scene.aabb), near=float(scene.near), far=float(scene.far if math.isfinite(scene.far) else FAR))
+
+
+def build_model(
+    settings: ModelSettings,
+    space: Space,
+    device: torch.device,
+    field_cfg: dict | None,
+    background: Background | None = None,
+) -> FieldModel:
+    """The field in `space` (its box: the scene's aabb, NDC's box of the training cameras, or the contracted
+    cube [-2, 2]^3), its occupancy grid (fast) and render settings. `field_cfg` (a checkpoint's) rebuilds a
+    saved field; None makes a new one from `settings`."""
+    if not space.straight_rays and settings.field != "fast":
+        raise UserError(f"scene_model {space.name} needs the fast field (vanilla samples straight rays in a box)")
+    aabb = space.field_box
     view_dep = True if settings.view_dependent is None else settings.view_dependent
     if field_cfg is None:
         if settings.field == "fast":
@@ -355,8 +313,10 @@ def build_model(
         # rule (its threshold is on sigma x step). A bare density threshold of 0.01 kept cells for ~1400 steps
         # after the field had cleared them (tiny npz: 60 % of samples in "occupied" free space, 26.2 dB at 40 s).
         grid = OccupancyGrid(aabb, settings.occupancy_resolution, threshold=EMPTY_OPACITY / step).to(device)
-    if contraction is not None:  # contracted units -> scene units inside the inner box
-        step *= float(contraction.half.mean())
     background = background if background is not None else Background("fixed")
-    return FieldModel(field, grid, field_cfg["kind"], step, near, float(far), aabb.to(device), ndc,
-                      settings.render_step_factor, contraction, background.to(device))  # fmt: skip
+    return FieldModel(field, grid, field_cfg["kind"], space, step * space.step_unit(), settings.render_step_factor,
+                      background.to(device))  # fmt: skip
+
+
+def _step_size(aabb: Tensor, resolution: int, ratio: float) -> float:
+    return float((aabb[1] - aabb[0]).mean()) / resolution * ratio

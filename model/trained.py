@@ -1,8 +1,12 @@
 """A trained run, ready for rendering and queries: `load_trained(run_dir)` -> `Trained`.
 
 Everything outside works in the scene frame (transforms.json's normalised frame): `render_rays` returns world
-distances, `density(x)` takes scene points, `aabb` is the scene's box. NDC runs (forward-facing) map to and
-from NDC inside; their `occupancy` is None (the grid lives in NDC).
+distances, `density(x)` takes scene points, `aabb` is the scene's box. The run's scene space (`radiance.space`)
+maps to and from the field's coordinates inside; `occupancy` is None unless the grid lives in the scene frame.
+
+A run folder works from anywhere: config.json records the scene folder both as given (resolved when the run was
+trained) and relative to the run folder, and the relative one is tried first, so a run moved together with its
+scene (OUT/run and OUT/scene) still finds it.
 """
 
 from __future__ import annotations
@@ -18,12 +22,12 @@ from torch import Tensor
 from data.errors import UserError
 from data.transforms import Scene, read_scene
 from model.camera_opt import TEST_POSE_RULE, refined_scene
-from model.checkpoint import read_checkpoint, restore_appearance, restore_background, restore_contraction
+from model.checkpoint import read_checkpoint, restore_appearance, restore_background, restore_space
 from model.device import resolve_device
-from model.field_model import FieldModel, ModelSettings, build_model
+from model.field_model import FieldModel, ModelSettings, build_model, make_space
 from radiance.fields import Field
-from radiance.ndc import NDC
 from radiance.occupancy import OccupancyGrid
+from radiance.space import Space
 
 __all__ = ["WHITE", "Trained", "load_trained"]
 
@@ -73,31 +77,20 @@ class Trained:
         return {k: torch.cat(v) if v else torch.zeros(0, device=self.device) for k, v in parts.items()}
 
     @property
-    def ndc(self) -> NDC | None:
-        """The NDC map when the field lives in NDC (forward-facing runs), else None."""
-        return self.model.ndc
+    def space(self) -> Space:
+        """The run's scene space (where its field lives)."""
+        return self.model.space
 
     @torch.no_grad()
     def density(self, x: Tensor) -> Tensor:
-        """x [N, 3] scene frame -> sigma [N] >= 0 per scene unit.
-
-        NDC runs: the NDC density times NDC length per scene length along the mean camera's ray through x
-        (`radiance.ndc`); 0 before the near plane. Contracted runs: the contracted-space density times
-        contracted length per scene length (radial; exact inside the scene's box).
-        """
+        """x [N, 3] scene frame -> sigma [N] >= 0 per scene unit (`Space.density_query`: NDC runs, the NDC density
+        times NDC length per scene length along the mean camera's ray through x, 0 before the near plane;
+        contracted runs, the contracted-space density times contracted length per scene length)."""
         out = []
         for i in range(0, x.shape[0], self.chunk):
-            xi = x[i : i + self.chunk].to(self.device, torch.float32)
-            if self.model.contraction is not None:
-                c = self.model.contraction
-                out.append(self.field.density(c.contract(xi)) * c.density_scale(xi))
-                continue
-            if self.ndc is None:
-                out.append(self.field.density(xi))
-                continue
-            p, scale, front = self.ndc.density_query(xi)
-            sigma = self.field.density(p.clamp(-2.0, 2.0))
-            out.append(torch.where(front, sigma * scale, torch.zeros_like(sigma)))
+            p, scale = self.space.density_query(x[i : i + self.chunk].to(self.device, torch.float32))
+            sigma = self.field.density(p)
+            out.append(sigma if scale is None else sigma * scale)
         return torch.cat(out) if out else x.new_zeros(0)
 
     @torch.no_grad()
@@ -118,13 +111,9 @@ class Trained:
                     if d is not None
                     else torch.tensor([0.0, 0.0, -1.0]).to(xi).expand_as(xi)
                 )
-            if self.ndc is not None:
-                if di is not None:
-                    di = self.ndc.directions_to_ndc(xi, di)
-                xi = self.ndc.points_to_ndc(xi)
-            elif self.model.contraction is not None:
-                xi = self.model.contraction.contract(xi)
-            out.append(self.field.color(xi, di))
+            if di is not None:
+                di = self.space.field_directions(xi, di)
+            out.append(self.field.color(self.space.field_points(xi), di))
         return torch.cat(out) if out else x.new_zeros(0, 3)
 
 
@@ -142,13 +131,9 @@ def load_trained(run_dir: str | Path, device: str | torch.device = "auto") -> Tr
     dev = resolve_device(device)
     state = read_checkpoint(run_dir / "checkpoint.pt", dev)
     settings = ModelSettings.from_config(doc, str(cfg_path))
-    try:
-        scene = read_scene(Path(doc["scene_dir"]))
-    except UserError as exc:
-        raise UserError(f"{run_dir}: the run's scene cannot be read: {exc}") from None
-    ndc = NDC.from_dict(state["ndc"]) if state.get("ndc") is not None else None
-    contraction = restore_contraction(state)
-    model = build_model(settings, scene, dev, state["field_config"], ndc, contraction, restore_background(state, dev))
+    scene = _read_run_scene(run_dir, doc)
+    space = restore_space(state, lambda kind: make_space(kind, scene))
+    model = build_model(settings, space, dev, state["field_config"], restore_background(state, dev))
     model.appearance = restore_appearance(state, dev)
     refinement = None  # built from the input scene as in training; below, consumers get the refined cameras
     if state.get("camera_opt") is not None:
@@ -159,9 +144,27 @@ def load_trained(run_dir: str | Path, device: str | torch.device = "auto") -> Tr
         model.grid.load_state_dict(state["occupancy"])
     model.field.eval()
     background = model.background.eval_colour().detach()
-    if ndc is None and contraction is None:
-        occupancy, aabb = model.grid, model.aabb
-    else:  # the grid and box are in NDC or contracted space; consumers (mesh) work in the scene frame
+    if space.scene_frame:
+        occupancy, aabb = model.grid, space.field_box.to(dev)
+    else:  # the grid and box are in the field's space; consumers (mesh) work in the scene frame
         occupancy, aabb = None, torch.as_tensor(scene.aabb, dtype=torch.float32, device=dev).reshape(2, 3)
     return Trained(scene=scene, field=model.field, occupancy=occupancy, aabb=aabb, background=background,
                    device=dev, model=model, run_config=doc, pose_refinement=refinement)  # fmt: skip
+
+
+def _read_run_scene(run_dir: Path, doc: dict) -> Scene:
+    """The run's scene: config.json's `scene_from_run` (relative to the run folder) when it is there, else its
+    `scene_dir` (as recorded: absolute for runs trained since it was resolved, else relative to where train ran)."""
+    tried = []
+    if isinstance(doc.get("scene_from_run"), str):
+        tried.append(run_dir / doc["scene_from_run"])
+    if isinstance(doc.get("scene_dir"), str):
+        tried.append(Path(doc["scene_dir"]))
+    if not tried:
+        raise UserError(f"{run_dir}: config.json names no scene folder (scene_dir)")
+    found = next((p for p in tried if p.is_dir() or p.is_file()), tried[-1])
+    try:
+        return read_scene(found)
+    except UserError as exc:
+        raise UserError(f"{run_dir}: the run's scene cannot be read (looked in {', '.join(map(str, tried))}): "
+                        f"{exc}") from None

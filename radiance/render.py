@@ -8,19 +8,17 @@ Conventions:
 - The field is queried once per interval at its midpoint (t_start for an infinite last interval):
   `rgb_sigma_fn(x [N, 3], d [N, 3]) -> (rgb [N, 3], sigma [N])`, `sigma_fn(x [N, 3], d [N, 3]) -> sigma [N]`,
   always with flat [N, 3] inputs whatever the layout; the renderer knows nothing else about the model.
-- `render_marched` (occupancy-grid marching, two passes) splits the callbacks instead:
-  `sigma_fn(x [N, 3]) -> sigma [N]` on every sample (position only, like OccupancyGrid.update's density_fn),
-  then `rgb_fn(x [K, 3], d [K, 3]) -> rgb [K, 3]` only on the K samples whose weight counts.
-- `render_marched_terminating` / `render_contracted_terminating` are `render_marched` / `render_contracted` for
-  inference (no grad, no jitter): the same steps taken front to back in slabs of `segment` steps, only on rays
-  whose transmittance is still >= `min_transmittance` (early ray termination), per-ray outputs only; their plain
-  twins are `render_marched` / `render_contracted` (equal with min_transmittance = 0).
+- `render_marched` (occupancy-grid marching in any scene space, `radiance.space`, two passes) splits the
+  callbacks instead: `sigma_fn(x [N, 3]) -> sigma [N]` on every sample (position only, like
+  OccupancyGrid.update's density_fn), then `rgb_fn(x [K, 3], d [K, 3]) -> rgb [K, 3]` only on the K samples whose
+  weight counts (`ColourRule`). Early ray termination is its `min_transmittance` argument: the same steps taken
+  front to back in slabs, only on rays whose transmittance is still >= min_transmittance, per-ray outputs only;
+  its plain twin is the same call with min_transmittance None (equal with min_transmittance = 0).
 - Outputs are dicts; per-ray entries (PER_RAY_KEYS) are [R] or [R, 3], per-sample ones are shaped like t_starts.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -28,7 +26,6 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from radiance.aabb import ray_aabb_segment
 from radiance.compositing import (
     accumulate,
     beer_lambert,
@@ -39,10 +36,10 @@ from radiance.compositing import (
     optical_depth,
     render_weights,
 )
-from radiance.contraction import Contraction, contraction_chord_scale, march_contracted, t_of_s, warped_range
-from radiance.occupancy import OccupancyGrid, march_bounds, march_rays, occupied_span
+from radiance.occupancy import OccupancyGrid, march_rays
 from radiance.safe import safe_div
 from radiance.samplers import resample_intervals, stratified_intervals
+from radiance.space import Space, Steps
 
 __all__ = [
     "PER_RAY_KEYS",
@@ -52,10 +49,9 @@ __all__ = [
     "sample_points",
     "render_rays",
     "render_rays_hierarchical",
+    "ColourRule",
+    "Marcher",
     "render_marched",
-    "render_marched_terminating",
-    "render_contracted",
-    "render_contracted_terminating",
     "render_depth",
     "render_attenuation",
     "chunked",
@@ -210,128 +206,100 @@ def render_rays_hierarchical(
     return {**fine, "coarse": coarse}
 
 
-def _march_occupied(rays_o, rays_d, grid, near, far, step_size, jitter, generator) -> tuple[Tensor, ...]:
-    """Packed samples of `render_marched` (and its terminating twin): occupancy marching at `step_size` through
-    the box around the occupied cells, each ray shifted by U[0, step_size) when `jitter`. Returns ray_indices [N],
-    t_starts [N], t_ends [N] and the midpoints x [N, 3]."""
-    n = rays_o.shape[0]
-    near_t, far_t = _per_ray(near, rays_o, "near"), _per_ray(far, rays_o, "far")
-    box = grid.occupied_aabb()
-    if box is None:
-        t_near = t_far = torch.zeros(n, dtype=rays_o.dtype, device=rays_o.device)
-    else:
-        t_near, t_far = ray_aabb_segment(rays_o, rays_d, box, near_t, far_t)
-    if jitter:
-        u = torch.rand(t_near.shape, generator=generator, dtype=t_near.dtype, device=t_near.device)
-        t_near = t_near + u * step_size
-    ray_idx, t0, t1 = march_rays(grid, rays_o, rays_d, near=t_near, far=torch.maximum(t_far, t_near),
-                                 step_size=step_size)  # fmt: skip
-    x = rays_o[ray_idx] + rays_d[ray_idx] * (0.5 * (t0 + t1))[:, None]  # [N, 3]
-    return ray_idx, t0, t1, x
+@dataclass(frozen=True, kw_only=True)
+class ColourRule:
+    """Which samples of a march get a colour (TensoRF's rule): weight above `threshold`, at most the
+    `per_ray x R` largest of a batch of R rays (bounds the cost early on, when every sample is faint), at least
+    the `min_per_ray x R` largest when fewer pass (training: a gradient reaches the density even when every weight
+    is below the threshold). `keep` (inference only, the viewer's coarse preview): of those, only the samples of
+    weight >= keep and each ray's largest, each ray's colour rescaled to its full weight. Samples left out
+    contribute no colour (their weight still counts in `acc`)."""
+
+    threshold: float = 1e-4
+    per_ray: float = 16.0
+    min_per_ray: float = 0.0
+    keep: float | None = None
+
+
+@dataclass(frozen=True, kw_only=True)
+class Marcher:
+    """Occupancy-grid marching in a scene space (`radiance.space`): the space's steps of `step_size` through the
+    grid's occupied cells. Rays given to it are the space's march rays (`Space.to_march`)."""
+
+    space: Space
+    grid: OccupancyGrid
+    """Over the space's field box."""
+    step_size: float
+    """In march units (`Space.step_unit`)."""
+    segment: int = 32
+    """Early-stopping march: steps taken per slab between transmittance checks."""
 
 
 def render_marched(
     rays_o: Tensor,  # [R, 3]
     rays_d: Tensor,  # [R, 3] unit
     *,
-    grid: OccupancyGrid,
-    sigma_fn: PositionSigmaFn,  # x [N, 3] -> sigma [N]
-    rgb_fn: RgbFn | None,  # (x [K, 3], d [K, 3]) -> rgb [K, 3]; None: density only
-    near: float | Tensor,
-    far: float | Tensor,
-    step_size: float,
+    marcher: Marcher,
+    sigma_fn: PositionSigmaFn,  # field x [N, 3] -> sigma [N] per field length
+    rgb_fn: RgbFn | None,  # (field x [K, 3], ray d [K, 3]) -> rgb [K, 3]; None: density only
     background: Tensor | None = None,  # [3] or [R, 3]
-    color_threshold: float = 1e-4,
-    color_per_ray: float = 16.0,
-    color_min_per_ray: float = 0.0,
-    jitter: bool = False,
-    generator: torch.Generator | None = None,
+    colour: ColourRule = ColourRule(),
+    jitter: bool | torch.Generator = False,
     with_median: bool = False,
+    min_transmittance: float | None = None,
 ) -> dict:
-    """Occupancy-grid marching (packed samples) in two passes: density on every sample, colour where it counts.
+    """Occupancy-grid marching (packed samples) in two passes: density on every sample, colour where it counts
+    (`colour`); the field's densities become densities per ray length through the space's scale (contracted: the
+    interval's contracted chord per world length), so weights, depths (ray t) and the median are the same maths
+    in every space.
 
-    Marches only through the box around the grid's occupied cells (TensoRF's shrink, recomputed on the fly),
-    at `step_size`; `jitter` shifts each ray's steps by U[0, step_size) (drawn from `generator`, the global
-    source when None) so training sees every depth. Colour is evaluated only where the weight exceeds
-    `color_threshold` (TensoRF's rule), and at most at the `color_per_ray * R` largest weights of the batch,
-    which bounds the cost early on when every sample is faint, and at least at the `color_min_per_ray * R` largest
-    (training: a gradient reaches the density even when every weight is below the threshold); samples left out
-    contribute no colour (their weight still counts in `acc`).
-
-    Returns acc [R], depth [R] (expected t), rgb [R, 3] (on the background; absent when rgb_fn is None),
-    depth_median [R] (only with_median), and per sample (packed [N]) weights, sigmas, t_starts, t_ends,
+    min_transmittance None (training, test-time optimisation): every step at once, differentiable; `jitter`
+    shifts each ray's steps by U[0, step) (True: the global random source; a Generator: that one) so training
+    sees every depth. Returns acc [R], depth [R] (expected t), rgb [R, 3] (on the background; absent when rgb_fn
+    is None), depth_median [R] (only with_median), and per sample (packed [N]) weights, sigmas, t_starts, t_ends,
     ray_indices.
+
+    min_transmittance a float (inference): the same steps (no jitter), taken front to back in slabs of
+    `marcher.segment` steps over the rays whose transmittance before the slab is >= min_transmittance (early ray
+    termination; the spans the grid knows to be empty are skipped); no grad. The light lost is at most
+    min_transmittance per ray (acc, rgb off by <= that; the median is unaffected below 0.5); with 0 the result is
+    the differentiable path's. Returns the per-ray outputs and `samples`, the number of occupied samples whose
+    density was evaluated; no per-sample outputs.
     """
     _check_rays(rays_o, rays_d)
-    ray_idx, t0, t1, x = _march_occupied(rays_o, rays_d, grid, near, far, step_size, jitter, generator)
-    sigma = sigma_fn(x)  # [N]
-    shade = dict(color_threshold=color_threshold, color_per_ray=color_per_ray, color_min_per_ray=color_min_per_ray,
-                 with_median=with_median)  # fmt: skip
-    return _shade_packed(rays_o, rays_d, ray_idx, t0, t1, x, sigma, rgb_fn=rgb_fn, background=background, **shade)
-
-
-@dataclass(frozen=True)
-class _Steps:
-    """Uniform steps of a march, per ray: u = u0 + k step while u < u_end (the last step ends at u_end); u is t
-    (box) or the warped distance s (contracted). `warp(u [A, S], rows [A]) -> t`, `point(x [M, 3]) -> field
-    and occupancy position`, `scale(rows [M], t0 [M], t1 [M]) -> field density to world density` (or None).
-    `k_first`, `k_stop` [R] (float, whole numbers): only steps k_first <= k < k_stop are taken, the others being
-    known to be empty (`_skip_empty`); u is still u0 + k step, so the steps taken are the plain twin's."""
-
-    u0: Tensor  # [R]
-    u_end: Tensor  # [R]
-    step: float
-    warp: Callable[[Tensor, Tensor], Tensor]
-    point: Callable[[Tensor], Tensor]
-    scale: Callable[[Tensor, Tensor, Tensor], Tensor] | None = None
-    k_first: Tensor | None = None  # [R]
-    k_stop: Tensor | None = None  # [R]
-
-
-def _box_steps(rays_o, rays_d, grid, near, far, step_size) -> _Steps:
-    """The steps `_march_occupied` takes (no jitter): through the occupied cells' box, within [near, far]."""
-    near_t, far_t = _per_ray(near, rays_o, "near"), _per_ray(far, rays_o, "far")
-    box = grid.occupied_aabb()
-    if box is None:
-        t_near = t_far = torch.zeros(rays_o.shape[0], dtype=rays_o.dtype, device=rays_o.device)
-    else:
-        t_near, t_far = ray_aabb_segment(rays_o, rays_d, box, near_t, far_t)
-    t0, t1 = march_bounds(grid, rays_o, rays_d, t_near, torch.maximum(t_far, t_near))
-    return _Steps(t0, t1, step_size, lambda u, rows: u, lambda x: x)
-
-
-def _skip_empty(steps: _Steps, grid: OccupancyGrid, rays_o: Tensor, rays_d: Tensor) -> _Steps:
-    """Box steps limited to each ray's `occupied_span`: the steps before the span's first step and after its last
-    have their midpoints in empty cells (no density, no weight), so leaving them out changes nothing."""
-    first, last = occupied_span(grid, rays_o, rays_d, steps.u0, steps.u_end)  # [R]
-    k_first = torch.floor((first - steps.u0) / steps.step).clamp(min=0)  # last step starting at or before first
-    k_stop = torch.floor((last - steps.u0) / steps.step) + 1  # one past the last step starting at or before last
-    k_stop = torch.where(last >= first, k_stop, k_first)  # nothing occupied: no steps
-    return dataclasses.replace(steps, k_first=k_first, k_stop=k_stop)
-
-
-def _contracted_steps(rays_o, rays_d, contraction, near, step_size) -> _Steps:
-    """The steps `march_contracted` takes (no jitter), in warped distance s; the field sees contracted points."""
-    t_s, s0, s_end = warped_range(contraction, rays_o, rays_d, near=near, step_size=step_size)
-
-    def scale(rows, t0, t1):
-        return contraction_chord_scale(contraction, rays_o[rows], rays_d[rows], t0, t1)
-
-    return _Steps(s0, s_end, step_size, lambda u, rows: t_of_s(u, t_s[rows][:, None]), contraction.contract, scale)
+    if min_transmittance is not None:
+        with torch.no_grad():
+            steps = marcher.space.steps(marcher.grid, rays_o, rays_d, marcher.step_size)
+            return _march_terminating(rays_o, rays_d, steps, marcher, sigma_fn, rgb_fn, background=background,
+                                      colour=colour, min_transmittance=min_transmittance,
+                                      with_median=with_median)  # fmt: skip
+    if colour.keep is not None:
+        raise ValueError("expected ColourRule.keep None when training (it is an inference preview rule)")
+    u = None
+    if jitter is not False:
+        gen = jitter if isinstance(jitter, torch.Generator) else None
+        u = torch.rand(rays_o.shape[0], generator=gen, dtype=rays_o.dtype, device=rays_o.device)
+    s = marcher.space.march(marcher.grid, rays_o, rays_d, marcher.step_size, u)
+    sigma = sigma_fn(s.points)  # [N]
+    if s.density_scale is not None:
+        sigma = sigma * s.density_scale  # [N] per ray length
+    return _shade_packed(rays_o, rays_d, s.ray_indices, s.t_starts, s.t_ends, s.points, sigma, rgb_fn=rgb_fn,
+                         background=background, colour=colour, with_median=with_median)  # fmt: skip
 
 
 def _march_terminating(
-    rays_o, rays_d, steps: _Steps, grid, sigma_fn, rgb_fn, *, background, color_threshold, color_per_ray,
-    min_transmittance, segment, with_median, color_keep=None,
+    rays_o, rays_d, steps: Steps, marcher: Marcher, sigma_fn, rgb_fn, *, background, colour: ColourRule,
+    min_transmittance: float, with_median: bool,
 ) -> dict:  # fmt: skip
     """Front-to-back marching in slabs of `segment` steps over the rays still alive (transmittance before the
     slab >= min_transmittance, steps left): occupancy, density on occupied steps, then the slab's weights from
     the optical depth carried over; acc, depth and the median accumulate per ray, colour candidates are kept.
-    Colour is evaluated once at the end, chosen by `_shade_packed`'s rule (weight above color_threshold, at most
-    color_per_ray x R of the largest), so with min_transmittance = 0 the result is the plain twin's.
-    color_keep (the viewer's coarse preview): of those, colour only the samples whose weight is >= color_keep and
-    each ray's largest, and scale each ray's colour by acc / (the coloured samples' weight), so that leaving out
-    the faint samples does not darken the ray."""
+    Colour is evaluated once at the end, chosen by `_shade_packed`'s rule (`ColourRule` without its min_per_ray),
+    so with min_transmittance = 0 the result is the differentiable path's. colour.keep (the viewer's coarse
+    preview): of those, colour only the samples whose weight is >= keep and each ray's largest, and scale each
+    ray's colour by acc / (the coloured samples' weight), so that leaving out the faint samples does not darken
+    the ray."""
+    segment, grid = marcher.segment, marcher.grid
     if not 0 <= min_transmittance < 1 or segment < 1:
         raise ValueError(f"expected min_transmittance in [0, 1) and segment >= 1, got {min_transmittance}, {segment}")
     n, like = rays_o.shape[0], dict(dtype=rays_o.dtype, device=rays_o.device)
@@ -375,7 +343,7 @@ def _march_terminating(
             depth.index_add_(0, alive, (w * t_mid).sum(dim=1))
             tau.index_add_(0, alive, cum[:, -1])
             if rgb_fn is not None:
-                pick = torch.nonzero(w.reshape(-1) > color_threshold)[:, 0]
+                pick = torch.nonzero(w.reshape(-1) > colour.threshold)[:, 0]
                 picks.append((alive[pick // segment], x[pick], w.reshape(-1)[pick]))
         k0 += segment
         k_next = k_first[alive] + float(k0)
@@ -388,120 +356,21 @@ def _march_terminating(
         if not picks:
             picks.append((torch.zeros(0, dtype=torch.long, device=acc.device), acc.new_zeros(0, 3), acc.new_zeros(0)))
         rows, x, w = (torch.cat([p[i] for p in picks]) for i in range(3))
-        keep = _colour_samples(w, n, color_threshold, color_per_ray, 0.0)  # the twin's rule (the picks pass it)
-        if color_keep is not None:  # fewer: above color_keep or the ray's largest weight
+        keep = _colour_samples(w, n, colour.threshold, colour.per_ray, 0.0)  # the twin's rule (the picks pass it)
+        if colour.keep is not None:  # fewer: above colour.keep or the ray's largest weight
             largest = torch.zeros(n, **like).scatter_reduce(0, rows, w, "amax")  # [R]
-            keep = (keep & (w >= color_keep)) | (w >= largest[rows])
+            keep = (keep & (w >= colour.keep)) | (w >= largest[rows])
         rows, x, w = rows[keep], x[keep], w[keep]
         rgb = accumulate(w, rgb_fn(x, rays_d[rows]), rows, n) if rows.numel() else acc.new_zeros(n, 3)
-        if color_keep is not None:  # the coloured samples stand for all of the ray's weight
+        if colour.keep is not None:  # the coloured samples stand for all of the ray's weight
             rgb = rgb * safe_div(acc, accumulate(w, None, rows, n))[:, None]
         out["rgb"] = rgb if background is None else rgb + (1 - acc)[:, None] * background.to(rgb)
     return out
 
 
-@torch.no_grad()
-def render_marched_terminating(
-    rays_o: Tensor,  # [R, 3]
-    rays_d: Tensor,  # [R, 3] unit
-    *,
-    grid: OccupancyGrid,
-    sigma_fn: PositionSigmaFn,  # x [N, 3] -> sigma [N]
-    rgb_fn: RgbFn | None,  # (x [K, 3], d [K, 3]) -> rgb [K, 3]; None: density only
-    near: float | Tensor,
-    far: float | Tensor,
-    step_size: float,
-    background: Tensor | None = None,  # [3] or [R, 3]
-    color_threshold: float = 1e-4,
-    color_per_ray: float = 16.0,
-    min_transmittance: float = 1e-3,
-    segment: int = 32,
-    with_median: bool = False,
-    color_keep: float | None = None,
-) -> dict:
-    """`render_marched` for inference, with early ray termination: the same steps (occupancy marching at
-    `step_size`, no jitter), taken front to back in slabs of `segment` steps over the rays whose transmittance
-    before the slab is >= `min_transmittance`; the rest of a ray is never sampled. The light lost is at most
-    `min_transmittance` per ray (acc, rgb off by <= that; the median is unaffected below 0.5). Returns the per-ray
-    outputs of `render_marched` (acc, depth, rgb when rgb_fn, depth_median with_median) and `samples`, the number
-    of occupied samples whose density was evaluated; no per-sample outputs."""
-    _check_rays(rays_o, rays_d)
-    steps = _skip_empty(_box_steps(rays_o, rays_d, grid, near, far, step_size), grid, rays_o, rays_d)
-    return _march_terminating(rays_o, rays_d, steps, grid, sigma_fn, rgb_fn, background=background,
-                              color_threshold=color_threshold, color_per_ray=color_per_ray,
-                              min_transmittance=min_transmittance, segment=segment,
-                              with_median=with_median, color_keep=color_keep)  # fmt: skip
-
-
-@torch.no_grad()
-def render_contracted_terminating(
-    rays_o: Tensor,  # [R, 3]
-    rays_d: Tensor,  # [R, 3] unit
-    *,
-    grid: OccupancyGrid,  # over radiance.contraction.CONTRACTED_BOX
-    contraction: Contraction,
-    sigma_fn: PositionSigmaFn,  # contracted x' [N, 3] -> sigma' [N] per contracted length
-    rgb_fn: RgbFn | None,  # (contracted x' [K, 3], world d [K, 3]) -> rgb [K, 3]
-    near: float | Tensor,
-    step_size: float,
-    background: Tensor | None = None,  # [3] or [R, 3]
-    color_threshold: float = 1e-4,
-    color_per_ray: float = 16.0,
-    min_transmittance: float = 1e-3,
-    segment: int = 32,
-    with_median: bool = False,
-    color_keep: float | None = None,
-) -> dict:
-    """`render_contracted` for inference with early ray termination, as `render_marched_terminating` is for
-    `render_marched`: the same warped steps (no jitter), slab by slab while the transmittance is >=
-    `min_transmittance`. Outputs as `render_marched_terminating`."""
-    _check_rays(rays_o, rays_d)
-    steps = _contracted_steps(rays_o, rays_d, contraction, near, step_size)
-    return _march_terminating(rays_o, rays_d, steps, grid, sigma_fn, rgb_fn, background=background,
-                              color_threshold=color_threshold, color_per_ray=color_per_ray,
-                              min_transmittance=min_transmittance, segment=segment,
-                              with_median=with_median, color_keep=color_keep)  # fmt: skip
-
-
-def render_contracted(
-    rays_o: Tensor,  # [R, 3]
-    rays_d: Tensor,  # [R, 3] unit
-    *,
-    grid: OccupancyGrid,  # over radiance.contraction.CONTRACTED_BOX
-    contraction: Contraction,
-    sigma_fn: PositionSigmaFn,  # contracted x' [N, 3] -> sigma' [N] per contracted length
-    rgb_fn: RgbFn | None,  # (contracted x' [K, 3], world d [K, 3]) -> rgb [K, 3]
-    near: float | Tensor,
-    step_size: float,
-    background: Tensor | None = None,  # [3] or [R, 3]
-    color_threshold: float = 1e-4,
-    color_per_ray: float = 16.0,
-    color_min_per_ray: float = 0.0,
-    jitter: bool = False,
-    generator: torch.Generator | None = None,
-    with_median: bool = False,
-) -> dict:
-    """`render_marched` for unbounded scenes: the field lives in contracted space (radiance.contraction).
-
-    Samples come from `march_contracted` (warped steps, occupancy in contracted space); the field is queried at
-    contracted midpoints and its density turned into a world density by the interval's contracted chord per
-    world length, so weights, depths (world t) and the median are computed exactly as in `render_marched`.
-    """
-    _check_rays(rays_o, rays_d)
-    n = rays_o.shape[0]
-    u = torch.rand(n, generator=generator, dtype=rays_o.dtype, device=rays_o.device) if jitter else None
-    ray_idx, t0, t1 = march_contracted(grid, contraction, rays_o, rays_d, near=near, step_size=step_size, jitter=u)
-    x = contraction.contract(rays_o[ray_idx] + rays_d[ray_idx] * (0.5 * (t0 + t1))[:, None])  # [N, 3]
-    scale = contraction_chord_scale(contraction, rays_o[ray_idx], rays_d[ray_idx], t0, t1)  # [N]
-    sigma = sigma_fn(x) * scale  # [N] per world length
-    shade = dict(color_threshold=color_threshold, color_per_ray=color_per_ray, color_min_per_ray=color_min_per_ray,
-                 with_median=with_median)  # fmt: skip
-    return _shade_packed(rays_o, rays_d, ray_idx, t0, t1, x, sigma, rgb_fn=rgb_fn, background=background, **shade)
-
 
 def _shade_packed(
-    rays_o, rays_d, ray_idx, t0, t1, x, sigma, *, rgb_fn, background, color_threshold, color_per_ray, with_median,
-    color_min_per_ray=0.0,
+    rays_o, rays_d, ray_idx, t0, t1, x, sigma, *, rgb_fn, background, colour: ColourRule, with_median: bool
 ) -> dict:  # fmt: skip
     """Weights from packed densities; colour only where the weight counts (see render_marched)."""
     n = rays_o.shape[0]
@@ -510,7 +379,7 @@ def _shade_packed(
     acc = accumulate(weights, None, ray_idx, n)  # [R]
     out = {"acc": acc}
     if rgb_fn is not None:
-        keep = _colour_samples(weights.detach(), n, color_threshold, color_per_ray, color_min_per_ray)  # [N]
+        keep = _colour_samples(weights.detach(), n, colour.threshold, colour.per_ray, colour.min_per_ray)  # [N]
         rgb_s = rgb_fn(x[keep], rays_d[ray_idx[keep]])  # [K, 3]
         rgb = accumulate(weights[keep], rgb_s, ray_idx[keep], n)
         out["rgb"] = rgb if background is None else rgb + (1 - acc)[:, None] * background.to(rgb)

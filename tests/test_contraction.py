@@ -8,7 +8,8 @@ import torch
 
 from radiance.contraction import CONTRACTED_BOX, Contraction, march_contracted, march_contracted_reference
 from radiance.occupancy import OccupancyGrid
-from radiance.render import render_contracted, render_contracted_terminating, render_marched
+from radiance.render import Marcher, render_marched
+from radiance.space import Box, Contracted
 
 BOX = [[-1.0, -0.5, -2.0], [1.0, 1.5, 0.0]]
 
@@ -68,12 +69,13 @@ def test_contracted_rendering_matches_the_box_where_density_is_inside():
         return (p.norm(dim=-1) < 0.5).to(p.dtype) * 20.0
 
     o, d = _rays(64)
-    box = render_marched(o, d, grid=OccupancyGrid(c.inner_aabb, 16), sigma_fn=sigma_world, rgb_fn=None, near=0.1,
-                         far=1e10, step_size=0.005)  # fmt: skip
+    box_space = Box(aabb=tuple(tuple(r) for r in c.inner_aabb.tolist()), near=0.1, far=1e10)
+    box = render_marched(o, d, marcher=Marcher(space=box_space, grid=OccupancyGrid(c.inner_aabb, 16), step_size=0.005),
+                         sigma_fn=sigma_world, rgb_fn=None)  # fmt: skip
     # in contracted space the field's density is per contracted length: sigma' = sigma * h (h = 1 here)
-    con = render_contracted(o, d, grid=OccupancyGrid(CONTRACTED_BOX, 16), contraction=c,
-                            sigma_fn=lambda y: sigma_world(c.uncontract(y)), rgb_fn=None, near=0.1,
-                            step_size=0.005)  # fmt: skip
+    marcher = Marcher(space=Contracted(contraction=c, near=0.1), grid=OccupancyGrid(CONTRACTED_BOX, 16),
+                      step_size=0.005)  # fmt: skip
+    con = render_marched(o, d, marcher=marcher, sigma_fn=lambda y: sigma_world(c.uncontract(y)), rgb_fn=None)
     assert float(box["acc"].max()) > 0.99 and float(box["acc"].min()) < 0.01  # hits and misses both present
     assert torch.allclose(box["acc"], con["acc"], atol=2e-3)
     hit = box["acc"] > 0.5
@@ -92,15 +94,16 @@ def test_far_background_is_rendered_at_world_distance():
 
     o = torch.tensor([[0.0, -3.0, 0.1]]).repeat(32, 1)
     d = torch.nn.functional.normalize(torch.randn(32, 3, generator=torch.Generator().manual_seed(2)), dim=-1)
-    out = render_contracted(o, d, grid=OccupancyGrid(CONTRACTED_BOX, 32), contraction=c, sigma_fn=sigma_contracted,
-                            rgb_fn=None, near=0.05, step_size=0.02)  # fmt: skip
+    marcher = Marcher(space=Contracted(contraction=c, near=0.05), grid=OccupancyGrid(CONTRACTED_BOX, 32),
+                      step_size=0.02)  # fmt: skip
+    out = render_marched(o, d, marcher=marcher, sigma_fn=sigma_contracted, rgb_fn=None)
     assert float(out["acc"].min()) > 0.99
     hit_r = (o + d * out["depth"][:, None]).norm(dim=-1)  # where the rays stop, as a radius
     assert float(hit_r.min()) > 19 and float(hit_r.max()) < 40  # the front part of the shell
 
 
 def test_contracted_terminating_matches_its_plain_twin():
-    """render_contracted_terminating against render_contracted: equal without termination, within
+    """render_marched with early termination against its plain twin in a contracted space: equal without termination, within
     min_transmittance with it, with fewer densities evaluated, on an opaque ball in front of a far shell."""
     c = Contraction([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
     counted = []
@@ -118,16 +121,16 @@ def test_contracted_terminating_matches_its_plain_twin():
     grid.update(sigma_contracted, 0, every=1)
     o, d = _rays(64, torch.float64)
     bg = torch.tensor([0.3, 0.2, 0.1], dtype=torch.float64)
-    kw = dict(grid=grid, contraction=c, sigma_fn=sigma_contracted, rgb_fn=rgb, near=0.05, step_size=0.01,
-              background=bg, with_median=True)  # fmt: skip
-    plain = render_contracted(o, d, **kw)
+    marcher = Marcher(space=Contracted(contraction=c, near=0.05), grid=grid, step_size=0.01, segment=9)
+    kw = dict(marcher=marcher, sigma_fn=sigma_contracted, rgb_fn=rgb, background=bg, with_median=True)
+    plain = render_marched(o, d, **kw)
     n_plain = counted.pop()
-    exact = render_contracted_terminating(o, d, min_transmittance=0.0, segment=9, **kw)
+    exact = render_marched(o, d, min_transmittance=0.0, **kw)
     assert exact["samples"] == n_plain
     for key in ("rgb", "acc", "depth", "depth_median"):
         torch.testing.assert_close(exact[key], plain[key], atol=1e-9, rtol=0, equal_nan=True)
     counted.clear()
-    fast = render_contracted_terminating(o, d, min_transmittance=1e-3, **kw)
+    fast = render_marched(o, d, min_transmittance=1e-3, **kw)
     assert (plain["acc"] > 0.999).sum() > 16 and sum(counted) < 0.7 * n_plain
     assert float((fast["acc"] - plain["acc"]).abs().max()) <= 1e-3
     assert float((fast["rgb"] - plain["rgb"]).abs().max()) <= 2e-3

@@ -139,13 +139,14 @@ def test_nan_and_inf_densities_count_as_occupied_not_empty():
 def test_empty_cells_follow_the_opacity_of_one_training_step(tmp_path):
     """build_model's grid: a cell is empty when sigma x step < EMPTY_OPACITY, whatever the scene's scale."""
     from data.transforms import read_scene
-    from model.field_model import EMPTY_OPACITY, ModelSettings, build_model
+    from model.field_model import EMPTY_OPACITY, ModelSettings, build_model, make_space
+    from radiance.space import Box
     from stages import scene as scene_stage
 
     scene_stage.run(scene_stage.Config(out_dir=tmp_path / "s", kind="posed", size=16, views=4, seed=0))
     settings = ModelSettings(field="fast", resolution=(16, 32), step_ratio=2.0, occupancy_resolution=8,
                              view_dependent=None, render_step_factor=0.5)  # fmt: skip
-    model = build_model(settings, read_scene(tmp_path / "s"), torch.device("cpu"), None)
+    model = build_model(settings, make_space(Box, read_scene(tmp_path / "s")), torch.device("cpu"), None)
     step = model.step_size
     for opacity, occupied in ((0.5 * EMPTY_OPACITY, False), (2 * EMPTY_OPACITY, True)):
         model.grid.density.fill_(1e3)  # mean density high: the threshold is the opacity rule's

@@ -7,14 +7,16 @@ import pytest
 import torch
 
 from radiance.occupancy import OccupancyGrid
+from radiance.space import Box
 from radiance.render import (
     PER_RAY_KEYS,
     StratifiedSampler,
     chunked,
     render_attenuation,
     render_depth,
+    ColourRule,
+    Marcher,
     render_marched,
-    render_marched_terminating,
     render_rays,
     render_rays_hierarchical,
 )
@@ -166,6 +168,12 @@ def blob_rays(n, seed):
     return o, d / d.norm(dim=-1, keepdim=True)
 
 
+def box_marcher(grid, near=0.5, far=5.0, step_size=0.004, segment=32):
+    """The box space's marcher over `grid` with rays from near to far."""
+    box = Box(aabb=tuple(tuple(r) for r in grid.aabb.tolist()), near=near, far=far)
+    return Marcher(space=box, grid=grid, step_size=step_size, segment=segment)
+
+
 def blob_grid():
     grid = OccupancyGrid([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0], 32)
     grid.update(blob_sigma, 0, every=1)
@@ -179,8 +187,9 @@ def test_marched_render_matches_dense_stratified_reference():
     bg = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
     scale = torch.tensor(1.0, dtype=torch.float64, requires_grad=True)
     out = render_marched(
-        o, d, grid=grid, sigma_fn=lambda x: blob_sigma(x) * scale, rgb_fn=lambda x, d_: blob_rgb(x, d_) * scale,
-        near=0.5, far=5.0, step_size=0.004, background=bg, color_threshold=0.0, color_per_ray=1e6, with_median=True,
+        o, d, marcher=box_marcher(grid), sigma_fn=lambda x: blob_sigma(x) * scale,
+        rgb_fn=lambda x, d_: blob_rgb(x, d_) * scale, background=bg, colour=ColourRule(threshold=0.0, per_ray=1e6),
+        with_median=True,
     )  # fmt: skip
     ref = render_rays(o, d, near=1.5, far=3.5, sampler=StratifiedSampler(n_samples=2000), background=bg,
                       rgb_sigma_fn=lambda x, d_: (blob_rgb(x, d_), blob_sigma(x)))  # fmt: skip
@@ -207,17 +216,18 @@ def test_marched_density_only_budget_jitter_and_empty_grid():
         seen.append(x.shape[0])
         return blob_rgb(x, d_)
 
-    kw = dict(grid=grid, sigma_fn=blob_sigma, near=0.5, far=5.0, step_size=0.004, jitter=True, with_median=True)
-    colour = render_marched(o, d, rgb_fn=rgb_fn, color_per_ray=2.0, generator=torch.Generator().manual_seed(1), **kw)
+    kw = dict(marcher=box_marcher(grid), sigma_fn=blob_sigma, with_median=True)
+    colour = render_marched(o, d, rgb_fn=rgb_fn, colour=ColourRule(per_ray=2.0), jitter=torch.Generator().manual_seed(1),
+                            **kw)  # fmt: skip
     assert seen[0] <= 2 * 32 < colour["ray_indices"].numel()  # colour only at the batch's 64 largest weights
-    dens = render_marched(o, d, rgb_fn=None, generator=torch.Generator().manual_seed(1), **kw)
+    dens = render_marched(o, d, rgb_fn=None, jitter=torch.Generator().manual_seed(1), **kw)
     assert "rgb" not in dens
     for k in ("acc", "depth", "depth_median", "weights", "t_starts"):
         torch.testing.assert_close(dens[k], colour[k], equal_nan=True)
-    other = render_marched(o, d, rgb_fn=None, generator=torch.Generator().manual_seed(2), **kw)
+    other = render_marched(o, d, rgb_fn=None, jitter=torch.Generator().manual_seed(2), **kw)
     assert not torch.equal(other["t_starts"][:10], dens["t_starts"][:10])  # jitter follows the generator
     grid.binary.zero_()
-    empty = render_marched(o, d, rgb_fn=blob_rgb, background=torch.ones(3), **{**kw, "jitter": False})
+    empty = render_marched(o, d, rgb_fn=blob_rgb, background=torch.ones(3), **kw)
     assert empty["ray_indices"].numel() == 0 and (empty["acc"] == 0).all()
     torch.testing.assert_close(empty["rgb"], torch.ones(32, 3, dtype=torch.float64))
 
@@ -234,26 +244,27 @@ def test_terminating_march_matches_its_plain_twin():
         counted.append(x.shape[0])
         return blob_sigma(x) * 20  # opaque enough that rays stop inside the blob
 
-    kw = dict(grid=grid, rgb_fn=blob_rgb, near=0.5, far=5.0, step_size=0.004, background=bg, with_median=True)
-    plain = render_marched(o, d, sigma_fn=sigma, **kw)
+    kw = dict(rgb_fn=blob_rgb, background=bg, with_median=True)
+    plain = render_marched(o, d, marcher=box_marcher(grid), sigma_fn=sigma, **kw)
     n_plain = counted.pop()
     for segment in (1, 7, 32):
-        exact = render_marched_terminating(o, d, sigma_fn=sigma, min_transmittance=0.0, segment=segment, **kw)
+        marcher = box_marcher(grid, segment=segment)
+        exact = render_marched(o, d, marcher=marcher, sigma_fn=sigma, min_transmittance=0.0, **kw)
         assert exact["samples"] == n_plain == sum(counted)
         counted.clear()
         for key in ("rgb", "acc", "depth", "depth_median"):
             torch.testing.assert_close(exact[key], plain[key], atol=1e-9, rtol=0, equal_nan=True)
-    fast = render_marched_terminating(o, d, sigma_fn=sigma, min_transmittance=1e-3, **kw)
+    fast = render_marched(o, d, marcher=box_marcher(grid), sigma_fn=sigma, min_transmittance=1e-3, **kw)
     assert (plain["acc"] > 0.999).any() and fast["samples"] < 0.85 * n_plain
     assert float((fast["acc"] - plain["acc"]).abs().max()) <= 1e-3
     assert float((fast["rgb"] - plain["rgb"]).abs().max()) <= 2e-3
     torch.testing.assert_close(fast["depth_median"], plain["depth_median"], atol=1e-9, rtol=0)
     with pytest.raises(ValueError, match="min_transmittance"):
-        render_marched_terminating(o, d, sigma_fn=sigma, min_transmittance=1.0, **kw)
+        render_marched(o, d, marcher=box_marcher(grid), sigma_fn=sigma, min_transmittance=1.0, **kw)
 
 
 def test_coarse_colour_rule_keeps_the_full_weight():
-    """color_keep (the viewer's coarse preview): a constant-colour field keeps its colour exactly (the coloured
+    """ColourRule.keep (the viewer's coarse preview): a constant-colour field keeps its colour exactly (the coloured
     samples stand for the ray's whole weight; faint rays keep their largest sample) with far fewer colour
     queries, where the same threshold as a plain colour threshold darkens the rays."""
     o, d = blob_rays(48, seed=4)
@@ -266,11 +277,11 @@ def test_coarse_colour_rule_keeps_the_full_weight():
         queried.append(x.shape[0])
         return colour.expand(x.shape[0], 3)
 
-    kw = dict(grid=grid, sigma_fn=lambda x: 20 * blob_sigma(x), rgb_fn=rgb, near=0.5, far=5.0, step_size=0.004,
-              background=bg)  # fmt: skip
-    exact = render_marched_terminating(o, d, min_transmittance=0.0, **kw)
-    coarse = render_marched_terminating(o, d, min_transmittance=0.0, color_keep=0.02, **kw)
-    dark = render_marched_terminating(o, d, min_transmittance=0.0, color_threshold=0.02, **kw)
+    kw = dict(marcher=box_marcher(grid), sigma_fn=lambda x: 20 * blob_sigma(x), rgb_fn=rgb, background=bg,
+              min_transmittance=0.0)  # fmt: skip
+    exact = render_marched(o, d, **kw)
+    coarse = render_marched(o, d, colour=ColourRule(keep=0.02), **kw)
+    dark = render_marched(o, d, colour=ColourRule(threshold=0.02), **kw)
     want = exact["acc"][:, None] * colour + (1 - exact["acc"][:, None]) * bg
     hit = exact["acc"] > 1e-3
     assert (exact["acc"][hit] < 0.5).any()  # faint rays too

@@ -163,12 +163,12 @@ def test_forward_facing_scene_trains_in_ndc_and_depth_maps_back(tmp_path):
               log_every=50, eval_every=0)  # fmt: skip
     out = train.run(_config(scene_dir, tmp_path / "run", **kw))
     used = json.loads(out.manifest.read_text())["used"]
-    assert used["scene_model"] == "ndc" and used["ndc"]["box"][0][2] == -1.0
+    assert used["scene_model"] == "ndc" and used["space"]["box"][0][2] == -1.0
     # Measured 24.6 dB (the same 400 steps in the scene's box: 22.9 dB).
     assert out.test_psnr is not None and out.test_psnr > 22.0, out.test_psnr
 
     trained = load_trained(tmp_path / "run", "cpu")
-    assert trained.ndc is not None and trained.occupancy is None
+    assert trained.space.name == "ndc" and trained.occupancy is None
     np.testing.assert_allclose(trained.aabb.numpy(), trained.scene.aabb, rtol=1e-6)  # scene frame, not NDC
     view = trained.scene.split("test")[0]
     w = torch.as_tensor(trained.scene.frames[view].world_from_cam, dtype=torch.float64)

@@ -126,8 +126,8 @@ def test_each_kind_of_capture_gets_its_own_rules(tmp_path, layout, kind):
     idx = scene.split("train")
     config = train.Config(scene_dir=scene_dir, run_dir=tmp_path / "run")
     found = resolve_defaults(config, scene, load_views(scene, idx), idx, torch.device("cpu"), 1.0)
-    assert found.scene_model == kind and found.reasons["scene_model"].startswith(kind)
-    assert found.tv == RULES[kind].tv()[0]
+    assert found.space.name == kind and found.reasons["scene_model"].startswith(kind)
+    assert found.tv == RULES[type(found.space)].tv()[0]
     if kind == "ndc":  # the march takes NDC_SAMPLES steps across z' in [-1, 1], whatever the grid
         assert "z'" in found.reasons["step_ratio"] and "image" in found.reasons["resolution"]
         from model.field_model import scene_ndc

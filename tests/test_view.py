@@ -30,7 +30,7 @@ import stages.view as view
 from data.errors import UserError
 from data.video import to_uint8
 from model import load_trained, render_view
-from radiance.render import render_marched, render_marched_terminating
+from radiance.render import Marcher, render_marched
 from stages import scene as scene_stage
 from stages import train
 from stages.view import server as viewer_server
@@ -89,12 +89,13 @@ def test_early_termination_matches_its_plain_twin(trained_run):
     from radiance.camera import generate_rays
 
     o, d = (t.float() for t in generate_rays(intr, torch.as_tensor(_test_camera(trained))))
-    kw = dict(grid=m.grid, sigma_fn=m.field.density, rgb_fn=lambda x, v: m.field.color(x, v), near=m.near, far=m.far,
-              step_size=m.step_size * m.render_step_factor, background=trained.background)  # fmt: skip
+    marcher = Marcher(space=m.space, grid=m.grid, step_size=m.step_size * m.render_step_factor, segment=5)
+    kw = dict(marcher=marcher, sigma_fn=m.field.density, rgb_fn=lambda x, v: m.field.color(x, v),
+              background=trained.background)  # fmt: skip
     with torch.no_grad():
         plain = render_marched(o, d, **kw)
-        exact = render_marched_terminating(o, d, min_transmittance=0.0, segment=5, **kw)
-        fast = render_marched_terminating(o, d, min_transmittance=1e-3, **kw)
+        exact = render_marched(o, d, min_transmittance=0.0, **kw)
+        fast = render_marched(o, d, min_transmittance=1e-3, **kw)
     for key in ("rgb", "acc", "depth"):
         assert torch.allclose(exact[key], plain[key], atol=1e-5), key
     assert (fast["acc"] - plain["acc"]).abs().max() <= 1.1e-3

@@ -50,11 +50,14 @@ def density_function(trained: Any) -> DensityFn:
 
     Calls the run's `Field.density` directly when there is one and the field lives in the scene frame:
     `Trained.density` splits queries into small render-sized chunks, several times slower on a CPU than the
-    large chunks meshing sends. NDC runs go through `Trained.density`, which maps points into NDC.
+    large chunks meshing sends. Runs whose field lives in another space (NDC, contracted) go through
+    `Trained.density`, which maps scene points into it (`radiance.space`).
     """
     occ = getattr(trained, "occupancy", None)
     field = getattr(trained, "field", None)
-    direct = isinstance(field, torch.nn.Module) and hasattr(field, "density") and getattr(trained, "ndc", None) is None
+    space = getattr(getattr(trained, "model", None), "space", None)
+    in_scene_frame = space is None or space.scene_frame  # a stand-in without a space: its field is the scene's
+    direct = isinstance(field, torch.nn.Module) and hasattr(field, "density") and in_scene_frame
     query = field.density if direct else trained.density
     device = field_device(trained)
 

@@ -25,6 +25,7 @@ NeRF paper: 64 stratified + 128 importance samples, coarse and fine networks).
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,10 +34,11 @@ from typing import Literal
 import numpy as np
 import torch
 
+from data.atomic import write_json
 from data.checks import verdict
 from data.errors import Interrupted, UserError
 from data.progress import NO_PROGRESS, Progress
-from data.rundir import MetricsLog, output_folder, write_config, write_manifest
+from data.rundir import MetricsLog, config_to_json, output_folder, write_manifest
 from data.sparse_depth import KEY as SPARSE_KEY
 from data.sparse_depth import read_sparse_depth
 from data.stop import stop_on_signals
@@ -44,11 +46,10 @@ from data.transforms import Scene, read_scene
 from model.appearance import EVAL_RULE as APPEARANCE_EVAL_RULE
 from model.appearance import Appearance
 from model.camera_opt import CameraOpt, CameraSchedule, pivot_depths, pose_report, write_refined_transforms
-from model.checkpoint import read_checkpoint, restore_appearance, restore_background, restore_contraction
+from model.checkpoint import read_checkpoint, restore_appearance, restore_background, restore_space
 from model.device import cpu_threads, resolve_device
-from model.field_model import ModelSettings, build_model, scene_ndc
-from radiance.contraction import Contraction
-from radiance.ndc import NDC
+from model.field_model import ModelSettings, build_model, make_space
+from radiance.space import SPACES, Space
 from stages.train.checks import train_checks
 from stages.train.defaults import resolve_defaults
 from stages.train.loop import DepthRays, Loop, TrainingDiverged, evaluate_psnr, make_optimizer
@@ -194,8 +195,8 @@ class Outputs:
 def _validate(config: Config) -> None:
     if config.field not in ("fast", "vanilla"):
         raise UserError(f"unknown field {config.field!r}: expected fast or vanilla")
-    if config.scene_model not in ("auto", "box", "ndc", "contract"):
-        raise UserError(f"unknown scene model {config.scene_model!r}: expected auto, box, ndc or contract")
+    if config.scene_model != "auto" and config.scene_model not in SPACES:
+        raise UserError(f"unknown scene model {config.scene_model!r}: expected auto, {', '.join(SPACES)}")
     if config.background not in ("auto", "black", "white", "random", "learned"):
         raise UserError(f"unknown background {config.background!r}: expected auto, black, white, random or learned")
     if config.max_steps < 0 or not config.max_seconds > 0:
@@ -271,7 +272,7 @@ def _run(config: Config, progress: Progress) -> Outputs:
     outputs += _refinement_records(loop, scene, train_idx, used, left_out)
     checks = train_checks(rows=loop.metrics.rows, test_psnr=test_psnr, per_view=used["per_view"],
                           occupied=None if loop.model.grid is None else 1.0 - loop.model.grid.skip_fraction,
-                          scene_model=used["scene_model"], pose=used.get("pose_refinement"))  # fmt: skip
+                          object_box=loop.model.space.object_box, pose=used.get("pose_refinement"))  # fmt: skip
     inputs = [scene_path / "transforms.json"] if scene_path.is_dir() else [scene_path]
     manifest = write_manifest(run_dir, stage="train", started=started, inputs=inputs, outputs=outputs, used=used,
                               left_out=left_out, version=VERSION, checkpoint_sha256=loop.ckpt_sha256,
@@ -321,23 +322,20 @@ def _setup(config: Config, progress: Progress) -> tuple[Loop, Scene, Path, dict]
         shares = [views.mask_colour(found.plain_colour) for views in ((train, test) if test is not None else (train,))]
         found.reasons["background"] += (f"; {shares[0]:.1%} of the training pixels (the plain colour's regions "
                                         "that touch the image border) made transparent")  # fmt: skip
-    model_kind, model_reason = found.scene_model, found.reasons["scene_model"]
+    space, model_reason = found.space, found.reasons["scene_model"]
     resolution, step_ratio, tv = found.resolution, found.step_ratio, found.tv
-    if config.distortion > 0 and model_kind != "contract":
+    if config.distortion > 0 and not space.distortion_loss:
         raise UserError(f"--distortion applies to contracted scenes only (this one is {model_reason})")
-    depth_rays, depth_weight, depth_reason = _depth_rays(config, scene, train_idx, model_kind)
+    depth_rays, depth_weight, depth_reason = _depth_rays(config, scene, train_idx, space)
     resolved = dataclasses.replace(config, resolution=resolution, step_ratio=step_ratio, tv=tv, depth_loss=depth_weight,
                                    batch_rays=found.batch_rays, downscale=downscale,
                                    upsample_at=found.upsample_at)  # fmt: skip
     if state is not None:
-        ndc = NDC.from_dict(state["ndc"]) if state.get("ndc") is not None else None
-        contraction, background = restore_contraction(state), restore_background(state, device)
+        space = restore_space(state, lambda kind: make_space(kind, scene))
+        background = restore_background(state, device)
     else:
-        ndc = scene_ndc(scene) if model_kind == "ndc" else None
-        contraction = Contraction(scene.aabb) if model_kind == "contract" else None
         background = found.background
-    model = build_model(_settings(resolved), scene, device, state["field_config"] if state else None, ndc,
-                        contraction, background)  # fmt: skip
+    model = build_model(_settings(resolved), space, device, state["field_config"] if state else None, background)
     eval_px = None
     if test is not None:
         g = torch.Generator().manual_seed(config.seed + 1)
@@ -366,7 +364,7 @@ def _setup(config: Config, progress: Progress) -> tuple[Loop, Scene, Path, dict]
         metrics.load()
         metrics.rows = [r for r in metrics.rows if int(r["step"]) <= step]
     run_dir.mkdir(parents=True, exist_ok=True)
-    write_config(run_dir, resolved)
+    _write_config(run_dir, resolved, scene_path)
     loop = Loop(config=resolved, model=model, opt=opt, base_lr=base_lr, train=train, test=test, eval_px=eval_px,
                 batch_rays=found.batch_rays, gen=gen, device=device, metrics=metrics, ckpt_path=ckpt_path,
                 progress=progress, step=step, seconds_before=seconds_before, lr_factor=lr_factor,
@@ -378,19 +376,28 @@ def _setup(config: Config, progress: Progress) -> tuple[Loop, Scene, Path, dict]
     return loop, scene, scene_path, record
 
 
+def _write_config(run_dir: Path, resolved: Config, scene_path: Path) -> None:
+    """config.json: the resolved Config, its scene folder resolved (absolute) and also relative to the run folder
+    (`scene_from_run`, tried first by `model.trained.load_trained`: a run moved with its scene still finds it)."""
+    scene_abs = scene_path.resolve()
+    doc = {**config_to_json(dataclasses.replace(resolved, scene_dir=scene_abs)),
+           "scene_from_run": os.path.relpath(scene_abs, run_dir.resolve())}  # fmt: skip
+    write_json(run_dir / "config.json", doc)
+
+
 def _depth_rays(config: Config, scene: Scene, train_idx: tuple[int, ...],
-                model_kind: str) -> tuple[DepthRays | None, float, str]:  # fmt: skip
+                space: Space) -> tuple[DepthRays | None, float, str]:  # fmt: skip
     """(rays through the training photos' sparse points or None, the weight, why) for `Config.depth_loss`."""
     if config.depth_loss is not None and not config.depth_loss >= 0:
         raise UserError(f"--depth-loss: expected >= 0, got {config.depth_loss}")
     rel = scene.extra.get(SPARSE_KEY)
     if config.depth_loss == 0:
         return None, 0.0, "off (given)"
-    if rel is None or model_kind != "contract" or config.field != "fast":
+    if rel is None or not space.sparse_depth or config.field != "fast":
         why = (
             f"no {SPARSE_KEY} in transforms.json (sparse points come from COLMAP through convert)"
             if rel is None
-            else f"applies to fast contracted scenes only (this one: {config.field}, {model_kind})"
+            else f"applies to fast contracted scenes only (this one: {config.field}, {space.name})"
         )
         if config.depth_loss is not None:
             raise UserError(f"--depth-loss: {why}")

@@ -59,9 +59,10 @@ def _rise(rows: list[dict]) -> float | None:
 
 
 def train_checks(*, rows: list[dict], test_psnr: float | None, per_view: dict[str, Any] | None,
-                 occupied: float | None, scene_model: str, pose: dict[str, Any] | None) -> list[Check]:  # fmt: skip
+                 occupied: float | None, object_box: bool, pose: dict[str, Any] | None) -> list[Check]:  # fmt: skip
     """The run's checks from its metrics rows, final held-out PSNR, per-view report, occupied cell share (None
-    without a grid), scene model and pose-refinement record (None without refinement)."""
+    without a grid), whether the field's box is the object's own (`radiance.space.Space.object_box`) and the
+    pose-refinement record (None without refinement)."""
     out: list[Check] = []
     if test_psnr is not None:
         out.append(Check.lower("holdout_psnr", test_psnr, HOLDOUT_FLOOR_DB, unit=" dB",
@@ -84,7 +85,7 @@ def train_checks(*, rows: list[dict], test_psnr: float | None, per_view: dict[st
     if occupied is not None:
         out.append(Check.lower("occupied_share_min", occupied, 1e-4,
                                says="the occupancy grid is empty: the field renders nothing"))  # fmt: skip
-        if scene_model == "box":
+        if object_box:
             out.append(Check.upper("occupied_share", occupied, FOG_SHARE,
                                    says="most of the box is occupied: a fog of density rather than an object "
                                         "(the background rule or the box may be wrong)"))  # fmt: skip

@@ -10,9 +10,10 @@ One rule, written once, for both devices:
   every pixel) and are shown on the border's median colour. Decision against the issue's "otherwise learn a
   colour", measured on the forward-facing test scene (48 px, 400 steps): fixed white 24.64 dB, random 24.58 dB,
   learned 21.67 dB (the learned colour went dark and the field transparent).
-- **Scene model** (`--scene-model auto`, `model.field_model.choose_scene_model`): NDC for forward-facing
-  captures, the box for alpha or a plain background, contraction otherwise. It is chosen before the grid, step and
-  priors, which are then each kind's own (`RULES`): no rule measured on one kind of capture applies to another.
+- **Scene model** (`--scene-model auto`, `model.field_model.choose_space`): NDC for forward-facing captures, the
+  box for alpha or a plain background, contraction otherwise (`radiance.space`). The space is made before the
+  grid, step and priors, which are then its kind's own (`RULES`, keyed by the space's class): no rule measured on
+  one kind of capture applies to another.
 - **Box scenes (objects; measured on lego_100, lego_400, the synthetic scenes)**, `BoxRules`: final grid 1.6 x the
   object's size in pixels (the scene box's longest side projected at the median camera distance with the median
   focal length, at most the image's long side), clamped to [96, 300]; the start size is 0.32 x that, clamped to
@@ -50,6 +51,8 @@ import torch
 
 from data.transforms import Scene
 from model.background import Background
+from model.field_model import choose_space, make_space
+from radiance.space import Box, Contracted, NDCSpace, Space
 from stages.train.views import Views
 
 __all__ = [
@@ -76,8 +79,8 @@ PLAIN_TOLERANCE = 4 / 255
 
 @dataclass(frozen=True)
 class Defaults:
-    scene_model: str
-    """box | ndc | contract."""
+    space: Space
+    """The scene space the field lives in (`radiance.space`)."""
     resolution: tuple[int, int]
     step_ratio: float
     tv: float
@@ -153,9 +156,10 @@ def object_size_px(scene: Scene, train_idx: tuple[int, ...]) -> float:
 
 @dataclass(frozen=True)
 class Need:
-    """What a kind's rules read: the scene, its training views' indices, the downscale and the device."""
+    """What a kind's rules read: the scene, its space, its training views' indices, the downscale and the device."""
 
     scene: Scene
+    space: Space
     train_idx: tuple[int, ...]
     downscale: float
     cuda: bool
@@ -165,7 +169,6 @@ class Need:
 class BoxRules:
     """Objects in their box (module doc): measured on lego_100, lego_400 and the synthetic object scenes."""
 
-    kind = "box"
     TV = 0.0
 
     def resolution(self, need: Need) -> tuple[tuple[int, int], str]:
@@ -184,7 +187,6 @@ class BoxRules:
 class ContractRules(BoxRules):
     """Unbounded captures, contracted (module doc): measured on the fox."""
 
-    kind = "contract"
     TV = 0.01
 
     def resolution(self, need: Need) -> tuple[tuple[int, int], str]:
@@ -227,10 +229,8 @@ class NDCRules:
     160. Measured at 300 s in
     docs/BENCH_REAL.md."""
 
-    kind = "ndc"
-
     def resolution(self, need: Need) -> tuple[tuple[int, int], str]:
-        side = _ndc_box_side(need.scene)
+        side = _ndc_box_side(need.space)
         width = float(np.median([need.scene.frame_intrinsics(i).w for i in need.train_idx])) / need.downscale
         r1 = int(min(NDC_MAX, max(NDC_MIN, round(side * width / (2.0 * NDC_PIXELS_PER_VOXEL)))))
         r0 = min(NDC_START, r1)
@@ -239,7 +239,7 @@ class NDCRules:
         return (r0, r1), why
 
     def step_ratio(self, resolution: tuple[int, int], need: Need) -> tuple[float, str]:
-        ratio = (2.0 / NDC_SAMPLES) / (_ndc_box_side(need.scene) / resolution[1])
+        ratio = (2.0 / NDC_SAMPLES) / (_ndc_box_side(need.space) / resolution[1])
         why = f"{NDC_SAMPLES} steps across z' in [-1, 1] (forward-facing)"
         if ratio < NDC_MIN_STEP_VOXELS:
             ratio, why = NDC_MIN_STEP_VOXELS, f"{why}, at least {NDC_MIN_STEP_VOXELS:g} voxel (a coarse grid)"
@@ -249,36 +249,32 @@ class NDCRules:
         return NDC_TV, f"{NDC_TV} for NDC scenes (forward-facing real captures)"
 
 
-def _ndc_box_side(scene: Scene) -> float:
-    """Mean side of the NDC box the field will span (`model.field_model.build_model`'s box), for both NDC rules."""
-    from model.field_model import scene_ndc
-
-    poses = np.stack([f.world_from_cam for f in scene.frames])
-    box = scene_ndc(scene).box(poses, [scene.frame_intrinsics(i) for i in range(len(scene.frames))])
-    return float(np.mean(box[1] - box[0]))
+def _ndc_box_side(space: NDCSpace) -> float:
+    """Mean side of the NDC box the field spans (float64, as `radiance.ndc.NDC.box` gives it), for both NDC rules."""
+    lo, hi = np.asarray(space.box, dtype=np.float64)
+    return float(np.mean(hi - lo))
 
 
-RULES = {"box": BoxRules(), "ndc": NDCRules(), "contract": ContractRules()}
-"""Each kind of scene's grid, step and prior rules."""
+RULES: dict[type[Space], BoxRules | NDCRules] = {Box: BoxRules(), NDCSpace: NDCRules(), Contracted: ContractRules()}
+"""Each kind of scene space's grid, step and prior rules."""
 
 
 def resolve_defaults(config, scene: Scene, views: Views, train_idx, device: torch.device, downscale: float) -> Defaults:
     """The Config's None / auto values resolved from the scene and the device (see the module doc): the
-    background, then the scene model, then that kind's grid, step and priors."""
-    from model.field_model import choose_scene_model
-
+    background, then the scene space, then its kind's grid, step and priors."""
     has_alpha = scene.has_alpha or views.any_transparent()
     background, plain, bg_reason = _background(config.background, views, has_alpha)
     limit = 1600 if device.type == "cuda" else 800
     why = " (asked for)" if config.downscale else f": long side <= {limit} px"
     reasons = {"background": bg_reason, "downscale": f"{downscale:g}{why}"}
     cuda = device.type == "cuda"
-    kind, kind_why = choose_scene_model(config.scene_model, scene, plain_background=plain)
-    if kind == "contract" and config.field != "fast":
-        kind, kind_why = "box", "the vanilla field samples the box only (no contraction)"
-    reasons["scene_model"] = f"{kind}: {kind_why}"
+    kind, kind_why = choose_space(config.scene_model, scene, plain_background=plain)
+    if not kind.straight_rays and config.field != "fast":
+        kind, kind_why = Box, f"the vanilla field samples straight rays in a box (no {kind.name} space)"
+    reasons["scene_model"] = f"{kind.name}: {kind_why}"
+    space = make_space(kind, scene)
     rules = RULES[kind]
-    need = Need(scene=scene, train_idx=tuple(train_idx), downscale=downscale, cuda=cuda,
+    need = Need(scene=scene, space=space, train_idx=tuple(train_idx), downscale=downscale, cuda=cuda,
                 refine_poses=bool(getattr(config, "refine_poses", False)))  # fmt: skip
     if config.resolution is not None:
         resolution, reasons["resolution"] = tuple(config.resolution), "asked for"
@@ -311,6 +307,6 @@ def resolve_defaults(config, scene: Scene, views: Views, train_idx, device: torc
     plain_colour = None
     if config.background == "auto" and plain and not has_alpha:
         plain_colour = tuple(float(v) for v in background.eval_colour())
-    return Defaults(scene_model=kind, resolution=resolution, step_ratio=step_ratio, tv=tv, batch_rays=batch,
+    return Defaults(space=space, resolution=resolution, step_ratio=step_ratio, tv=tv, batch_rays=batch,
                     background=background, plain_background=plain, reasons=reasons, upsample_at=upsample_at,
                     plain_colour=plain_colour)  # fmt: skip

@@ -68,7 +68,6 @@ def used_and_left_out(
     chosen: list[int], test_psnr: float | None,
 ) -> tuple[dict[str, Any], dict[str, str]]:  # fmt: skip
     """The manifest's record of what the run used and what it left out (and why)."""
-    ndc = model.ndc
     peak = torch.cuda.max_memory_allocated() if device.type == "cuda" else None
     used: dict[str, Any] = {
         "batch_rays": batch_rays,
@@ -91,24 +90,9 @@ def used_and_left_out(
         used["occupancy_skip_fraction"] = round(model.grid.skip_fraction, 4)
         used["samples_per_ray"] = round(samples_per_ray, 2)
         used["march_step"] = {"train": model.step_size, "render": model.step_size * model.render_step_factor}
-    used["scene_model"] = "ndc" if ndc is not None else ("contract" if model.contraction is not None else "box")
-    if model.contraction is not None:
-        used["contraction"] = {**model.contraction.to_dict(), "field_box": model.aabb.tolist(),
-                               "note": "field and occupancy grid live in contracted space; the scene's box "
-                                       "maps to [-1, 1]^3 and everything beyond it into the shell up to 2"}  # fmt: skip
-    if ndc is not None:
-        used["ndc"] = {**ndc.to_dict(), "box": model.aabb.tolist(),
-                       "note": "field and occupancy grid live in NDC of the mean camera (radiance.ndc); depths "
-                               "are mapped back to scene units"}  # fmt: skip
-    left_out = {}
-    if ndc is not None:
-        left_out["aabb"] = "forward-facing: the field spans the NDC frustum (near plane to infinity), not the aabb"
-    elif is_forward_facing(scene):
-        left_out["ndc"] = "forward-facing scene trained in its box or contracted because that was asked for"
-    else:
-        left_out["ndc"] = "360-degree scene: NDC only applies to forward-facing captures"
-    if ndc is None and model.contraction is None:
-        left_out["contraction"] = "the scene's box holds everything the photos show (alpha or a plain background)"
+    used["scene_model"] = model.space.name
+    used["space"] = model.space.describe()
+    left_out = model.space.left_out(is_forward_facing(scene))
     if not test_idx:
         left_out["test_psnr"] = "scene has no test or val split"
     if model.grid is None:
