@@ -1,10 +1,11 @@
 """Outputs before and after a refactor (issue 28): the chain a user runs, hashed file by file.
 
 Per scene space a tiny `nerfpipe scene` (posed, 40 px, 16 views; layout orbit -> box, forward -> ndc, room ->
-contract), then `convert`, `train --max-steps STEPS --threads 1 --seed 0`, `render --path test`, `depth`, `eval`
-and `mesh`, and a vanilla-field box run (a tenth of the steps, 64 rays a batch: its steps cost ~100x). Every file each stage writes is hashed (sha256); JSON files are also
-kept whole so that a difference can be read, not only seen. `--compare A.json` prints the files whose hash
-differs from an earlier run of this script, with the JSON keys that differ.
+contract), then `convert`, `train --max-steps STEPS --threads 1 --seed 0`, `render --path test`, `depth`, `eval` and
+`mesh`, and a vanilla-field box run (a tenth of the steps, 64 rays a batch: its steps cost ~100x). Every file each
+stage writes is hashed (sha256); JSON files are also kept whole so that a difference can be read, not only seen.
+`--compare A.json` prints the files whose hash differs from an earlier run of this script, with the JSON keys that
+differ.
 
 Run:  .venv/bin/python -m benchmarks.identity --out runs/identity/before
       .venv/bin/python -m benchmarks.identity --out runs/identity/after --compare runs/identity/before/hashes.json

@@ -2,9 +2,10 @@
 product code): an analytic stand-in for a trained run, and the visibility of points in the synthetic scene
 (`stages.scene`) for fair Chamfer distances.
 
-`StandIn` has the attributes `stages.mesh.extract` reads from a trained run (`model.Trained`): `density`,
-`color`, `aabb`, `occupancy` (None), `scene`, `device`. The object is a union of a sphere and a box
-(optionally plus a small floating ball) given by a signed distance `sdf` in the scene frame; the density is
+`StandIn` has the attributes `stages.mesh.extract` reads from a trained run (`model.Trained`): `density`, `color`,
+`aabb`, `occupancy` (None), `scene`, `device`, `space` (a box in the scene frame). The object is a union of a sphere
+and a box (optionally plus a small floating ball) given by a signed distance `sdf` in the scene frame; the density
+is
     sigma(x) = sigma_max * sigmoid(-sdf(x) / eps),   sigma_max = 1 / eps,
 so a ray hitting the surface head-on accumulates optical depth ln 2 (opacity 0.5) exactly at sdf = 0, where
 sigma = sigma_max / 2: the auto threshold should find ~sigma_max / 2 and the iso-surface is the exact surface.
@@ -24,6 +25,7 @@ from torch import Tensor
 from data.transforms import Frame, Scene
 from radiance.camera import Intrinsics, project
 from radiance.paths import look_at
+from radiance.space import Box
 
 Z_UP = np.array([0.0, 0.0, 1.0])
 
@@ -65,6 +67,8 @@ class StandIn:
         self.aabb = torch.tensor([[-1.0] * 3, [1.0] * 3])
         self.occupancy = None
         self.device = torch.device("cpu")
+        lo, hi = self.aabb.tolist()
+        self.space = Box(aabb=(tuple(lo), tuple(hi)), near=0.0, far=math.inf)  # the analytic field is the scene's
         rot = _rotation([1.0, 2.0, 3.0], 40.0) @ (np.diag([1.0, 1.0, -1.0]) if mirror else np.eye(3))
         applied = np.concatenate([rot, np.array([[0.3], [-0.2], [0.5]])], axis=1)  # [3, 4]
         frames = []

@@ -29,6 +29,7 @@ from data.errors import UserError
 from data.transforms import Scene, is_forward_facing
 from radiance import paths
 from radiance.camera import Intrinsics, generate_rays
+from radiance.space import Space
 
 __all__ = [
     "PATHS", "OPAQUE", "Renderable", "render_view", "training_intrinsics", "CameraPath", "camera_path",
@@ -47,12 +48,26 @@ OPAQUE = 0.5
 
 
 class Renderable(Protocol):
-    """What rendering needs of a trained run (`model.load_trained(...)`; see docs/DESIGN.md)."""
+    """What the stages use of a trained run (`model.load_trained(...)` -> `model.trained.Trained`; test stand-ins
+    provide the same): its scene (refined cameras for --refine-poses runs), evaluation background, device,
+    resolved config.json, pose-refinement record (or None), appearance codes (or None), scene space
+    (`radiance.space`), and rays rendered in chunks (`Trained.render_rays`)."""
 
     scene: Scene
     background: torch.Tensor
+    device: torch.device
+    run_config: dict
+    pose_refinement: dict | None
 
-    def render_rays(self, rays_o: torch.Tensor, rays_d: torch.Tensor) -> dict[str, torch.Tensor]: ...
+    @property
+    def appearance(self) -> Any: ...
+
+    @property
+    def space(self) -> Space: ...
+
+    def render_rays(
+        self, rays_o: torch.Tensor, rays_d: torch.Tensor, *, infer: Any = ..., median: bool = True
+    ) -> dict[str, torch.Tensor]: ...
 
 
 @torch.no_grad()

@@ -90,6 +90,10 @@ class Inference:
     depth and eval use)."""
 
 
+EXACT = Inference()
+"""Inference's default: rays stop once less than the dtype's epsilon of the light gets through."""
+
+
 def _render_fast(
     field: TensoRF,
     marcher: Marcher,

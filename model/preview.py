@@ -32,22 +32,9 @@ on lego_400 at 256 px the coarse preview is 44.9 dB from the refined one with it
 @torch.no_grad()
 def preview_rays(trained: Renderable, rays_o: torch.Tensor, rays_d: torch.Tensor, *, coarse: bool = False) -> dict:
     """rays [R, 3] (unit d) -> dict(rgb [R, 3], depth [R] (expected t), acc [R]) on the run's device."""
-    model = getattr(trained, "model", None)
-    if model is None or model.kind != "fast" or model.grid is None:
-        out = trained.render_rays(rays_o, rays_d)
-        return {k: out[k] for k in ("rgb", "depth", "acc")}
     infer = Inference(min_transmittance=MIN_TRANSMITTANCE, step_scale=COARSE_STEP if coarse else 1.0,
                       color_keep=COARSE_COLOR_KEEP if coarse else None)  # fmt: skip
-    parts: dict[str, list[torch.Tensor]] = {"rgb": [], "depth": [], "acc": []}
-    for i in range(0, rays_o.shape[0], model.chunk):
-        o = rays_o[i : i + model.chunk].to(trained.device, torch.float32)
-        d = rays_d[i : i + model.chunk].to(trained.device, torch.float32)
-        out = model.render(o, d, trained.background, train=False, infer=infer)
-        if "rgb" not in out:
-            out["rgb"] = trained.background.to(o).expand(o.shape[0], 3)
-        for k in parts:
-            parts[k].append(out[k])
-    return {k: torch.cat(v) for k, v in parts.items()}
+    return trained.render_rays(rays_o, rays_d, infer=infer, median=False)
 
 
 def render_preview(trained: Renderable, intr: Intrinsics, world_from_cam: np.ndarray, *, coarse: bool = False):
@@ -55,7 +42,7 @@ def render_preview(trained: Renderable, intr: Intrinsics, world_from_cam: np.nda
     pose = torch.as_tensor(np.asarray(world_from_cam, dtype=np.float64))
     rays_o, rays_d = generate_rays(intr, pose)  # float64 [R, 3]
     cos = (rays_d @ -pose[:3, 2]).to(torch.float32).reshape(intr.h, intr.w).numpy()  # t -> z-depth
-    device = getattr(trained, "device", torch.device("cpu"))
+    device = trained.device
     out = preview_rays(trained, rays_o.to(device, torch.float32), rays_d.to(device, torch.float32), coarse=coarse)
 
     def grab(key: str, shape: tuple[int, ...]) -> np.ndarray:

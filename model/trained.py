@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,10 +23,11 @@ from torch import Tensor
 
 from data.errors import UserError
 from data.transforms import Scene, read_scene
+from model.appearance import Appearance
 from model.camera_opt import TEST_POSE_RULE, refined_scene
 from model.checkpoint import read_checkpoint, restore_appearance, restore_background, restore_space
 from model.device import resolve_device
-from model.field_model import FieldModel, ModelSettings, build_model, make_space
+from model.field_model import EXACT, FieldModel, Inference, ModelSettings, build_model, make_space
 from radiance.fields import Field
 from radiance.occupancy import OccupancyGrid
 from radiance.space import Space
@@ -56,22 +59,41 @@ class Trained:
     def chunk(self) -> int:
         return self.model.chunk
 
+    @property
+    def appearance(self) -> Appearance | None:
+        """The run's per-image appearance codes (train --appearance), None without."""
+        return self.model.appearance
+
+    @contextmanager
+    def appearance_off(self) -> Iterator[None]:
+        """Render without the appearance codes inside the block (eval's half rule fits a code to a plain render)."""
+        kept, self.model.appearance = self.model.appearance, None
+        try:
+            yield
+        finally:
+            self.model.appearance = kept
+
     @torch.no_grad()
-    def render_rays(self, rays_o: Tensor, rays_d: Tensor) -> dict[str, Tensor]:
-        """rays_o, rays_d [R, 3] (unit) -> dict(rgb [R, 3], depth [R] (expected t), depth_median [R], acc [R]).
+    def render_rays(
+        self, rays_o: Tensor, rays_d: Tensor, *, infer: Inference = EXACT, median: bool = True
+    ) -> dict[str, Tensor]:
+        """rays_o, rays_d [R, 3] (unit) -> dict(rgb [R, 3], depth [R] (expected t), acc [R], and with `median`
+        depth_median [R]).
 
         depth is sum(w t) / acc; depth_median the t where the accumulated weight reaches 0.5 (inf when the
-        ray never reaches it). Missing colour (density-only field) gives rgb = background.
+        ray never reaches it). Missing colour (density-only field) gives rgb = background. `infer`: how a fast
+        field stops its rays (`model.field_model.Inference`; the default is exact to float32's epsilon).
         """
         if rays_o.shape != rays_d.shape or rays_o.ndim != 2 or rays_o.shape[-1] != 3:
             raise ValueError(f"expected rays_o, rays_d [R, 3], got {tuple(rays_o.shape)}, {tuple(rays_d.shape)}")
-        parts: dict[str, list[Tensor]] = {k: [] for k in ("rgb", "depth", "depth_median", "acc")}
+        keys = ("rgb", "depth", "depth_median", "acc") if median else ("rgb", "depth", "acc")
+        parts: dict[str, list[Tensor]] = {k: [] for k in keys}
         for i in range(0, rays_o.shape[0], self.chunk):
             o = rays_o[i : i + self.chunk].to(self.device, torch.float32)
             d = rays_d[i : i + self.chunk].to(self.device, torch.float32)
-            out = self.model.render(o, d, self.background, train=False, median=True)
+            out = self.model.render(o, d, self.background, train=False, median=median, infer=infer)
             if "rgb" not in out:
-                out["rgb"] = self.background.expand(o.shape[0], 3)
+                out["rgb"] = self.background.to(o).expand(o.shape[0], 3)
             for k in parts:
                 parts[k].append(out[k])
         return {k: torch.cat(v) if v else torch.zeros(0, device=self.device) for k, v in parts.items()}
@@ -166,5 +188,6 @@ def _read_run_scene(run_dir: Path, doc: dict) -> Scene:
     try:
         return read_scene(found)
     except UserError as exc:
-        raise UserError(f"{run_dir}: the run's scene cannot be read (looked in {', '.join(map(str, tried))}): "
-                        f"{exc}") from None
+        raise UserError(
+            f"{run_dir}: the run's scene cannot be read (looked in {', '.join(map(str, tried))}): {exc}"
+        ) from None

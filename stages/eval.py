@@ -219,7 +219,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     task = progress.add_task(f"eval {split}", total=len(idx))
     if config.downscale is not None and not config.downscale >= 1:
         raise UserError(f"--downscale: expected >= 1, got {config.downscale}")
-    downscale = config.downscale or float(getattr(trained, "run_config", {}).get("downscale") or 1.0)
+    downscale = config.downscale or float(trained.run_config.get("downscale") or 1.0)
     if config.appearance_rule not in APPEARANCE_RULES:
         raise UserError(
             f"--appearance-rule: expected one of {', '.join(APPEARANCE_RULES)}, got {config.appearance_rule!r}"
@@ -227,14 +227,14 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     half = config.appearance_rule == "half"
     if config.test_pose_steps is not None and config.test_pose_steps < 0:
         raise UserError(f"--test-pose-steps: expected >= 0, got {config.test_pose_steps}")
-    refined_run = getattr(trained, "pose_refinement", None) is not None
+    refined_run = trained.pose_refinement is not None
     pose_steps = (TEST_POSE_STEPS if config.test_pose_steps is None else config.test_pose_steps) if refined_run else 0
     if pose_steps:
         from model.camera_opt import TEST_POSE_OPT_RULE, optimise_test_pose
     bg_t = torch.as_tensor(background, dtype=torch.float32, device=device)
     test_pose_moves: list[dict[str, float]] = []
     centre = np.asarray(scene.aabb, dtype=np.float64).mean(0)  # test-pose corrections turn about its depth
-    has_appearance = getattr(getattr(trained, "model", None), "appearance", None) is not None
+    has_appearance = trained.appearance is not None
     for k, i in enumerate(idx):
         photo = load_masked_image(scene, i)  # masked-out pixels transparent, as in training (data.masks)
         if downscale != 1.0:
@@ -278,7 +278,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         "lpips": _mean([v["lpips"] for v in views]) if lpips_fn else None, "lpips_unavailable": lpips_reason,
         "rays_per_second": rendered_px / max(render_seconds, 1e-9), "render_seconds": render_seconds,
         "device": str(device), "downscale": downscale, "views": views,
-        "test_poses": (TEST_POSE_OPT_RULE if pose_steps else (getattr(trained, "pose_refinement", None) or {}).get(
+        "test_poses": (TEST_POSE_OPT_RULE if pose_steps else (trained.pose_refinement or {}).get(
             "test_poses", "as in transforms.json (no pose refinement)")),
         "test_pose_optimisation": {"steps": pose_steps, "median_rotation_deg": float(np.median(
             [m["rotation_deg"] for m in test_pose_moves])), "median_translation": float(np.median(
@@ -343,14 +343,11 @@ def self_checks(psnr_value: float | None, train: tuple[float, str] | None) -> li
 def _render_scored(trained, intr, pose, device, photo: np.ndarray, half: bool, background: np.ndarray) -> dict:
     """render_view; with the half rule and appearance codes, the view rendered without appearance, its code
     fitted on the left half of `photo` [H, W, 3] (`model.appearance.fit_code`) and its transform applied."""
-    app = getattr(getattr(trained, "model", None), "appearance", None)
+    app = trained.appearance
     if not half or app is None:
         return render_view(trained, intr, pose, device)
-    trained.model.appearance = None
-    try:
+    with trained.appearance_off():
         view = render_view(trained, intr, pose, device)
-    finally:
-        trained.model.appearance = app
     h, w = view["acc"].shape
     rgb = torch.from_numpy(view["rgb"]).reshape(-1, 3).to(device)
     acc = torch.from_numpy(view["acc"]).reshape(-1).to(device)

@@ -103,8 +103,8 @@ def test_far_background_is_rendered_at_world_distance():
 
 
 def test_contracted_terminating_matches_its_plain_twin():
-    """render_marched with early termination against its plain twin in a contracted space: equal without termination, within
-    min_transmittance with it, with fewer densities evaluated, on an opaque ball in front of a far shell."""
+    """render_marched with early termination against its plain twin in a contracted space: equal without
+    termination, within min_transmittance with it, with fewer densities evaluated, on an opaque ball in front of a far shell."""
     c = Contraction([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
     counted = []
 

@@ -7,19 +7,19 @@ import pytest
 import torch
 
 from radiance.occupancy import OccupancyGrid
-from radiance.space import Box
 from radiance.render import (
     PER_RAY_KEYS,
+    ColourRule,
+    Marcher,
     StratifiedSampler,
     chunked,
     render_attenuation,
     render_depth,
-    ColourRule,
-    Marcher,
     render_marched,
     render_rays,
     render_rays_hierarchical,
 )
+from radiance.space import Box
 
 RADIUS, MU = 0.7, 2.0
 
@@ -217,8 +217,8 @@ def test_marched_density_only_budget_jitter_and_empty_grid():
         return blob_rgb(x, d_)
 
     kw = dict(marcher=box_marcher(grid), sigma_fn=blob_sigma, with_median=True)
-    colour = render_marched(o, d, rgb_fn=rgb_fn, colour=ColourRule(per_ray=2.0), jitter=torch.Generator().manual_seed(1),
-                            **kw)  # fmt: skip
+    gen = torch.Generator().manual_seed(1)
+    colour = render_marched(o, d, rgb_fn=rgb_fn, colour=ColourRule(per_ray=2.0), jitter=gen, **kw)
     assert seen[0] <= 2 * 32 < colour["ray_indices"].numel()  # colour only at the batch's 64 largest weights
     dens = render_marched(o, d, rgb_fn=None, jitter=torch.Generator().manual_seed(1), **kw)
     assert "rgb" not in dens

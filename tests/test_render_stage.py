@@ -25,6 +25,7 @@ from model import camera_path, render_view
 from radiance import paths
 from radiance.camera import Intrinsics
 from radiance.metrics import psnr
+from radiance.space import Box
 
 SPHERE_RADIUS = 0.5  # scene units
 BACKGROUND = (1.0, 1.0, 1.0)
@@ -37,8 +38,13 @@ class SphereRun:
     scene: Scene
     background: torch.Tensor = torch.tensor(BACKGROUND)
     miss_depth: float = 10.0
+    device: torch.device = torch.device("cpu")
+    run_config: dict = dataclasses.field(default_factory=dict)
+    pose_refinement: dict | None = None
+    appearance: None = None
+    space: Box = Box(aabb=((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)), near=0.0, far=math.inf)  # rays never stop early
 
-    def render_rays(self, rays_o, rays_d):
+    def render_rays(self, rays_o, rays_d, *, infer=None, median=True):
         b = (rays_o * rays_d).sum(-1)
         c = (rays_o * rays_o).sum(-1) - SPHERE_RADIUS**2
         disc = b * b - c

@@ -55,9 +55,7 @@ def density_function(trained: Any) -> DensityFn:
     """
     occ = getattr(trained, "occupancy", None)
     field = getattr(trained, "field", None)
-    space = getattr(getattr(trained, "model", None), "space", None)
-    in_scene_frame = space is None or space.scene_frame  # a stand-in without a space: its field is the scene's
-    direct = isinstance(field, torch.nn.Module) and hasattr(field, "density") and in_scene_frame
+    direct = isinstance(field, torch.nn.Module) and hasattr(field, "density") and trained.space.scene_frame
     query = field.density if direct else trained.density
     device = field_device(trained)
 
