@@ -161,7 +161,6 @@ def _render_vanilla(
         rays_o, rays_d, near=t_near, far=t_far, n_fine=field.n_fine, background=background,
         coarse_sampler=StratifiedSampler(n_samples=field.n_coarse, jitter=jitter, generator=generator),
         coarse_fn=_rgb_sigma(field.coarse, field.view_dependent), fine_fn=_rgb_sigma(field.fine, field.view_dependent),
-        jitter=jitter, generator=generator,
     )  # fmt: skip
     out["rgb_coarse"] = out["coarse"]["rgb"]
     out["samples"] = torch.tensor(float(out["coarse"]["t_starts"].numel() + out["t_starts"].numel()))

@@ -192,16 +192,16 @@ def render_rays_hierarchical(
     coarse_fn: RgbSigmaFn,
     fine_fn: RgbSigmaFn,
     background: Tensor | None = None,
-    jitter: bool = False,
-    generator: torch.Generator | None = None,
 ) -> dict:
     """Vanilla NeRF: a coarse pass, then the fine field on the coarse edges plus n_fine edges drawn
-    from the coarse weights. Returns the fine pass's dict with the coarse pass's under "coarse"."""
+    from the coarse weights (jittered, and from the generator, as the coarse sampler is). Returns the fine pass's
+    dict with the coarse pass's under "coarse"."""
     samples = _sample(rays_o, rays_d, near, far, coarse_sampler)
     coarse = _composite_samples(rays_o, rays_d, samples, coarse_fn, background)
     t_starts, t_ends = resample_intervals(
-        samples.t_starts, samples.t_ends, coarse["weights"].detach(), n_fine, jitter=jitter, generator=generator
-    )
+        samples.t_starts, samples.t_ends, coarse["weights"].detach(), n_fine, jitter=coarse_sampler.jitter,
+        generator=coarse_sampler.generator,
+    )  # fmt: skip
     fine = _composite_samples(rays_o, rays_d, Samples(t_starts, t_ends, None, samples.n_rays), fine_fn, background)
     return {**fine, "coarse": coarse}
 

@@ -90,7 +90,7 @@ def test_hierarchical_sampling_concentrates_near_the_surface():
     gen = torch.Generator().manual_seed(0)
     out = render_rays_hierarchical(
         o, d, near=1.5, far=3.5, coarse_sampler=StratifiedSampler(n_samples=16, jitter=True, generator=gen),
-        n_fine=32, coarse_fn=sphere_rgb_sigma, fine_fn=sphere_rgb_sigma, jitter=True, generator=gen,
+        n_fine=32, coarse_fn=sphere_rgb_sigma, fine_fn=sphere_rgb_sigma,
     )  # fmt: skip
     assert out["t_starts"].shape == (8, 48) and out["coarse"]["t_starts"].shape == (8, 16)
     torch.testing.assert_close(out["t_starts"][:, 1:], out["t_ends"][:, :-1])
