@@ -11,6 +11,8 @@ written once, in the Config:
   `tuple[int, ...]`, `tuple[float, float]`, ... -> comma-separated text (`--downscales 2,4,8`);
   `D | None` with D a dataclass and a non-None default -> `--x/--no-x` (`--no-x` passes None: mesh cleanup);
 - the few fields a rule cannot read from text use the stage's own parser (`PARSERS`);
+- an options group nested in the Config and named in `GROUPS` (train's `fast` and `refine`) is spelt flat: its
+  fields are options in its place, and the group is built back from them;
 - anything else (callables, nested dataclasses) has no option and keeps its Config default.
 
 Lazy commands (decision): importing a stage imports torch (seconds), so `nerfpipe --help` must not import any.
@@ -51,7 +53,7 @@ from typer.core import TyperCommand, TyperGroup
 
 from data.errors import UserError
 
-__all__ = ["PARSERS", "STAGES", "Stage", "app", "config_from_args", "main", "skipped_fields"]
+__all__ = ["GROUPS", "PARSERS", "STAGES", "Group", "Stage", "app", "config_from_args", "main", "skipped_fields"]
 
 
 # ---------------------------------------------------------------------------------------------- summaries
@@ -164,6 +166,25 @@ PARSERS: dict[tuple[str, str], tuple[str, str]] = {
     ("mesh", "threshold"): ("parse_threshold", "<auto|float>"),
     ("mesh", "bbox"): ("parse_bbox", "<auto|x0,y0,z0,x1,y1,z1>"),
     ("xray-export", "iso"): ("parse_iso", "<auto|float>"),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Group:
+    """How an options dataclass nested in a stage's Config is spelt on the command line: each of its fields is an
+    option in the group's place, named as the field (or as `names` says). With `switch`, the group is `X | None =
+    None`: `--switch` (helped by the group field's docstring) builds it from its options, without it the group
+    is None and giving one of its options is an error."""
+
+    switch: str | None = None
+    names: Mapping[str, str] = dataclasses.field(default_factory=dict)
+
+
+# (command, Config field) -> how the options group in that field is spelt: train's flags stay flat (`--resolution`,
+# `--refine-poses --refine-focal --camera-lr`) while its Config groups them by mode (`stages.train.config`).
+GROUPS: dict[tuple[str, str], Group] = {
+    ("train", "fast"): Group(),
+    ("train", "refine"): Group(switch="refine_poses", names={"focal": "refine_focal"}),
 }
 
 
@@ -320,9 +341,24 @@ def _stage_params(command: str) -> tuple[types.ModuleType, tuple[_Param, ...]]:
     hints, docs = typing.get_type_hints(config_cls), _field_docs(config_cls)
     params = []
     for f in dataclasses.fields(config_cls):
-        if f.init and (p := _param(command, module, f, hints[f.name], docs.get(f.name, ""))) is not None:
+        if (command, f.name) in GROUPS:
+            params += _group_params(command, module, f, hints[f.name], docs.get(f.name, ""))
+        elif f.init and (p := _param(command, module, f, hints[f.name], docs.get(f.name, ""))) is not None:
             params.append(p)
     return module, tuple(params)
+
+
+def _group_params(command: str, module: types.ModuleType, f: dataclasses.Field, hint: Any, doc: str) -> list[_Param]:
+    """The options of a group in `GROUPS`: its switch (if any), then one per field of the group's dataclass."""
+    group, (cls, _) = GROUPS[command, f.name], _unwrap_optional(hint)
+    hints, docs = typing.get_type_hints(cls), _field_docs(cls)
+    params = []
+    if group.switch is not None:
+        params.append(_Param(group.switch, Annotated[bool, typer.Option(help=_first_sentence(doc))], False))
+    for g in dataclasses.fields(cls):
+        if (p := _param(command, module, g, hints[g.name], docs.get(g.name, ""))) is not None:
+            params.append(dataclasses.replace(p, name=group.names.get(g.name, g.name)))
+    return params
 
 
 def skipped_fields(command: str) -> list[str]:
@@ -334,7 +370,26 @@ def skipped_fields(command: str) -> list[str]:
 def _make_config(command: str, values: Mapping[str, Any]) -> Any:
     module, params = _stage_params(command)
     kwargs = {p.name: p.to_config(values[p.name]) for p in params}
-    return module.Config(**{k: v for k, v in kwargs.items() if v is not _KEEP})
+    kwargs = {k: v for k, v in kwargs.items() if v is not _KEEP}
+    hints = typing.get_type_hints(module.Config)
+    for (cmd, name), group in GROUPS.items():
+        if cmd == command:
+            kwargs[name] = _make_group(group, _unwrap_optional(hints[name])[0], kwargs)
+    return module.Config(**kwargs)
+
+
+def _make_group(group: Group, cls: type, kwargs: dict[str, Any]) -> Any:
+    """The group's dataclass from its options (taken out of kwargs); None when its switch is off, UserError when
+    one of its options was given then."""
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    values = {n: kwargs.pop(group.names.get(n, n)) for n in fields if group.names.get(n, n) in kwargs}
+    if group.switch is None or kwargs.pop(group.switch):
+        return cls(**values)
+    given = [group.names.get(n, n) for n, v in values.items() if v != _default(fields[n])]
+    if given:
+        flags = ", ".join(f"--{n.replace('_', '-')}" for n in given)
+        raise UserError(f"{flags} {'needs' if len(given) == 1 else 'need'} --{group.switch.replace('_', '-')}")
+    return None
 
 
 # ---------------------------------------------------------------------------------------------- running a stage

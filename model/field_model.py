@@ -63,11 +63,13 @@ class ModelSettings:
 
     @classmethod
     def from_config(cls, doc: dict[str, Any], where: str) -> ModelSettings:
-        """From a run's config.json (train's resolved Config); UserError naming a missing key."""
+        """From a run's config.json (train's resolved Config: the fast field's options under "fast"; runs from
+        before that grouping hold them at the top level); UserError naming a missing key."""
         try:
-            return cls(field=str(doc["field"]), resolution=(int(doc["resolution"][0]), int(doc["resolution"][1])),
-                       step_ratio=float(doc["step_ratio"]), occupancy_resolution=int(doc["occupancy_resolution"]),
-                       render_step_factor=float(doc["render_step_factor"]),
+            fast = doc["fast"] if "fast" in doc else doc
+            return cls(field=str(doc["field"]), resolution=(int(fast["resolution"][0]), int(fast["resolution"][1])),
+                       step_ratio=float(fast["step_ratio"]), occupancy_resolution=int(fast["occupancy_resolution"]),
+                       render_step_factor=float(fast["render_step_factor"]),
                        view_dependent=doc.get("view_dependent"))  # fmt: skip
         except (KeyError, TypeError, ValueError, IndexError) as exc:
             raise UserError(

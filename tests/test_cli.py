@@ -164,7 +164,7 @@ def test_options_reach_the_config():
     assert (config.field, config.lr, config.view_dependent) == ("vanilla", 0.01, False)
     assert cli.config_from_args("convert", ["src", "s", "--downscales", "3,5", "--no-normalize"]).downscales == (3, 5)
     assert cli.config_from_args("convert", ["src", "s", "--downscales", ""]).downscales == ()
-    assert cli.config_from_args("train", ["s", "r", "--resolution", "8, 16"]).resolution == (8, 16)
+    assert cli.config_from_args("train", ["s", "r", "--resolution", "8, 16"]).fast.resolution == (8, 16)
     report = cli.config_from_args("report", ["a", "b", "o", "--levels", "21.5,30", "--labels", "x,y"])
     assert report.levels == (21.5, 30.0) and report.labels == ("x", "y")
     assert cli.config_from_args("render", ["r", "v.mp4", "--outputs", "rgb,depth"]).outputs == ("rgb", "depth")

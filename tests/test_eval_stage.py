@@ -178,8 +178,8 @@ def test_short_training_gives_depth_near_ground_truth(tmp_path):
     scene_dir = tmp_path / "posed"
     scene_stage.run(scene_stage.Config(out_dir=scene_dir, kind="posed", size=32, views=16, seed=1))
     train.run(train.Config(scene_dir=scene_dir, run_dir=tmp_path / "run", max_steps=STEPS, max_seconds=600.0,
-                           batch_rays=512, resolution=(24, 48), occupancy_resolution=32, log_every=50, eval_every=0,
-                           eval_pixels=256, device="cpu"))  # fmt: skip
+                           batch_rays=512, fast=train.FastOptions(resolution=(24, 48), occupancy_resolution=32),
+                           log_every=50, eval_every=0, eval_pixels=256, device="cpu"))  # fmt: skip
     doc = eval_stage.run(eval_stage.Config(run_dir=tmp_path / "run", out=tmp_path / "eval.json",
                                            ground_truth=scene_dir, device="cpu")).result  # fmt: skip
     assert KEYS <= set(doc)

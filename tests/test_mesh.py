@@ -272,7 +272,8 @@ def test_short_training_meshes_near_the_ground_truth(tmp_path):
     convert.run(convert.Config(source=tmp_path / "src", scene_dir=tmp_path / "scene"))
     # step-bound (not time-bound), as in test_train: a loaded machine makes it slower, not flaky
     train.run(train.Config(scene_dir=tmp_path / "scene", run_dir=tmp_path / "run", max_steps=TRAIN_STEPS,
-                           max_seconds=600.0, batch_rays=256, resolution=(24, 48), occupancy_resolution=32,
+                           max_seconds=600.0, batch_rays=256,
+                           fast=train.FastOptions(resolution=(24, 48), occupancy_resolution=32),
                            log_every=50, eval_every=0, final_eval_views=1, device="cpu"))  # fmt: skip
     out = mesh.run(mesh.Config(run_dir=tmp_path / "run", out=tmp_path / "mesh.glb", resolution=48))
     report = json.loads(out.report.read_text())

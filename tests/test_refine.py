@@ -313,11 +313,14 @@ def tiny(tmp_path_factory) -> tuple[Path, Path]:
     return root / "exact", perturb_scene(root / "exact", root / "perturbed", 3.0, 0.03)
 
 
+TINY_GRID = train.FastOptions(resolution=(16, 24), occupancy_resolution=16)
+REFINE = train.RefineOptions()
+
+
 def tiny_config(scene_dir: Path, run_dir: Path, **kw) -> train.Config:
     """A few-step CPU train config on a tiny grid (test_appearance uses it too)."""
     base = dict(scene_dir=scene_dir, run_dir=run_dir, max_steps=3, max_seconds=600.0, batch_rays=256,
-                resolution=(16, 24), occupancy_resolution=16, log_every=1, eval_every=0, final_eval_views=1,
-                device="cpu", threads=1)  # fmt: skip
+                fast=TINY_GRID, log_every=1, eval_every=0, final_eval_views=1, device="cpu", threads=1)  # fmt: skip
     base.update(kw)
     return train.Config(**base)
 
@@ -329,13 +332,13 @@ def _losses(run_dir: Path) -> list[str]:
 def test_off_by_default_and_identity_at_start(tiny, tmp_path):
     """Defaults: no corrections in the checkpoint, the manifest says why. Switched on, the first step's loss is
     the default run's (corrections start at zero and wait for the warm-up delay)."""
-    assert not train.Config(scene_dir=Path("s"), run_dir=Path("r")).refine_poses
+    assert train.Config(scene_dir=Path("s"), run_dir=Path("r")).refine is None
     off = train.run(tiny_config(tiny[1], tmp_path / "off"))
     state = torch.load(off.checkpoint, weights_only=True)
     assert state["camera_opt"] is None
     assert "pose_refinement" in json.loads(off.manifest.read_text())["left_out"]
     assert not (tmp_path / "off" / "transforms.json").exists()
-    on = train.run(tiny_config(tiny[1], tmp_path / "on", refine_poses=True))
+    on = train.run(tiny_config(tiny[1], tmp_path / "on", refine=REFINE))
     assert float(_losses(tmp_path / "on")[0]) == pytest.approx(float(_losses(tmp_path / "off")[0]), rel=1e-5)
     assert on.steps == off.steps
 
@@ -345,12 +348,12 @@ def test_refinement_trains_coarse_to_fine_by_default(tiny, tmp_path):
     grid terms); without it the defaults are as before; asked-for values win."""
     from stages.train.defaults import REFINE_UPSAMPLE_AT, UPSAMPLE_AT
 
-    kw = dict(resolution=None, max_steps=1)
+    auto = train.FastOptions(occupancy_resolution=16)
+    asked = train.FastOptions(upsample_at=(0.1,), resolution=(16, 24), occupancy_resolution=16)
     configs = {}
-    for name, extra in (("off", {}), ("on", {"refine_poses": True}),
-                        ("asked", {"refine_poses": True, "upsample_at": (0.1,), "resolution": (16, 24)})):  # fmt: skip
-        train.run(tiny_config(tiny[1], tmp_path / name, **{**kw, **extra}))
-        configs[name] = json.loads((tmp_path / name / "config.json").read_text())
+    for name, extra in (("off", {}), ("on", {"refine": REFINE}), ("asked", {"refine": REFINE, "fast": asked})):
+        train.run(tiny_config(tiny[1], tmp_path / name, **{"fast": auto, "max_steps": 1, **extra}))
+        configs[name] = json.loads((tmp_path / name / "config.json").read_text())["fast"]
     r1 = configs["off"]["resolution"][1]
     assert configs["off"]["resolution"][0] == 64 and tuple(configs["off"]["upsample_at"]) == UPSAMPLE_AT
     assert configs["on"]["resolution"] == [max(16, round(r1 / 4)), r1]
@@ -366,7 +369,7 @@ def test_perturbed_poses_are_recovered(tiny, tmp_path):
     truth = np.stack([exact.frames[i].world_from_cam for i in idx])
     before = pose_errors(np.stack([perturbed.frames[i].world_from_cam for i in idx]), truth).median_rotation_deg
     run = tmp_path / "run"
-    out = train.run(tiny_config(tiny[1], run, max_steps=600, max_seconds=1e5, batch_rays=512, refine_poses=True,
+    out = train.run(tiny_config(tiny[1], run, max_steps=600, max_seconds=1e5, batch_rays=512, refine=REFINE,
                             log_every=100))  # fmt: skip
     trained = load_trained(run, "cpu")
     after = pose_errors(np.stack([trained.scene.frames[i].world_from_cam for i in idx]), truth).median_rotation_deg

@@ -54,8 +54,8 @@ def finished_run(scene_dir, tmp_path_factory) -> Path:
 
 def _config(scene_dir: Path, run_dir: Path, **kw) -> train.Config:
     base = dict(scene_dir=scene_dir, run_dir=run_dir, max_steps=2, max_seconds=60.0, batch_rays=256,
-                resolution=(16, 24), occupancy_resolution=16, eval_every=0, final_eval_views=1, device="cpu",
-                threads=1)  # fmt: skip
+                fast=train.FastOptions(resolution=(16, 24), occupancy_resolution=16), eval_every=0, final_eval_views=1,
+                device="cpu", threads=1)  # fmt: skip
     base.update(kw)
     return train.Config(**base)
 

@@ -346,8 +346,8 @@ def train_tiny_run(root: Path, kind: str = "posed") -> Path:
     scene_dir = root / "scene"
     scene_stage.run(scene_stage.Config(out_dir=scene_dir, kind=kind, size=24, views=10, seed=0))
     train.run(train.Config(scene_dir=scene_dir, run_dir=root / "run", max_steps=2, max_seconds=60.0, batch_rays=256,
-                           resolution=(16, 24), occupancy_resolution=16, eval_every=0, final_eval_views=1,
-                           device="cpu"))  # fmt: skip
+                           fast=train.FastOptions(resolution=(16, 24), occupancy_resolution=16), eval_every=0,
+                           final_eval_views=1, device="cpu"))  # fmt: skip
     return root / "run"
 
 

@@ -1,8 +1,10 @@
-"""train stage: run-directory files, resume, load_trained, user errors, and a PSNR floor on a tiny scene."""
+"""train stage: run-directory files, the resolved config.json (read back in both layouts), resume, load_trained,
+user errors (the config's before anything is read), and a PSNR floor on a tiny scene."""
 
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 from pathlib import Path
 
@@ -10,8 +12,10 @@ import numpy as np
 import pytest
 import torch
 
+import cli
 from data.errors import UserError
 from model import load_trained
+from model.field_model import ModelSettings
 from stages import scene as scene_stage
 from stages import train
 from stages.train.loop import make_optimizer
@@ -24,10 +28,13 @@ def rgba_scene(tmp_path_factory) -> Path:
     return out
 
 
+TINY = train.FastOptions(resolution=(16, 24), occupancy_resolution=16)
+SMALL = train.FastOptions(resolution=(24, 48), occupancy_resolution=32)
+
+
 def _config(scene_dir: Path, run_dir: Path, **kw) -> train.Config:
-    base = dict(scene_dir=scene_dir, run_dir=run_dir, max_steps=2, max_seconds=60.0, batch_rays=256,
-                resolution=(16, 24), occupancy_resolution=16, log_every=1, eval_every=2, eval_pixels=256,
-                device="cpu", threads=1)  # fmt: skip
+    base = dict(scene_dir=scene_dir, run_dir=run_dir, max_steps=2, max_seconds=60.0, batch_rays=256, fast=TINY,
+                log_every=1, eval_every=2, eval_pixels=256, device="cpu", threads=1)  # fmt: skip
     base.update(kw)
     return train.Config(**base)
 
@@ -74,6 +81,52 @@ def test_resume_continues_the_step_count(rgba_scene, tmp_path):
     assert steps == [1, 2, 3, 4, 5]
 
 
+def test_config_json_holds_the_resolved_config_in_groups(rgba_scene, tmp_path):
+    """config.json: every automatic default as the run used it (no null), the fast field's options under `fast`,
+    pose refinement's under `refine`; `ModelSettings` reads it, and the flat layout of runs from before too."""
+    out = train.run(_config(rgba_scene, tmp_path / "run", batch_rays=None, threads=None, eval_every=0))
+    doc = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert doc["lr"] == 0.03 and doc["batch_rays"] == 1024 and doc["view_dependent"] is True
+    assert doc["downscale"] == 1.0 and isinstance(doc["threads"], int) and doc["refine"] is None
+    assert doc["final_eval_views"] == len(json.loads(out.manifest.read_text())["used"]["test_views_full_eval"])
+    fast = doc["fast"]
+    assert fast["resolution"] == [16, 24] and fast["tv"] == 0.0 and fast["depth_loss"] == 0.0
+    assert fast["upsample_at"] == [0.05, 0.1, 0.2, 0.3] and fast["step_ratio"] == 2.0
+    assert not [k for k, v in doc.items() if v is None and k != "refine"], doc
+    new = ModelSettings.from_config(doc, "config.json")
+    flat = {k: v for k, v in doc.items() if k != "fast"} | fast  # a run folder from before the grouping
+    assert ModelSettings.from_config(flat, "config.json") == new and new.resolution == (16, 24)
+    vanilla = train.run(_config(rgba_scene, tmp_path / "v", field="vanilla", batch_rays=32, eval_every=0,
+                                final_eval_views=1))  # fmt: skip
+    assert json.loads((vanilla.run_dir / "config.json").read_text())["lr"] == 5e-4
+
+
+def test_config_errors_come_before_any_file_is_read(tmp_path):
+    """What the config alone can tell is checked first: no scene (here: none at all) is read, no folder made."""
+    missing, run_dir = tmp_path / "missing", tmp_path / "run"
+    for fast, match in ((train.FastOptions(tv=-1.0), "--tv: expected >= 0"),
+                        (train.FastOptions(depth_loss=-1.0), "--depth-loss: expected >= 0"),
+                        (train.FastOptions(distortion=-1.0), "distortion >= 0"),
+                        (train.FastOptions(upsample_at=(0.5, 0.2)), "upsample_at")):  # fmt: skip
+        with pytest.raises(UserError, match=match):
+            train.run(_config(missing, run_dir, fast=fast))
+    with pytest.raises(UserError, match="camera_lr > 0"):
+        train.run(_config(missing, run_dir, refine=train.RefineOptions(camera_lr=0.0)))
+    with pytest.raises(UserError, match="final_eval_views >= 1"):
+        train.run(_config(missing, run_dir, final_eval_views=0))
+    assert not run_dir.exists()
+
+
+def test_command_line_flags_fill_the_groups():
+    """`nerfpipe train` keeps its flat flags; they land in the Config's groups."""
+    config = cli.config_from_args("train", ["s", "r", "--tv", "0.1", "--occupancy-resolution", "8"])
+    assert config.fast == train.FastOptions(tv=0.1, occupancy_resolution=8) and config.refine is None
+    config = cli.config_from_args("train", ["s", "r", "--refine-poses", "--refine-focal", "--camera-lr", "0.02"])
+    assert config.refine == train.RefineOptions(focal=True, camera_lr=0.02)
+    with pytest.raises(UserError, match="--refine-focal needs --refine-poses"):
+        cli.config_from_args("train", ["s", "r", "--refine-focal"])
+
+
 def test_load_trained_renders(rgba_scene, tmp_path):
     train.run(_config(rgba_scene, tmp_path / "run", max_steps=2, final_eval_views=1))
     trained = load_trained(tmp_path / "run", "cpu")
@@ -98,7 +151,7 @@ def test_user_errors(rgba_scene, tmp_path):
     with pytest.raises(UserError, match="scene model"):
         train.run(_config(rgba_scene, tmp_path / "run", scene_model="nope"))
     with pytest.raises(UserError, match="render_step_factor"):
-        train.run(_config(rgba_scene, tmp_path / "run", render_step_factor=0.0))
+        train.run(_config(rgba_scene, tmp_path / "run", fast=dataclasses.replace(TINY, render_step_factor=0.0)))
     with pytest.raises(UserError, match="no checkpoint"):
         train.run(_config(rgba_scene, tmp_path / "run", resume=True))
     (tmp_path / "bad").mkdir()
@@ -117,7 +170,7 @@ def test_short_training_clears_a_psnr_floor(tmp_path):
     scene_stage.run(scene_stage.Config(out_dir=scene_dir, kind="posed", size=32, views=16, seed=1))
     # Step-bound (not time-bound) so a loaded machine makes it slower, not flaky; ~11 s on the dev CPU.
     out = train.run(_config(scene_dir, tmp_path / "run", max_steps=STEPS, max_seconds=600.0, batch_rays=512,
-                            resolution=(24, 48), occupancy_resolution=32, log_every=50, eval_every=0))  # fmt: skip
+                            fast=SMALL, log_every=50, eval_every=0))  # fmt: skip
     # A white image scores ~11 dB on this scene; measured 22.7 dB after 300 steps (seed 1).
     assert out.test_psnr is not None and out.test_psnr > PSNR_FLOOR, out.test_psnr
     checks = {c["name"]: c for c in json.loads(out.manifest.read_text())["checks"]}
@@ -159,8 +212,7 @@ def test_forward_facing_scene_trains_in_ndc_and_depth_maps_back(tmp_path):
 
     scene_dir = tmp_path / "forward"
     scene_stage.run(scene_stage.Config(out_dir=scene_dir, kind="posed", size=48, views=16, seed=0, layout="forward"))
-    kw = dict(max_steps=400, max_seconds=600.0, batch_rays=512, resolution=(24, 48), occupancy_resolution=32,
-              log_every=50, eval_every=0)  # fmt: skip
+    kw = dict(max_steps=400, max_seconds=600.0, batch_rays=512, fast=SMALL, log_every=50, eval_every=0)
     out = train.run(_config(scene_dir, tmp_path / "run", **kw))
     used = json.loads(out.manifest.read_text())["used"]
     assert used["scene_model"] == "ndc" and used["space"]["box"][0][2] == -1.0

@@ -15,7 +15,7 @@ from model.background import Background
 from stages import convert as convert_stage
 from stages import scene as scene_stage
 from stages import train
-from stages.train.defaults import _background, detect_plain_colour
+from stages.train.background import choose_background, detect_plain_colour
 from stages.train.views import Views
 
 
@@ -41,7 +41,7 @@ def _object_on(colour: int | None, seed: int) -> np.ndarray:
 @pytest.mark.parametrize(("colour", "expected"), [(0, (0.0, 0.0, 0.0)), (255, (1.0, 1.0, 1.0))])
 def test_plain_border_colour_is_detected(colour, expected):
     views = _views([_object_on(colour, s) for s in range(3)])
-    bg, plain, why = _background("auto", views, has_alpha=False)
+    bg, plain, why = choose_background("auto", views, has_alpha=False)
     assert plain and bg.mode == "plain" and "transparent" in why  # its pixels train as alpha 0
     assert np.allclose(bg.eval_colour().numpy(), expected, atol=1e-6)
 
@@ -58,11 +58,11 @@ def test_plain_background_is_random_only_behind_transparent_pixels():
 
 def test_textured_border_trains_on_random_and_alpha_too():
     views = _views([_object_on(None, s) for s in range(3)])
-    bg, plain, why = _background("auto", views, has_alpha=False)
+    bg, plain, why = choose_background("auto", views, has_alpha=False)
     assert not plain and bg.mode == "random" and "no plain border colour" in why
-    assert _background("learned", views, has_alpha=False)[0].mode == "learned"
-    assert _background("auto", views, has_alpha=True)[0].mode == "random"
-    assert _background("black", views, has_alpha=False)[0].eval_colour().tolist() == [0.0, 0.0, 0.0]
+    assert choose_background("learned", views, has_alpha=False)[0].mode == "learned"
+    assert choose_background("auto", views, has_alpha=True)[0].mode == "random"
+    assert choose_background("black", views, has_alpha=False)[0].eval_colour().tolist() == [0.0, 0.0, 0.0]
 
 
 def test_detect_plain_colour_thresholds():
@@ -127,18 +127,19 @@ def test_each_kind_of_capture_gets_its_own_rules(tmp_path, layout, kind):
     config = train.Config(scene_dir=scene_dir, run_dir=tmp_path / "run")
     found = resolve_defaults(config, scene, load_views(scene, idx), idx, torch.device("cpu"), 1.0)
     assert found.space.name == kind and found.reasons["scene_model"].startswith(kind)
-    assert found.tv == RULES[type(found.space)].tv()[0]
+    fast = found.config.fast
+    assert fast.tv == RULES[type(found.space)].tv()[0]
     if kind == "ndc":  # the march takes NDC_SAMPLES steps across z' in [-1, 1], whatever the grid
         assert "z'" in found.reasons["step_ratio"] and "image" in found.reasons["resolution"]
         from model.field_model import scene_ndc
 
         poses = np.stack([f.world_from_cam for f in scene.frames])
         box = scene_ndc(scene).box(poses, [scene.frame_intrinsics(i) for i in range(len(scene.frames))])
-        step = float(np.mean(box[1] - box[0])) / found.resolution[1] * found.step_ratio
-        assert 2.0 / step == pytest.approx(NDC_SAMPLES) or found.step_ratio == NDC_MIN_STEP_VOXELS
+        step = float(np.mean(box[1] - box[0])) / fast.resolution[1] * fast.step_ratio
+        assert 2.0 / step == pytest.approx(NDC_SAMPLES) or fast.step_ratio == NDC_MIN_STEP_VOXELS
     else:
         assert "object" in found.reasons["resolution"] and "z'" not in found.reasons["step_ratio"]
-    assert (found.tv > 0) == (kind != "box")
+    assert (fast.tv > 0) == (kind != "box")
 
 
 def test_plain_colour_clears_only_the_background_around_the_object():

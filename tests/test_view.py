@@ -53,8 +53,8 @@ def trained_run(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("view")
     scene_stage.run(scene_stage.Config(out_dir=root / "scene", kind="rgba", size=32, views=10, seed=0))
     train.run(train.Config(scene_dir=root / "scene", run_dir=root / "run", max_steps=120, max_seconds=600.0,
-                           batch_rays=512, resolution=(24, 32), occupancy_resolution=16, eval_every=0,
-                           final_eval_views=1, device="cpu", threads=2))  # fmt: skip
+                           batch_rays=512, fast=train.FastOptions(resolution=(24, 32), occupancy_resolution=16),
+                           eval_every=0, final_eval_views=1, device="cpu", threads=2))  # fmt: skip
     return root / "run"
 
 

@@ -40,20 +40,33 @@ One rule, written once, for both devices:
   upsampled at 5-30 %, 0.84 deg with (24, 96) upsampled at 20-50 %.
 - **Batch** (`--batch-rays`): 1024 rays on CPU (more small steps beat fewer big ones in a fixed time: 22.6 vs
   18.1 dB after 30 s on a 128 px scene), 8192 on CUDA (issue 14's H100 figure).
+- **Learning rate** (`--lr`, `LR`): 0.03 for the fast field (its MLP at lr/20), 5e-4 for the vanilla field.
+- **Depth loss** (`--depth-loss`): DEPTH_LOSS where the scene has sparse points and the field is fast and
+  contracted, else 0; **downscale** (`--downscale`, `resolve_downscale`: read before the images are), the final
+  evaluation's view count (`final_eval_views`: after training, from the render speed measured), threads (torch's).
+
+`resolve_defaults` returns the Config with every None replaced (`Defaults.config`: what config.json records and the
+loop reads; final_eval_views joins it at the end), with the reason of each in the manifest's `used.defaults`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 
+from data.errors import UserError
+from data.sparse_depth import KEY as SPARSE_KEY
 from data.transforms import Scene
 from model.background import Background
 from model.field_model import choose_space, make_space
 from radiance.space import Box, Contracted, NDCSpace, Space
-from stages.train.views import Views
+from stages.train.background import choose_background
+from stages.train.config import Config, FastOptions
+from stages.train.views import DepthRays, Views, auto_downscale, sparse_depth_rays
 
 __all__ = [
     "UPSAMPLE_AT",
@@ -63,84 +76,38 @@ __all__ = [
     "NDCRules",
     "ContractRules",
     "Defaults",
-    "detect_plain_colour",
     "object_size_px",
     "resolve_defaults",
+    "resolve_downscale",
+    "final_eval_views",
+    "DEPTH_LOSS",
+    "LR",
 ]
 
 UPSAMPLE_AT = (0.05, 0.1, 0.2, 0.3)
 """Run-progress fractions of the grid upsamplings (fast field)."""
 REFINE_UPSAMPLE_AT = (0.2, 0.3, 0.4, 0.5)
 """The same with --refine-poses: the grid stays coarse while the cameras move most."""
-BORDER = 2
-PLAIN_FRACTION = 0.9
-PLAIN_TOLERANCE = 4 / 255
+DEPTH_LOSS = 0.01
+"""Default `--depth-loss` weight where sparse points exist (contracted scenes)."""
+LR = {"fast": (0.03, "0.03 for the fast field's grids (its MLP at lr/20)"),
+      "vanilla": (5e-4, "5e-4 for the vanilla field's MLPs")}  # fmt: skip
+"""Each field's learning rate and its reason (`Config.lr`)."""
 
 
 @dataclass(frozen=True)
 class Defaults:
+    config: Config
+    """The Config with every None resolved (final_eval_views: chosen at the end of the run, `final_eval_views`)."""
     space: Space
     """The scene space the field lives in (`radiance.space`)."""
-    resolution: tuple[int, int]
-    step_ratio: float
-    tv: float
-    batch_rays: int
     background: Background
     plain_background: bool
     reasons: dict[str, str]
-    upsample_at: tuple[float, ...] = UPSAMPLE_AT
+    """Why each value is what it is (the manifest's `used.defaults`)."""
     plain_colour: tuple[float, float, float] | None = None
-
-
-def _border_rgba(views: Views) -> np.ndarray:
-    """uint8 [K, 4]: the 2-pixel frame of every view."""
-    parts, start = [], 0
-    for h, w in views.shapes:
-        img = views.rgba[start : start + h * w].reshape(h, w, 4)
-        start += h * w
-        b = min(BORDER, h // 2, w // 2)
-        mask = torch.zeros(h, w, dtype=torch.bool)
-        mask[:b], mask[-b:], mask[:, :b], mask[:, -b:] = True, True, True, True
-        parts.append(img[mask].numpy())
-    return np.concatenate(parts) if parts else np.zeros((0, 4), np.uint8)
-
-
-def detect_plain_colour(rgb: np.ndarray) -> tuple[tuple[float, float, float] | None, float]:
-    """Border pixels rgb [K, 3] in [0, 1] -> (their plain colour or None, fraction within tolerance of it)."""
-    if rgb.shape[0] == 0:
-        return None, 0.0
-    median = np.median(rgb, axis=0)
-    close = (np.abs(rgb - median) <= PLAIN_TOLERANCE + 1e-9).all(axis=1)
-    frac = float(close.mean())
-    if frac < PLAIN_FRACTION:
-        return None, frac
-    colour = rgb[close].mean(axis=0)
-    return (float(colour[0]), float(colour[1]), float(colour[2])), frac
-
-
-def _background(mode: str, views: Views, has_alpha: bool) -> tuple[Background, bool, str]:
-    if mode == "black":
-        return Background("fixed", (0.0, 0.0, 0.0)), True, "asked for: black"
-    if mode == "white":
-        return Background("fixed", (1.0, 1.0, 1.0)), True, "asked for: white"
-    if mode == "random":
-        return Background("random"), has_alpha, "asked for: random per ray in training, white for evaluation"
-    border = _border_rgba(views)[:, :3].astype(np.float64) / 255.0
-    start = tuple(float(v) for v in np.median(border, axis=0)) if border.size else (0.5, 0.5, 0.5)
-    if mode == "learned":
-        return Background("learned", start), False, "asked for: a learned colour (starts at the border median)"
-    if has_alpha:
-        return Background("random"), True, "images have alpha: random per ray in training, white for evaluation"
-    colour, frac = detect_plain_colour(border)
-    if colour is not None:
-        rgb = ", ".join(f"{c:.3f}" for c in colour)
-        why = (
-            f"{frac:.1%} of border pixels are one colour ({rgb}): its pixels train as transparent (random "
-            "colour behind them), the others on that colour, as the images were made"
-        )
-        return Background("plain", colour), True, why
-    why = f"no plain border colour ({frac:.1%}): random per ray in training (the field must explain every pixel)"
-    return Background("random", start), False, why + ", the border median at evaluation"
+    depth_rays: DepthRays | None = None
+    """Rays through the training photos' sparse points, where the depth loss is on."""
 
 
 def object_size_px(scene: Scene, train_idx: tuple[int, ...]) -> float:
@@ -259,54 +226,121 @@ RULES: dict[type[Space], BoxRules | NDCRules] = {Box: BoxRules(), NDCSpace: NDCR
 """Each kind of scene space's grid, step and prior rules."""
 
 
-def resolve_defaults(config, scene: Scene, views: Views, train_idx, device: torch.device, downscale: float) -> Defaults:
-    """The Config's None / auto values resolved from the scene and the device (see the module doc): the
-    background, then the scene space, then its kind's grid, step and priors."""
+def resolve_downscale(config: Config, scene: Scene, train_idx: tuple[int, ...], device: torch.device) -> float:
+    """`Config.downscale`, else the smallest power of two that brings the long side to <= 800 px on CPU, 1600 px on
+    CUDA (before the images are read: they are read at this size)."""
+    return config.downscale or auto_downscale(scene, train_idx, _max_side(device))
+
+
+def _max_side(device: torch.device) -> int:
+    return 1600 if device.type == "cuda" else 800
+
+
+def resolve_defaults(config: Config, scene: Scene, views: Views, train_idx: tuple[int, ...], device: torch.device,
+                     downscale: float) -> Defaults:  # fmt: skip
+    """The Config with its None values resolved from the scene, its training views (read at `downscale`, from
+    `resolve_downscale`) and the device (see the module doc): the background, then the scene space, then its
+    kind's grid, step and priors, the depth loss, the batch, learning rate and threads. UserError when a loss
+    weight is given for a scene that cannot take it."""
     has_alpha = scene.has_alpha or views.any_transparent()
-    background, plain, bg_reason = _background(config.background, views, has_alpha)
-    limit = 1600 if device.type == "cuda" else 800
-    why = " (asked for)" if config.downscale else f": long side <= {limit} px"
+    background, plain, bg_reason = choose_background(config.background, views, has_alpha)
+    why = " (asked for)" if config.downscale else f": long side <= {_max_side(device)} px"
     reasons = {"background": bg_reason, "downscale": f"{downscale:g}{why}"}
-    cuda = device.type == "cuda"
+    kind, space = _space(config, scene, plain, reasons)
+    need = Need(scene=scene, space=space, train_idx=tuple(train_idx), downscale=downscale, cuda=device.type == "cuda",
+                refine_poses=config.refine is not None)  # fmt: skip
+    fast = _fast_options(config.fast, RULES[kind], need, reasons)
+    rays, fast = _depth_loss(config.field, fast, scene, need.train_idx, space, reasons)
+    resolved = dataclasses.replace(config, fast=fast, downscale=downscale, **_run_options(config, need.cuda, reasons))
+    plain_colour = None
+    if config.background == "auto" and plain and not has_alpha:
+        plain_colour = tuple(float(v) for v in background.eval_colour())
+    return Defaults(config=resolved, space=space, background=background, plain_background=plain, reasons=reasons,
+                    plain_colour=plain_colour, depth_rays=rays)  # fmt: skip
+
+
+def _space(config: Config, scene: Scene, plain: bool, reasons: dict[str, str]) -> tuple[type[Space], Space]:
+    """The scene space's kind (the vanilla field takes straight rays in a box only) and the space."""
     kind, kind_why = choose_space(config.scene_model, scene, plain_background=plain)
     if not kind.straight_rays and config.field != "fast":
         kind, kind_why = Box, f"the vanilla field samples straight rays in a box (no {kind.name} space)"
     reasons["scene_model"] = f"{kind.name}: {kind_why}"
-    space = make_space(kind, scene)
-    rules = RULES[kind]
-    need = Need(scene=scene, space=space, train_idx=tuple(train_idx), downscale=downscale, cuda=cuda,
-                refine_poses=bool(getattr(config, "refine_poses", False)))  # fmt: skip
-    if config.resolution is not None:
-        resolution, reasons["resolution"] = tuple(config.resolution), "asked for"
+    return kind, make_space(kind, scene)
+
+
+def _fast_options(fast: FastOptions, rules: BoxRules | NDCRules, need: Need, reasons: dict[str, str]) -> FastOptions:
+    """The fast group's grid, schedule, step and TV: as given, else the scene kind's rules."""
+    resolution, upsample_at = _grid(fast, rules, need, reasons)
+    if fast.step_ratio is not None:
+        step_ratio, reasons["step_ratio"] = float(fast.step_ratio), "asked for"
+    else:
+        step_ratio, reasons["step_ratio"] = rules.step_ratio(resolution, need)
+    tv, reasons["tv"] = (float(fast.tv), "given") if fast.tv is not None else rules.tv()
+    return dataclasses.replace(fast, resolution=resolution, upsample_at=upsample_at, step_ratio=step_ratio, tv=tv)
+
+
+def _grid(fast: FastOptions, rules: BoxRules | NDCRules, need: Need,
+          reasons: dict[str, str]) -> tuple[tuple[int, int], tuple[float, ...]]:  # fmt: skip
+    """The grid's start and final resolution and its upsampling fractions (coarse-to-fine with pose refinement)."""
+    if fast.resolution is not None:
+        resolution, reasons["resolution"] = tuple(fast.resolution), "asked for"
     else:
         (r0, r1), reasons["resolution"] = rules.resolution(need)
         if need.refine_poses:
             r0 = max(16, round(r1 / 4))
             reasons["resolution"] += "; --refine-poses: start at a quarter of the final size (coarse-to-fine)"
         resolution = (r0, r1)
-    if getattr(config, "upsample_at", None) is not None:
-        upsample_at, reasons["upsample_at"] = tuple(config.upsample_at), "asked for"
+    if fast.upsample_at is not None:
+        upsample_at, reasons["upsample_at"] = tuple(fast.upsample_at), "asked for"
     elif need.refine_poses:
         upsample_at = REFINE_UPSAMPLE_AT
         reasons["upsample_at"] = "--refine-poses: later upsamplings, the cameras register to a coarse grid first"
     else:
         upsample_at = UPSAMPLE_AT
-    if config.step_ratio is not None:
-        step_ratio, reasons["step_ratio"] = float(config.step_ratio), "asked for"
+    return resolution, upsample_at
+
+
+def _depth_loss(field: str, fast: FastOptions, scene: Scene, train_idx: tuple[int, ...], space: Space,
+                reasons: dict[str, str]) -> tuple[DepthRays | None, FastOptions]:  # fmt: skip
+    """The rays through the training photos' sparse points (or None) and `fast` with the depth loss's weight:
+    as given, else DEPTH_LOSS where the scene has sparse points and a fast contracted field, else 0."""
+    given, rel = fast.depth_loss, scene.extra.get(SPARSE_KEY)
+    rays, weight = None, 0.0
+    if given == 0:
+        reasons["depth_loss"] = "off (given)"
+    elif rel is None or not space.sparse_depth or field != "fast":
+        reasons["depth_loss"] = "left out: " + (
+            f"no {SPARSE_KEY} in transforms.json (sparse points come from COLMAP through convert)"
+            if rel is None
+            else f"applies to fast contracted scenes only (this one: {field}, {space.name})"
+        )
+    elif (rays := sparse_depth_rays(scene, rel, train_idx)) is None:
+        reasons["depth_loss"] = f"left out: {rel} has no points observed by the training photos"
     else:
-        step_ratio, reasons["step_ratio"] = rules.step_ratio(resolution, need)
-    if config.tv is not None:
-        tv, reasons["tv"] = float(config.tv), "given"
-    else:
-        tv, reasons["tv"] = rules.tv()
+        weight = given if given is not None else DEPTH_LOSS
+        reasons["depth_loss"] = (
+            f"{weight} on {rays.depth.numel()} sparse-point rays of {len(train_idx)} training photos"
+        )
+    if given and rays is None:
+        raise UserError(f"--depth-loss: {reasons['depth_loss'].removeprefix('left out: ')}")
+    return rays, dataclasses.replace(fast, depth_loss=weight)
+
+
+def _run_options(config: Config, cuda: bool, reasons: dict[str, str]) -> dict[str, Any]:
+    """Batch, learning rate, view dependence and threads: as given, else the device's and the field's rules."""
     if config.batch_rays is not None:
         batch, reasons["batch_rays"] = int(config.batch_rays), "asked for"
     else:
         batch = 8192 if cuda else 1024
         reasons["batch_rays"] = "8192 on CUDA, 1024 on CPU (more small steps in a fixed time)"
-    plain_colour = None
-    if config.background == "auto" and plain and not has_alpha:
-        plain_colour = tuple(float(v) for v in background.eval_colour())
-    return Defaults(space=space, resolution=resolution, step_ratio=step_ratio, tv=tv, batch_rays=batch,
-                    background=background, plain_background=plain, reasons=reasons, upsample_at=upsample_at,
-                    plain_colour=plain_colour)  # fmt: skip
+    lr, reasons["lr"] = (float(config.lr), "asked for") if config.lr is not None else LR[config.field]
+    view_dependent = True if config.view_dependent is None else config.view_dependent
+    threads = config.threads if config.threads is not None else torch.get_num_threads()
+    return {"batch_rays": batch, "lr": lr, "view_dependent": view_dependent, "threads": threads}
+
+
+def final_eval_views(config: Config, n_views: int, rays_per_second: float, pixels_per_view: float) -> int:
+    """How many test views the end of the run renders in full when `Config.final_eval_views` is None: as many as
+    fit in final_eval_fraction x max_seconds at the render speed measured, at least 1, at most n_views."""
+    fit = int(config.final_eval_fraction * config.max_seconds * rays_per_second / pixels_per_view)
+    return max(1, min(n_views, fit))

@@ -37,24 +37,15 @@ from radiance.compositing import over_background
 from radiance.fields import Field
 from radiance.metrics import psnr_from_mse
 from radiance.regularizers import depth_nll_loss
-from stages.train.views import Views
+from stages.train.config import Config
+from stages.train.views import DepthRays, Views
 
-__all__ = ["TrainingDiverged", "Loop", "make_optimizer", "upsample_schedule", "evaluate_psnr", "DepthRays"]
+__all__ = ["TrainingDiverged", "Loop", "make_optimizer", "upsample_schedule", "evaluate_psnr"]
 
 DEPTH_RAYS = 256
 """Sparse-point rays rendered per step for the depth loss (a quarter of the CPU photometric batch)."""
 DEPTH_SIGMA = 0.02
 """Depth uncertainty of a structure-from-motion point, as a fraction of its distance (DS-NeRF's sigma)."""
-
-
-@dataclass(frozen=True)
-class DepthRays:
-    """Rays from training cameras through their observed sparse points: o, d [K, 3], depth [K], view [K]."""
-
-    o: Tensor
-    d: Tensor
-    depth: Tensor
-    view: Tensor
 
 
 TV_TEXELS = 4096
@@ -106,14 +97,12 @@ class Loop:
     """One training run's mutable state and its step (`model.loop.Stepper`); `run()` steps until the step or time
     budget is spent."""
 
-    config: Any  # stages.train.Config
+    config: Config  # resolved (stages.train.defaults.resolve_defaults): no None left in it but final_eval_views
     model: FieldModel
     opt: torch.optim.Optimizer
-    base_lr: float
     train: Views
     test: Views | None
     eval_px: Tensor | None  # [K] held-out rays for the periodic test PSNR
-    batch_rays: int
     gen: torch.Generator
     device: torch.device
     metrics: MetricsLog
@@ -146,15 +135,15 @@ class Loop:
         """The shared loop's settings from the train config."""
         cfg = self.config
         return LoopSettings(name="train", budget=Budget(max_steps=cfg.max_steps, max_seconds=cfg.max_seconds),
-                            schedule=Schedule(lr=self.base_lr, decay=cfg.lr_decay),
+                            schedule=Schedule(lr=cfg.lr, decay=cfg.lr_decay),
                             checkpoint_every=cfg.checkpoint_every,
-                            checkpoint_seconds=getattr(cfg, "checkpoint_seconds", 0.0),
+                            checkpoint_seconds=cfg.checkpoint_seconds,
                             checkpoint_path=self.ckpt_path)  # fmt: skip
 
     def run(self) -> float:
         """Train until max_steps or max_seconds; refresh the occupancy grid; checkpoint. Returns seconds."""
         cfg = self.config
-        self._schedule = upsample_schedule(cfg.resolution, cfg.upsample_at)
+        self._schedule = upsample_schedule(cfg.fast.resolution, cfg.fast.upsample_at)
         self._loop = TrainingLoop(self.settings(), self, Clock(self.seconds_before), self.stop)
         self._task = self.progress.add_task("train", total=cfg.max_seconds)
         self.model.field.train()
@@ -170,16 +159,16 @@ class Loop:
             _, res = self._schedule.pop(0)
             if res > self.model.field.resolution:
                 self.model.field.upsample(res)
-                self.opt = make_optimizer(self.model, self.base_lr)
+                self.opt = make_optimizer(self.model, self.config.lr)
                 upsampled = True
-        self.model.grid.update(self.model.field.density, self.step, every=self.config.occupancy_every,
+        self.model.grid.update(self.model.field.density, self.step, every=self.config.fast.occupancy_every,
                                warmup_steps=64)  # fmt: skip
         return upsampled
 
     def train_step(self, lr: float) -> bool:
         """One optimiser step on a random batch of rays; False (and no update) when the loss is not finite."""
-        cfg, model = self.config, self.model
-        idx = torch.randint(self.train.n_rays, (self.batch_rays,), generator=self.gen)
+        fast, model = self.config.fast, self.model
+        idx = torch.randint(self.train.n_rays, (self.config.batch_rays,), generator=self.gen)
         o, d, rgb, alpha = self.train.batch(idx, self.device)
         view = self.train.view[idx].to(self.device)  # [B] each ray's training view
         if self.cameras is not None:
@@ -191,18 +180,18 @@ class Loop:
         mse = float(loss.detach())
         if "rgb_coarse" in out:
             loss = loss + torch.mean((out["rgb_coarse"] - target) ** 2)
-        if model.kind == "fast" and cfg.density_l1 > 0:
-            loss = loss + cfg.density_l1 * model.field.density_l1()
-        if cfg.distortion:
-            loss = loss + cfg.distortion * model.distortion(out, o, d)
-        if self.depth_rays is not None and cfg.depth_loss:
-            loss = loss + cfg.depth_loss * self._depth_term(bg)
+        if model.kind == "fast" and fast.density_l1 > 0:
+            loss = loss + fast.density_l1 * model.field.density_l1()
+        if fast.distortion:
+            loss = loss + fast.distortion * model.distortion(out, o, d)
+        if self.depth_rays is not None and fast.depth_loss:
+            loss = loss + fast.depth_loss * self._depth_term(bg)
         if not math.isfinite(float(loss.detach())):
             return False
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
-        if model.kind == "fast" and (cfg.tv or 0) > 0:
-            model.field.add_tv_grad_(cfg.tv, TV_TEXELS, self.gen)
+        if model.kind == "fast" and fast.tv > 0:
+            model.field.add_tv_grad_(fast.tv, TV_TEXELS, self.gen)
         self.opt.step()
         model.field.touch()  # fused Adam leaves the version counters: the field's inference caches must know
         if self.cameras is not None:

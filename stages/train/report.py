@@ -15,7 +15,7 @@ import math
 import resource
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -27,6 +27,9 @@ from model.field_model import FieldModel
 from radiance.camera import generate_rays
 from radiance.compositing import over_background
 from radiance.metrics import psnr_from_mse
+
+if TYPE_CHECKING:
+    from stages.train.loop import Loop
 
 __all__ = ["plot_psnr", "used_and_left_out", "per_view_report", "PER_VIEW_FRACTION"]
 
@@ -63,11 +66,12 @@ def plot_psnr(path: Path, rows: list[dict], title: str) -> None:
 
 
 def used_and_left_out(
-    *, scene: Scene, model: FieldModel, device: torch.device, batch_rays: int, steps: int, seconds: float,
-    samples_per_ray: float, train_idx: tuple[int, ...], test_idx: tuple[int, ...],
+    *, scene: Scene, loop: Loop, seconds: float, train_idx: tuple[int, ...], test_idx: tuple[int, ...],
     chosen: list[int], test_psnr: float | None,
 ) -> tuple[dict[str, Any], dict[str, str]]:  # fmt: skip
-    """The manifest's record of what the run used and what it left out (and why)."""
+    """The manifest's record of what the finished `loop` used and what it left out (and why)."""
+    model, device, batch_rays, steps = loop.model, loop.device, loop.config.batch_rays, loop.step
+    samples_per_ray = loop.samples_per_ray
     peak = torch.cuda.max_memory_allocated() if device.type == "cuda" else None
     used: dict[str, Any] = {
         "batch_rays": batch_rays,

@@ -7,6 +7,8 @@ direction from that view's camera (`radiance.camera.generate_rays`' arithmetic, 
 rays are those the whole images would give and sampling is unchanged. (Before: directions float32 and a view
 index per pixel, 20 bytes a pixel, 5x the images; 300 views of 1920x1080 needed 12 GB.)
 Rays are in the scene frame with unit directions. `evenly_spaced` picks the test views `train` renders in full.
+`sparse_depth_rays`: the rays from the training cameras through the sparse points they observed (DS-NeRF's depth
+supervision; `data.sparse_depth`).
 """
 
 from __future__ import annotations
@@ -19,10 +21,11 @@ from torch import Tensor
 
 from data.errors import UserError
 from data.masks import load_masked_image
+from data.sparse_depth import read_sparse_depth
 from data.transforms import Scene
 from radiance.camera import Intrinsics, undistort
 
-__all__ = ["Views", "load_views", "evenly_spaced", "auto_downscale"]
+__all__ = ["Views", "load_views", "evenly_spaced", "auto_downscale", "DepthRays", "sparse_depth_rays"]
 
 
 class RayViews:
@@ -176,3 +179,28 @@ def auto_downscale(scene: Scene, indices: tuple[int, ...], max_side: int) -> flo
     while side / factor > max_side:
         factor *= 2
     return float(factor)
+
+
+@dataclass(frozen=True)
+class DepthRays:
+    """Rays from training cameras through their observed sparse points: o, d [K, 3], depth [K], view [K]."""
+
+    o: Tensor
+    d: Tensor
+    depth: Tensor
+    view: Tensor
+
+
+def sparse_depth_rays(scene: Scene, rel: str, train_idx: tuple[int, ...]) -> DepthRays | None:
+    """The rays through the sparse points (file `rel` in the scene folder) each training photo observed, `view`
+    counting the training photos from 0; None when they observed none."""
+    sparse = read_sparse_depth(scene.root / rel)
+    os_, ds, depths, views = [], [], [], []
+    for k, i in enumerate(train_idx):
+        o, d, dist = sparse.rays(scene.frames[i].file_path, scene.frames[i].world_from_cam[:3, 3])
+        os_.append(o), ds.append(d), depths.append(dist), views.append(np.full(len(dist), k))
+    depth = np.concatenate(depths)
+    if depth.size == 0:
+        return None
+    return DepthRays(torch.from_numpy(np.concatenate(os_)), torch.from_numpy(np.concatenate(ds)),
+                     torch.from_numpy(depth), torch.from_numpy(np.concatenate(views)).long())  # fmt: skip

@@ -1,0 +1,70 @@
+"""What empty space shows in training and evaluation (`Config.background`; the rule is in
+`stages.train.defaults`' module doc): the mode asked for, or with auto the images' alpha, or a plain border colour
+(the 2-pixel frame of every training view), or a random colour per ray.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from model.background import Background
+from stages.train.views import Views
+
+__all__ = ["choose_background", "detect_plain_colour", "BORDER", "PLAIN_FRACTION", "PLAIN_TOLERANCE"]
+
+BORDER = 2
+PLAIN_FRACTION = 0.9
+PLAIN_TOLERANCE = 4 / 255
+
+
+def _border_rgba(views: Views) -> np.ndarray:
+    """uint8 [K, 4]: the 2-pixel frame of every view."""
+    parts, start = [], 0
+    for h, w in views.shapes:
+        img = views.rgba[start : start + h * w].reshape(h, w, 4)
+        start += h * w
+        b = min(BORDER, h // 2, w // 2)
+        mask = torch.zeros(h, w, dtype=torch.bool)
+        mask[:b], mask[-b:], mask[:, :b], mask[:, -b:] = True, True, True, True
+        parts.append(img[mask].numpy())
+    return np.concatenate(parts) if parts else np.zeros((0, 4), np.uint8)
+
+
+def detect_plain_colour(rgb: np.ndarray) -> tuple[tuple[float, float, float] | None, float]:
+    """Border pixels rgb [K, 3] in [0, 1] -> (their plain colour or None, fraction within tolerance of it)."""
+    if rgb.shape[0] == 0:
+        return None, 0.0
+    median = np.median(rgb, axis=0)
+    close = (np.abs(rgb - median) <= PLAIN_TOLERANCE + 1e-9).all(axis=1)
+    frac = float(close.mean())
+    if frac < PLAIN_FRACTION:
+        return None, frac
+    colour = rgb[close].mean(axis=0)
+    return (float(colour[0]), float(colour[1]), float(colour[2])), frac
+
+
+def choose_background(mode: str, views: Views, has_alpha: bool) -> tuple[Background, bool, str]:
+    """(the background for `Config.background` = mode, whether empty space is one plain colour, why)."""
+    if mode == "black":
+        return Background("fixed", (0.0, 0.0, 0.0)), True, "asked for: black"
+    if mode == "white":
+        return Background("fixed", (1.0, 1.0, 1.0)), True, "asked for: white"
+    if mode == "random":
+        return Background("random"), has_alpha, "asked for: random per ray in training, white for evaluation"
+    border = _border_rgba(views)[:, :3].astype(np.float64) / 255.0
+    start = tuple(float(v) for v in np.median(border, axis=0)) if border.size else (0.5, 0.5, 0.5)
+    if mode == "learned":
+        return Background("learned", start), False, "asked for: a learned colour (starts at the border median)"
+    if has_alpha:
+        return Background("random"), True, "images have alpha: random per ray in training, white for evaluation"
+    colour, frac = detect_plain_colour(border)
+    if colour is not None:
+        rgb = ", ".join(f"{c:.3f}" for c in colour)
+        why = (
+            f"{frac:.1%} of border pixels are one colour ({rgb}): its pixels train as transparent (random "
+            "colour behind them), the others on that colour, as the images were made"
+        )
+        return Background("plain", colour), True, why
+    why = f"no plain border colour ({frac:.1%}): random per ray in training (the field must explain every pixel)"
+    return Background("random", start), False, why + ", the border median at evaluation"

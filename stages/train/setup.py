@@ -1,0 +1,185 @@
+"""train's setup: read the scene and its views, resolve the defaults (`stages.train.defaults`), check what needs
+the scene, build the field model (or restore it with --resume), its optimiser and the cameras' corrections, and
+write the resolved config.json.
+
+config.json: the resolved Config (`Defaults.config`: no None left but final_eval_views, which the end of the run
+writes as the number of views it rendered in full), the fast field's options under `fast`, pose refinement's
+under `refine` (null without it), `scene_dir` resolved (absolute) and `scene_from_run` (the scene folder relative
+to the run folder, tried first by `model.trained.load_trained`: a run moved with its scene still finds it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from data.atomic import write_json
+from data.errors import UserError
+from data.progress import Progress
+from data.rundir import MetricsLog, config_to_json
+from data.transforms import Scene, read_scene
+from model.appearance import Appearance
+from model.camera_opt import CameraOpt, CameraSchedule, pivot_depths
+from model.checkpoint import read_checkpoint, restore_appearance, restore_background, restore_space
+from model.device import resolve_device
+from model.field_model import FieldModel, ModelSettings, build_model, make_space
+from stages.train.config import Config, RefineOptions
+from stages.train.defaults import Defaults, resolve_defaults, resolve_downscale
+from stages.train.loop import Loop, make_optimizer
+from stages.train.views import Views, load_views
+
+__all__ = ["setup", "write_run_config", "METRICS"]
+
+METRICS = ["step", "seconds", "loss", "train_psnr", "test_psnr", "lr", "samples_per_ray", "skip_fraction"]
+
+
+def setup(config: Config, progress: Progress) -> tuple[Loop, Scene, Path, dict]:
+    """The run's loop (its config the resolved one), the scene, its path and the manifest's `used.defaults`."""
+    device = resolve_device(config.device)
+    scene_path, scene = _read_scene(Path(config.scene_dir))
+    run_dir = Path(config.run_dir)
+    ckpt_path = run_dir / "checkpoint.pt"
+    state = _read_state(config, ckpt_path, device)
+    torch.manual_seed(config.seed)
+    gen = torch.Generator().manual_seed(config.seed)
+    train_idx, test_idx = scene.split("train"), scene.split("test") or scene.split("val")
+    downscale = resolve_downscale(config, scene, train_idx, device)
+    train = load_views(scene, train_idx, downscale)
+    test = load_views(scene, test_idx, downscale) if test_idx else None
+    found = resolve_defaults(config, scene, train, train_idx, device, downscale)
+    _clear_plain_background(found, train, test)
+    _check_scene(found)
+    resolved = found.config
+    model = _model(resolved, found, scene, state, device, len(train_idx))
+    cameras = _camera_opt(resolved.refine, scene, train_idx, state, device)
+    opt, step, seconds_before, lr_factor = _optimizer(model, resolved.lr, state, gen)
+    metrics = MetricsLog(run_dir / "metrics.csv", METRICS)
+    if config.resume:
+        metrics.load()
+        metrics.rows = [r for r in metrics.rows if int(r["step"]) <= step]
+    run_dir.mkdir(parents=True, exist_ok=True)
+    write_run_config(run_dir, resolved, scene_path)
+    loop = Loop(config=resolved, model=model, opt=opt, train=train, test=test, eval_px=_eval_pixels(resolved, test),
+                gen=gen, device=device, metrics=metrics, ckpt_path=ckpt_path, progress=progress, step=step,
+                seconds_before=seconds_before, lr_factor=lr_factor, cameras=cameras,
+                depth_rays=found.depth_rays)  # fmt: skip
+    return loop, scene, scene_path, _record(found, model)
+
+
+def write_run_config(run_dir: Path, resolved: Config, scene_path: Path) -> None:
+    """config.json (module doc) for the resolved Config."""
+    scene_abs = scene_path.resolve()
+    doc = {**config_to_json(dataclasses.replace(resolved, scene_dir=scene_abs)),
+           "scene_from_run": os.path.relpath(scene_abs, run_dir.resolve())}  # fmt: skip
+    write_json(run_dir / "config.json", doc)
+
+
+def _read_scene(scene_path: Path) -> tuple[Path, Scene]:
+    if not (scene_path.is_file() or (scene_path / "transforms.json").is_file()):
+        raise UserError(f"{scene_path}: no transforms.json (run convert or scene first)")
+    return scene_path, read_scene(scene_path)
+
+
+def _read_state(config: Config, ckpt_path: Path, device: torch.device) -> dict | None:
+    """The checkpoint to resume from (None without --resume); UserError when it holds another field."""
+    state = read_checkpoint(ckpt_path, device) if config.resume else None
+    if state is not None and state["field_config"]["kind"] != config.field:
+        raise UserError(f"{ckpt_path}: checkpoint holds a {state['field_config']['kind']} field, "
+                        f"config asks for {config.field}")  # fmt: skip
+    return state
+
+
+def _clear_plain_background(found: Defaults, train: Views, test: Views | None) -> None:
+    """Auto background on a plain colour: the plain colour's regions that touch the image border become
+    transparent in every view; the share of training pixels joins the background's reason."""
+    if found.plain_colour is None:
+        return
+    share = train.mask_colour(found.plain_colour)
+    if test is not None:
+        test.mask_colour(found.plain_colour)
+    found.reasons["background"] += (f"; {share:.1%} of the training pixels (the plain colour's regions that touch "
+                                    "the image border) made transparent")  # fmt: skip
+
+
+def _check_scene(found: Defaults) -> None:
+    """What the config alone could not tell: a loss the scene's space cannot take (the depth loss's: in
+    `resolve_defaults`, which reads the scene's sparse points)."""
+    if found.config.fast.distortion > 0 and not found.space.distortion_loss:
+        raise UserError(f"--distortion applies to contracted scenes only (this one is {found.reasons['scene_model']})")
+
+
+def _model(config: Config, found: Defaults, scene: Scene, state: dict | None, device: torch.device,
+           n_train: int) -> FieldModel:  # fmt: skip
+    """The field model in its space with its background and appearance codes: new, or restored from `state`
+    (its field's weights: `_optimizer`)."""
+    if state is not None:
+        space = restore_space(state, lambda kind: make_space(kind, scene))
+        background = restore_background(state, device)
+    else:
+        space, background = found.space, found.background
+    model = build_model(_settings(config), space, device, state["field_config"] if state else None, background)
+    if config.appearance:
+        restored = restore_appearance(state, device) if state is not None else None
+        model.appearance = restored or Appearance(n_train).to(device)
+    return model
+
+
+def _settings(config: Config) -> ModelSettings:
+    fast = config.fast
+    return ModelSettings(field=config.field, resolution=fast.resolution, step_ratio=fast.step_ratio,
+                         occupancy_resolution=fast.occupancy_resolution, render_step_factor=fast.render_step_factor,
+                         view_dependent=config.view_dependent)  # fmt: skip
+
+
+def _camera_opt(refine: RefineOptions | None, scene: Scene, train_idx: tuple[int, ...], state: dict | None,
+                device: torch.device) -> CameraOpt | None:  # fmt: skip
+    """The training cameras' corrections (restored on resume), or None without pose refinement."""
+    if refine is None:
+        return None
+    poses = np.stack([scene.frames[i].world_from_cam for i in train_idx])
+    pivot = pivot_depths(poses, np.asarray(scene.aabb, dtype=np.float64).mean(0))
+    cameras = CameraOpt(poses, focal=refine.focal, schedule=CameraSchedule(lr=refine.camera_lr), pivot=pivot)
+    cameras = cameras.to(device)
+    if state is not None and state.get("camera_opt") is not None:
+        cameras.load_dict(state["camera_opt"])
+    return cameras
+
+
+def _optimizer(model: FieldModel, lr: float, state: dict | None,
+               gen: torch.Generator) -> tuple[torch.optim.Optimizer, int, float, float]:  # fmt: skip
+    """Adam over the model, and the step, training seconds and learning-rate factor to start from: 0 for a new run,
+    the checkpoint's (with the field, occupancy grid, optimiser and ray generator) on resume."""
+    opt = make_optimizer(model, lr)
+    if state is None:
+        return opt, 0, 0.0, 1.0
+    model.field.load_state_dict(state["field"])
+    if model.grid is not None and state["occupancy"] is not None:
+        model.grid.load_state_dict(state["occupancy"])
+    opt = make_optimizer(model, lr)
+    opt.load_state_dict(state["optimizer"])
+    gen.set_state(state["rng"])
+    return opt, int(state["step"]), float(state["seconds"]), float(state["lr_factor"])
+
+
+def _eval_pixels(config: Config, test: Views | None) -> torch.Tensor | None:
+    """[K] held-out rays for the periodic test PSNR (None without a test split)."""
+    if test is None:
+        return None
+    g = torch.Generator().manual_seed(config.seed + 1)
+    n = test.n_rays  # randperm holds 8 bytes a pixel: above 16 M pixels, draw with replacement instead
+    if n <= 1 << 24:
+        return torch.randperm(n, generator=g)[: config.eval_pixels]
+    return torch.randint(n, (config.eval_pixels,), generator=g)
+
+
+def _record(found: Defaults, model: FieldModel) -> dict:
+    """The manifest's `used.defaults`: each default's reason, and the values the run resolved."""
+    fast = found.config.fast
+    resolved = {"resolution": list(fast.resolution), "step_ratio": fast.step_ratio,
+                "batch_rays": found.config.batch_rays, "background": model.background.describe(),
+                "tv": fast.tv}  # fmt: skip
+    return {**found.reasons, "resolved": resolved}
