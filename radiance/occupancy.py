@@ -23,7 +23,19 @@ from torch import Tensor
 
 from radiance.aabb import as_aabb, ray_aabb_intersect
 
-__all__ = ["OccupancyGrid", "march_bounds", "march_rays", "march_rays_reference", "query_reference", "occupied_span"]
+__all__ = [
+    "Xyz",
+    "OccupancyGrid",
+    "march_bounds",
+    "march_rays",
+    "march_rays_reference",
+    "query_reference",
+    "occupied_span",
+]
+
+Xyz = tuple[Tensor, Tensor, Tensor]
+"""Points as coordinates held apart: x, y, z, three tensors of one shape (element-wise maths on them vectorises;
+on [N, 3] rows of 3 torch's CPU kernels run 4-6x slower)."""
 
 SPAN_FACTORS = (4, 1)
 """`occupied_span`'s passes: coarse cells this many fine cells a side, each pass within the span of the last."""
@@ -86,6 +98,20 @@ class OccupancyGrid(torch.nn.Module):
             ijk = ijk.long()
             flat = (ijk[:, 0] * g + ijk[:, 1]) * g + ijk[:, 2]
         return self.binary.view(-1).index_select(0, flat) & inside
+
+    def query_xyz(self, xs: Xyz) -> Tensor:
+        """`query` of points given as coordinates held apart (x, y, z of one shape) -> bool of that shape: the same
+        cells (the same float maths per coordinate), at a fifth of the cost."""
+        lo, hi = self.aabb[0].to(xs[0]), self.aabb[1].to(xs[0])
+        g, exact = self.resolution, self.resolution**3 <= 2**24
+        inside, flat = None, None
+        for i, x in enumerate(xs):
+            ins = (x >= lo[i]) & (x <= hi[i])
+            cell = torch.floor((x - lo[i]) / (hi[i] - lo[i]) * g).clamp_(0, g - 1)
+            cell = cell if exact else cell.long()
+            inside = ins if inside is None else inside & ins
+            flat = cell if flat is None else flat * g + cell  # whole numbers < 2^24 when exact: no rounding
+        return self.binary.view(-1).index_select(0, flat.reshape(-1).long()).view(flat.shape) & inside
 
     def cell_centers(self) -> Tensor:
         """Centres of all cells, flattened in [ix, iy, iz] order: [G^3, 3]."""
@@ -227,10 +253,11 @@ def _span_pass(grid, rays_o, rays_d, t0, t1, factor) -> tuple[Tensor, Tensor]:
     per_cell = (res / (grid.aabb[1] - grid.aabb[0])).to(rays_o)  # [3] fine cells per unit length
     start = (rays_o[rows] + rays_d[rows] * t0[rows, None] - grid.aabb[0].to(rays_o)) * per_cell  # [A, 3] u at t0
     du = rays_d[rows] * (per_cell * h)  # [A, 3] u per sample
+    start_xyz, du_xyz = start.T.contiguous(), du.T.contiguous()  # [3, A]: per sample, coordinates held apart
     span = t1[rows] - t0[rows]  # [A]
     count = torch.ceil(span / h).long() + 1  # [A] samples a ray
     ends = torch.cumsum(count, 0)  # [A]
-    flat = torch.tensor([gc * gc, gc, 1], dtype=rays_o.dtype, device=rays_o.device)  # [3]
+    exact = gc**3 <= 2**24  # flat cell indices as whole floats
     i, budget = 0, 1 << 22
     while i < rows.numel():
         done = int(ends[i - 1]) if i else 0
@@ -239,9 +266,13 @@ def _span_pass(grid, rays_o, rays_d, t0, t1, factor) -> tuple[Tensor, Tensor]:
         ray = torch.repeat_interleave(torch.arange(j - i, device=t0.device), c)  # [N]
         k = torch.arange(ray.numel(), device=t0.device) - (torch.cumsum(c, 0) - c).index_select(0, ray)  # [N]
         k = torch.minimum(k.to(t0.dtype), (span[i:j] / h).index_select(0, ray))  # the last sample at t1
-        u = torch.addcmul(start[i:j].index_select(0, ray), du[i:j].index_select(0, ray), k[:, None])  # [N, 3]
-        cell = u.clamp_(0, res - 1).floor_().div_(factor).floor_()  # [N, 3] coarse cell
-        hit = coarse.view(-1).index_select(0, (cell @ flat).long())  # [N]
+        cell = None  # [N] flat coarse cell
+        for s_a, du_a in zip(start_xyz, du_xyz, strict=True):
+            u = torch.addcmul(s_a[i:j].index_select(0, ray), du_a[i:j].index_select(0, ray), k)  # [N] on one axis
+            c_a = u.clamp_(0, res - 1).floor_().div_(factor).floor_()  # [N] coarse cell on this axis
+            c_a = c_a if exact else c_a.long()
+            cell = c_a if cell is None else cell * gc + c_a
+        hit = coarse.view(-1).index_select(0, cell.long())  # [N]
         t = t0[rows[i:j]].index_select(0, ray) + h * k  # [N]
         big = torch.tensor(math.inf, dtype=t.dtype, device=t.device)
         lo_t = torch.full((j - i,), math.inf, dtype=t0.dtype, device=t0.device)

@@ -31,6 +31,7 @@ from radiance.aabb import ray_aabb_segment
 from radiance.contraction import (
     CONTRACTED_BOX,
     Contraction,
+    chord_scale_xyz,
     contraction_chord_scale,
     march_contracted,
     normalized_distance,
@@ -38,7 +39,7 @@ from radiance.contraction import (
     warped_range,
 )
 from radiance.ndc import NDC
-from radiance.occupancy import OccupancyGrid, march_bounds, march_rays, occupied_span
+from radiance.occupancy import OccupancyGrid, Xyz, march_bounds, march_rays, occupied_span
 
 __all__ = ["Packed", "Steps", "Space", "Box", "NDCSpace", "Contracted", "SPACES", "space_from_dict"]
 
@@ -62,8 +63,10 @@ class Packed:
 @dataclass(frozen=True)
 class Steps:
     """Uniform steps of an inference march, per ray: u = u0 + k step while u < u_end (the last step ends at u_end);
-    u is t (box) or the warped distance s (contracted). `warp(u [A, S], rows [A]) -> t`, `point(x [M, 3]) -> field
-    and occupancy position`, `scale(rows [M], t0 [M], t1 [M]) -> field density to world density` (or None).
+    u is t (box) or the warped distance s (contracted). `warp(u [A, S], rows [A]) -> t`, `point(xyz) -> field and
+    occupancy position` of march points given as coordinates held apart (`radiance.occupancy.Xyz`: x, y, z of one
+    shape, e.g. [A, S]; far cheaper than rows of 3), `scale(rows [M], t0 [M], t1 [M]) -> field density to world
+    density` (or None).
     `k_first`, `k_stop` [R] (float, whole numbers): only steps k_first <= k < k_stop are taken, the others being
     known to be empty; u is still u0 + k step, so the steps taken are the training march's (without jitter)."""
 
@@ -71,7 +74,7 @@ class Steps:
     u_end: Tensor  # [R]
     step: float
     warp: Callable[[Tensor, Tensor], Tensor]
-    point: Callable[[Tensor], Tensor]
+    point: Callable[[Xyz], Xyz]
     scale: Callable[[Tensor, Tensor, Tensor], Tensor] | None = None
     k_first: Tensor | None = None  # [R]
     k_stop: Tensor | None = None  # [R]
@@ -192,7 +195,7 @@ def _box_steps(space: Space, grid, rays_o, rays_d, step) -> Steps:
     k_first = torch.floor((first - u0) / step).clamp(min=0)  # last step starting at or before first
     k_stop = torch.floor((last - u0) / step) + 1  # one past the last step starting at or before last
     k_stop = torch.where(last >= first, k_stop, k_first)  # nothing occupied: no steps
-    return Steps(u0, u_end, step, lambda u, rows: u, lambda x: x, None, k_first, k_stop)
+    return Steps(u0, u_end, step, lambda u, rows: u, lambda xyz: xyz, None, k_first, k_stop)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -221,8 +224,10 @@ class Box(Space):
     def left_out(self, forward_facing):
         ndc = ("forward-facing scene trained in its box because that was asked for" if forward_facing
                else "360-degree scene: NDC only applies to forward-facing captures")  # fmt: skip
-        return {"ndc": ndc,
-                "contraction": "the scene's box holds everything the photos show (alpha or a plain background)"}
+        return {
+            "ndc": ndc,
+            "contraction": "the scene's box holds everything the photos show (alpha or a plain background)",
+        }
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -268,8 +273,10 @@ class NDCSpace(Space):
         return {"kind": self.name, "ndc": self.ndc.to_dict(), "box": [list(r) for r in self.box]}
 
     def describe(self):
-        note = ("field and occupancy grid live in NDC of the mean camera (radiance.ndc); depths are mapped back to "
-                "scene units")
+        note = (
+            "field and occupancy grid live in NDC of the mean camera (radiance.ndc); depths are mapped back to "
+            "scene units"
+        )
         return {**super().describe(), "note": note}
 
     def left_out(self, forward_facing):
@@ -305,11 +312,12 @@ class Contracted(Space):
     def steps(self, grid, rays_o, rays_d, step):
         c = self.contraction
         t_s, s0, s_end = warped_range(c, rays_o, rays_d, near=self.near, step_size=step)
+        o_xyz, d_xyz = tuple(rays_o.T.contiguous()), tuple(rays_d.T.contiguous())  # x, y, z [R] each
 
-        def scale(rows, t0, t1):
-            return contraction_chord_scale(c, rays_o[rows], rays_d[rows], t0, t1)
+        def scale(rows, t0, t1):  # contraction_chord_scale's values
+            return chord_scale_xyz(c, o_xyz, d_xyz, rows, t0, t1)
 
-        return Steps(s0, s_end, step, lambda u, rows: t_of_s(u, t_s[rows][:, None]), c.contract, scale)
+        return Steps(s0, s_end, step, lambda u, rows: t_of_s(u, t_s[rows][:, None]), c.contract_xyz, scale)
 
     def box_segment(self, rays_o, rays_d):
         raise ValueError("a contracted space has no straight rays through a box: expected a marched field")
@@ -359,4 +367,3 @@ def space_from_dict(doc: dict[str, Any]) -> Space:
     if kind == Contracted.name:
         return Contracted(contraction=Contraction.from_dict(doc["contraction"]), near=float(doc["near"]))
     raise ValueError(f"expected a scene space of kind {', '.join(SPACES)}, got {kind!r}")
-

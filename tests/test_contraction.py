@@ -6,7 +6,14 @@ from __future__ import annotations
 import pytest
 import torch
 
-from radiance.contraction import CONTRACTED_BOX, Contraction, march_contracted, march_contracted_reference
+from radiance.contraction import (
+    CONTRACTED_BOX,
+    Contraction,
+    chord_scale_xyz,
+    contraction_chord_scale,
+    march_contracted,
+    march_contracted_reference,
+)
 from radiance.occupancy import OccupancyGrid
 from radiance.render import Marcher, render_marched
 from radiance.space import Box, Contracted
@@ -36,6 +43,28 @@ def test_contract_extremes_stay_finite_with_gradients():
     y.sum().backward()
     assert bool(torch.isfinite(y).all()) and bool(torch.isfinite(x.grad).all())
     assert bool(torch.isfinite(c.density_scale(x.detach())).all())
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_contract_xyz_and_chord_scale_xyz_equal_their_row_twins(dtype):
+    """The fast paths on coordinates held apart give `contract`'s and `contraction_chord_scale`'s values bit for
+    bit: inside the box, in the shell, far away, on the box's faces, at extremes and at NaN."""
+    c = Contraction(BOX)
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(4000, 3, generator=g, dtype=dtype) * torch.logspace(-1, 6, 4000, dtype=dtype)[:, None]
+    x[:8] = torch.tensor([[1.0, 1.5, 0.0], [-1.0, -0.5, -2.0], [0.0, 0.5, -1.0], [1e30, 0.0, 0.0],
+                          [0.0, -1e30, 5.0], [float("inf"), 0.0, 0.0], [float("nan"), 0.0, 0.0], [1.0, 0.2, -0.3]],
+                         dtype=dtype)  # fmt: skip
+    got = torch.stack(c.contract_xyz(tuple(x.T.contiguous())), dim=-1)
+    torch.testing.assert_close(got, c.contract(x), rtol=0, atol=0, equal_nan=True)
+    o = torch.randn(50, 3, generator=g, dtype=dtype) * 3
+    d = torch.nn.functional.normalize(torch.randn(50, 3, generator=g, dtype=dtype), dim=-1)
+    rows = torch.randint(50, (3000,), generator=g)
+    t0 = torch.rand(3000, generator=g, dtype=dtype) * 20
+    t1 = t0 + torch.rand(3000, generator=g, dtype=dtype) * torch.logspace(-3, 3, 3000, dtype=dtype)
+    t1[:5] = t0[:5]  # zero-length intervals
+    fast = chord_scale_xyz(c, tuple(o.T.contiguous()), tuple(d.T.contiguous()), rows, t0, t1)
+    assert torch.equal(fast, contraction_chord_scale(c, o[rows], d[rows], t0, t1))
 
 
 def test_bad_inner_box_is_refused():
@@ -104,7 +133,8 @@ def test_far_background_is_rendered_at_world_distance():
 
 def test_contracted_terminating_matches_its_plain_twin():
     """render_marched with early termination against its plain twin in a contracted space: equal without
-    termination, within min_transmittance with it, with fewer densities evaluated, on an opaque ball in front of a far shell."""
+    termination, within min_transmittance with it, with fewer densities evaluated, on an opaque ball in front of a
+    far shell."""
     c = Contraction([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
     counted = []
 

@@ -60,6 +60,15 @@ def test_query_matches_plain_loop_and_outside_is_empty(grid):
     assert not grid.query(torch.tensor([[1.1, 0.0, 0.0], [0.0, 0.0, 0.0]])).tolist()[0]
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_query_xyz_equals_query(grid, dtype):
+    """`query_xyz` (coordinates held apart, any shape) gives `query`'s cells: inside, outside, on the faces."""
+    x = (torch.rand(40, 25, 3, generator=torch.Generator().manual_seed(2)) * 2.4 - 1.2).to(dtype)
+    x[0, :4] = torch.tensor([[1.0, 1.0, 1.0], [-1.0, -1.0, -1.0], [1.0, 0.0, -1.0], [1e30, 0.0, -1e30]])
+    got = grid.query_xyz(tuple(x[..., i] for i in range(3)))
+    assert got.shape == (40, 25) and torch.equal(got, grid.query(x.reshape(-1, 3)).reshape(40, 25))
+
+
 def test_fresh_grid_is_all_occupied_and_update_schedule():
     g = OccupancyGrid(AABB, resolution=8)
     assert g.skip_fraction == 0.0
