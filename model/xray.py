@@ -231,9 +231,9 @@ def load_xray_run(run_dir: str | Path, device: str | torch.device = "auto") -> X
         raise UserError(f"{config_path}: not an X-ray run config (no 'scene')")
     dev = resolve_device(device)
     state = read_xray_checkpoint(run_dir / "checkpoint.pt", dev)
-    scene_path = Path(config["scene"])
-    if not scene_path.exists() and config.get("scene_abs"):  # a run made from another working directory
-        scene_path = Path(config["scene_abs"])
+    tried = [run_dir / config["scene_from_run"]] if config.get("scene_from_run") else []  # moved with its run
+    tried += [Path(config["scene"])] + ([Path(config["scene_abs"])] if config.get("scene_abs") else [])
+    scene_path = next((p for p in tried if p.exists()), tried[-1])
     scene = read_any(scene_path)
     return XrayRun(
         run_dir=run_dir,

@@ -143,3 +143,20 @@ def test_non_finite_loss_restores_and_halves_the_learning_rate(scene, tmp_path, 
 def test_resume_flag_is_on_the_command():
     cfg = cli.config_from_args("xray-train", ["s", "r", "--resume", "--checkpoint-seconds", "5"])
     assert cfg.resume and cfg.checkpoint_seconds == 5.0
+
+
+def test_a_run_moved_with_its_scene_loads_from_anywhere(scene, tmp_path, monkeypatch):
+    """config.json records the scene relative to the run too: OUT/run and OUT/scene moved together still load
+    from another working directory, with the recorded paths gone."""
+    import shutil
+
+    from model.xray import load_xray_run
+
+    out = tmp_path / "out"
+    shutil.copytree(scene, out / "scene")
+    xray_train.run(_config(out / "scene", out / "run", max_steps=3))
+    assert json.loads((out / "run" / "config.json").read_text())["scene_from_run"] == "../scene"
+    shutil.move(str(out), str(tmp_path / "moved"))
+    monkeypatch.chdir(tmp_path / "moved" / "run")
+    run = load_xray_run(tmp_path / "moved" / "run", "cpu")
+    assert run.volume().shape == (16, 16, 16)

@@ -27,6 +27,7 @@ manifest is removed until the run ends again) or `--overwrite`.
 
 from __future__ import annotations
 
+import os
 import resource
 import time
 from dataclasses import dataclass
@@ -213,7 +214,9 @@ def _setup(config: Config, progress: Progress) -> XraySteps:
     run_dir = Path(config.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "manifest.json").unlink(missing_ok=True)  # resumed: not a finished run until the end
-    cfg_json = {**config_to_json(config), "scene": str(config.scene), "scene_abs": str(Path(config.scene).resolve())}
+    scene_abs = Path(config.scene).resolve()
+    cfg_json = {**config_to_json(config), "scene": str(config.scene), "scene_abs": str(scene_abs),
+                "scene_from_run": os.path.relpath(scene_abs, run_dir.resolve())}  # fmt: skip
     write_json(run_dir / "config.json", cfg_json)
     metrics = MetricsLog(run_dir / "metrics.csv", METRICS)
     if config.resume:
