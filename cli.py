@@ -51,7 +51,7 @@ from typing import Annotated, Any, Literal, get_args, get_origin
 import typer
 from typer.core import TyperCommand, TyperGroup
 
-from data.errors import UserError
+from nerfpipe.data.errors import UserError
 
 __all__ = ["GROUPS", "PARSERS", "STAGES", "Group", "Stage", "app", "config_from_args", "main", "skipped_fields"]
 
@@ -141,22 +141,24 @@ class Stage:
     summary: Callable[[Any], str] = _done
 
 
+S = "nerfpipe.stages."
+"""Where the stages live (a stage registered from elsewhere names its own module)."""
 STAGES: dict[str, Stage] = {
-    "scene": Stage("stages.scene", "A procedural textured scene with exact cameras, depth and mesh.", _scene),
-    "poses": Stage("stages.poses", "Camera poses with COLMAP (pycolmap): features, matching, mapping.", _poses),
-    "convert": Stage("stages.convert", "Convert a posed source into SCENE_DIR/transforms.json.", _convert),
-    "train": Stage("stages.train", "Train a radiance field; logs held-out PSNR against wall-clock time.", _train),
-    "render": Stage("stages.render", "Render a turntable, spiral or dataset-camera video of a run.", _render),
-    "depth": Stage("stages.depth", "Depth maps in your units (.npy, 16-bit mm PNG), previews, opacity.", _depth),
-    "eval": Stage("stages.eval", "PSNR, SSIM, render speed (and depth error) on test views, to JSON.", _eval),
-    "report": Stage("stages.report", "Compare runs: held-out PSNR against wall-clock time, and a table.", _report),
-    "mesh": Stage("stages.mesh", "Mesh the density field: marching cubes, cleanup, vertex colours.", _mesh),
-    "fit-image": Stage("stages.fit_image", "Fit one image with Fourier-feature MLPs and the fast grid.", _fit_image),
-    "xray-simulate": Stage("stages.xray_simulate", "X-ray projections of a CT volume -> a projection scene.", _xray),
-    "xray-train": Stage("stages.xray_train", "Fit an attenuation field to X-ray projections; 3-D PSNR vs time.", _xray),
-    "xray-eval": Stage("stages.xray_eval", "3-D PSNR/SSIM, projection PSNR/SSIM, FDK baseline, to JSON.", _xray),
-    "view": Stage("stages.view", "Browse a scene or a run in the browser (viser); record camera paths.", _view),
-    "xray-export": Stage("stages.xray_export", "Slice montages, a rotating DRR/MIP video and an iso-surface mesh."),
+    "scene": Stage(S + "scene", "A procedural textured scene with exact cameras, depth and mesh.", _scene),
+    "poses": Stage(S + "poses", "Camera poses with COLMAP (pycolmap): features, matching, mapping.", _poses),
+    "convert": Stage(S + "convert", "Convert a posed source into SCENE_DIR/transforms.json.", _convert),
+    "train": Stage(S + "train", "Train a radiance field; logs held-out PSNR against wall-clock time.", _train),
+    "render": Stage(S + "render", "Render a turntable, spiral or dataset-camera video of a run.", _render),
+    "depth": Stage(S + "depth", "Depth maps in your units (.npy, 16-bit mm PNG), previews, opacity.", _depth),
+    "eval": Stage(S + "eval", "PSNR, SSIM, render speed (and depth error) on test views, to JSON.", _eval),
+    "report": Stage(S + "report", "Compare runs: held-out PSNR against wall-clock time, and a table.", _report),
+    "mesh": Stage(S + "mesh", "Mesh the density field: marching cubes, cleanup, vertex colours.", _mesh),
+    "fit-image": Stage(S + "fit_image", "Fit one image with Fourier-feature MLPs and the fast grid.", _fit_image),
+    "xray-simulate": Stage(S + "xray_simulate", "X-ray projections of a CT volume -> a projection scene.", _xray),
+    "xray-train": Stage(S + "xray_train", "Fit an attenuation field to X-ray projections; 3-D PSNR vs time.", _xray),
+    "xray-eval": Stage(S + "xray_eval", "3-D PSNR/SSIM, projection PSNR/SSIM, FDK baseline, to JSON.", _xray),
+    "view": Stage(S + "view", "Browse a scene or a run in the browser (viser); record camera paths.", _view),
+    "xray-export": Stage(S + "xray_export", "Slice montages, a rotating DRR/MIP video and an iso-surface mesh."),
 }
 
 # (command, field) -> name of the stage module's `parse(text)` for fields no rule reads from text.
@@ -421,7 +423,7 @@ def _run_stage(command: str, values: Mapping[str, Any]) -> None:
 
 def _suspect_lines(command: str, out: Any) -> list[str]:
     """One line per failed self-check (`data.checks`) in the manifest or report the stage wrote, if any."""
-    from data.checks import read_failed
+    from nerfpipe.data.checks import read_failed
 
     lines = []
     for name in ("manifest", "report"):

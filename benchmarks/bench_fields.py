@@ -9,7 +9,7 @@ import time
 
 import torch
 
-from radiance.fields import NeRFMLP, TensoRF
+from nerfpipe.radiance.fields import NeRFMLP, TensoRF
 
 __all__ = ["measure", "main"]
 

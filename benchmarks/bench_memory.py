@@ -37,8 +37,8 @@ def make_capture(out: Path, views: int) -> Path:
     """transforms.json with `views` frames at 1920x1080 over DISTINCT generated photos; returns the folder."""
     import cv2
 
-    from data.transforms import Frame, Scene, write_scene
-    from radiance.camera import Intrinsics
+    from nerfpipe.data.transforms import Frame, Scene, write_scene
+    from nerfpipe.radiance.camera import Intrinsics
 
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(0)

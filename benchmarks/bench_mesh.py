@@ -48,7 +48,7 @@ def measure(spec: dict) -> dict:
 
     from benchmarks.mesh_metrics import chamfer_distance
     from benchmarks.standin import visible_points
-    from stages import mesh
+    from nerfpipe.stages import mesh
 
     out = Path(spec["out"])
     cfg = mesh.Config(run_dir=Path(spec.get("run_dir", out.parent)), out=out, resolution=spec["resolution"],
@@ -94,7 +94,7 @@ def _in_subprocess(spec: dict) -> dict:
 
 
 def _train(out: Path, seconds: float) -> tuple[Path, Path]:
-    from stages import convert, scene, train
+    from nerfpipe.stages import convert, scene, train
 
     src, scene_dir, run_dir = out / "scene_src", out / "scene", out / "run"
     if not (src / "manifest.json").is_file():

@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from model import load_trained
-from radiance.camera import generate_rays, z_depth_from_t
-from stages import scene as scene_stage
-from stages import train
+from nerfpipe.model import load_trained
+from nerfpipe.radiance.camera import generate_rays, z_depth_from_t
+from nerfpipe.stages import scene as scene_stage
+from nerfpipe.stages import train
 
 __all__ = ["main"]
 

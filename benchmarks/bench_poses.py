@@ -29,12 +29,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from cli import config_from_args  # noqa: E402
-from data.ground_truth import read_ground_truth  # noqa: E402
-from data.importers.colmap import read_world_from_cam  # noqa: E402
-from data.transforms import read_scene  # noqa: E402
-from radiance.align import pose_errors  # noqa: E402
-from stages import poses  # noqa: E402
+from nerfpipe.cli import config_from_args  # noqa: E402
+from nerfpipe.data.ground_truth import read_ground_truth  # noqa: E402
+from nerfpipe.data.importers.colmap import read_world_from_cam  # noqa: E402
+from nerfpipe.data.transforms import read_scene  # noqa: E402
+from nerfpipe.radiance.align import pose_errors  # noqa: E402
+from nerfpipe.stages import poses  # noqa: E402
 
 FOX = ROOT.parent / "shared" / "data" / "fox"
 
@@ -87,7 +87,7 @@ def main(argv: list[str] | None = None) -> None:
                 ref = {Path(f.file_path).name: f.world_from_cam for f in frames}
                 bench("fox", FOX / "images", ref, out / "fox", cli_options)
         if args.only in (None, "synthetic"):
-            from stages import scene
+            from nerfpipe.stages import scene
 
             scene_dir = out / "synthetic_scene"
             scene.run(scene.Config(out_dir=scene_dir, kind="photos", size=256, views=40, seed=args.seed))

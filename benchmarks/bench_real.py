@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
 sys.path.insert(0, str(ROOT))
 
-from pipelines.suspects import RECORDS  # noqa: E402
+from nerfpipe.pipelines.suspects import RECORDS  # noqa: E402
 
 __all__ = ["CAPTURES", "main"]
 
@@ -82,9 +82,9 @@ def _read(path: Path) -> dict | None:
 
 def _pose_error(out: Path) -> str:
     """Median / largest rotation error (deg) of the fox's registered cameras against instant-ngp's poses."""
-    from data.importers.colmap import read_world_from_cam
-    from data.transforms import read_scene
-    from radiance.align import pose_errors
+    from nerfpipe.data.importers.colmap import read_world_from_cam
+    from nerfpipe.data.transforms import read_scene
+    from nerfpipe.radiance.align import pose_errors
 
     sparse = out / "scene" / "colmap" / "sparse"
     if not sparse.is_dir():

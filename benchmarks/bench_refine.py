@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.bench_train import nerfpipe
-from data.transforms import load_image, read_scene, write_scene
+from nerfpipe.data.transforms import load_image, read_scene, write_scene
 
 __all__ = ["perturb_scene", "degrade_scene", "poses_table", "main"]
 
@@ -117,7 +117,7 @@ def _true_poses(out: Path, scene: Path, train_idx: tuple[int, ...]) -> np.ndarra
     frames = read_scene(scene).frames
     if not (out / "photos").is_dir():
         return np.stack([frames[i].world_from_cam for i in train_idx])
-    from data.ground_truth import read_ground_truth
+    from nerfpipe.data.ground_truth import read_ground_truth
 
     truth = read_ground_truth(out / "photos").by_file_name()
     return np.stack([truth[Path(frames[i].file_path).name] for i in train_idx])
@@ -132,7 +132,7 @@ def _train_eval(scene: Path, run: Path, seconds: float, extra: str = "") -> dict
 
 
 def _errors(poses: np.ndarray, truth: np.ndarray) -> dict:
-    from radiance.align import pose_errors
+    from nerfpipe.radiance.align import pose_errors
 
     err = pose_errors(poses, truth)
     return {"median_rotation_error_deg": round(err.median_rotation_deg, 4),
@@ -143,7 +143,7 @@ def _errors(poses: np.ndarray, truth: np.ndarray) -> dict:
 def bench_poses_case(out: Path, seconds: float, kind: str, size: int, seed: int, views: int, rot_deg: float,
                      trans_frac: float, exact: bool) -> dict:  # fmt: skip
     """One case: plain and refined runs (and with `exact` the exact-pose run) on the perturbed scene."""
-    from model import load_trained
+    from nerfpipe.model import load_trained
 
     scene = _scene(out, size, views, kind, seed)
     noisy = perturb_scene(scene, out / "scene_perturbed", rot_deg, trans_frac, seed=seed)

@@ -34,9 +34,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from model import camera_path, load_trained, resolve_device
-from model.trained import Trained
-from radiance.camera import generate_rays
+from nerfpipe.model import camera_path, load_trained, resolve_device
+from nerfpipe.model.trained import Trained
+from nerfpipe.radiance.camera import generate_rays
 
 KEYS = ("rgb", "acc", "depth", "depth_median")
 

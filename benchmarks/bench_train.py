@@ -31,7 +31,7 @@ def nerfpipe(command: str, args: str):
     """Run one stage exactly as `nerfpipe COMMAND ARGS` would (the CLI's own Config), return its Outputs."""
     import importlib
 
-    from cli import STAGES, config_from_args
+    from nerfpipe.cli import STAGES, config_from_args
 
     print(f"$ nerfpipe {command} {args}", flush=True)
     config = config_from_args(command, shlex.split(args))

@@ -30,13 +30,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from cli import config_from_args  # noqa: E402
-from data.errors import UserError  # noqa: E402
-from data.ground_truth import read_ground_truth  # noqa: E402
-from data.importers.colmap import read_world_from_cam  # noqa: E402
-from radiance.align import pose_errors  # noqa: E402
-from stages import convert, poses, train  # noqa: E402
-from stages import scene as scene_stage  # noqa: E402
+from nerfpipe.cli import config_from_args  # noqa: E402
+from nerfpipe.data.errors import UserError  # noqa: E402
+from nerfpipe.data.ground_truth import read_ground_truth  # noqa: E402
+from nerfpipe.data.importers.colmap import read_world_from_cam  # noqa: E402
+from nerfpipe.radiance.align import pose_errors  # noqa: E402
+from nerfpipe.stages import convert, poses, train  # noqa: E402
+from nerfpipe.stages import scene as scene_stage  # noqa: E402
 
 
 def _cpu_seconds() -> float:

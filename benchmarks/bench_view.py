@@ -21,9 +21,9 @@ import time
 import numpy as np
 import torch
 
-from model import load_trained, render_view, resolve_device
-from model.cameras import camera_path
-from model.preview import render_preview
+from nerfpipe.model import load_trained, render_view, resolve_device
+from nerfpipe.model.cameras import camera_path
+from nerfpipe.model.preview import render_preview
 
 
 def main(argv: list[str] | None = None) -> dict:

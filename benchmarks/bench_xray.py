@@ -29,10 +29,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from data.projections import read_projection_scene, write_projection_scene
-from radiance.ct_metrics import psnr_3d, ssim_3d
-from radiance.fdk import fdk
-from stages import xray_simulate
+from nerfpipe.data.projections import read_projection_scene, write_projection_scene
+from nerfpipe.radiance.ct_metrics import psnr_3d, ssim_3d
+from nerfpipe.radiance.fdk import fdk
+from nerfpipe.stages import xray_simulate
 
 __all__ = ["main"]
 

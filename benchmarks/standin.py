@@ -22,10 +22,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from data.transforms import Frame, Scene
-from radiance.camera import Intrinsics, project
-from radiance.paths import look_at
-from radiance.space import Box
+from nerfpipe.data.transforms import Frame, Scene
+from nerfpipe.radiance.camera import Intrinsics, project
+from nerfpipe.radiance.paths import look_at
+from nerfpipe.radiance.space import Box
 
 Z_UP = np.array([0.0, 0.0, 1.0])
 
@@ -150,8 +150,8 @@ def visible_points(points: np.ndarray, scene_src: Path, tol: float = VISIBILITY_
     are dropped; floaters in free space are kept."""
     import json
 
-    from data.transforms import read_scene
-    from stages.scene.objects import default_primitives
+    from nerfpipe.data.transforms import read_scene
+    from nerfpipe.stages.scene.objects import default_primitives
 
     scene = read_scene(scene_src)
     manifest = json.loads((Path(scene_src) / "manifest.json").read_text())

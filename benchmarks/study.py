@@ -114,7 +114,7 @@ class Context:
 # ---------------------------------------------------------------------------------------------- helpers
 def stage(command: str, *args: Any) -> Any:
     """Run `nerfpipe COMMAND ARGS...` in this process: the Config the CLI builds, the stage's `run`."""
-    import cli
+    from nerfpipe import cli
 
     config = cli.config_from_args(command, [str(a) for a in args])
     return importlib.import_module(cli.STAGES[command].module).run(config)
@@ -135,7 +135,7 @@ def _pyplot():
 
 
 def _save(fig: Any, path: Path) -> str:
-    from data.atomic import atomic_path
+    from nerfpipe.data.atomic import atomic_path
 
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, format="png")
@@ -256,7 +256,7 @@ def media(rays: int) -> list[Medium]:
 
 
 def _composite_rays(sigma: np.ndarray, n: int, dtype: torch.dtype) -> dict[str, torch.Tensor]:
-    from radiance.compositing import composite
+    from nerfpipe.radiance.compositing import composite
 
     edges = torch.linspace(0.0, FAR, n + 1, dtype=dtype)
     r = sigma.shape[0]
@@ -359,7 +359,7 @@ def _naive_acc(sigmas: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor) -> torc
 
 
 def stability(ctx: Context) -> Section:
-    from radiance.stability import QUANTITIES, TAUS, closed_form, relative_error, run_sweep, summarize
+    from nerfpipe.radiance.stability import QUANTITIES, TAUS, closed_form, relative_error, run_sweep, summarize
 
     dtypes = (torch.float16, torch.bfloat16, torch.float32, torch.float64)
     summaries, per_tau = [], {}
@@ -664,7 +664,7 @@ def _machine(ctx: Context) -> dict:
 
 def write_page(ctx: Context, sections: list[Section], machine: dict, wall: float) -> Path:
     """OUT/results.json, then OUT/README.md (last)."""
-    from data.atomic import write_json, write_text
+    from nerfpipe.data.atomic import write_json, write_text
 
     doc = {"plan": dataclasses.asdict(ctx.plan), "machine": machine, "wall_seconds": round(wall, 1),
            "written": datetime.now(timezone.utc).isoformat(timespec="seconds"),

@@ -17,7 +17,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from data.errors import WRITE_ERRNOS, WriteFailed
+from nerfpipe.data.errors import WRITE_ERRNOS, WriteFailed
 
 __all__ = ["atomic_path", "write_bytes", "write_text", "write_json"]
 

@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from data.atomic import write_json
-from data.errors import UserError
-from radiance.keyframes import interpolate_keyframes
+from nerfpipe.data.atomic import write_json
+from nerfpipe.data.errors import UserError
+from nerfpipe.radiance.keyframes import interpolate_keyframes
 
 __all__ = ["FORMAT", "VERSION", "CameraPathFile", "read_camera_path", "write_camera_path"]
 

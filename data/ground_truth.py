@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from data.errors import UserError
+from nerfpipe.data.errors import UserError
 
 __all__ = ["GroundTruth", "read_ground_truth"]
 

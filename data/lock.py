@@ -15,7 +15,7 @@ import sys
 from collections.abc import Iterator
 from pathlib import Path
 
-from data.errors import WRITE_ERRNOS, UserError, WriteFailed
+from nerfpipe.data.errors import WRITE_ERRNOS, UserError, WriteFailed
 
 __all__ = ["LOCK_NAME", "FolderBusy", "folder_lock"]
 

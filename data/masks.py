@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from data.errors import UserError
+from nerfpipe.data.errors import UserError
 
 __all__ = [
     "MASK_SUFFIXES", "KEEP", "mask_candidates", "match_masks", "read_mask", "write_binary_mask",
@@ -93,7 +93,7 @@ def write_binary_mask(mask: np.ndarray, path: str | os.PathLike) -> Path:
     """mask [H, W] in [0, 1] -> a PNG of 0 / 255 (kept where >= KEEP), atomically."""
     import cv2
 
-    from data.atomic import write_bytes
+    from nerfpipe.data.atomic import write_bytes
 
     ok, buf = cv2.imencode(".png", np.where(mask >= KEEP, 255, 0).astype(np.uint8))
     if not ok:
@@ -116,7 +116,7 @@ def load_masked_image(scene, i: int) -> np.ndarray:
     """Frame i of a `data.transforms.Scene` as float32 [H, W, C] in [0, 1]: `load_image`, then, when the frame
     has a `mask_path`, RGBA with alpha = image alpha x mask (module docstring). UserError naming the mask file
     when it is missing or not the image's size."""
-    from data.transforms import load_image
+    from nerfpipe.data.transforms import load_image
 
     path = scene.image_path(i)
     img = load_image(path)

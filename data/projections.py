@@ -35,10 +35,10 @@ from typing import Any
 
 import numpy as np
 
-from data.atomic import write_json
-from data.errors import UserError
-from data.volumes import check_volume, write_npy
-from radiance.xray import VoxelGrid, XrayGeometry
+from nerfpipe.data.atomic import write_json
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.volumes import check_volume, write_npy
+from nerfpipe.radiance.xray import VoxelGrid, XrayGeometry
 
 __all__ = [
     "FORMAT",

@@ -22,9 +22,9 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from data.atomic import write_json, write_text
-from data.errors import UserError
-from data.lock import LOCK_NAME, folder_lock
+from nerfpipe.data.atomic import write_json, write_text
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.lock import LOCK_NAME, folder_lock
 
 __all__ = [
     "config_to_json",

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from data.atomic import atomic_path
-from data.errors import UserError
+from nerfpipe.data.atomic import atomic_path
+from nerfpipe.data.errors import UserError
 
 __all__ = ["SparseDepth", "write_sparse_depth", "read_sparse_depth", "KEY", "FILE"]
 

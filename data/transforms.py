@@ -24,9 +24,9 @@ from typing import Any
 
 import numpy as np
 
-from data.atomic import write_json
-from data.errors import UserError
-from radiance.camera import Intrinsics
+from nerfpipe.data.atomic import write_json
+from nerfpipe.data.errors import UserError
+from nerfpipe.radiance.camera import Intrinsics
 
 __all__ = [
     "Frame",

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from data.atomic import atomic_path
-from data.errors import UserError
+from nerfpipe.data.atomic import atomic_path
+from nerfpipe.data.errors import UserError
 
 __all__ = [
     "to_uint8",

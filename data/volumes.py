@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from data.atomic import atomic_path
-from data.errors import UserError
+from nerfpipe.data.atomic import atomic_path
+from nerfpipe.data.errors import UserError
 
 __all__ = ["Volume", "read_volume", "check_volume", "write_npy", "VOLUME_SUFFIXES"]
 

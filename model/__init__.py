@@ -8,9 +8,9 @@ Every stage, the viewer and the X-ray mode render trained runs through this API:
     cams = camera_path(trained.scene, "turntable", frames=120)
 """
 
-from model.cameras import OPAQUE, PATHS, CameraPath, Renderable, camera_path, render_view, training_intrinsics
-from model.device import resolve_device
-from model.trained import WHITE, Trained, load_trained
+from nerfpipe.model.cameras import OPAQUE, PATHS, CameraPath, Renderable, camera_path, render_view, training_intrinsics
+from nerfpipe.model.device import resolve_device
+from nerfpipe.model.trained import WHITE, Trained, load_trained
 
 __all__ = [
     "OPAQUE",

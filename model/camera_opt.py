@@ -55,10 +55,10 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from data.transforms import Scene, write_scene
-from radiance.align import umeyama
-from radiance.camera import Intrinsics
-from radiance.se3 import hat, se3_exp, se3_log, so3_exp
+from nerfpipe.data.transforms import Scene, write_scene
+from nerfpipe.radiance.align import umeyama
+from nerfpipe.radiance.camera import Intrinsics
+from nerfpipe.radiance.se3 import hat, se3_exp, se3_log, so3_exp
 
 __all__ = [
     "ORBIT_STEP",
@@ -622,7 +622,7 @@ def optimise_test_pose(model: Any, background: Tensor, world_from_cam: np.ndarra
     [3]) by `steps` Adam steps on a correction of the camera (`CameraOpt`, pivoted at the depth of `centre` [3],
     the scene centre; None: about the camera centre), the field (`model`, a FieldModel) frozen; each step
     renders `batch` random pixels. Returns the refined camera and its correction's size."""
-    from radiance.camera import generate_rays
+    from nerfpipe.radiance.camera import generate_rays
 
     if photo.shape[:2] != (intr.h, intr.w) or photo.ndim != 3 or photo.shape[2] != 3:
         raise ValueError(f"expected photo [{intr.h}, {intr.w}, 3], got {tuple(photo.shape)}")

@@ -24,12 +24,12 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
-from data.camera_path import read_camera_path
-from data.errors import UserError
-from data.transforms import Scene, is_forward_facing
-from radiance import paths
-from radiance.camera import Intrinsics, generate_rays
-from radiance.space import Space
+from nerfpipe.data.camera_path import read_camera_path
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.transforms import Scene, is_forward_facing
+from nerfpipe.radiance import paths
+from nerfpipe.radiance.camera import Intrinsics, generate_rays
+from nerfpipe.radiance.space import Space
 
 __all__ = [
     "PATHS", "OPAQUE", "Renderable", "render_view", "training_intrinsics", "CameraPath", "camera_path",

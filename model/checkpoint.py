@@ -30,14 +30,14 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from data.atomic import write_bytes
-from data.errors import UserError
-from data.rundir import sha256_file, versions
-from model.appearance import Appearance
-from model.background import Background
-from radiance.contraction import Contraction
-from radiance.ndc import NDC
-from radiance.space import Box, Contracted, NDCSpace, Space, space_from_dict
+from nerfpipe.data.atomic import write_bytes
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.rundir import sha256_file, versions
+from nerfpipe.model.appearance import Appearance
+from nerfpipe.model.background import Background
+from nerfpipe.radiance.contraction import Contraction
+from nerfpipe.radiance.ndc import NDC
+from nerfpipe.radiance.space import Box, Contracted, NDCSpace, Space, space_from_dict
 
 __all__ = [
     "CHECKPOINT_FORMAT",

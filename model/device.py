@@ -7,7 +7,7 @@ from collections.abc import Iterator
 
 import torch
 
-from data.errors import UserError
+from nerfpipe.data.errors import UserError
 
 __all__ = ["resolve_device", "cpu_threads"]
 

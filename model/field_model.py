@@ -19,18 +19,18 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from data.errors import UserError
-from data.transforms import Scene, is_forward_facing
-from model.appearance import Appearance
-from model.background import Background
-from radiance.contraction import Contraction
-from radiance.fields import Field, TensoRF, VanillaNeRF, make_field
-from radiance.ndc import NDC, fit_ndc
-from radiance.occupancy import OccupancyGrid
-from radiance.regularizers import distortion_loss
-from radiance.render import ColourRule, Marcher, StratifiedSampler, render_marched, render_rays_hierarchical
-from radiance.safe import eps
-from radiance.space import FAR, SPACES, Box, Contracted, NDCSpace, Space
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.transforms import Scene, is_forward_facing
+from nerfpipe.model.appearance import Appearance
+from nerfpipe.model.background import Background
+from nerfpipe.radiance.contraction import Contraction
+from nerfpipe.radiance.fields import Field, TensoRF, VanillaNeRF, make_field
+from nerfpipe.radiance.ndc import NDC, fit_ndc
+from nerfpipe.radiance.occupancy import OccupancyGrid
+from nerfpipe.radiance.regularizers import distortion_loss
+from nerfpipe.radiance.render import ColourRule, Marcher, StratifiedSampler, render_marched, render_rays_hierarchical
+from nerfpipe.radiance.safe import eps
+from nerfpipe.radiance.space import FAR, SPACES, Box, Contracted, NDCSpace, Space
 
 __all__ = ["ModelSettings", "Inference", "FieldModel", "build_model", "make_space", "choose_space", "scene_ndc"]
 

@@ -37,8 +37,8 @@ from typing import Any, Protocol
 
 import torch
 
-from data.errors import Interrupted
-from data.stop import StopRequest
+from nerfpipe.data.errors import Interrupted
+from nerfpipe.data.stop import StopRequest
 
 __all__ = ["Budget", "Clock", "Schedule", "LoopSettings", "Stepper", "TrainingLoop", "TrainingDiverged", "set_lr"]
 

@@ -14,9 +14,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from model.cameras import Renderable
-from model.field_model import Inference
-from radiance.camera import Intrinsics, generate_rays
+from nerfpipe.model.cameras import Renderable
+from nerfpipe.model.field_model import Inference
+from nerfpipe.radiance.camera import Intrinsics, generate_rays
 
 __all__ = ["MIN_TRANSMITTANCE", "COARSE_STEP", "COARSE_COLOR_KEEP", "render_preview", "preview_rays"]
 

@@ -21,16 +21,16 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from data.errors import UserError
-from data.transforms import Scene, read_scene
-from model.appearance import Appearance
-from model.camera_opt import TEST_POSE_RULE, refined_scene
-from model.checkpoint import read_checkpoint, restore_appearance, restore_background, restore_space
-from model.device import resolve_device
-from model.field_model import EXACT, FieldModel, Inference, ModelSettings, build_model, make_space
-from radiance.fields import Field
-from radiance.occupancy import OccupancyGrid
-from radiance.space import Space
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.transforms import Scene, read_scene
+from nerfpipe.model.appearance import Appearance
+from nerfpipe.model.camera_opt import TEST_POSE_RULE, refined_scene
+from nerfpipe.model.checkpoint import read_checkpoint, restore_appearance, restore_background, restore_space
+from nerfpipe.model.device import resolve_device
+from nerfpipe.model.field_model import EXACT, FieldModel, Inference, ModelSettings, build_model, make_space
+from nerfpipe.radiance.fields import Field
+from nerfpipe.radiance.occupancy import OccupancyGrid
+from nerfpipe.radiance.space import Space
 
 __all__ = ["WHITE", "Trained", "load_trained"]
 

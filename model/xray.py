@@ -28,16 +28,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from data.atomic import atomic_path
-from data.errors import UserError
-from data.projections import ProjectionScene, read_any
-from model.checkpoint import load_state
-from model.device import resolve_device
-from radiance.aabb import ray_aabb_segment
-from radiance.fields import Field, make_field
-from radiance.fields.voxel import VoxelField
-from radiance.render import StratifiedSampler, render_attenuation
-from radiance.xray import VoxelGrid, XrayGeometry, detector_rays, siddon_project
+from nerfpipe.data.atomic import atomic_path
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.projections import ProjectionScene, read_any
+from nerfpipe.model.checkpoint import load_state
+from nerfpipe.model.device import resolve_device
+from nerfpipe.radiance.aabb import ray_aabb_segment
+from nerfpipe.radiance.fields import Field, make_field
+from nerfpipe.radiance.fields.voxel import VoxelField
+from nerfpipe.radiance.render import StratifiedSampler, render_attenuation
+from nerfpipe.radiance.xray import VoxelGrid, XrayGeometry, detector_rays, siddon_project
 
 __all__ = [
     "XRAY_CHECKPOINT_FORMAT",

@@ -17,7 +17,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from data.checks import read_failed
+from nerfpipe.data.checks import read_failed
 
 __all__ = ["RECORDS", "summary", "main"]
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from radiance.safe import safe_div
+from nerfpipe.radiance.safe import safe_div
 
 __all__ = [
     "interval_midpoints",

@@ -27,8 +27,8 @@ import math
 import torch
 from torch import Tensor
 
-from radiance.aabb import ray_aabb_intersect
-from radiance.occupancy import OccupancyGrid, Xyz
+from nerfpipe.radiance.aabb import ray_aabb_intersect
+from nerfpipe.radiance.occupancy import OccupancyGrid, Xyz
 
 __all__ = [
     "CONTRACTED_BOX",

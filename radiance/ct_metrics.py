@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from radiance.metrics import psnr_from_mse
+from nerfpipe.radiance.metrics import psnr_from_mse
 
 __all__ = ["psnr_3d", "ssim_3d", "psnr_projections", "ssim_projections", "data_range"]
 

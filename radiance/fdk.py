@@ -24,7 +24,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from radiance.xray import VoxelGrid, XrayGeometry, detector_coordinates, view_axes
+from nerfpipe.radiance.xray import VoxelGrid, XrayGeometry, detector_coordinates, view_axes
 
 __all__ = ["ramp_kernel", "filter_rows", "parker_weights", "fdk"]
 

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from radiance.camera import Intrinsics, generate_rays
+from nerfpipe.radiance.camera import Intrinsics, generate_rays
 
 __all__ = ["NDC", "mean_pose", "fit_ndc"]
 

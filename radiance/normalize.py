@@ -47,7 +47,7 @@ from typing import Literal
 
 import numpy as np
 
-from radiance.camera import Intrinsics
+from nerfpipe.radiance.camera import Intrinsics
 
 __all__ = ["Normalization", "normalize", "rotation_onto_z", "look_at_point"]
 

@@ -21,7 +21,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from radiance.aabb import as_aabb, ray_aabb_intersect
+from nerfpipe.radiance.aabb import as_aabb, ray_aabb_intersect
 
 __all__ = [
     "Xyz",

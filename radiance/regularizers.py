@@ -15,7 +15,7 @@ import math
 import torch
 from torch import Tensor
 
-from radiance.compositing import segment_cumsum
+from nerfpipe.radiance.compositing import segment_cumsum
 
 __all__ = ["distortion_loss", "distortion_loss_reference", "depth_nll_loss"]
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from radiance.compositing import (
+from nerfpipe.radiance.compositing import (
     accumulate,
     beer_lambert,
     composite,
@@ -36,10 +36,10 @@ from radiance.compositing import (
     optical_depth,
     render_weights,
 )
-from radiance.occupancy import OccupancyGrid, march_rays
-from radiance.safe import safe_div
-from radiance.samplers import resample_intervals, stratified_intervals
-from radiance.space import Space, Steps
+from nerfpipe.radiance.occupancy import OccupancyGrid, march_rays
+from nerfpipe.radiance.safe import safe_div
+from nerfpipe.radiance.samplers import resample_intervals, stratified_intervals
+from nerfpipe.radiance.space import Space, Steps
 
 __all__ = [
     "PER_RAY_KEYS",

@@ -27,8 +27,8 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
-from radiance.aabb import ray_aabb_segment
-from radiance.contraction import (
+from nerfpipe.radiance.aabb import ray_aabb_segment
+from nerfpipe.radiance.contraction import (
     CONTRACTED_BOX,
     Contraction,
     chord_scale_xyz,
@@ -38,8 +38,8 @@ from radiance.contraction import (
     t_of_s,
     warped_range,
 )
-from radiance.ndc import NDC
-from radiance.occupancy import OccupancyGrid, Xyz, march_bounds, march_rays, occupied_span
+from nerfpipe.radiance.ndc import NDC
+from nerfpipe.radiance.occupancy import OccupancyGrid, Xyz, march_bounds, march_rays, occupied_span
 
 __all__ = ["Packed", "Steps", "Space", "Box", "NDCSpace", "Contracted", "SPACES", "space_from_dict"]
 

@@ -26,8 +26,8 @@ from decimal import Decimal, localcontext
 import torch
 from torch import Tensor
 
-from radiance.compositing import beer_lambert, composite
-from radiance.safe import eps, tiny
+from nerfpipe.radiance.compositing import beer_lambert, composite
+from nerfpipe.radiance.safe import eps, tiny
 
 __all__ = [
     "QUANTITIES",

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from radiance.aabb import ray_aabb_intersect
+from nerfpipe.radiance.aabb import ray_aabb_intersect
 
 __all__ = [
     "XrayGeometry",

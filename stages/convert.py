@@ -36,16 +36,16 @@ from typing import Literal
 
 import numpy as np
 
-from data.atomic import atomic_path, write_bytes
-from data.errors import UserError
-from data.importers import Source, SourceFrame, load_source
-from data.masks import read_mask
-from data.rundir import config_to_json, write_manifest
-from data.sparse_depth import FILE as SPARSE_FILE
-from data.sparse_depth import KEY as SPARSE_KEY
-from data.sparse_depth import write_sparse_depth
-from data.transforms import Frame, Scene, cameras_face_forward, read_scene, write_scene
-from radiance.normalize import Normalization, normalize
+from nerfpipe.data.atomic import atomic_path, write_bytes
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.importers import Source, SourceFrame, load_source
+from nerfpipe.data.masks import read_mask
+from nerfpipe.data.rundir import config_to_json, write_manifest
+from nerfpipe.data.sparse_depth import FILE as SPARSE_FILE
+from nerfpipe.data.sparse_depth import KEY as SPARSE_KEY
+from nerfpipe.data.sparse_depth import write_sparse_depth
+from nerfpipe.data.transforms import Frame, Scene, cameras_face_forward, read_scene, write_scene
+from nerfpipe.radiance.normalize import Normalization, normalize
 
 __all__ = ["Config", "Outputs", "run", "holdout_splits"]
 

@@ -42,14 +42,14 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from data.atomic import atomic_path, write_json
-from data.checks import Check, verdict
-from data.errors import UserError
-from data.progress import NO_PROGRESS, Progress
-from data.rundir import MetricsLog, Stopwatch, config_to_json, output_folder, write_manifest
-from data.video import colorize, depth_legend_png, to_uint8, video_writer, write_png
-from model import camera_path, load_trained, render_view, resolve_device
-from radiance.camera import Intrinsics, generate_rays
+from nerfpipe.data.atomic import atomic_path, write_json
+from nerfpipe.data.checks import Check, verdict
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.progress import NO_PROGRESS, Progress
+from nerfpipe.data.rundir import MetricsLog, Stopwatch, config_to_json, output_folder, write_manifest
+from nerfpipe.data.video import colorize, depth_legend_png, to_uint8, video_writer, write_png
+from nerfpipe.model import camera_path, load_trained, render_view, resolve_device
+from nerfpipe.radiance.camera import Intrinsics, generate_rays
 
 __all__ = ["Config", "Outputs", "VIEWS", "KINDS", "run", "depth_mm"]
 

@@ -49,20 +49,20 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from data.atomic import write_json
-from data.checks import HOLDOUT_FLOOR_DB, HOLDOUT_GAP_DB, Check, verdict
-from data.errors import UserError
-from data.ground_truth import GroundTruth, read_ground_truth
-from data.masks import load_masked_image
-from data.progress import NO_PROGRESS, Progress
-from data.rundir import MetricsLog, Stopwatch, config_to_json, sidecar, write_manifest
-from data.transforms import Scene
-from model import OPAQUE, load_trained, render_view, resolve_device
-from model.appearance import EVAL_RULES as APPEARANCE_RULES
-from model.appearance import apply_transform, fit_code
-from radiance.align import umeyama
-from radiance.compositing import over_background
-from radiance.metrics import psnr
+from nerfpipe.data.atomic import write_json
+from nerfpipe.data.checks import HOLDOUT_FLOOR_DB, HOLDOUT_GAP_DB, Check, verdict
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.ground_truth import GroundTruth, read_ground_truth
+from nerfpipe.data.masks import load_masked_image
+from nerfpipe.data.progress import NO_PROGRESS, Progress
+from nerfpipe.data.rundir import MetricsLog, Stopwatch, config_to_json, sidecar, write_manifest
+from nerfpipe.data.transforms import Scene
+from nerfpipe.model import OPAQUE, load_trained, render_view, resolve_device
+from nerfpipe.model.appearance import EVAL_RULES as APPEARANCE_RULES
+from nerfpipe.model.appearance import apply_transform, fit_code
+from nerfpipe.radiance.align import umeyama
+from nerfpipe.radiance.compositing import over_background
+from nerfpipe.radiance.metrics import psnr
 
 __all__ = [
     "Config", "Outputs", "run", "ssim", "lpips_status", "GroundTruth", "read_ground_truth", "align_to", "train_psnr",
@@ -230,7 +230,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     refined_run = trained.pose_refinement is not None
     pose_steps = (TEST_POSE_STEPS if config.test_pose_steps is None else config.test_pose_steps) if refined_run else 0
     if pose_steps:
-        from model.camera_opt import TEST_POSE_OPT_RULE, optimise_test_pose
+        from nerfpipe.model.camera_opt import TEST_POSE_OPT_RULE, optimise_test_pose
     bg_t = torch.as_tensor(background, dtype=torch.float32, device=device)
     test_pose_moves: list[dict[str, float]] = []
     centre = np.asarray(scene.aabb, dtype=np.float64).mean(0)  # test-pose corrections turn about its depth

@@ -50,16 +50,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from data.checks import Check, verdict
-from data.errors import UserError
-from data.progress import NO_PROGRESS, Progress
-from data.rundir import MetricsLog, Stopwatch, config_to_json, sidecar, write_manifest
-from data.transforms import Scene, load_image
-from data.video import colorize, grey, to_uint8, video_writer, write_png
-from model import OPAQUE, PATHS, CameraPath, Renderable, camera_path, load_trained, render_view, resolve_device
-from model.cameras import is_path_file
-from radiance.compositing import over_background
-from radiance.metrics import psnr
+from nerfpipe.data.checks import Check, verdict
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.progress import NO_PROGRESS, Progress
+from nerfpipe.data.rundir import MetricsLog, Stopwatch, config_to_json, sidecar, write_manifest
+from nerfpipe.data.transforms import Scene, load_image
+from nerfpipe.data.video import colorize, grey, to_uint8, video_writer, write_png
+from nerfpipe.model import OPAQUE, PATHS, CameraPath, Renderable, camera_path, load_trained, render_view, resolve_device
+from nerfpipe.model.cameras import is_path_file
+from nerfpipe.radiance.compositing import over_background
+from nerfpipe.radiance.metrics import psnr
 
 __all__ = ["Config", "Outputs", "OUTPUT_KINDS", "parse_outputs", "parse_path", "fit_budget", "run"]
 

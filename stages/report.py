@@ -24,9 +24,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from data.atomic import atomic_path, write_text
-from data.errors import UserError
-from data.rundir import config_to_json, output_folder, write_manifest
+from nerfpipe.data.atomic import atomic_path, write_text
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.rundir import config_to_json, output_folder, write_manifest
 
 __all__ = ["Config", "Outputs", "RunSummary", "read_run", "run"]
 

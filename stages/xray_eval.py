@@ -20,16 +20,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from data.atomic import write_json
-from data.errors import UserError
-from data.progress import NO_PROGRESS, Progress
-from data.rundir import config_to_json, sidecar, write_manifest
-from data.volumes import read_volume
-from model.device import cpu_threads
-from model.xray import XrayRun, load_xray_run
-from radiance.ct_metrics import psnr_3d, psnr_projections, ssim_3d, ssim_projections
-from radiance.fdk import fdk
-from radiance.xray import project_views
+from nerfpipe.data.atomic import write_json
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.progress import NO_PROGRESS, Progress
+from nerfpipe.data.rundir import config_to_json, sidecar, write_manifest
+from nerfpipe.data.volumes import read_volume
+from nerfpipe.model.device import cpu_threads
+from nerfpipe.model.xray import XrayRun, load_xray_run
+from nerfpipe.radiance.ct_metrics import psnr_3d, psnr_projections, ssim_3d, ssim_projections
+from nerfpipe.radiance.fdk import fdk
+from nerfpipe.radiance.xray import project_views
 
 __all__ = ["Config", "Outputs", "run", "volume_metrics", "projection_metrics"]
 

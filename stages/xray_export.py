@@ -25,14 +25,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from data.atomic import atomic_path
-from data.errors import UserError
-from data.progress import NO_PROGRESS, Progress
-from data.rundir import config_to_json, output_folder, write_manifest
-from data.video import to_uint8, video_writer, write_png
-from model.device import cpu_threads
-from model.xray import XrayRun, load_xray_run
-from radiance.xray import detector_rays, siddon_project
+from nerfpipe.data.atomic import atomic_path
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.progress import NO_PROGRESS, Progress
+from nerfpipe.data.rundir import config_to_json, output_folder, write_manifest
+from nerfpipe.data.video import to_uint8, video_writer, write_png
+from nerfpipe.model.device import cpu_threads
+from nerfpipe.model.xray import XrayRun, load_xray_run
+from nerfpipe.radiance.xray import detector_rays, siddon_project
 
 __all__ = ["Config", "Outputs", "run", "parse_iso", "iso_level"]
 

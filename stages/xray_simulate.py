@@ -31,13 +31,13 @@ from typing import Literal
 import numpy as np
 import torch
 
-from data.errors import UserError
-from data.progress import NO_PROGRESS, Progress
-from data.projections import ProjectionScene, validate_geometry, write_projection_scene
-from data.rundir import config_to_json, output_folder, write_manifest
-from data.volumes import read_volume
-from model.device import cpu_threads
-from radiance.xray import (
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.progress import NO_PROGRESS, Progress
+from nerfpipe.data.projections import ProjectionScene, validate_geometry, write_projection_scene
+from nerfpipe.data.rundir import config_to_json, output_folder, write_manifest
+from nerfpipe.data.volumes import read_volume
+from nerfpipe.model.device import cpu_threads
+from nerfpipe.radiance.xray import (
     VoxelGrid,
     XrayGeometry,
     line_integral_from_counts,

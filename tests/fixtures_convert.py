@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from radiance.paths import look_at
+from nerfpipe.radiance.paths import look_at
 
 OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 

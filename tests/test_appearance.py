@@ -11,11 +11,11 @@ import pytest
 import torch
 
 from benchmarks.bench_refine import degrade_scene
-from model import load_trained
-from model.appearance import EVAL_RULE, EVAL_RULES, Appearance, apply_transform, fit_code
-from stages import eval as eval_stage
-from stages import scene as scene_stage
-from stages import train
+from nerfpipe.model import load_trained
+from nerfpipe.model.appearance import EVAL_RULE, EVAL_RULES, Appearance, apply_transform, fit_code
+from nerfpipe.stages import eval as eval_stage
+from nerfpipe.stages import scene as scene_stage
+from nerfpipe.stages import train
 from tests.test_refine import tiny_config
 
 

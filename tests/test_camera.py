@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from radiance.camera import (
+from nerfpipe.radiance.camera import (
     Intrinsics,
     distort,
     generate_rays,

@@ -9,13 +9,13 @@ import imageio.v2 as iio
 import numpy as np
 import pytest
 
-import cli
-import stages.render as render_stage
-from data.camera_path import read_camera_path, write_camera_path
-from data.errors import UserError
-from model.cameras import path_from_file
-from radiance import paths
-from radiance.keyframes import interpolate_keyframes, matrix_from_quat, quat_from_matrix, slerp
+import nerfpipe.stages.render as render_stage
+from nerfpipe import cli
+from nerfpipe.data.camera_path import read_camera_path, write_camera_path
+from nerfpipe.data.errors import UserError
+from nerfpipe.model.cameras import path_from_file
+from nerfpipe.radiance import paths
+from nerfpipe.radiance.keyframes import interpolate_keyframes, matrix_from_quat, quat_from_matrix, slerp
 
 try:  # the analytic stand-in lives with the render tests
     from test_render_stage import sphere_run  # noqa: F401  (fixture)

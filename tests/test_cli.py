@@ -14,8 +14,8 @@ from types import SimpleNamespace
 import pytest
 import typer
 
-import cli
-from data.errors import UserError
+from nerfpipe import cli
+from nerfpipe.data.errors import UserError
 
 ROOT = Path(__file__).resolve().parents[1]
 COMMANDS = ["scene", "poses", "convert", "train", "render", "depth", "eval", "report", "mesh", "fit-image"]
@@ -79,7 +79,7 @@ def test_top_level_help_imports_no_stage():
             cli.main(["--help"])
         except SystemExit:
             pass
-        heavy = sorted(m for m in sys.modules if m == "torch" or m.startswith("stages."))
+        heavy = sorted(m for m in sys.modules if m == "torch" or m.startswith("nerfpipe.stages."))
         assert not heavy, heavy
     """)
     r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
@@ -267,7 +267,7 @@ def _fake_report_run(monkeypatch, exc):
     def run(config, progress=None):
         raise exc
 
-    monkeypatch.setattr(importlib.import_module("stages.report"), "run", run)
+    monkeypatch.setattr(importlib.import_module("nerfpipe.stages.report"), "run", run)
 
 
 def test_unexpected_error_one_line_exit_1(capsys, monkeypatch):
@@ -295,7 +295,7 @@ def test_progress_passed_to_run_when_stderr_is_a_terminal(capsys, monkeypatch):
         seen.append(progress)
         return SimpleNamespace(markdown=config.out_dir / "summary.md", plot=config.out_dir / "psnr_vs_time.png")
 
-    monkeypatch.setattr(importlib.import_module("stages.report"), "run", run)
+    monkeypatch.setattr(importlib.import_module("nerfpipe.stages.report"), "run", run)
     code, out, _ = _run(capsys, "report", "a", "o")  # captured stderr is not a terminal: silent stage
     assert code == 0 and seen == [None]
     assert out.strip() == "report -> o/summary.md, o/psnr_vs_time.png"

@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from radiance.compositing import (
+from nerfpipe.radiance.compositing import (
     accumulate,
     beer_lambert,
     composite,
@@ -15,8 +15,8 @@ from radiance.compositing import (
     segment_cumsum,
     segment_cumsum_reference,
 )
-from radiance.safe import eps, safe_div, safe_log, safe_sqrt, shifted_softplus, tol, trunc_exp
-from radiance.stability import run_sweep, summarize
+from nerfpipe.radiance.safe import eps, safe_div, safe_log, safe_sqrt, shifted_softplus, tol, trunc_exp
+from nerfpipe.radiance.stability import run_sweep, summarize
 
 DTYPES = [torch.float16, torch.bfloat16, torch.float32, torch.float64]
 

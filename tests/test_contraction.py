@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from radiance.contraction import (
+from nerfpipe.radiance.contraction import (
     CONTRACTED_BOX,
     Contraction,
     chord_scale_xyz,
@@ -14,9 +14,9 @@ from radiance.contraction import (
     march_contracted,
     march_contracted_reference,
 )
-from radiance.occupancy import OccupancyGrid
-from radiance.render import Marcher, render_marched
-from radiance.space import Box, Contracted
+from nerfpipe.radiance.occupancy import OccupancyGrid
+from nerfpipe.radiance.render import Marcher, render_marched
+from nerfpipe.radiance.space import Box, Contracted
 
 BOX = [[-1.0, -0.5, -2.0], [1.0, 1.5, 0.0]]
 

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from data.errors import UserError
-from data.transforms import load_image, read_scene
-from stages.convert import Config, holdout_splits, run
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.transforms import load_image, read_scene
+from nerfpipe.stages.convert import Config, holdout_splits, run
 
 
 def _back_in_source(scene, frame) -> np.ndarray:
@@ -100,7 +100,7 @@ def test_aabb_override_applied_and_recorded(tmp_path):
 
 
 def test_aabb_option_parsed_from_comma_text():
-    import cli
+    from nerfpipe import cli
 
     config = cli.config_from_args("convert", ["src", "s", "--aabb", "-0.5,-1,-0.25,0.5,1,0.75"])
     assert config.aabb == (-0.5, -1.0, -0.25, 0.5, 1.0, 0.75)
@@ -271,7 +271,7 @@ def test_no_normalize_keeps_source_frame(tmp_path):
 
 
 def test_look_at_point_converging_and_parallel():
-    from radiance.normalize import look_at_point
+    from nerfpipe.radiance.normalize import look_at_point
 
     centres = np.array([[4.0, 0, 0], [0, 4.0, 0], [-4.0, 0, 1]])
     target = np.array([0.5, -0.2, 0.3])
@@ -286,7 +286,7 @@ def test_look_at_point_converging_and_parallel():
 def test_colmap_tracks_become_sparse_depth(tmp_path):
     """convert writes which points each photo observed (the fixture's tracks: photos 1 and 2 see all 60), in the
     scene frame, and the rays through them end at the points."""
-    from data.sparse_depth import KEY, read_sparse_depth
+    from nerfpipe.data.sparse_depth import KEY, read_sparse_depth
 
     src = tmp_path / "src"
     fx.make_colmap(src / "sparse" / "0", src / "images", 10)
@@ -305,8 +305,8 @@ def test_colmap_tracks_become_sparse_depth(tmp_path):
 
 
 def test_sparse_depth_file_errors_are_one_line(tmp_path):
-    from data.errors import UserError
-    from data.sparse_depth import read_sparse_depth, write_sparse_depth
+    from nerfpipe.data.errors import UserError
+    from nerfpipe.data.sparse_depth import read_sparse_depth, write_sparse_depth
 
     with pytest.raises(UserError, match="not found"):
         read_sparse_depth(tmp_path / "nope.npz")

@@ -5,8 +5,8 @@ import time
 
 import pytest
 
-from data.atomic import atomic_path, write_json
-from data.rundir import MetricsLog, write_config, write_manifest
+from nerfpipe.data.atomic import atomic_path, write_json
+from nerfpipe.data.rundir import MetricsLog, write_config, write_manifest
 
 
 def test_atomic_write_keeps_old_file_on_failure(tmp_path):

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 import torch
 
-import stages.depth as depth_stage
-from data.errors import UserError
-from model import render_view
+import nerfpipe.stages.depth as depth_stage
+from nerfpipe.data.errors import UserError
+from nerfpipe.model import render_view
 
 try:  # the analytic stand-in lives with the render tests
     from test_render_stage import SPHERE_RADIUS, SphereRun, sphere_run  # noqa: F401  (fixture)

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import torch
 
-import stages.eval as eval_stage
-from data.atomic import write_json
-from data.errors import UserError
-from model import render_view
+import nerfpipe.stages.eval as eval_stage
+from nerfpipe.data.atomic import write_json
+from nerfpipe.data.errors import UserError
+from nerfpipe.model import render_view
 
 try:  # the analytic stand-in lives with the render tests
     from test_render_stage import SphereRun, sphere_run  # noqa: F401  (fixture)
@@ -172,8 +172,8 @@ STEPS, PSNR_FLOOR, DEPTH_MAE_M = 120, 16.0, 0.15
 def test_short_training_gives_depth_near_ground_truth(tmp_path):
     """~15 s idle (the same budget as test_train's PSNR floor). The synthetic scene spans ~1.6 m seen from
     2.4 m; after 120 steps the depth MAE is ~0.07 m (a constant-depth guess is several times worse)."""
-    from stages import scene as scene_stage
-    from stages import train
+    from nerfpipe.stages import scene as scene_stage
+    from nerfpipe.stages import train
 
     scene_dir = tmp_path / "posed"
     scene_stage.run(scene_stage.Config(out_dir=scene_dir, kind="posed", size=32, views=16, seed=1))

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from radiance.fields import NeRFMLP, TensoRF, VanillaNeRF, make_field
-from radiance.fields.encodings import encoded_size, positional_encoding
+from nerfpipe.radiance.fields import NeRFMLP, TensoRF, VanillaNeRF, make_field
+from nerfpipe.radiance.fields.encodings import encoded_size, positional_encoding
 
 AABB = [[-1.0, -1.0, -0.5], [1.0, 1.0, 1.5]]
 
@@ -114,7 +114,7 @@ def test_upsample_keeps_the_function_and_config_round_trips():
 @pytest.mark.parametrize("channels", [8, 4, 6, 5])  # split in 4 groups of 2, 4 of 1; 6, 5: not split
 def test_vm_features_match_their_reference_twin(channels):
     """The channel-split grid_sample path gives the plain one's products and gradients (float rounding)."""
-    from radiance.fields.fast import _vm_features, _vm_features_reference
+    from nerfpipe.radiance.fields.fast import _vm_features, _vm_features_reference
 
     g = torch.Generator().manual_seed(1)
     planes = torch.randn(3, channels, 12, 12, generator=g)
@@ -136,7 +136,7 @@ def test_vm_features_match_their_reference_twin(channels):
 
 def test_sampled_tv_is_unbiased_and_its_direct_gradient_matches_autograd():
     """The per-step TV estimate averages to the full TV; the in-place gradient equals autograd of the estimate."""
-    from radiance.fields.fast import _plane_tv, add_plane_tv_grad_, plane_tv_sampled, tv_pairs
+    from nerfpipe.radiance.fields.fast import _plane_tv, add_plane_tv_grad_, plane_tv_sampled, tv_pairs
 
     g = torch.Generator().manual_seed(2)
     planes = torch.randn(3, 5, 9, 7, generator=g, dtype=torch.float64).cumsum(2)  # rougher along H than W

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 import torch
 
-import cli
-from data.errors import UserError
-from data.video import write_png
-from stages import fit_image
+from nerfpipe import cli
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.video import write_png
+from nerfpipe.stages import fit_image
 
 
 @pytest.fixture
@@ -71,7 +71,7 @@ def test_fits_a_small_image_and_writes_every_output(smooth_image, tmp_path):
     summary = json.loads(out.summary.read_text())
     assert (summary["width"], summary["height"]) == (32, 32)
     assert [m["psnr"] for m in summary["models"]] == [round(m.psnr, 3) for m in out.models]
-    from data.transforms import load_image
+    from nerfpipe.data.transforms import load_image
 
     assert load_image(out.montage).shape[1] > 3 * 32  # three panels side by side
 

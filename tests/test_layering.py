@@ -8,7 +8,9 @@
 - `data` (file formats) imports none of stages, model, cli, benchmarks, tests;
 - `model` (trained runs) imports none of stages, cli, benchmarks, tests;
 - `stages` imports neither cli nor benchmarks nor tests (test helpers are also imported by bare name, e.g.
-  `import fixtures_convert`: any module named like a file in tests/ counts as tests).
+  `import fixtures_convert`: any module named like a file in tests/ counts as tests);
+- every file (tests and benchmarks too) imports the product as `nerfpipe.<package>`, never by its folder's bare
+  name: the install puts one name, `nerfpipe`, on the path (docs/DESIGN.md, "Package names").
 """
 
 from __future__ import annotations
@@ -16,9 +18,14 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 SKIP_DIRS = {".venv", "runs", "build", "bench_out", "__pycache__", "node_modules"}
 TEST_MODULES = {"tests"} | {p.stem for p in (ROOT / "tests").glob("*.py")}
+PACKAGE = "nerfpipe"
+"""The one installed name: the folders are its subpackages (pyproject.toml maps nerfpipe to the repository root)."""
+PRODUCT = {"stages", "data", "model", "radiance", "pipelines", "cli"}
 FORBIDDEN = {
     "radiance": {"data", "stages", "model", "cli", "benchmarks", "tests"},
     "data": {"stages", "model", "cli", "benchmarks", "tests"},
@@ -53,7 +60,12 @@ def violations(source: str, module: str, *, is_package: bool = False, where: str
     """Layering violations of one module's source, each as 'where:line: module imports target (rule)'."""
     top = module.split(".")[0]
     bad = []
-    for line, target in _imported(ast.parse(source), module, is_package):
+    full = f"{PACKAGE}.{module}" if top in PRODUCT else module  # relative imports resolve inside nerfpipe
+    for line, target in _imported(ast.parse(source), full, is_package):
+        if target.split(".")[0] in PRODUCT:
+            bad.append(f"{where}:{line}: {module} imports {target} (the product is imported as nerfpipe.{target})")
+            continue
+        target = target.removeprefix(f"{PACKAGE}.")
         parts = target.split(".")
         t_top = "tests" if parts[0] in TEST_MODULES else parts[0]
         if t_top in FORBIDDEN.get(top, ()):
@@ -76,23 +88,28 @@ def _python_files() -> list[Path]:
 
 def test_checker_flags_bad_imports():
     """The checker itself: a synthetic bad source is flagged, with its line; allowed imports are not."""
-    bad_stage = "import numpy\n\ndef f():\n    from stages import render\n"
+    bad_stage = "import numpy\n\ndef f():\n    from nerfpipe.stages import render\n"
     assert violations(bad_stage, "stages.depth") == [
         "<string>:4: stages.depth imports stages.render (stage depth must not import stage render)"
     ]
-    assert violations("from stages.train.fit import step", "stages.mesh.grid")
+    assert violations("from stages import render", "stages.depth") == [
+        "<string>:1: stages.depth imports stages.render (the product is imported as nerfpipe.stages.render)"
+    ]
+    assert violations("from nerfpipe.stages.train.fit import step", "stages.mesh.grid")
     assert violations("from . import render", "stages.depth")  # relative: stages.render
     assert violations("from ..render import x", "stages.mesh.grid")  # relative: stages.render.x
-    assert violations("import data.transforms", "radiance.render")[0].startswith("<string>:1: ")
-    assert violations("from model import load", "data.transforms")
-    assert violations("from cli import main", "model.run")
+    assert violations("import nerfpipe.data.transforms", "radiance.render")[0].startswith("<string>:1: ")
+    assert violations("from nerfpipe.model import load", "data.transforms")
+    assert violations("from nerfpipe.cli import main", "model.run")
     assert violations("import fixtures_convert", "data.importers.colmap")
     assert violations("from benchmarks.standin import StandIn", "stages.mesh")
-    ok = "import torch\nfrom stages.poses import colmap\nfrom .images import screen_image\nfrom data.errors import E\n"
+    ok = ("import torch\nfrom nerfpipe.stages.poses import colmap\nfrom .images import screen_image\n"
+          "from nerfpipe.data.errors import E\n")  # fmt: skip
     assert violations(ok, "stages.poses", is_package=True) == []
-    assert violations("from stages.poses.images import Screen", "stages.poses.report") == []
-    assert violations("from radiance.camera import Intrinsics", "data.transforms") == []
-    assert violations("from stages import render", "cli") == []
+    assert violations("from nerfpipe.stages.poses.images import Screen", "stages.poses.report") == []
+    assert violations("from nerfpipe.radiance.camera import Intrinsics", "data.transforms") == []
+    assert violations("from nerfpipe.stages import render", "cli") == []
+    assert violations("from data.transforms import Scene", "tests.test_x")  # tests, benchmarks: nerfpipe.* too
 
 
 def test_layering():
@@ -101,8 +118,21 @@ def test_layering():
     bad = []
     for path in files:
         module = _module_name(path)
-        if module.split(".")[0] not in FORBIDDEN:
-            continue
         source = path.read_text(encoding="utf-8")
         bad += violations(source, module, is_package=path.name == "__init__.py", where=str(path.relative_to(ROOT)))
     assert not bad, "import layering violated:\n" + "\n".join(bad)
+
+
+def test_every_package_is_installed_under_nerfpipe():
+    """pyproject.toml lists every package folder of the product as nerfpipe.<folder> (setuptools cannot prefix
+    found packages, so the list is written out; a new subpackage missing from it would not be installed)."""
+    tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
+
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {"nerfpipe"} | {
+        "nerfpipe." + ".".join(p.parent.relative_to(ROOT).parts)
+        for top in sorted(PRODUCT - {"cli"})
+        for p in (ROOT / top).rglob("__init__.py")
+        if "__pycache__" not in p.parts
+    }
+    assert listed == found

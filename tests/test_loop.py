@@ -11,9 +11,9 @@ from dataclasses import dataclass, field
 import pytest
 import torch
 
-from data.errors import Interrupted
-from data.stop import StopRequest
-from model.loop import Budget, Clock, LoopSettings, Schedule, TrainingDiverged, TrainingLoop, set_lr
+from nerfpipe.data.errors import Interrupted
+from nerfpipe.data.stop import StopRequest
+from nerfpipe.model.loop import Budget, Clock, LoopSettings, Schedule, TrainingDiverged, TrainingLoop, set_lr
 
 
 @dataclass

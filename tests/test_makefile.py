@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from pipelines import plan
-from stages import scene
+from nerfpipe.pipelines import plan
+from nerfpipe.stages import scene
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.skipif(

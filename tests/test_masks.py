@@ -10,12 +10,19 @@ import cv2
 import numpy as np
 import pytest
 
-from data.errors import UserError
-from data.masks import apply_mask, load_masked_image, mask_candidates, match_masks, read_mask, write_binary_mask
-from data.transforms import Frame, Scene, read_scene, write_scene
-from radiance.camera import Intrinsics
-from radiance.paths import look_at
-from stages import convert
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.masks import (
+    apply_mask,
+    load_masked_image,
+    mask_candidates,
+    match_masks,
+    read_mask,
+    write_binary_mask,
+)
+from nerfpipe.data.transforms import Frame, Scene, read_scene, write_scene
+from nerfpipe.radiance.camera import Intrinsics
+from nerfpipe.radiance.paths import look_at
+from nerfpipe.stages import convert
 
 W, H = 12, 8
 
@@ -126,7 +133,7 @@ def test_convert_carries_masks(tmp_path):
 def test_colmap_importer_finds_poses_masks(tmp_path):
     """convert of a COLMAP model looks for masks/<image name>.png beside its image folder (poses --masks' layout;
     end to end in tests/test_turntable.py)."""
-    from data.importers.colmap import _mask_dir
+    from nerfpipe.data.importers.colmap import _mask_dir
 
     root = tmp_path / "colmap"
     _png(root / "images" / "f0.jpg", np.zeros((H, W, 3), np.uint8))

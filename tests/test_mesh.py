@@ -13,10 +13,10 @@ import trimesh
 
 from benchmarks.mesh_metrics import chamfer_distance, surface_points
 from benchmarks.standin import StandIn
-from data.errors import UserError
-from stages import mesh
-from stages.mesh.checks import MAX_BOX_FILL, box_fill, component_faces, mesh_checks
-from stages.mesh.cleanup import mesh_stats
+from nerfpipe.data.errors import UserError
+from nerfpipe.stages import mesh
+from nerfpipe.stages.mesh.checks import MAX_BOX_FILL, box_fill, component_faces, mesh_checks
+from nerfpipe.stages.mesh.cleanup import mesh_stats
 
 
 def _load(path: Path) -> trimesh.Trimesh:
@@ -245,7 +245,7 @@ def test_coarse_to_fine_sampling_matches_dense_sampling():
     """The fast path (coarse pass, refine near the surface) against its plain twin (every sample)."""
     from skimage.measure import marching_cubes
 
-    from stages.mesh.grid import make_grid, sample_volume
+    from nerfpipe.stages.mesh.grid import make_grid, sample_volume
 
     s = StandIn(floater=True)
     fn, cpu = mesh.density_function(s), torch.device("cpu")
@@ -265,8 +265,8 @@ TRAIN_STEPS, TRAINED_CHAMFER = 80, 0.06  # fraction of the ground truth's boundi
 def test_short_training_meshes_near_the_ground_truth(tmp_path):
     """scene (posed) -> convert (non-trivial applied transform) -> train -> mesh, compared in metres."""
     from benchmarks.standin import visible_points
-    from stages import convert, train
-    from stages import scene as scene_stage
+    from nerfpipe.stages import convert, train
+    from nerfpipe.stages import scene as scene_stage
 
     src = scene_stage.run(scene_stage.Config(out_dir=tmp_path / "src", kind="posed", size=32, views=16, seed=1))
     convert.run(convert.Config(source=tmp_path / "src", scene_dir=tmp_path / "scene"))
@@ -290,7 +290,7 @@ def test_short_training_meshes_near_the_ground_truth(tmp_path):
 
 
 def test_volume_sampling_refuses_nan_density_and_caps_inf():
-    from stages.mesh.grid import make_grid, sample_volume
+    from nerfpipe.stages.mesh.grid import make_grid, sample_volume
 
     grid = make_grid(np.array([-1.0] * 3), np.array([1.0] * 3), 16, stride=1)
 

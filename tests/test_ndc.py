@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from radiance.camera import Intrinsics
-from radiance.ndc import NDC, fit_ndc, mean_pose
-from radiance.paths import look_at
+from nerfpipe.radiance.camera import Intrinsics
+from nerfpipe.radiance.ndc import NDC, fit_ndc, mean_pose
+from nerfpipe.radiance.paths import look_at
 
 INTR = Intrinsics(w=40, h=30, fx=35.0, fy=36.0, cx=20.0, cy=15.0)
 

@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from radiance.occupancy import (
+from nerfpipe.radiance.occupancy import (
     OccupancyGrid,
     march_bounds,
     march_rays,
@@ -13,7 +13,7 @@ from radiance.occupancy import (
     occupied_span,
     query_reference,
 )
-from radiance.render import OccupancySampler, render_rays
+from nerfpipe.radiance.render import OccupancySampler, render_rays
 
 RADIUS, SIGMA = 0.6, 10.0
 AABB = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]
@@ -147,10 +147,10 @@ def test_nan_and_inf_densities_count_as_occupied_not_empty():
 
 def test_empty_cells_follow_the_opacity_of_one_training_step(tmp_path):
     """build_model's grid: a cell is empty when sigma x step < EMPTY_OPACITY, whatever the scene's scale."""
-    from data.transforms import read_scene
-    from model.field_model import EMPTY_OPACITY, ModelSettings, build_model, make_space
-    from radiance.space import Box
-    from stages import scene as scene_stage
+    from nerfpipe.data.transforms import read_scene
+    from nerfpipe.model.field_model import EMPTY_OPACITY, ModelSettings, build_model, make_space
+    from nerfpipe.radiance.space import Box
+    from nerfpipe.stages import scene as scene_stage
 
     scene_stage.run(scene_stage.Config(out_dir=tmp_path / "s", kind="posed", size=16, views=4, seed=0))
     settings = ModelSettings(field="fast", resolution=(16, 32), step_ratio=2.0, occupancy_resolution=8,

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from radiance import paths
+from nerfpipe.radiance import paths
 
 
 def _orbit_cameras(n=12, radius=3.0, elevation=25.0, centre=(0.2, -0.1, 0.3)):

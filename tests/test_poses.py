@@ -15,17 +15,17 @@ import pycolmap
 import pytest
 from PIL import Image
 
-from data.errors import UserError
-from data.ground_truth import read_ground_truth
-from data.importers.colmap import read_world_from_cam
-from radiance.align import pose_errors, umeyama
-from stages import poses
-from stages.poses import colmap as sfm
-from stages.poses.attempts import ladder
-from stages.poses.choice import candidate, choose
-from stages.poses.images import blurriest, near_duplicates, screen_image
-from stages.poses.report import RunState
-from stages.poses.video import extract_frames
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.ground_truth import read_ground_truth
+from nerfpipe.data.importers.colmap import read_world_from_cam
+from nerfpipe.radiance.align import pose_errors, umeyama
+from nerfpipe.stages import poses
+from nerfpipe.stages.poses import colmap as sfm
+from nerfpipe.stages.poses.attempts import ladder
+from nerfpipe.stages.poses.choice import candidate, choose
+from nerfpipe.stages.poses.images import blurriest, near_duplicates, screen_image
+from nerfpipe.stages.poses.report import RunState
+from nerfpipe.stages.poses.video import extract_frames
 
 SIZE, VIEWS = 256, 24
 
@@ -54,7 +54,7 @@ def _one_line_error(excinfo) -> str:
 def synthetic(tmp_path_factory) -> dict:
     """A stages.scene photo set with extra hazards: a corrupt JPEG, a name with a space and unicode, and one
     view stored sideways with an EXIF orientation tag. Runs the stage once."""
-    scene = pytest.importorskip("stages.scene")
+    scene = pytest.importorskip("nerfpipe.stages.scene")
     root = tmp_path_factory.mktemp("poses_synthetic")
     scene.run(scene.Config(out_dir=root / "scene", kind="photos", size=SIZE, views=VIEWS, seed=0))
     photos = root / "my photos ü"
@@ -139,7 +139,7 @@ def test_choice_rejects_a_degenerate_copy_of_the_synthetic_model(synthetic):
     """The synthetic set's model against a copy with its focal length x 1.4 and k1 = -2.5 (a degenerate
     self-calibration, like a 4000 px turntable capture's f = 10,450 px, k1 = -2.56 against EXIF 7,540 px): both
     register every view, the sane one is kept and the choice says why."""
-    from stages.scene import FOV_X_DEG
+    from nerfpipe.stages.scene import FOV_X_DEG
 
     good = pycolmap.Reconstruction(synthetic["out"].sparse)
     (camera_id,) = good.cameras
@@ -182,7 +182,7 @@ def _pycolmap_defaults_registered(images: Path, work: Path) -> int:
 def test_retry_recovers_a_starved_first_attempt(tmp_path):
     """100 px and 100 features register nothing on 160 px photos; the retry registers at least as many as
     pycolmap's defaults (measured: starved 0/12, retry 12/12, pycolmap's defaults 2/12)."""
-    scene = pytest.importorskip("stages.scene")
+    scene = pytest.importorskip("nerfpipe.stages.scene")
     scene.run(scene.Config(out_dir=tmp_path / "scene", kind="photos", size=160, views=12, seed=0))
     photos = tmp_path / "scene" / "images"
     starved = {"max_image_size": 100, "max_num_features": 100, "num_threads": 2}

@@ -15,12 +15,12 @@ import pycolmap
 import pytest
 from PIL import Image
 
-from data.checks import verdict
-from stages.poses import quality
-from stages.poses.choice import Candidate, candidate, choose, retry_budget, stop_reason
-from stages.poses.exif import FILM_DIAGONAL_MM, apply_focal_priors, exif_focal
-from stages.poses.images import write_upright
-from stages.poses.report import RunState, focal_prior_record
+from nerfpipe.data.checks import verdict
+from nerfpipe.stages.poses import quality
+from nerfpipe.stages.poses.choice import Candidate, candidate, choose, retry_budget, stop_reason
+from nerfpipe.stages.poses.exif import FILM_DIAGONAL_MM, apply_focal_priors, exif_focal
+from nerfpipe.stages.poses.images import write_upright
+from nerfpipe.stages.poses.report import RunState, focal_prior_record
 
 EXIF_F_PX = 7540.0  # the motivating capture: 4000 x 4000 px, EXIF focal ~7,540 px
 
@@ -309,10 +309,10 @@ def test_prior_reaches_colmap_when_the_copy_lost_its_exif(tmp_path):
 def _run_ladder(tmp_path: Path, monkeypatch, models: list[pycolmap.Reconstruction]) -> RunState:
     """`attempts.run_attempts` over the 4-attempt plan where attempt k's mapping returns models[k - 1] (10
     images, EXIF prior 1280 px); extraction, matching and statistics are stubs."""
-    from data.rundir import MetricsLog
-    from stages.poses import attempts
-    from stages.poses import colmap as sfm
-    from stages.poses.report import PhaseTimer
+    from nerfpipe.data.rundir import MetricsLog
+    from nerfpipe.stages.poses import attempts
+    from nerfpipe.stages.poses import colmap as sfm
+    from nerfpipe.stages.poses.report import PhaseTimer
 
     names = [f"{k}.jpg" for k in range(10)]
     stats = sfm.DatabaseStats(features=dict.fromkeys(names, 500), matches=dict.fromkeys(names, 100),
@@ -360,7 +360,7 @@ def test_summary_prints_one_warning_per_failed_check():
 
     from rich.console import Console
 
-    from stages.poses.report import print_summary
+    from nerfpipe.stages.poses.report import print_summary
 
     checks = quality.camera_checks(_camera(10450, k1=-2.56), EXIF_F_PX)
     report = {"registered": 22, "total": 22, "mean_reprojection_error_px": 0.8, "timings_s": {"mapping": 1.0},

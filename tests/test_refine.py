@@ -12,9 +12,9 @@ import pytest
 import torch
 
 from benchmarks.bench_refine import perturb_scene
-from data.transforms import read_scene
-from model import load_trained
-from model.camera_opt import (
+from nerfpipe.data.transforms import read_scene
+from nerfpipe.model import load_trained
+from nerfpipe.model.camera_opt import (
     TEST_POSE_OPT_RULE,
     TRANSLATION_STEP,
     CameraOpt,
@@ -26,12 +26,12 @@ from model.camera_opt import (
     pivot_depths,
     pivoted_exp,
 )
-from radiance.align import pose_errors
-from radiance.camera import Intrinsics, generate_rays
-from radiance.se3 import se3_exp, se3_log, so3_exp, so3_log
-from stages import eval as eval_stage
-from stages import scene as scene_stage
-from stages import train
+from nerfpipe.radiance.align import pose_errors
+from nerfpipe.radiance.camera import Intrinsics, generate_rays
+from nerfpipe.radiance.se3 import se3_exp, se3_log, so3_exp, so3_log
+from nerfpipe.stages import eval as eval_stage
+from nerfpipe.stages import scene as scene_stage
+from nerfpipe.stages import train
 
 ANGLES = [0.0, 1e-12, 1e-7, 1e-4, 0.3, 2.0, math.pi - 1e-3, math.pi - 1e-7, math.pi]
 
@@ -346,7 +346,7 @@ def test_off_by_default_and_identity_at_start(tiny, tmp_path):
 def test_refinement_trains_coarse_to_fine_by_default(tiny, tmp_path):
     """--refine-poses starts the grid at a quarter of its final size and upsamples later (BARF's coarse-to-fine in
     grid terms); without it the defaults are as before; asked-for values win."""
-    from stages.train.defaults import REFINE_UPSAMPLE_AT, UPSAMPLE_AT
+    from nerfpipe.stages.train.defaults import REFINE_UPSAMPLE_AT, UPSAMPLE_AT
 
     auto = train.FastOptions(occupancy_resolution=16)
     asked = train.FastOptions(upsample_at=(0.1,), resolution=(16, 24), occupancy_resolution=16)

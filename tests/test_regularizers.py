@@ -6,9 +6,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from data.errors import UserError
-from radiance.contraction import Contraction, normalized_distance
-from radiance.regularizers import distortion_loss, distortion_loss_reference
+from nerfpipe.data.errors import UserError
+from nerfpipe.radiance.contraction import Contraction, normalized_distance
+from nerfpipe.radiance.regularizers import distortion_loss, distortion_loss_reference
 
 
 def _packed(seed: int, counts: list[int]):
@@ -56,8 +56,8 @@ def test_normalized_distance_runs_from_near_to_infinity():
 
 
 def test_train_refuses_distortion_outside_contracted_scenes(tmp_path):
-    from stages import scene as scene_stage
-    from stages import train
+    from nerfpipe.stages import scene as scene_stage
+    from nerfpipe.stages import train
 
     scene_stage.run(scene_stage.Config(out_dir=tmp_path / "s", kind="posed", size=16, views=4, seed=0))
     cfg = dict(scene_dir=tmp_path / "s", run_dir=tmp_path / "r", max_steps=1, device="cpu")
@@ -72,7 +72,7 @@ def test_depth_nll_prefers_weight_at_the_known_depth_and_matches_a_loop():
     gives the same value; gradients are finite even for zero weights."""
     import math
 
-    from radiance.regularizers import depth_nll_loss
+    from nerfpipe.radiance.regularizers import depth_nll_loss
 
     t = torch.linspace(0.0, 2.0, 41, dtype=torch.float64)
     t0, t1 = t[:-1].repeat(2), t[1:].repeat(2)
@@ -108,7 +108,7 @@ def test_train_uses_colmap_tracks_as_depth_in_contracted_scenes_and_refuses_else
 
     import fixtures_convert as fx
 
-    from stages import convert, train
+    from nerfpipe.stages import convert, train
 
     fx.make_colmap(tmp_path / "src" / "sparse" / "0", tmp_path / "src" / "images", 10)
     convert.run(convert.Config(source=tmp_path / "src", scene_dir=tmp_path / "s"))

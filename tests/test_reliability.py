@@ -1,6 +1,6 @@
 """Never lose a run (issue 19): interrupts, reruns, full disks, one writer per folder, checkpoint integrity, and
 training views in bounded memory. Signals are sent to real `nerfpipe train` processes; faults are injected into
-the one writer (`data.atomic._write`) or come from a real file-size limit (RLIMIT_FSIZE).
+the one writer (`nerfpipe.data.atomic._write`) or come from a real file-size limit (RLIMIT_FSIZE).
 """
 
 from __future__ import annotations
@@ -20,18 +20,18 @@ from pathlib import Path
 import pytest
 import torch
 
-import cli
-import data.atomic
-from data.atomic import write_json
-from data.errors import UserError, WriteFailed
-from data.lock import LOCK_NAME, FolderBusy, folder_lock
-from data.transforms import read_scene
-from model import load_trained
-from model.checkpoint import read_checkpoint
-from radiance.camera import Intrinsics, generate_rays
-from stages import scene as scene_stage
-from stages import train
-from stages.train.views import Views, load_views
+import nerfpipe.data.atomic
+from nerfpipe import cli
+from nerfpipe.data.atomic import write_json
+from nerfpipe.data.errors import UserError, WriteFailed
+from nerfpipe.data.lock import LOCK_NAME, FolderBusy, folder_lock
+from nerfpipe.data.transforms import read_scene
+from nerfpipe.model import load_trained
+from nerfpipe.model.checkpoint import read_checkpoint
+from nerfpipe.radiance.camera import Intrinsics, generate_rays
+from nerfpipe.stages import scene as scene_stage
+from nerfpipe.stages import train
+from nerfpipe.stages.train.views import Views, load_views
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["--device", "cpu", "--threads", "1", "--batch-rays", "256", "--resolution", "16,24",
@@ -121,9 +121,9 @@ def test_signal_during_train_leaves_a_checkpoint_to_resume(scene_dir, tmp_path, 
 def test_interrupted_consumers_leave_nothing_that_looks_complete(finished_run, tmp_path, monkeypatch):
     """render, depth, eval and mesh stopped midway (Ctrl-C inside the renderer or the density query) leave no
     final file and no manifest: their outputs are atomic and the manifest comes last."""
-    from model.trained import Trained
-    from radiance.fields import TensoRF
-    from stages import depth, eval, mesh, render
+    from nerfpipe.model.trained import Trained
+    from nerfpipe.radiance.fields import TensoRF
+    from nerfpipe.stages import depth, eval, mesh, render
 
     calls = {"n": 0}
     real_render, real_density = Trained.render_rays, Trained.density
@@ -188,7 +188,7 @@ def test_failed_overwrite_keeps_the_earlier_run(scene_dir, finished_run, tmp_pat
 
 
 def test_other_folder_stages_refuse_a_finished_output(finished_run, tmp_path):
-    from stages import depth
+    from nerfpipe.stages import depth
 
     out = tmp_path / "s"
     scene_stage.run(scene_stage.Config(out_dir=out, kind="rgba", size=16, views=4))
@@ -209,14 +209,14 @@ def test_other_folder_stages_refuse_a_finished_output(finished_run, tmp_path):
 # ---------------------------------------------------------------------------------------------- full disks, I/O
 def _fail_writes(monkeypatch, name: str, code: int) -> None:
     """Writes of files called `name` (through data.atomic) fail with OSError(code); others go through."""
-    real = data.atomic._write
+    real = nerfpipe.data.atomic._write
 
     def write(f, data):
         if Path(f.name).name.startswith(f".{name}."):
             raise OSError(code, os.strerror(code))
         real(f, data)
 
-    monkeypatch.setattr(data.atomic, "_write", write)
+    monkeypatch.setattr(nerfpipe.data.atomic, "_write", write)
 
 
 def test_full_disk_during_train_is_one_line_and_keeps_the_checkpoint(scene_dir, finished_run, tmp_path, capsys,
@@ -318,8 +318,8 @@ def test_views_make_the_rays_whole_images_would(tmp_path):
     images plus a camera per view."""
     import numpy as np
 
-    from data.transforms import Frame, Scene, write_scene
-    from data.video import write_png
+    from nerfpipe.data.transforms import Frame, Scene, write_scene
+    from nerfpipe.data.video import write_png
 
     intr = Intrinsics(w=20, h=14, fx=18.0, fy=19.0, cx=9.7, cy=7.2, k1=-0.2, k2=0.05, p1=0.01, p2=-0.005)
     g = torch.Generator().manual_seed(0)

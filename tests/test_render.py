@@ -6,8 +6,8 @@ import math
 import pytest
 import torch
 
-from radiance.occupancy import OccupancyGrid
-from radiance.render import (
+from nerfpipe.radiance.occupancy import OccupancyGrid
+from nerfpipe.radiance.render import (
     PER_RAY_KEYS,
     ColourRule,
     Marcher,
@@ -19,7 +19,7 @@ from radiance.render import (
     render_rays,
     render_rays_hierarchical,
 )
-from radiance.space import Box
+from nerfpipe.radiance.space import Box
 
 RADIUS, MU = 0.7, 2.0
 
@@ -293,7 +293,7 @@ def test_coarse_colour_rule_keeps_the_full_weight():
 def test_colour_samples_threshold_budget_and_floor():
     """Which samples get a colour: above the threshold, at most per_ray x R of the largest, and at least
     min_per_ray x R of the largest when fewer pass (a faint batch at initialisation still gets a gradient)."""
-    from radiance.render import _colour_samples
+    from nerfpipe.radiance.render import _colour_samples
 
     w = torch.tensor([0.5, 2e-4, 5e-5, 1e-5, 3e-6, 0.0])
     assert _colour_samples(w, 2, 1e-4, 16.0, 0.0).tolist() == [True, True, False, False, False, False]

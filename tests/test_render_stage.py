@@ -17,15 +17,15 @@ import numpy as np
 import pytest
 import torch
 
-import stages.render as render_stage
-from data.errors import UserError
-from data.transforms import Frame, Scene, write_scene
-from data.video import to_uint8, write_png
-from model import camera_path, render_view
-from radiance import paths
-from radiance.camera import Intrinsics
-from radiance.metrics import psnr
-from radiance.space import Box
+import nerfpipe.stages.render as render_stage
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.transforms import Frame, Scene, write_scene
+from nerfpipe.data.video import to_uint8, write_png
+from nerfpipe.model import camera_path, render_view
+from nerfpipe.radiance import paths
+from nerfpipe.radiance.camera import Intrinsics
+from nerfpipe.radiance.metrics import psnr
+from nerfpipe.radiance.space import Box
 
 SPHERE_RADIUS = 0.5  # scene units
 BACKGROUND = (1.0, 1.0, 1.0)
@@ -83,10 +83,10 @@ def sphere_run(tmp_path, monkeypatch):
     run_dir = tmp_path / "run"
     run_dir.mkdir()
     fake = SphereRun(scene=scene)
-    import stages.depth
-    import stages.eval
+    import nerfpipe.stages.depth
+    import nerfpipe.stages.eval
 
-    for stage in (render_stage, stages.depth, stages.eval):
+    for stage in (render_stage, nerfpipe.stages.depth, nerfpipe.stages.eval):
         monkeypatch.setattr(stage, "load_trained", lambda run_dir, device: fake)
     return run_dir, fake
 
@@ -340,8 +340,8 @@ def test_psnr_is_capped_for_identical_images():
 
 def train_tiny_run(root: Path, kind: str = "posed") -> Path:
     """A synthetic scene and a 2-step training on it (seconds on CPU): a real `load_trained` run dir."""
-    from stages import scene as scene_stage
-    from stages import train
+    from nerfpipe.stages import scene as scene_stage
+    from nerfpipe.stages import train
 
     scene_dir = root / "scene"
     scene_stage.run(scene_stage.Config(out_dir=scene_dir, kind=kind, size=24, views=10, seed=0))

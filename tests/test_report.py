@@ -8,8 +8,8 @@ import json
 import imageio.v2 as iio
 import pytest
 
-import stages.report as report
-from data.errors import UserError
+import nerfpipe.stages.report as report
+from nerfpipe.data.errors import UserError
 
 HEADER = "step,seconds,loss,train_psnr,test_psnr,lr,samples_per_ray,skip_fraction\n"
 

@@ -5,8 +5,8 @@ import math
 import pytest
 import torch
 
-from radiance.aabb import ray_aabb_intersect, ray_aabb_intersect_reference
-from radiance.samplers import (
+from nerfpipe.radiance.aabb import ray_aabb_intersect, ray_aabb_intersect_reference
+from nerfpipe.radiance.samplers import (
     append_infinite_interval,
     invert_cdf,
     invert_cdf_reference,

@@ -12,10 +12,10 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
-from data.transforms import load_image, read_scene
-from radiance.camera import generate_rays, project
-from stages import scene
-from stages.scene.objects import default_primitives
+from nerfpipe.data.transforms import load_image, read_scene
+from nerfpipe.radiance.camera import generate_rays, project
+from nerfpipe.stages import scene
+from nerfpipe.stages.scene.objects import default_primitives
 
 
 @pytest.fixture(scope="module")
@@ -158,8 +158,8 @@ def test_photos_is_bare(tmp_path):
 def test_blender_kind_at_any_scale_round_trips_through_convert(tmp_path):
     """kind=blender at scale 0.1: the NeRF-synthetic layout, the same images as at scale 1, lengths x 0.1, and
     `convert` gets the poses back in the source frame and a box that the small scene fills."""
-    from data.ground_truth import read_ground_truth
-    from stages import convert
+    from nerfpipe.data.ground_truth import read_ground_truth
+    from nerfpipe.stages import convert
 
     small = scene.run(scene.Config(out_dir=tmp_path / "small", kind="blender", size=16, views=10, scale=0.1))
     unit = scene.run(scene.Config(out_dir=tmp_path / "unit", kind="blender", size=16, views=10))

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from model.checkpoint import restore_space
-from radiance.contraction import Contraction
-from radiance.ndc import NDC
-from radiance.occupancy import OccupancyGrid
-from radiance.space import SPACES, Box, Contracted, NDCSpace, space_from_dict
+from nerfpipe.model.checkpoint import restore_space
+from nerfpipe.radiance.contraction import Contraction
+from nerfpipe.radiance.ndc import NDC
+from nerfpipe.radiance.occupancy import OccupancyGrid
+from nerfpipe.radiance.space import SPACES, Box, Contracted, NDCSpace, space_from_dict
 
 BOX = ((-1.0, -1.0, -0.5), (1.0, 1.0, 0.5))
 
@@ -98,9 +98,9 @@ def test_density_query_maps_scene_points():
 
 def test_a_run_moved_with_its_scene_still_loads(tmp_path, monkeypatch):
     """config.json records the scene relative to the run: OUT/run and OUT/scene moved together load from anywhere."""
-    from model.trained import load_trained
-    from stages import scene as scene_stage
-    from stages import train
+    from nerfpipe.model.trained import load_trained
+    from nerfpipe.stages import scene as scene_stage
+    from nerfpipe.stages import train
 
     out = tmp_path / "out"
     scene_stage.run(scene_stage.Config(out_dir=out / "scene", kind="rgba", size=24, views=6, seed=0))

@@ -6,11 +6,11 @@ from __future__ import annotations
 import pytest
 import torch
 
-import radiance.render as render
-from radiance.contraction import CONTRACTED_BOX, Contraction
-from radiance.occupancy import OccupancyGrid
-from radiance.render import Marcher, render_marched
-from radiance.space import Box, Contracted
+import nerfpipe.radiance.render as render
+from nerfpipe.radiance.contraction import CONTRACTED_BOX, Contraction
+from nerfpipe.radiance.occupancy import OccupancyGrid
+from nerfpipe.radiance.render import Marcher, render_marched
+from nerfpipe.radiance.space import Box, Contracted
 
 C = Contraction([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from data.checks import Check, check_line, verdict
-from pipelines import suspects
+from nerfpipe.data.checks import Check, check_line, verdict
+from nerfpipe.pipelines import suspects
 
 
 def _write(out: Path, rel: str, checks: list[Check] | None) -> Path:

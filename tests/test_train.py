@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 import torch
 
-import cli
-from data.errors import UserError
-from model import load_trained
-from model.field_model import ModelSettings
-from stages import scene as scene_stage
-from stages import train
-from stages.train.loop import make_optimizer
+from nerfpipe import cli
+from nerfpipe.data.errors import UserError
+from nerfpipe.model import load_trained
+from nerfpipe.model.field_model import ModelSettings
+from nerfpipe.stages import scene as scene_stage
+from nerfpipe.stages import train
+from nerfpipe.stages.train.loop import make_optimizer
 
 
 @pytest.fixture(scope="module")
@@ -179,7 +179,7 @@ def test_short_training_clears_a_psnr_floor(tmp_path):
 
 def test_fused_adam_matches_its_plain_twin():
     """The fused optimizer (fast path) takes the same steps as the per-tensor loop, up to float rounding."""
-    from radiance.fields import TensoRF
+    from nerfpipe.radiance.fields import TensoRF
 
     torch.manual_seed(0)
     fields = [TensoRF(aabb=[[-1.0] * 3, [1.0] * 3], resolution=8, density_rank=2, app_rank=4, hidden=8)]
@@ -208,7 +208,7 @@ def test_final_eval_views_are_evenly_spaced():
 
 
 def test_forward_facing_scene_trains_in_ndc_and_depth_maps_back(tmp_path):
-    from radiance.camera import generate_rays, z_depth_from_t
+    from nerfpipe.radiance.camera import generate_rays, z_depth_from_t
 
     scene_dir = tmp_path / "forward"
     scene_stage.run(scene_stage.Config(out_dir=scene_dir, kind="posed", size=48, views=16, seed=0, layout="forward"))

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from data.checks import verdict
-from stages.train.checks import GAP_DB, HOLDOUT_FLOOR_DB, RISE_DB, train_checks
+from nerfpipe.data.checks import verdict
+from nerfpipe.stages.train.checks import GAP_DB, HOLDOUT_FLOOR_DB, RISE_DB, train_checks
 
 
 def _rows(final_train_psnr: float, rise: float = 0.0, n: int = 40) -> list[dict]:

@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 import torch
 
-from data.transforms import read_scene
-from model.background import Background
-from stages import convert as convert_stage
-from stages import scene as scene_stage
-from stages import train
-from stages.train.background import choose_background, detect_plain_colour
-from stages.train.views import Views
+from nerfpipe.data.transforms import read_scene
+from nerfpipe.model.background import Background
+from nerfpipe.stages import convert as convert_stage
+from nerfpipe.stages import scene as scene_stage
+from nerfpipe.stages import train
+from nerfpipe.stages.train.background import choose_background, detect_plain_colour
+from nerfpipe.stages.train.views import Views
 
 
 def _views(images: list[np.ndarray]) -> Views:
@@ -115,8 +115,8 @@ def test_room_scene_contraction_beats_the_box(tmp_path):
 def test_each_kind_of_capture_gets_its_own_rules(tmp_path, layout, kind):
     """scene --layout orbit|forward|room: the scene model is chosen first, then that kind's grid, step and TV rules
     (`RULES`), each reason naming its kind; no rule of one kind applies to another."""
-    from stages.train.defaults import NDC_MIN_STEP_VOXELS, NDC_SAMPLES, RULES, resolve_defaults
-    from stages.train.views import load_views
+    from nerfpipe.stages.train.defaults import NDC_MIN_STEP_VOXELS, NDC_SAMPLES, RULES, resolve_defaults
+    from nerfpipe.stages.train.views import load_views
 
     src, scene_dir = tmp_path / "src", tmp_path / "scene"
     scene_kind = "rgba" if layout == "orbit" else "posed"
@@ -131,7 +131,7 @@ def test_each_kind_of_capture_gets_its_own_rules(tmp_path, layout, kind):
     assert fast.tv == RULES[type(found.space)].tv()[0]
     if kind == "ndc":  # the march takes NDC_SAMPLES steps across z' in [-1, 1], whatever the grid
         assert "z'" in found.reasons["step_ratio"] and "image" in found.reasons["resolution"]
-        from model.field_model import scene_ndc
+        from nerfpipe.model.field_model import scene_ndc
 
         poses = np.stack([f.world_from_cam for f in scene.frames])
         box = scene_ndc(scene).box(poses, [scene.frame_intrinsics(i) for i in range(len(scene.frames))])

@@ -6,9 +6,9 @@ import math
 import numpy as np
 import pytest
 
-from data.errors import UserError
-from data.transforms import Frame, Scene, read_scene, write_scene
-from radiance.camera import Intrinsics
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.transforms import Frame, Scene, read_scene, write_scene
+from nerfpipe.radiance.camera import Intrinsics
 
 
 def _rot(axis_angle):

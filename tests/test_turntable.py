@@ -10,15 +10,15 @@ import cv2  # before pycolmap (imported by stages.poses): the other order crashe
 import numpy as np
 import pytest
 
-from data.errors import UserError
-from data.ground_truth import read_ground_truth
-from data.importers.colmap import read_world_from_cam
-from data.transforms import read_scene
-from radiance.align import pose_errors
-from stages import convert, poses
-from stages import scene as scene_stage
-from stages.poses.report import check_static_cameras
-from stages.scene.turntable import angles, rot_z
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.ground_truth import read_ground_truth
+from nerfpipe.data.importers.colmap import read_world_from_cam
+from nerfpipe.data.transforms import read_scene
+from nerfpipe.radiance.align import pose_errors
+from nerfpipe.stages import convert, poses
+from nerfpipe.stages import scene as scene_stage
+from nerfpipe.stages.poses.report import check_static_cameras
+from nerfpipe.stages.scene.turntable import angles, rot_z
 
 SIZE, VIEWS = 128, 16
 

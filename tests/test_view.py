@@ -25,19 +25,19 @@ import numpy as np
 import pytest
 import torch
 
-import stages.render as render_stage
-import stages.view as view
-from data.errors import UserError
-from data.video import to_uint8
-from model import load_trained, render_view
-from radiance.render import Marcher, render_marched
-from stages import scene as scene_stage
-from stages import train
-from stages.view import server as viewer_server
-from stages.view.cameras import browser_intrinsics, viser_pose, world_from_cam_gl
-from stages.view.recorder import PathRecorder
-from stages.view.run_view import frame_image, psnr_summary, render_camera
-from stages.view.scene_view import box_edges, camera_rays
+import nerfpipe.stages.render as render_stage
+import nerfpipe.stages.view as view
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.video import to_uint8
+from nerfpipe.model import load_trained, render_view
+from nerfpipe.radiance.render import Marcher, render_marched
+from nerfpipe.stages import scene as scene_stage
+from nerfpipe.stages import train
+from nerfpipe.stages.view import server as viewer_server
+from nerfpipe.stages.view.cameras import browser_intrinsics, viser_pose, world_from_cam_gl
+from nerfpipe.stages.view.recorder import PathRecorder
+from nerfpipe.stages.view.run_view import frame_image, psnr_summary, render_camera
+from nerfpipe.stages.view.scene_view import box_edges, camera_rays
 
 try:  # the analytic stand-in lives with the render tests
     from test_render_stage import SphereRun, sphere_scene
@@ -86,7 +86,7 @@ def test_early_termination_matches_its_plain_twin(trained_run):
     trained = load_trained(trained_run, "cpu")
     m = trained.model
     intr = browser_intrinsics(0.7, 1.0, 40)
-    from radiance.camera import generate_rays
+    from nerfpipe.radiance.camera import generate_rays
 
     o, d = (t.float() for t in generate_rays(intr, torch.as_tensor(_test_camera(trained))))
     marcher = Marcher(space=m.space, grid=m.grid, step_size=m.step_size * m.render_step_factor, segment=5)

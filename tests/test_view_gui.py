@@ -10,10 +10,10 @@ import imageio.v2 as iio
 import numpy as np
 import pytest
 
-import stages.render as render_stage
-import stages.view as view
-from stages.view.scene_view import thumbnail
-from stages.view.xray_view import projection_image, slice_image
+import nerfpipe.stages.render as render_stage
+import nerfpipe.stages.view as view
+from nerfpipe.stages.view.scene_view import thumbnail
+from nerfpipe.stages.view.xray_view import projection_image, slice_image
 
 # the browser driver and the sphere stand-ins live with the viewer's and render's tests
 from tests.test_render_stage import SphereRun, sphere_scene
@@ -109,7 +109,7 @@ def test_browser_run_modes_and_recorder(tmp_path, monkeypatch):
 @pytest.fixture(scope="module")
 def xray_run(tmp_path_factory) -> Path:
     """A seconds-long X-ray run on test_xray_stages' phantom (16^3, 12 views): only the viewer's input."""
-    from stages import xray_simulate, xray_train
+    from nerfpipe.stages import xray_simulate, xray_train
 
     tmp = tmp_path_factory.mktemp("xray_view")
     np.save(tmp / "phantom.npy", phantom(16))

@@ -10,10 +10,10 @@ import cv2
 import numpy as np
 import pytest
 
-from data.transforms import read_scene
-from stages import scene as scene_stage
-from stages import train
-from stages.train.report import WORST
+from nerfpipe.data.transforms import read_scene
+from nerfpipe.stages import scene as scene_stage
+from nerfpipe.stages import train
+from nerfpipe.stages.train.report import WORST
 
 
 @pytest.fixture(scope="module")

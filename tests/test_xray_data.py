@@ -10,8 +10,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from data.errors import UserError
-from data.projections import (
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.projections import (
     ProjectionScene,
     read_any,
     read_naf_pickle,
@@ -19,8 +19,8 @@ from data.projections import (
     read_r2_gaussian,
     write_projection_scene,
 )
-from data.volumes import read_volume
-from radiance.xray import VoxelGrid, XrayGeometry
+from nerfpipe.data.volumes import read_volume
+from nerfpipe.radiance.xray import VoxelGrid, XrayGeometry
 
 
 def _scene(n_views=4, shape=(5, 6), with_volume=True) -> ProjectionScene:

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from model.xray import attenuation_field, field_line_integrals
-from radiance.compositing import beer_lambert
-from radiance.xray import (
+from nerfpipe.model.xray import attenuation_field, field_line_integrals
+from nerfpipe.radiance.compositing import beer_lambert
+from nerfpipe.radiance.xray import (
     VoxelGrid,
     XrayGeometry,
     detector_rays,

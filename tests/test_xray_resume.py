@@ -17,11 +17,11 @@ import numpy as np
 import pytest
 import torch
 
-import cli
-import stages.xray_train.loop as xray_loop
-from data.errors import Interrupted, UserError
-from model.loop import TrainingDiverged
-from stages import xray_simulate, xray_train
+import nerfpipe.stages.xray_train.loop as xray_loop
+from nerfpipe import cli
+from nerfpipe.data.errors import Interrupted, UserError
+from nerfpipe.model.loop import TrainingDiverged
+from nerfpipe.stages import xray_simulate, xray_train
 
 STEPS = 40  # upsampling at steps 4 and 10 (upsample_at 0.1, 0.25)
 OPTIONS = ["--max-steps", str(STEPS), "--max-seconds", "600", "--batch-rays", "256", "--eval-every", "0",
@@ -150,7 +150,7 @@ def test_a_run_moved_with_its_scene_loads_from_anywhere(scene, tmp_path, monkeyp
     from another working directory, with the recorded paths gone."""
     import shutil
 
-    from model.xray import load_xray_run
+    from nerfpipe.model.xray import load_xray_run
 
     out = tmp_path / "out"
     shutil.copytree(scene, out / "scene")

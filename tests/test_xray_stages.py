@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 import torch
 
-import cli
-from data.errors import UserError
-from data.projections import read_projection_scene
-from model.xray import load_xray_run
-from radiance.ct_metrics import psnr_3d, ssim_3d
-from radiance.fdk import fdk, parker_weights
-from radiance.xray import VoxelGrid, XrayGeometry, project_views, shadow_detector
-from stages import xray_eval, xray_export, xray_simulate, xray_train
+from nerfpipe import cli
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.projections import read_projection_scene
+from nerfpipe.model.xray import load_xray_run
+from nerfpipe.radiance.ct_metrics import psnr_3d, ssim_3d
+from nerfpipe.radiance.fdk import fdk, parker_weights
+from nerfpipe.radiance.xray import VoxelGrid, XrayGeometry, project_views, shadow_detector
+from nerfpipe.stages import xray_eval, xray_export, xray_simulate, xray_train
 
 COMMANDS = ["xray-simulate", "xray-train", "xray-eval", "xray-export"]
 
@@ -94,7 +94,7 @@ def test_train_reconstructs_above_a_floor_in_seconds(chain):
     assert drr.shape == mip.shape == scene.geometry.detector_shape and float(drr.max()) > 0.2
     assert float(mip.max()) <= float(run.volume().max()) + 1e-6
     # the field's own line integrals agree with the voxelised volume's on a training view
-    from radiance.xray import detector_rays
+    from nerfpipe.radiance.xray import detector_rays
 
     o, d = detector_rays(scene.geometry, 0)
     p_field = run.line_integrals(o, d).reshape(drr.shape)

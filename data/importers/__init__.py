@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from data.errors import UserError
-from radiance.camera import Intrinsics
+from nerfpipe.data.errors import UserError
+from nerfpipe.radiance.camera import Intrinsics
 
 __all__ = ["KINDS", "Source", "SourceFrame", "detect_kind", "load_source", "flat_name", "image_shape"]
 
@@ -104,7 +104,7 @@ def image_shape(path: Path) -> tuple[int, int, int]:
 
 def detect_kind(path: Path) -> str:
     """Guess the source kind from the files present (Blender, LLFF, COLMAP, then transforms.json)."""
-    from data.importers.colmap import find_models
+    from nerfpipe.data.importers.colmap import find_models
 
     if path.is_file():
         if path.suffix == ".npz":
@@ -137,7 +137,7 @@ def detect_kind(path: Path) -> str:
 
 def load_source(path: Path, kind: str, *, images: Path | None = None) -> Source:
     """Read `path` as `kind` ('auto' guesses). `images`: image folder override (COLMAP, LLFF)."""
-    from data.importers import blender, colmap, llff, nerfstudio, npz
+    from nerfpipe.data.importers import blender, colmap, llff, nerfstudio, npz
 
     path = Path(path)
     if not path.exists():

@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from data.errors import UserError
-from data.importers import Source, SourceFrame, flat_name
-from radiance.camera import Intrinsics
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.importers import Source, SourceFrame, flat_name
+from nerfpipe.radiance.camera import Intrinsics
 
 __all__ = ["find_models", "load", "intrinsics_from_camera", "read_world_from_cam"]
 
@@ -80,7 +80,7 @@ def _world_from_cam_gl(image) -> np.ndarray:
     """A registered pycolmap.Image's pose -> world_from_cam [4, 4], OpenGL axes, the model's world frame."""
     import torch
 
-    from radiance.camera import opengl_from_opencv
+    from nerfpipe.radiance.camera import opengl_from_opencv
 
     cam_from_world_cv = np.eye(4)
     cam_from_world_cv[:3] = image.cam_from_world().matrix()

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from data.errors import UserError
-from data.importers import Source, SourceFrame, image_shape
-from radiance.camera import Intrinsics
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.importers import Source, SourceFrame, image_shape
+from nerfpipe.radiance.camera import Intrinsics
 
 __all__ = ["load", "world_from_cam_from_llff"]
 

@@ -13,8 +13,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from data.importers import Source, SourceFrame, flat_name, image_shape
-from data.transforms import read_scene
+from nerfpipe.data.importers import Source, SourceFrame, flat_name, image_shape
+from nerfpipe.data.transforms import read_scene
 
 __all__ = ["load"]
 

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from data.errors import UserError
-from data.importers import Source, SourceFrame
-from radiance.camera import Intrinsics
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.importers import Source, SourceFrame
+from nerfpipe.radiance.camera import Intrinsics
 
 __all__ = ["load", "TINY_NERF_VIEWS"]
 

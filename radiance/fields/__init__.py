@@ -3,9 +3,9 @@
 
 from __future__ import annotations
 
-from radiance.fields.base import Field
-from radiance.fields.fast import TensoRF
-from radiance.fields.vanilla import NeRFMLP, VanillaNeRF
+from nerfpipe.radiance.fields.base import Field
+from nerfpipe.radiance.fields.fast import TensoRF
+from nerfpipe.radiance.fields.vanilla import NeRFMLP, VanillaNeRF
 
 __all__ = ["Field", "TensoRF", "NeRFMLP", "VanillaNeRF", "make_field"]
 

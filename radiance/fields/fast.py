@@ -19,8 +19,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from radiance.fields.base import Field, check_points
-from radiance.fields.encodings import positional_encoding
+from nerfpipe.radiance.fields.base import Field, check_points
+from nerfpipe.radiance.fields.encodings import positional_encoding
 
 __all__ = ["TensoRF"]
 

@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from radiance.fields.base import Field, check_points
+from nerfpipe.radiance.fields.base import Field, check_points
 
 __all__ = ["VoxelField"]
 

@@ -43,18 +43,18 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from data.atomic import write_json
-from data.errors import UserError
-from data.progress import NO_PROGRESS, Progress
-from data.rundir import MetricsLog, output_folder, write_config, write_manifest
-from data.transforms import load_image
-from data.video import to_uint8, write_png
-from model.device import cpu_threads, resolve_device
-from model.loop import Budget, Clock, LoopSettings, Schedule, TrainingLoop
-from radiance.compositing import over_background
-from radiance.metrics import psnr_from_mse
-from stages.fit_image.models import FourierMLP, GridImage, parameters, pixel_coords
-from stages.fit_image.plots import montage, plot
+from nerfpipe.data.atomic import write_json
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.progress import NO_PROGRESS, Progress
+from nerfpipe.data.rundir import MetricsLog, output_folder, write_config, write_manifest
+from nerfpipe.data.transforms import load_image
+from nerfpipe.data.video import to_uint8, write_png
+from nerfpipe.model.device import cpu_threads, resolve_device
+from nerfpipe.model.loop import Budget, Clock, LoopSettings, Schedule, TrainingLoop
+from nerfpipe.radiance.compositing import over_background
+from nerfpipe.radiance.metrics import psnr_from_mse
+from nerfpipe.stages.fit_image.models import FourierMLP, GridImage, parameters, pixel_coords
+from nerfpipe.stages.fit_image.plots import montage, plot
 
 __all__ = ["Config", "Outputs", "ModelResult", "run", "pixel_coords", "FourierMLP", "GridImage", "MAX_FREQS"]
 

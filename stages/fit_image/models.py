@@ -5,8 +5,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from radiance.fields import TensoRF
-from radiance.fields.encodings import encoded_size, positional_encoding
+from nerfpipe.radiance.fields import TensoRF
+from nerfpipe.radiance.fields.encodings import encoded_size, positional_encoding
 
 GRID_RANK = 16
 

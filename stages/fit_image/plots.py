@@ -8,10 +8,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from data.atomic import atomic_path
+from nerfpipe.data.atomic import atomic_path
 
 if TYPE_CHECKING:
-    from stages.fit_image import ModelResult
+    from nerfpipe.stages.fit_image import ModelResult
 
 
 def _pyplot():

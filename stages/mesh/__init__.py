@@ -42,13 +42,13 @@ from typing import Any, Literal
 
 import numpy as np
 
-from data.atomic import atomic_path
-from data.checks import verdict
-from data.errors import UserError
-from data.rundir import config_to_json, write_manifest
-from stages.mesh.checks import mesh_checks
-from stages.mesh.cleanup import Cleanup, cleanup_mesh, mesh_stats, transform_mesh
-from stages.mesh.field_access import (
+from nerfpipe.data.atomic import atomic_path
+from nerfpipe.data.checks import verdict
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.rundir import config_to_json, write_manifest
+from nerfpipe.stages.mesh.checks import mesh_checks
+from nerfpipe.stages.mesh.cleanup import Cleanup, cleanup_mesh, mesh_stats, transform_mesh
+from nerfpipe.stages.mesh.field_access import (
     as_np,
     density_function,
     field_device,
@@ -57,8 +57,8 @@ from stages.mesh.field_access import (
     occupied_box,
     vertex_colors,
 )
-from stages.mesh.grid import Grid, make_grid, sample_volume
-from stages.mesh.threshold import auto_threshold
+from nerfpipe.stages.mesh.grid import Grid, make_grid, sample_volume
+from nerfpipe.stages.mesh.threshold import auto_threshold
 
 __all__ = [
     "Config",
@@ -320,7 +320,7 @@ def run(config: Config, progress: Any | None = None) -> Outputs:
     run_dir = Path(config.run_dir)
     if not run_dir.is_dir():
         raise UserError(f"{run_dir}: no such run directory (expected the output folder of `nerfpipe train`)")
-    from model import load_trained
+    from nerfpipe.model import load_trained
 
     trained = load_trained(run_dir, config.device)
     inputs = tuple(p for p in (run_dir / "config.json", run_dir / "checkpoint.pt") if p.is_file())

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from data.checks import Check
+from nerfpipe.data.checks import Check
 
 __all__ = ["MAX_BOX_FILL", "MAX_LARGE_COMPONENTS", "LARGE_COMPONENT", "box_fill", "component_faces", "mesh_checks"]
 

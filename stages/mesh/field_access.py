@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from stages.mesh.cleanup import vertex_normals
-from stages.mesh.grid import DensityFn
+from nerfpipe.stages.mesh.cleanup import vertex_normals
+from nerfpipe.stages.mesh.grid import DensityFn
 
 __all__ = ["as_np", "field_device", "has_color", "occupancy_binary", "density_function", "occupied_box",
            "vertex_colors"]  # fmt: skip

@@ -18,10 +18,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from radiance.aabb import ray_aabb_segment
-from radiance.camera import generate_rays
-from radiance.compositing import median_depth
-from stages.mesh.grid import DensityFn
+from nerfpipe.radiance.aabb import ray_aabb_segment
+from nerfpipe.radiance.camera import generate_rays
+from nerfpipe.radiance.compositing import median_depth
+from nerfpipe.stages.mesh.grid import DensityFn
 
 __all__ = ["auto_threshold"]
 

@@ -62,14 +62,14 @@ import pycolmap
 from rich.console import Console
 from rich.progress import Progress
 
-from data.errors import UserError
-from data.rundir import MetricsLog
-from stages.poses import colmap as sfm
-from stages.poses import inputs, output, quality
-from stages.poses.attempts import ladder, prior_focals, run_attempts
-from stages.poses.config import CAMERA_MODELS, CameraModel, Config, Outputs, check
-from stages.poses.inputs import camera_groups as _camera_groups  # tests/test_poses.py reaches it by this name
-from stages.poses.report import (
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.rundir import MetricsLog
+from nerfpipe.stages.poses import colmap as sfm
+from nerfpipe.stages.poses import inputs, output, quality
+from nerfpipe.stages.poses.attempts import ladder, prior_focals, run_attempts
+from nerfpipe.stages.poses.config import CAMERA_MODELS, CameraModel, Config, Outputs, check
+from nerfpipe.stages.poses.inputs import camera_groups as _camera_groups  # tests/test_poses.py reaches it by this name
+from nerfpipe.stages.poses.report import (
     FAIL_FRACTION,
     MIN_REGISTERED,
     WARN_FRACTION,

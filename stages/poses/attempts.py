@@ -33,13 +33,13 @@ from typing import Literal
 import numpy as np
 import pycolmap
 
-from data.checks import verdict
-from data.rundir import config_to_json
-from stages.poses import colmap as sfm
-from stages.poses.choice import RETRY_BUDGET, RETRY_MIN_SECONDS, candidate, choose, retry_budget, stop_reason
-from stages.poses.colmap import PYCOLMAP_MAX_IMAGE_SIZE, PYCOLMAP_MAX_NUM_FEATURES, RELAXED_MAPPER, SfmSettings
-from stages.poses.exif import apply_focal_priors
-from stages.poses.report import WARN_FRACTION, PhaseTimer, RunState, textured
+from nerfpipe.data.checks import verdict
+from nerfpipe.data.rundir import config_to_json
+from nerfpipe.stages.poses import colmap as sfm
+from nerfpipe.stages.poses.choice import RETRY_BUDGET, RETRY_MIN_SECONDS, candidate, choose, retry_budget, stop_reason
+from nerfpipe.stages.poses.colmap import PYCOLMAP_MAX_IMAGE_SIZE, PYCOLMAP_MAX_NUM_FEATURES, RELAXED_MAPPER, SfmSettings
+from nerfpipe.stages.poses.exif import apply_focal_priors
+from nerfpipe.stages.poses.report import WARN_FRACTION, PhaseTimer, RunState, textured
 
 __all__ = ["Attempt", "ladder", "describe", "run_attempts", "prior_focals", "LADDER_RULE"]
 

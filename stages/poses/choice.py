@@ -23,9 +23,9 @@ from dataclasses import dataclass
 
 import pycolmap
 
-from data.checks import Check
-from stages.poses import quality
-from stages.poses.report import FAIL_FRACTION, MIN_REGISTERED, WARN_FRACTION
+from nerfpipe.data.checks import Check
+from nerfpipe.stages.poses import quality
+from nerfpipe.stages.poses.report import FAIL_FRACTION, MIN_REGISTERED, WARN_FRACTION
 
 __all__ = [
     "Candidate", "Choice", "candidate", "choose", "stop_reason", "usable", "retry_budget", "RETRY_BUDGET",

@@ -6,10 +6,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, get_args
 
-from data.errors import UserError
-from stages.poses import colmap as sfm
-from stages.poses.images import IMAGE_SUFFIXES
-from stages.poses.report import MIN_REGISTERED
+from nerfpipe.data.errors import UserError
+from nerfpipe.stages.poses import colmap as sfm
+from nerfpipe.stages.poses.images import IMAGE_SUFFIXES
+from nerfpipe.stages.poses.report import MIN_REGISTERED
 
 __all__ = ["CameraModel", "CAMERA_MODELS", "Config", "Outputs", "check"]
 

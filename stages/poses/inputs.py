@@ -10,16 +10,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from data.errors import UserError
-from data.masks import match_masks, read_mask, write_binary_mask
-from stages.poses import colmap as sfm
-from stages.poses.exif import ZOOM_SPREAD, exif_focal
-from stages.poses.images import blurriest, list_images, near_duplicates, screen_image, write_upright
-from stages.poses.report import MIN_REGISTERED, RunState
-from stages.poses.video import extract_frames
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.masks import match_masks, read_mask, write_binary_mask
+from nerfpipe.stages.poses import colmap as sfm
+from nerfpipe.stages.poses.exif import ZOOM_SPREAD, exif_focal
+from nerfpipe.stages.poses.images import blurriest, list_images, near_duplicates, screen_image, write_upright
+from nerfpipe.stages.poses.report import MIN_REGISTERED, RunState
+from nerfpipe.stages.poses.video import extract_frames
 
 if TYPE_CHECKING:
-    from stages.poses.config import Config
+    from nerfpipe.stages.poses.config import Config
 
 __all__ = ["prepare_photos", "prepare_video", "screen", "camera_groups", "write_masks", "working_size", "warn_zoom"]
 
@@ -64,7 +64,7 @@ def prepare_video(video: Path, images: Path, target: int, state: RunState) -> No
 def _grey_thumb(path: Path) -> np.ndarray:
     from PIL import Image
 
-    from stages.poses.images import SCREEN_SIZE
+    from nerfpipe.stages.poses.images import SCREEN_SIZE
 
     with Image.open(path) as im:
         grey = im.convert("L")

@@ -11,11 +11,11 @@ from typing import Any
 
 import pycolmap
 
-from data.atomic import write_json
-from data.checks import verdict
-from data.rundir import MetricsLog, config_to_json, write_manifest
-from stages.poses.config import Config, Outputs
-from stages.poses.report import RunState, build_report
+from nerfpipe.data.atomic import write_json
+from nerfpipe.data.checks import verdict
+from nerfpipe.data.rundir import MetricsLog, config_to_json, write_manifest
+from nerfpipe.stages.poses.config import Config, Outputs
+from nerfpipe.stages.poses.report import RunState, build_report
 
 __all__ = ["VERSION", "set_aside", "write_model", "write_failed_report", "outputs"]
 

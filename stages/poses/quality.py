@@ -49,8 +49,8 @@ from dataclasses import replace
 import numpy as np
 import pycolmap
 
-from data.checks import Check
-from stages.poses.report import WARN_FRACTION
+from nerfpipe.data.checks import Check
+from nerfpipe.stages.poses.report import WARN_FRACTION
 
 __all__ = [
     "CAMERA_CHECKS", "FOCAL_TOLERANCE", "FOV_RANGE_DEG", "ASPECT_TOLERANCE", "MAX_DISTORTION", "PP_TOLERANCE",

@@ -19,15 +19,15 @@ import pycolmap
 from rich.console import Console
 from rich.progress import Progress
 
-from data.checks import Check, check_line, verdict
-from data.errors import UserError
-from data.rundir import MetricsLog, config_to_json
-from stages.poses.colmap import DatabaseStats
-from stages.poses.exif import FocalPrior
-from stages.poses.images import Screen
+from nerfpipe.data.checks import Check, check_line, verdict
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.rundir import MetricsLog, config_to_json
+from nerfpipe.stages.poses.colmap import DatabaseStats
+from nerfpipe.stages.poses.exif import FocalPrior
+from nerfpipe.stages.poses.images import Screen
 
 if TYPE_CHECKING:
-    from stages.poses.config import Config
+    from nerfpipe.stages.poses.config import Config
 
 __all__ = [
     "MIN_REGISTERED", "FAIL_FRACTION", "WARN_FRACTION", "MIN_FEATURES", "RunState", "PhaseTimer",

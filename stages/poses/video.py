@@ -16,7 +16,7 @@ import cv2
 import imageio_ffmpeg
 import numpy as np
 
-from data.errors import UserError
+from nerfpipe.data.errors import UserError
 
 __all__ = ["VIDEO_SUFFIXES", "VideoFrames", "extract_frames", "sharpness"]
 

@@ -46,10 +46,10 @@ from pathlib import Path
 
 import numpy as np
 
-from data.atomic import write_bytes, write_json
-from data.rundir import config_to_json, output_folder, write_manifest
-from stages.scene.config import Config, Outputs, check
-from stages.scene.files import (
+from nerfpipe.data.atomic import write_bytes, write_json
+from nerfpipe.data.rundir import config_to_json, output_folder, write_manifest
+from nerfpipe.stages.scene.config import Config, Outputs, check
+from nerfpipe.stages.scene.files import (
     TEST_EVERY,
     blender_split,
     grey_png,
@@ -59,12 +59,12 @@ from stages.scene.files import (
     write_npy,
     write_transforms,
 )
-from stages.scene.files import (
+from nerfpipe.stages.scene.files import (
     views as view_files,
 )
-from stages.scene.objects import backdrop, default_primitives, room
-from stages.scene.raycast import SUPERSAMPLE, render_turntable_view, render_view, scene_mesh
-from stages.scene.rig import (
+from nerfpipe.stages.scene.objects import backdrop, default_primitives, room
+from nerfpipe.stages.scene.raycast import SUPERSAMPLE, render_turntable_view, render_view, scene_mesh
+from nerfpipe.stages.scene.rig import (
     CAMERA_RADIUS,
     ELEVATION_DEG,
     FORWARD_ELEVATION_DEG,
@@ -75,8 +75,8 @@ from stages.scene.rig import (
     cameras,
     intrinsics,
 )
-from stages.scene.turntable import angles as turntable_angles
-from stages.scene.turntable import room_from_cam
+from nerfpipe.stages.scene.turntable import angles as turntable_angles
+from nerfpipe.stages.scene.turntable import room_from_cam
 
 __all__ = [
     "Config", "Outputs", "run", "cameras", "intrinsics", "render_view", "scene_mesh", "blender_split", "SUPERSAMPLE",

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from data.errors import UserError
+from nerfpipe.data.errors import UserError
 
 __all__ = ["Config", "Outputs", "check"]
 

@@ -10,9 +10,9 @@ import cv2
 import numpy as np
 import trimesh
 
-from data.atomic import atomic_path, write_json
-from data.transforms import Frame, Scene, write_scene
-from radiance.camera import Intrinsics
+from nerfpipe.data.atomic import atomic_path, write_json
+from nerfpipe.data.transforms import Frame, Scene, write_scene
+from nerfpipe.radiance.camera import Intrinsics
 
 __all__ = ["TEST_EVERY", "BLENDER_SPLITS", "png", "grey_png", "write_npy", "write_mesh", "write_transforms", "views",
            "blender_split", "write_blender"]  # fmt: skip

@@ -8,9 +8,9 @@ import numpy as np
 import torch
 import trimesh
 
-from radiance.camera import Intrinsics, generate_rays, pixel_centers
-from stages.scene.objects import Primitive, shade, solid_texture
-from stages.scene.turntable import rot_z
+from nerfpipe.radiance.camera import Intrinsics, generate_rays, pixel_centers
+from nerfpipe.stages.scene.objects import Primitive, shade, solid_texture
+from nerfpipe.stages.scene.turntable import rot_z
 
 __all__ = ["SUPERSAMPLE", "render_view", "render_turntable_view", "scene_mesh"]
 

@@ -7,9 +7,9 @@ import math
 
 import numpy as np
 
-from radiance.camera import Intrinsics
-from radiance.paths import look_at
-from stages.scene.turntable import object_cameras, room_from_cam
+from nerfpipe.radiance.camera import Intrinsics
+from nerfpipe.radiance.paths import look_at
+from nerfpipe.stages.scene.turntable import object_cameras, room_from_cam
 
 __all__ = [
     "FOV_X_DEG", "CAMERA_RADIUS", "UP", "LOOK_AT", "ELEVATION_DEG", "FORWARD_SPREAD", "FORWARD_ELEVATION_DEG",

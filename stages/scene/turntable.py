@@ -21,7 +21,7 @@ import math
 
 import numpy as np
 
-from radiance.paths import look_at
+from nerfpipe.radiance.paths import look_at
 
 __all__ = ["ELEVATION_DEG", "angles", "room_from_cam", "object_cameras", "rot_z"]
 

@@ -34,21 +34,21 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from data.checks import verdict
-from data.progress import NO_PROGRESS, Progress
-from data.rundir import output_folder, write_manifest
-from data.stop import stop_on_signals
-from data.transforms import Scene
-from model.appearance import EVAL_RULE as APPEARANCE_EVAL_RULE
-from model.camera_opt import pose_report, write_refined_transforms
-from model.device import cpu_threads
-from stages.train.checks import train_checks
-from stages.train.config import Config, FastOptions, RefineOptions, validate
-from stages.train.defaults import final_eval_views
-from stages.train.loop import Loop, TrainingDiverged, evaluate_psnr
-from stages.train.report import per_view_report, plot_psnr, used_and_left_out
-from stages.train.setup import setup, write_run_config
-from stages.train.views import evenly_spaced
+from nerfpipe.data.checks import verdict
+from nerfpipe.data.progress import NO_PROGRESS, Progress
+from nerfpipe.data.rundir import output_folder, write_manifest
+from nerfpipe.data.stop import stop_on_signals
+from nerfpipe.data.transforms import Scene
+from nerfpipe.model.appearance import EVAL_RULE as APPEARANCE_EVAL_RULE
+from nerfpipe.model.camera_opt import pose_report, write_refined_transforms
+from nerfpipe.model.device import cpu_threads
+from nerfpipe.stages.train.checks import train_checks
+from nerfpipe.stages.train.config import Config, FastOptions, RefineOptions, validate
+from nerfpipe.stages.train.defaults import final_eval_views
+from nerfpipe.stages.train.loop import Loop, TrainingDiverged, evaluate_psnr
+from nerfpipe.stages.train.report import per_view_report, plot_psnr, used_and_left_out
+from nerfpipe.stages.train.setup import setup, write_run_config
+from nerfpipe.stages.train.views import evenly_spaced
 
 __all__ = ["Config", "FastOptions", "RefineOptions", "Outputs", "run", "TrainingDiverged", "evenly_spaced"]
 

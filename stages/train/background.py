@@ -8,8 +8,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from model.background import Background
-from stages.train.views import Views
+from nerfpipe.model.background import Background
+from nerfpipe.stages.train.views import Views
 
 __all__ = ["choose_background", "detect_plain_colour", "BORDER", "PLAIN_FRACTION", "PLAIN_TOLERANCE"]
 

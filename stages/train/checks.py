@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from data.checks import HOLDOUT_FLOOR_DB, HOLDOUT_GAP_DB, Check
+from nerfpipe.data.checks import HOLDOUT_FLOOR_DB, HOLDOUT_GAP_DB, Check
 
 __all__ = ["train_checks", "HOLDOUT_FLOOR_DB", "GAP_DB", "RISE_DB"]
 

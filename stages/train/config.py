@@ -15,8 +15,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from data.errors import UserError
-from radiance.space import SPACES
+from nerfpipe.data.errors import UserError
+from nerfpipe.radiance.space import SPACES
 
 __all__ = ["Config", "FastOptions", "RefineOptions", "validate"]
 

@@ -58,15 +58,15 @@ from typing import Any
 import numpy as np
 import torch
 
-from data.errors import UserError
-from data.sparse_depth import KEY as SPARSE_KEY
-from data.transforms import Scene
-from model.background import Background
-from model.field_model import choose_space, make_space
-from radiance.space import Box, Contracted, NDCSpace, Space
-from stages.train.background import choose_background
-from stages.train.config import Config, FastOptions
-from stages.train.views import DepthRays, Views, auto_downscale, sparse_depth_rays
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.sparse_depth import KEY as SPARSE_KEY
+from nerfpipe.data.transforms import Scene
+from nerfpipe.model.background import Background
+from nerfpipe.model.field_model import choose_space, make_space
+from nerfpipe.radiance.space import Box, Contracted, NDCSpace, Space
+from nerfpipe.stages.train.background import choose_background
+from nerfpipe.stages.train.config import Config, FastOptions
+from nerfpipe.stages.train.views import DepthRays, Views, auto_downscale, sparse_depth_rays
 
 __all__ = [
     "UPSAMPLE_AT",

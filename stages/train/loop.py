@@ -26,19 +26,19 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from data.progress import Progress
-from data.rundir import MetricsLog
-from data.stop import StopRequest
-from model.camera_opt import CameraOpt
-from model.checkpoint import save_checkpoint
-from model.field_model import FieldModel
-from model.loop import Budget, Clock, LoopSettings, Schedule, TrainingDiverged, TrainingLoop
-from radiance.compositing import over_background
-from radiance.fields import Field
-from radiance.metrics import psnr_from_mse
-from radiance.regularizers import depth_nll_loss
-from stages.train.config import Config
-from stages.train.views import DepthRays, Views
+from nerfpipe.data.progress import Progress
+from nerfpipe.data.rundir import MetricsLog
+from nerfpipe.data.stop import StopRequest
+from nerfpipe.model.camera_opt import CameraOpt
+from nerfpipe.model.checkpoint import save_checkpoint
+from nerfpipe.model.field_model import FieldModel
+from nerfpipe.model.loop import Budget, Clock, LoopSettings, Schedule, TrainingDiverged, TrainingLoop
+from nerfpipe.radiance.compositing import over_background
+from nerfpipe.radiance.fields import Field
+from nerfpipe.radiance.metrics import psnr_from_mse
+from nerfpipe.radiance.regularizers import depth_nll_loss
+from nerfpipe.stages.train.config import Config
+from nerfpipe.stages.train.views import DepthRays, Views
 
 __all__ = ["TrainingDiverged", "Loop", "make_optimizer", "upsample_schedule", "evaluate_psnr"]
 

@@ -20,16 +20,16 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from data.atomic import atomic_path, write_bytes, write_json
-from data.masks import load_masked_image
-from data.transforms import Scene, is_forward_facing
-from model.field_model import FieldModel
-from radiance.camera import generate_rays
-from radiance.compositing import over_background
-from radiance.metrics import psnr_from_mse
+from nerfpipe.data.atomic import atomic_path, write_bytes, write_json
+from nerfpipe.data.masks import load_masked_image
+from nerfpipe.data.transforms import Scene, is_forward_facing
+from nerfpipe.model.field_model import FieldModel
+from nerfpipe.radiance.camera import generate_rays
+from nerfpipe.radiance.compositing import over_background
+from nerfpipe.radiance.metrics import psnr_from_mse
 
 if TYPE_CHECKING:
-    from stages.train.loop import Loop
+    from nerfpipe.stages.train.loop import Loop
 
 __all__ = ["plot_psnr", "used_and_left_out", "per_view_report", "PER_VIEW_FRACTION"]
 

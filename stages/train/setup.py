@@ -17,20 +17,20 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from data.atomic import write_json
-from data.errors import UserError
-from data.progress import Progress
-from data.rundir import MetricsLog, config_to_json
-from data.transforms import Scene, read_scene
-from model.appearance import Appearance
-from model.camera_opt import CameraOpt, CameraSchedule, pivot_depths
-from model.checkpoint import read_checkpoint, restore_appearance, restore_background, restore_space
-from model.device import resolve_device
-from model.field_model import FieldModel, ModelSettings, build_model, make_space
-from stages.train.config import Config, RefineOptions
-from stages.train.defaults import Defaults, resolve_defaults, resolve_downscale
-from stages.train.loop import Loop, make_optimizer
-from stages.train.views import Views, load_views
+from nerfpipe.data.atomic import write_json
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.progress import Progress
+from nerfpipe.data.rundir import MetricsLog, config_to_json
+from nerfpipe.data.transforms import Scene, read_scene
+from nerfpipe.model.appearance import Appearance
+from nerfpipe.model.camera_opt import CameraOpt, CameraSchedule, pivot_depths
+from nerfpipe.model.checkpoint import read_checkpoint, restore_appearance, restore_background, restore_space
+from nerfpipe.model.device import resolve_device
+from nerfpipe.model.field_model import FieldModel, ModelSettings, build_model, make_space
+from nerfpipe.stages.train.config import Config, RefineOptions
+from nerfpipe.stages.train.defaults import Defaults, resolve_defaults, resolve_downscale
+from nerfpipe.stages.train.loop import Loop, make_optimizer
+from nerfpipe.stages.train.views import Views, load_views
 
 __all__ = ["setup", "write_run_config", "METRICS"]
 

@@ -19,11 +19,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from data.errors import UserError
-from data.masks import load_masked_image
-from data.sparse_depth import read_sparse_depth
-from data.transforms import Scene
-from radiance.camera import Intrinsics, undistort
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.masks import load_masked_image
+from nerfpipe.data.sparse_depth import read_sparse_depth
+from nerfpipe.data.transforms import Scene
+from nerfpipe.radiance.camera import Intrinsics, undistort
 
 __all__ = ["Views", "load_views", "evenly_spaced", "auto_downscale", "DepthRays", "sparse_depth_rays"]
 

@@ -29,14 +29,14 @@ from pathlib import Path
 
 import numpy as np
 
-from data.errors import Interrupted, UserError
-from data.transforms import read_scene
-from model import load_trained, resolve_device
-from stages.view import server as viewer_server
-from stages.view.recorder import PathRecorder, add_recorder_gui
-from stages.view.run_view import MODES, LiveRender, psnr_summary
-from stages.view.scene_view import SceneView
-from stages.view.xray_view import XrayView
+from nerfpipe.data.errors import Interrupted, UserError
+from nerfpipe.data.transforms import read_scene
+from nerfpipe.model import load_trained, resolve_device
+from nerfpipe.stages.view import server as viewer_server
+from nerfpipe.stages.view.recorder import PathRecorder, add_recorder_gui
+from nerfpipe.stages.view.run_view import MODES, LiveRender, psnr_summary
+from nerfpipe.stages.view.scene_view import SceneView
+from nerfpipe.stages.view.xray_view import XrayView
 
 __all__ = ["Config", "Outputs", "Viewer", "kind_of", "serve", "run"]
 
@@ -126,7 +126,7 @@ def serve(config: Config) -> Viewer:
     device = resolve_device(config.device)
     loaded = load_trained(target, device) if kind == "run" else None
     if kind == "xray":
-        from model.xray import load_xray_run
+        from nerfpipe.model.xray import load_xray_run
 
         xray = load_xray_run(target, device)
     server = viewer_server.start(config.host, config.port)

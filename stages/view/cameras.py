@@ -12,8 +12,8 @@ import math
 
 import numpy as np
 
-from radiance.camera import Intrinsics
-from radiance.keyframes import matrix_from_quat, quat_from_matrix
+from nerfpipe.radiance.camera import Intrinsics
+from nerfpipe.radiance.keyframes import matrix_from_quat, quat_from_matrix
 
 __all__ = ["world_from_cam_gl", "viser_pose", "browser_intrinsics", "vertical_fov"]
 

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from data.camera_path import write_camera_path
-from data.errors import UserError
-from stages.view.cameras import viser_pose, world_from_cam_gl
+from nerfpipe.data.camera_path import write_camera_path
+from nerfpipe.data.errors import UserError
+from nerfpipe.stages.view.cameras import viser_pose, world_from_cam_gl
 
 __all__ = ["Keyframe", "PathRecorder", "add_recorder_gui"]
 

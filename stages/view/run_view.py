@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from data.video import colorize, grey, to_uint8
-from model import OPAQUE
-from model.preview import render_preview
-from stages.view.cameras import browser_intrinsics, world_from_cam_gl
+from nerfpipe.data.video import colorize, grey, to_uint8
+from nerfpipe.model import OPAQUE
+from nerfpipe.model.preview import render_preview
+from nerfpipe.stages.view.cameras import browser_intrinsics, world_from_cam_gl
 
 __all__ = ["MODES", "SETTLE_SECONDS", "frame_image", "render_camera", "psnr_summary", "LiveRender"]
 

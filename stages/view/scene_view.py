@@ -13,12 +13,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from data.transforms import Scene, load_image
-from radiance import paths
-from radiance.aabb import ray_aabb_segment
-from radiance.camera import generate_rays
-from radiance.samplers import stratified_intervals
-from stages.view.cameras import vertical_fov, viser_pose
+from nerfpipe.data.transforms import Scene, load_image
+from nerfpipe.radiance import paths
+from nerfpipe.radiance.aabb import ray_aabb_segment
+from nerfpipe.radiance.camera import generate_rays
+from nerfpipe.radiance.samplers import stratified_intervals
+from nerfpipe.stages.view.cameras import vertical_fov, viser_pose
 
 __all__ = ["THUMBNAIL", "RAY_GRID", "RAY_SAMPLES", "thumbnail", "camera_rays", "box_edges", "SceneView"]
 

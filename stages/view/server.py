@@ -16,8 +16,8 @@ import socket
 import sys
 import threading
 
-from data.errors import UserError
-from data.stop import stop_on_signals
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.stop import stop_on_signals
 
 __all__ = ["is_loopback", "start", "stop_quietly", "wait"]
 

@@ -12,8 +12,8 @@ import math
 
 import numpy as np
 
-from radiance.keyframes import quat_from_matrix
-from stages.view.scene_view import box_edges
+from nerfpipe.radiance.keyframes import quat_from_matrix
+from nerfpipe.stages.view.scene_view import box_edges
 
 __all__ = ["AXES", "slice_image", "projection_image", "XrayView"]
 

@@ -37,18 +37,18 @@ from typing import Literal
 import numpy as np
 import torch
 
-from data.atomic import write_json
-from data.errors import UserError
-from data.progress import NO_PROGRESS, Progress
-from data.projections import ProjectionScene, read_any
-from data.rundir import MetricsLog, config_to_json, output_folder, write_manifest
-from data.stop import stop_on_signals
-from data.volumes import write_npy
-from model.device import cpu_threads, resolve_device
-from model.loop import TrainingLoop
-from stages.xray_train.loop import XraySteps, evaluate
-from stages.xray_train.report import plot_metrics
-from stages.xray_train.setup import start
+from nerfpipe.data.atomic import write_json
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.progress import NO_PROGRESS, Progress
+from nerfpipe.data.projections import ProjectionScene, read_any
+from nerfpipe.data.rundir import MetricsLog, config_to_json, output_folder, write_manifest
+from nerfpipe.data.stop import stop_on_signals
+from nerfpipe.data.volumes import write_npy
+from nerfpipe.model.device import cpu_threads, resolve_device
+from nerfpipe.model.loop import TrainingLoop
+from nerfpipe.stages.xray_train.loop import XraySteps, evaluate
+from nerfpipe.stages.xray_train.report import plot_metrics
+from nerfpipe.stages.xray_train.setup import start
 
 __all__ = ["Config", "Outputs", "run"]
 

@@ -24,17 +24,17 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from data.progress import Progress
-from data.projections import ProjectionScene
-from data.rundir import MetricsLog
-from model.loop import Budget, Clock, LoopSettings, Schedule
-from model.xray import field_line_integrals, field_volume, grid_shape_at, samples_for, save_xray_checkpoint
-from radiance.aabb import ray_aabb_intersect
-from radiance.ct_metrics import data_range, psnr_3d, psnr_projections, ssim_3d
-from radiance.fields import Field
-from radiance.metrics import psnr_from_mse
-from radiance.xray import XrayGeometry, detector_rays, rays_for_pixels, siddon_project
-from stages.xray_train.setup import Start, make_optimizer, samples_per_level
+from nerfpipe.data.progress import Progress
+from nerfpipe.data.projections import ProjectionScene
+from nerfpipe.data.rundir import MetricsLog
+from nerfpipe.model.loop import Budget, Clock, LoopSettings, Schedule
+from nerfpipe.model.xray import field_line_integrals, field_volume, grid_shape_at, samples_for, save_xray_checkpoint
+from nerfpipe.radiance.aabb import ray_aabb_intersect
+from nerfpipe.radiance.ct_metrics import data_range, psnr_3d, psnr_projections, ssim_3d
+from nerfpipe.radiance.fields import Field
+from nerfpipe.radiance.metrics import psnr_from_mse
+from nerfpipe.radiance.xray import XrayGeometry, detector_rays, rays_for_pixels, siddon_project
+from nerfpipe.stages.xray_train.setup import Start, make_optimizer, samples_per_level
 
 __all__ = ["Batches", "XraySteps", "budget", "evaluate", "evenly", "train_step", "sart_step"]
 

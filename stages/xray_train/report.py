@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from data.atomic import atomic_path
+from nerfpipe.data.atomic import atomic_path
 
 __all__ = ["plot_metrics"]
 

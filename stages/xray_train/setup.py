@@ -12,12 +12,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from data.errors import UserError
-from data.projections import ProjectionScene
-from model.xray import attenuation_field, build_field, grid_shape_at, read_xray_checkpoint, samples_for
-from radiance.aabb import ray_aabb_intersect
-from radiance.fields import Field
-from radiance.xray import rays_for_pixels
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.projections import ProjectionScene
+from nerfpipe.model.xray import attenuation_field, build_field, grid_shape_at, read_xray_checkpoint, samples_for
+from nerfpipe.radiance.aabb import ray_aabb_intersect
+from nerfpipe.radiance.fields import Field
+from nerfpipe.radiance.xray import rays_for_pixels
 
 __all__ = ["DEFAULT_LR", "Start", "make_optimizer", "mu_ref", "resolution_schedule", "samples_per_level", "start"]
 
