@@ -40,6 +40,7 @@ import dataclasses
 import functools
 import importlib
 import inspect
+import re
 import sys
 import textwrap
 import types
@@ -538,6 +539,15 @@ def _one_line(text: str) -> str:
     return lines[0] if lines else ""
 
 
+_SWITCH = re.compile(r"(?<![\w.-])([a-z][a-z0-9_]*)=True\b")
+
+
+def _as_flags(text: str) -> str:
+    """A library message's switches in the CLI's words: "set resume=True" -> "set --resume" (the library names
+    config fields; flags belong here)."""
+    return _SWITCH.sub(lambda m: "--" + m.group(1).replace("_", "-"), text)
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console entry point: runs the app and turns errors into one line and an exit code."""
     global _debug
@@ -552,7 +562,7 @@ def main(argv: list[str] | None = None) -> None:
     except UserError as e:
         if _debug:
             raise
-        print(f"error: {_one_line(str(e))}", file=sys.stderr)
+        print(f"error: {_as_flags(_one_line(str(e)))}", file=sys.stderr)
         sys.exit(e.exit_code)  # 2; 130/143 for a stage stopped cleanly by SIGINT/SIGTERM (data.errors.Interrupted)
     except Exception as e:  # noqa: BLE001 - the CLI boundary: one line, traceback only with --debug
         if _debug:

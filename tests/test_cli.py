@@ -336,3 +336,16 @@ def test_new_stage_is_one_registration(capsys, monkeypatch, tmp_path):
 def test_python_cli_py_entry_point():
     r = subprocess.run([sys.executable, "cli.py", "--version"], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and r.stdout.startswith("nerfpipe ")
+
+
+def test_library_switches_are_said_as_flags(capsys, tmp_path):
+    """A library error names config fields ("set overwrite=True"); the command line says the flag instead."""
+    assert (
+        cli._as_flags("set resume=True to continue it or overwrite=True")
+        == "set --resume to continue it or --overwrite"
+    )
+    assert cli._as_flags("refine_poses=True, a.b=True, x=Truest") == "--refine-poses, a.b=True, x=Truest"
+    args = ("scene", str(tmp_path / "s"), "--kind", "rgba", "--size", "16", "--views", "4")
+    assert _run(capsys, *args)[0] == 0
+    code, _, err = _run(capsys, *args)
+    assert code == 2 and "set --overwrite to replace it" in err and "=True" not in err
