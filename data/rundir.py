@@ -37,6 +37,8 @@ __all__ = [
     "Stopwatch",
     "output_folder",
     "previous_folder",
+    "scene_from_run",
+    "find_run_scene",
 ]
 
 _PACKAGES = ("nerfpipe", "torch", "numpy", "pycolmap", "opencv-contrib-python-headless", "scikit-image", "trimesh",
@@ -84,6 +86,20 @@ def _jsonable(value: Any) -> Any:
 def config_to_json(config: Any) -> dict[str, Any]:
     """A stage config dataclass as a JSON-ready dict (paths as strings, inf as "inf")."""
     return _jsonable(config)
+
+
+def scene_from_run(run_dir: Path, scene: Path) -> str:
+    """The scene folder relative to the run folder (both resolved): config.json's `scene_from_run`, so that a run
+    moved together with its scene still finds it (`find_run_scene`)."""
+    return os.path.relpath(Path(scene).resolve(), Path(run_dir).resolve())
+
+
+def find_run_scene(run_dir: Path, doc: Mapping[str, Any], keys: Iterable[str]) -> list[Path]:
+    """Where a run's scene may be, in the order to try: config.json's `scene_from_run` against the run folder,
+    then each of `keys` that config.json holds (paths as recorded). The first that exists is the scene; the
+    list is for messages too. Empty when config.json names none."""
+    tried = [Path(run_dir) / doc["scene_from_run"]] if isinstance(doc.get("scene_from_run"), str) else []
+    return tried + [Path(doc[k]) for k in keys if isinstance(doc.get(k), str)]
 
 
 def write_config(folder: str | os.PathLike, config: Any) -> Path:

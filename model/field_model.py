@@ -185,15 +185,6 @@ class FieldModel:
         """Rays per evaluation chunk (vanilla: 256 samples x 256 activations per ray)."""
         return 8192 if self.kind == "fast" else 1024
 
-    @property
-    def near(self) -> float:
-        return self.space.near
-
-    @property
-    def far(self) -> float:
-        """Where rays end, in march units (scene distance in a box, NDC t in NDC, FAR when unbounded)."""
-        return self.space.far
-
     def render(
         self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, gen=None, median=False, view=None,
         infer: Inference | None = Inference(),

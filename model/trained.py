@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from nerfpipe.data.errors import UserError
+from nerfpipe.data.rundir import find_run_scene
 from nerfpipe.data.transforms import Scene, read_scene
 from nerfpipe.model.appearance import Appearance
 from nerfpipe.model.camera_opt import TEST_POSE_RULE, refined_scene
@@ -177,11 +178,7 @@ def load_trained(run_dir: str | Path, device: str | torch.device = "auto") -> Tr
 def _read_run_scene(run_dir: Path, doc: dict) -> Scene:
     """The run's scene: config.json's `scene_from_run` (relative to the run folder) when it is there, else its
     `scene_dir` (as recorded: absolute for runs trained since it was resolved, else relative to where train ran)."""
-    tried = []
-    if isinstance(doc.get("scene_from_run"), str):
-        tried.append(run_dir / doc["scene_from_run"])
-    if isinstance(doc.get("scene_dir"), str):
-        tried.append(Path(doc["scene_dir"]))
+    tried = find_run_scene(run_dir, doc, ("scene_dir",))
     if not tried:
         raise UserError(f"{run_dir}: config.json names no scene folder (scene_dir)")
     found = next((p for p in tried if p.is_dir() or p.is_file()), tried[-1])

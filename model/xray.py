@@ -31,6 +31,7 @@ from torch import Tensor
 from nerfpipe.data.atomic import atomic_path
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.projections import ProjectionScene, read_any
+from nerfpipe.data.rundir import find_run_scene
 from nerfpipe.model.checkpoint import load_state
 from nerfpipe.model.device import resolve_device
 from nerfpipe.radiance.aabb import ray_aabb_segment
@@ -231,8 +232,7 @@ def load_xray_run(run_dir: str | Path, device: str | torch.device = "auto") -> X
         raise UserError(f"{config_path}: not an X-ray run config (no 'scene')")
     dev = resolve_device(device)
     state = read_xray_checkpoint(run_dir / "checkpoint.pt", dev)
-    tried = [run_dir / config["scene_from_run"]] if config.get("scene_from_run") else []  # moved with its run
-    tried += [Path(config["scene"])] + ([Path(config["scene_abs"])] if config.get("scene_abs") else [])
+    tried = find_run_scene(run_dir, config, ("scene", "scene_abs"))
     scene_path = next((p for p in tried if p.exists()), tried[-1])
     scene = read_any(scene_path)
     return XrayRun(

@@ -11,7 +11,6 @@ to the run folder, tried first by `model.trained.load_trained`: a run moved with
 from __future__ import annotations
 
 import dataclasses
-import os
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +19,7 @@ import torch
 from nerfpipe.data.atomic import write_json
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.progress import Progress
-from nerfpipe.data.rundir import MetricsLog, config_to_json
+from nerfpipe.data.rundir import MetricsLog, config_to_json, scene_from_run
 from nerfpipe.data.transforms import Scene, read_scene
 from nerfpipe.model.appearance import Appearance
 from nerfpipe.model.camera_opt import CameraOpt, CameraSchedule, pivot_depths
@@ -74,7 +73,7 @@ def write_run_config(run_dir: Path, resolved: Config, scene_path: Path) -> None:
     """config.json (module doc) for the resolved Config."""
     scene_abs = scene_path.resolve()
     doc = {**config_to_json(dataclasses.replace(resolved, scene_dir=scene_abs)),
-           "scene_from_run": os.path.relpath(scene_abs, run_dir.resolve())}  # fmt: skip
+           "scene_from_run": scene_from_run(run_dir, scene_abs)}  # fmt: skip
     write_json(run_dir / "config.json", doc)
 
 

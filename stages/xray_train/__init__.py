@@ -27,7 +27,6 @@ manifest is removed until the run ends again) or `--overwrite`.
 
 from __future__ import annotations
 
-import os
 import resource
 import time
 from dataclasses import dataclass
@@ -41,7 +40,7 @@ from nerfpipe.data.atomic import write_json
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.progress import NO_PROGRESS, Progress
 from nerfpipe.data.projections import ProjectionScene, read_any
-from nerfpipe.data.rundir import MetricsLog, config_to_json, output_folder, write_manifest
+from nerfpipe.data.rundir import MetricsLog, config_to_json, output_folder, scene_from_run, write_manifest
 from nerfpipe.data.stop import stop_on_signals
 from nerfpipe.data.volumes import write_npy
 from nerfpipe.model.device import cpu_threads, resolve_device
@@ -216,7 +215,7 @@ def _setup(config: Config, progress: Progress) -> XraySteps:
     (run_dir / "manifest.json").unlink(missing_ok=True)  # resumed: not a finished run until the end
     scene_abs = Path(config.scene).resolve()
     cfg_json = {**config_to_json(config), "scene": str(config.scene), "scene_abs": str(scene_abs),
-                "scene_from_run": os.path.relpath(scene_abs, run_dir.resolve())}  # fmt: skip
+                "scene_from_run": scene_from_run(run_dir, scene_abs)}  # fmt: skip
     write_json(run_dir / "config.json", cfg_json)
     metrics = MetricsLog(run_dir / "metrics.csv", METRICS)
     if config.resume:
