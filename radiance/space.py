@@ -164,15 +164,20 @@ class Space:
         return {}
 
 
-def _box_march(space: Space, grid, rays_o, rays_d, step, jitter) -> Packed:
-    """Occupancy marching at `step` through the box around the occupied cells, within [near, far]."""
-    n = rays_o.shape[0]
+def _occupied_segment(space: Space, grid, rays_o, rays_d) -> tuple[Tensor, Tensor]:
+    """Each ray's [t_near, t_far] [R] through the box around the grid's occupied cells, within [near, far]
+    (both 0 when nothing is occupied)."""
     near_t, far_t = _per_ray(space.near, rays_o), _per_ray(space.far, rays_o)
     box = grid.occupied_aabb()
     if box is None:
-        t_near = t_far = torch.zeros(n, dtype=rays_o.dtype, device=rays_o.device)
-    else:
-        t_near, t_far = ray_aabb_segment(rays_o, rays_d, box, near_t, far_t)
+        zero = torch.zeros(rays_o.shape[0], dtype=rays_o.dtype, device=rays_o.device)
+        return zero, zero
+    return ray_aabb_segment(rays_o, rays_d, box, near_t, far_t)
+
+
+def _box_march(space: Space, grid, rays_o, rays_d, step, jitter) -> Packed:
+    """Occupancy marching at `step` through the box around the occupied cells, within [near, far]."""
+    t_near, t_far = _occupied_segment(space, grid, rays_o, rays_d)
     if jitter is not None:
         t_near = t_near + jitter * step
     ray_idx, t0, t1 = march_rays(grid, rays_o, rays_d, near=t_near, far=torch.maximum(t_far, t_near), step_size=step)
@@ -184,12 +189,7 @@ def _box_steps(space: Space, grid, rays_o, rays_d, step) -> Steps:
     """`_box_march`'s steps (no jitter), limited to each ray's `occupied_span`: the steps before the span's first
     and after its last have their midpoints in empty cells (no density, no weight), so leaving them out changes
     nothing."""
-    near_t, far_t = _per_ray(space.near, rays_o), _per_ray(space.far, rays_o)
-    box = grid.occupied_aabb()
-    if box is None:
-        t_near = t_far = torch.zeros(rays_o.shape[0], dtype=rays_o.dtype, device=rays_o.device)
-    else:
-        t_near, t_far = ray_aabb_segment(rays_o, rays_d, box, near_t, far_t)
+    t_near, t_far = _occupied_segment(space, grid, rays_o, rays_d)
     u0, u_end = march_bounds(grid, rays_o, rays_d, t_near, torch.maximum(t_far, t_near))
     first, last = occupied_span(grid, rays_o, rays_d, u0, u_end)  # [R]
     k_first = torch.floor((first - u0) / step).clamp(min=0)  # last step starting at or before first
