@@ -30,6 +30,18 @@ Errors: a user error (`data.errors.UserError`: bad input, a full disk, a busy fo
 and exits 2 (a stage stopped cleanly by SIGINT/SIGTERM: `data.errors.Interrupted`, 130/143); any other failure
 prints one line and exits 1; Ctrl-C prints one line and exits 130; `nerfpipe --debug ...` re-raises (traceback).
 Usage errors (bad option, bad choice, missing argument) are typer's own `Error:` lines, exit 2.
+
+Signals: for the whole command SIGTERM raises `data.stop.Terminated` (a KeyboardInterrupt) wherever the stage is,
+so a stage stopped by a scheduler or `kill` unwinds as on Ctrl-C (no file that looks complete) and prints
+`error: interrupted (SIGTERM)`, exit 143; train and xray-train keep their own handling (`data.stop.stop_on_signals`
+replaces this handler inside their loop: they save a checkpoint first). Once the stage is imported the CLI takes
+SIGTERM back (`data.stop.reclaim_sigterm`): importing pycolmap puts glog's stack-trace handler in its place.
+
+Last guard (decision): RecursionError and MemoryError print one line and exit 2, as bad input. Readers that can
+catch them at the source do (`data.camera_path`); but JSON is parsed in a dozen places (model/, data/transforms,
+data/projections, the importers) and checkpoints are unpickled by torch, and a file nested 200000 deep makes any
+of them raise RecursionError, a huge declared size MemoryError. A bug that recurses forever reads the same:
+`--debug` shows the traceback.
 """
 
 from __future__ import annotations
@@ -53,6 +65,7 @@ import typer
 from typer.core import TyperCommand, TyperGroup
 
 from nerfpipe.data.errors import UserError
+from nerfpipe.data.stop import Terminated, reclaim_sigterm, sigterm_raises
 
 __all__ = ["GROUPS", "PARSERS", "STAGES", "Group", "Stage", "app", "config_from_args", "main", "skipped_fields"]
 
@@ -413,6 +426,7 @@ def _progress() -> Iterator[Any]:
 
 def _run_stage(command: str, values: Mapping[str, Any]) -> None:
     module, _ = _stage_params(command)
+    reclaim_sigterm()  # importing the stage may have put a C handler in its place (pycolmap's glog)
     config = _make_config(command, values)
     takes_progress = "progress" in inspect.signature(module.run).parameters
     with _progress() as progress:
@@ -553,17 +567,29 @@ def main(argv: list[str] | None = None) -> None:
     global _debug
     _debug = False
     try:
-        app(args=list(sys.argv[1:] if argv is None else argv), prog_name="nerfpipe")  # usage errors end here
+        with sigterm_raises():  # SIGTERM -> Terminated (a KeyboardInterrupt) -> _Interrupted, below
+            app(args=list(sys.argv[1:] if argv is None else argv), prog_name="nerfpipe")  # usage errors end here
     except _Interrupted as e:
         if _debug:
             raise e.__cause__ from None
-        print("error: interrupted", file=sys.stderr)
-        sys.exit(130)
+        term = isinstance(e.__cause__, Terminated)
+        print(f"error: interrupted{' (SIGTERM)' if term else ''}", file=sys.stderr)
+        sys.exit(128 + Terminated.signum if term else 130)
     except UserError as e:
         if _debug:
             raise
         print(f"error: {_as_flags(_one_line(str(e)))}", file=sys.stderr)
         sys.exit(e.exit_code)  # 2; 130/143 for a stage stopped cleanly by SIGINT/SIGTERM (data.errors.Interrupted)
+    except (RecursionError, MemoryError) as e:  # the last guard (module doc): a reader's input, exit 2
+        if _debug:
+            raise
+        what = (
+            f"an input is nested too deeply to read ({_one_line(str(e))})"
+            if isinstance(e, RecursionError)
+            else "out of memory (an input or an option asks for more than this machine has)"
+        )
+        print(f"error: {what}; rerun with --debug for details", file=sys.stderr)
+        sys.exit(2)
     except Exception as e:  # noqa: BLE001 - the CLI boundary: one line, traceback only with --debug
         if _debug:
             raise

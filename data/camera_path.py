@@ -11,6 +11,9 @@ full description. Read:
 Written in addition: `format: "nerfpipe-camera-path"`, `version`, `seconds`, `keyframes` (nerfpipe's own list:
 `world_from_cam` 4x4, `fov` degrees, `time` seconds) from which `camera_path` was interpolated
 (`radiance.keyframes`).
+
+Limits: a frame is at most `MAX_SIDE` pixels on a side and `MAX_PIXELS` in all (a file asking for 200000 x 200000
+made torch try to allocate 320 GB); a file nested too deeply for the JSON parser is refused naming the file.
 """
 
 from __future__ import annotations
@@ -26,10 +29,15 @@ from nerfpipe.data.atomic import write_json
 from nerfpipe.data.errors import UserError
 from nerfpipe.radiance.keyframes import interpolate_keyframes
 
-__all__ = ["FORMAT", "VERSION", "CameraPathFile", "read_camera_path", "write_camera_path"]
+__all__ = ["FORMAT", "VERSION", "MAX_SIDE", "MAX_PIXELS", "CameraPathFile", "check_frame_size", "read_camera_path",
+           "write_camera_path"]  # fmt: skip
 
 FORMAT = "nerfpipe-camera-path"
 VERSION = 1
+MAX_SIDE = 16384
+"""The widest or tallest frame nerfpipe renders, in pixels (four 4K frames across)."""
+MAX_PIXELS = 8192 * 8192
+"""The most pixels in one frame (67 M: 8K UHD is 33 M); its float images alone take about 1 GB."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -67,6 +75,16 @@ def _positive(doc: dict, key: str, path: Path) -> float:
     return float(value)
 
 
+def check_frame_size(width: int, height: int, where: str, names: tuple[str, str] = ("width", "height")) -> None:
+    """UserError `{where}: field ...` when a frame is wider or taller than MAX_SIDE or larger than MAX_PIXELS."""
+    for name, value in zip(names, (width, height), strict=True):
+        if value > MAX_SIDE:
+            raise UserError(f"{where}: field {name!r}: {value} px is more than the {MAX_SIDE} px nerfpipe renders")
+    if width * height > MAX_PIXELS:
+        raise UserError(f"{where}: field '{names[0]} x {names[1]}': {width} x {height} = {width * height} pixels is "
+                        f"more than the {MAX_PIXELS} nerfpipe renders in one frame")  # fmt: skip
+
+
 def read_camera_path(path: str | Path) -> CameraPathFile:
     """Read a nerfpipe or nerfstudio camera path; UserError naming the file, the frame and the field."""
     path = Path(path)
@@ -76,12 +94,15 @@ def read_camera_path(path: str | Path) -> CameraPathFile:
         raise UserError(f"{path}: camera path file not found") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise UserError(f"{path}: not a JSON camera path ({exc})") from None
+    except RecursionError:
+        raise UserError(f"{path}: not a camera path: JSON nested too deeply to read") from None
     if not isinstance(doc, dict) or not isinstance(doc.get("camera_path"), list) or not doc["camera_path"]:
         raise UserError(f"{path}: field 'camera_path': expected a non-empty list of cameras (nerfstudio format)")
     kind = doc.get("camera_type", "perspective")
     if kind != "perspective":
         raise UserError(f"{path}: field 'camera_type': only 'perspective' is rendered, got {kind!r}")
     width, height = int(_positive(doc, "render_width", path)), int(_positive(doc, "render_height", path))
+    check_frame_size(width, height, str(path), ("render_width", "render_height"))
     frames = doc["camera_path"]
     if "fps" in doc:
         fps = _positive(doc, "fps", path)
@@ -116,6 +137,7 @@ def write_camera_path(
     """Interpolate the keyframes (`radiance.keyframes`) and write the path atomically; returns the path."""
     if width < 1 or height < 1:
         raise UserError(f"camera path: expected a size >= 1 px, got {width}x{height}")
+    check_frame_size(width, height, "camera path")
     try:
         poses, fovs = interpolate_keyframes(keyframes, fovs_deg, times, fps)
     except ValueError as exc:

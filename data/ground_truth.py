@@ -13,12 +13,12 @@ name instead (what COLMAP models and transforms.json frames are keyed by).
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from nerfpipe.data.confine import inside, read_json
 from nerfpipe.data.errors import UserError
 
 __all__ = ["GroundTruth", "read_ground_truth"]
@@ -39,8 +39,9 @@ class GroundTruth:
         return self.folder / "cameras.json"
 
     def depth_path(self, name: str) -> Path:
-        """depth/<stem>.npy for an image file name or stem (it may not exist)."""
-        return self.folder / "depth" / f"{Path(name).stem}.npy"
+        """depth/<stem>.npy for an image file name or stem (it may not exist), resolved inside the ground_truth
+        folder (UserError when a symlink leads out)."""
+        return inside(self.folder, f"depth/{Path(name).stem}.npy", f"the depth map of {name}")
 
     def by_file_name(self) -> dict[str, np.ndarray]:
         """Image file name -> [4, 4] OpenGL world_from_cam."""
@@ -61,8 +62,8 @@ def read_ground_truth(path: str | Path) -> GroundTruth:
         raise UserError(f"ground truth: {path} has no cameras.json (nor ground_truth/cameras.json)")
     frames: dict[str, np.ndarray] = {}
     names: dict[str, str] = {}
+    doc = read_json(cams)
     try:
-        doc = json.loads(cams.read_text(encoding="utf-8"))
         for key, value in doc["frames"].items():
             name = Path(str(key)).name
             if isinstance(value, dict):  # {file_path, world_from_cam (or transform_matrix), intrinsics...}
@@ -70,7 +71,7 @@ def read_ground_truth(path: str | Path) -> GroundTruth:
                 value = value.get("world_from_cam", value.get("transform_matrix"))
             stem = Path(str(key)).stem
             frames[stem], names[stem] = np.asarray(value, dtype=np.float64), name
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError) as exc:
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise UserError(f"{cams}: expected {{'frames': {{image name: 4x4 matrix}}}} ({type(exc).__name__})") from None
     bad = [k for k, m in frames.items() if m.shape != (4, 4) or not np.isfinite(m).all()]
     if bad:

@@ -30,7 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
+from nerfpipe.data.confine import inside
 from nerfpipe.data.errors import UserError
+from nerfpipe.data.images import read_image
 
 __all__ = [
     "MASK_SUFFIXES", "KEEP", "mask_candidates", "match_masks", "read_mask", "write_binary_mask",
@@ -51,8 +53,8 @@ def mask_candidates(image_name: str) -> list[str]:
 
 
 def match_masks(mask_dir: str | os.PathLike, image_names: Iterable[str]) -> dict[str, Path]:
-    """image name -> its mask file in `mask_dir`; UserError (one line, naming the image) when the folder is
-    missing or an image has no mask."""
+    """image name -> its mask file in `mask_dir` (resolved; a symlink may not lead out of the folder); UserError
+    (one line, naming the image) when the folder is missing or an image has no mask."""
     mask_dir = Path(mask_dir)
     if not mask_dir.is_dir():
         raise UserError(f"masks {mask_dir}: no such folder (expected one mask image per photo, white = keep)")
@@ -65,21 +67,20 @@ def match_masks(mask_dir: str | os.PathLike, image_names: Iterable[str]) -> dict
                 f"masks {mask_dir}: no mask for image {name} (expected {name}.png or "
                 f"{Path(name).stem}.png, white = keep)"
             )
-        out[name] = mask_dir / found
+        out[name] = inside(mask_dir, found, f"the mask of {name}")
     return out
 
 
 def read_mask(path: str | os.PathLike, size: tuple[int, int] | None = None, image: str | None = None) -> np.ndarray:
     """A mask file as float32 [H, W] in [0, 1] (1 = keep). `size` (w, h): the size it must have (that of
-    `image`, named in the error); UserError when it is not, or the file cannot be decoded."""
+    `image`, named in the error); UserError when it is not, or the file cannot be decoded (`data.images`'s
+    checks: at most MAX_PIXELS declared, no truncated file)."""
     import cv2  # heavy import kept local
 
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: mask not found" + (f" (the mask of {image})" if image else ""))
-    m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if m is None:
-        raise UserError(f"{path}: cannot decode the mask image")
+    m = read_image(path, "mask")
     if m.ndim == 3:
         m = cv2.cvtColor(m[..., :3], cv2.COLOR_BGR2GRAY)
     scale = 65535.0 if m.dtype == np.uint16 else 255.0

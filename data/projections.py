@@ -11,6 +11,9 @@ Readers for what users of the field already have:
 - `read_naf_pickle`: NAF / SAX-NeRF `*.pickle` (TIGRE geometry in mm, `train`/`val` dicts with `angles` and
   `projections`, `image` the volume in [x, y, z]). Their projections are line integrals over lengths in
   metres with the volume in 1/m, so lengths stay in mm and the volume is divided by 1000 (1/mm).
+  The pickle is read with `data.safe_pickle.load_restricted` (plain data and numpy arrays only; any other
+  global is refused, so no code from the file runs); `trust=True` (xray-train's `trust_pickle`) unpickles it
+  plainly, for a file the user vouches for.
 - `read_r2_gaussian`: R2-Gaussian's `meta_data.json` + `proj_*/*.npy` (+ `vol_gt.npy`); its scanner lengths are
   metres (its own NAF converter multiplies by 1000 for mm): lengths x 1000, the volume / 1000.
 TIGRE orders are kept as those projects write them: `nDetector`, `dDetector`, `sDetector` are [v, u];
@@ -27,7 +30,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import pickle
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -37,6 +39,7 @@ import numpy as np
 
 from nerfpipe.data.atomic import write_json
 from nerfpipe.data.errors import UserError
+from nerfpipe.data.safe_pickle import load_restricted, load_trusted
 from nerfpipe.data.volumes import check_volume, write_npy
 from nerfpipe.radiance.xray import VoxelGrid, XrayGeometry
 
@@ -366,19 +369,16 @@ def _stack_splits(parts: Sequence[tuple[str, np.ndarray, np.ndarray]]) -> tuple[
     return np.concatenate(projs), np.concatenate(angles), splits
 
 
-def read_naf_pickle(path: str | os.PathLike) -> ProjectionScene:
+def read_naf_pickle(path: str | os.PathLike, *, trust: bool = False) -> ProjectionScene:
     """A NAF / SAX-NeRF `*.pickle` scan -> ProjectionScene (mm; volume / 1000 -> 1/mm). `val` becomes `test`.
 
-    Unpickling runs code from the file: read only pickles you trust (as NAF itself does).
+    Read with the restricted unpickler (`data.safe_pickle.PickleRefused` for a file naming any global beyond
+    numpy's array helpers); `trust=True` runs the plain `pickle.load`, which runs code the file names.
     """
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: no such file")
-    try:
-        with open(path, "rb") as f:
-            d = pickle.load(f)
-    except Exception as exc:  # unpickling raises many types
-        raise UserError(f"{path}: cannot read pickle ({type(exc).__name__}: {exc})") from None
+    d = load_trusted(path) if trust else load_restricted(path)
     where = str(path)
     if not isinstance(d, dict):
         raise UserError(f"{path}: expected a NAF dict, got {type(d).__name__}")
@@ -455,11 +455,13 @@ def read_r2_gaussian(folder: str | os.PathLike) -> ProjectionScene:
         raise UserError(f"{meta_path}: {exc}") from None
 
 
-def read_any(path: str | os.PathLike) -> ProjectionScene:
-    """Our folder / projections.json, a NAF `*.pickle`, or an R2-Gaussian folder / meta_data.json."""
+def read_any(path: str | os.PathLike, *, trust_pickle: bool = False) -> ProjectionScene:
+    """Our folder / projections.json, a NAF `*.pickle`, or an R2-Gaussian folder / meta_data.json.
+
+    `trust_pickle`: unpickle a `*.pickle` plainly (see read_naf_pickle); never set it for a path read from a run."""
     path = Path(path)
     if path.suffix in (".pickle", ".pkl"):
-        return read_naf_pickle(path)
+        return read_naf_pickle(path, trust=trust_pickle)
     if path.name == "meta_data.json" or (path.is_dir() and (path / "meta_data.json").is_file()):
         return read_r2_gaussian(path)
     return read_projection_scene(path)

@@ -39,6 +39,8 @@ __all__ = [
     "previous_folder",
     "scene_from_run",
     "find_run_scene",
+    "RUN_FILES",
+    "refuse_output_inside",
 ]
 
 _PACKAGES = ("nerfpipe", "torch", "numpy", "pycolmap", "opencv-contrib-python-headless", "scikit-image", "trimesh",
@@ -179,6 +181,26 @@ class MetricsLog:
         w.writeheader()
         w.writerows(self.rows)
         return write_text(self.path, buf.getvalue())
+
+
+RUN_FILES = frozenset({"config.json", "checkpoint.pt", "metrics.csv", "manifest.json", "psnr_vs_time.png",
+                       "per_view.json", "per_view_worst.png", "transforms.json", "volume.npy", LOCK_NAME})  # fmt: skip
+"""The names a run folder owns (what train and xray-train write there): a consumer's output may not take one."""
+
+
+def refuse_output_inside(out: str | os.PathLike, run: str | os.PathLike, what: str = "output") -> None:
+    """UserError when a consumer stage's output `out` (a file or a folder, as given) would damage the run folder
+    `run` it reads: `out` is the run folder, holds it (an output folder's overwrite moves it aside), or is a file
+    the run owns (RUN_FILES). A new name inside the run (RUN/eval.json, RUN/depth/) is allowed. Paths compare
+    resolved (symlinks followed), so a link does not hide the run."""
+    out_r, run_r = Path(out).resolve(), Path(run).resolve()
+    if out_r == run_r:
+        raise UserError(f"{out}: the {what} would be the run folder {run} itself; expected a path outside it")
+    if out_r in run_r.parents:
+        raise UserError(f"{out}: the {what} folder holds the run {run} (writing it would set the run aside); "
+                        "expected a path beside the run")  # fmt: skip
+    if out_r.parent == run_r and out_r.name in RUN_FILES:
+        raise UserError(f"{out}: the run {run} owns {out_r.name}; expected another name for the {what}")
 
 
 def previous_folder(folder: str | os.PathLike) -> Path:

@@ -15,7 +15,6 @@ The scene frame relates to the source (COLMAP, Blender, ...) world as
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import os
 from dataclasses import dataclass, field
@@ -25,7 +24,9 @@ from typing import Any
 import numpy as np
 
 from nerfpipe.data.atomic import write_json
+from nerfpipe.data.confine import inside, read_json
 from nerfpipe.data.errors import UserError
+from nerfpipe.data.images import MAX_PIXELS, read_image
 from nerfpipe.radiance.camera import Intrinsics
 
 __all__ = [
@@ -36,10 +37,22 @@ __all__ = [
     "load_image",
     "is_forward_facing",
     "cameras_face_forward",
+    "rotation_problem",
+    "camera_problem",
     "SPLITS",
+    "PATH_KEYS",
+    "ROTATION_TOL",
+    "FOCAL_RANGE",
 ]
 
 SPLITS = ("train", "val", "test")
+PATH_KEYS = ("sparse_points_path", "sparse_depth_path")
+"""Top-level keys naming a file in the dataset folder (read by view and train): confined like frames' paths."""
+ROTATION_TOL = 1000 * float(np.finfo(np.float32).eps)
+"""|R^T R - I| and |det R - 1| allowed in a camera's rotation (1.2e-4): a thousand float32 roundings. A rotation
+stored as float32 or printed to 7 digits is within ~1e-6 (the NeRF synthetic and instant-ngp fox files: 1.3e-6)."""
+FOCAL_RANGE = (1e-3, 1e3)
+"""A focal length (px) must lie in this range times the image's larger side: fields of view 0.06 to 179.9 deg."""
 _INTRINSIC_KEYS = ("w", "h", "fl_x", "fl_y", "cx", "cy")
 _DISTORTION_KEYS = ("k1", "k2", "k3", "p1", "p2")
 
@@ -102,6 +115,12 @@ class Scene:
         rel = self.frames[i].mask_path
         return None if rel is None else _inside_root(self.root, rel, f"frames[{i}].mask_path")
 
+    def named_file(self, key: str) -> Path | None:
+        """The file a top-level key names (`sparse_points_path`, `sparse_depth_path`), resolved inside the
+        dataset folder (UserError otherwise); None without the key."""
+        rel = self.extra.get(key)
+        return None if rel is None else _inside_root(self.root, rel, key)
+
     @property
     def has_masks(self) -> bool:
         """Some frame has a mask_path."""
@@ -136,11 +155,33 @@ class Scene:
 
 def _inside_root(root: Path, rel: str, what: str) -> Path:
     """Resolve `rel` under `root`; refuse paths that escape it (absolute paths, `..`, symlinks out)."""
-    root_resolved = root.resolve()
-    path = (root / rel).resolve()
-    if path != root_resolved and root_resolved not in path.parents:
-        raise UserError(f"{root / 'transforms.json'}: {what} '{rel}' resolves outside the dataset folder {root}")
-    return path
+    return inside(root, rel, what, file=root / "transforms.json")
+
+
+def rotation_problem(world_from_cam: np.ndarray) -> str | None:
+    """What is wrong with a camera-to-world matrix's rotation part (None when it is a proper rotation within
+    ROTATION_TOL): not orthonormal, or a reflection (det -1, a mirrored camera)."""
+    rot = np.asarray(world_from_cam, dtype=np.float64)[:3, :3]
+    err = float(np.abs(rot.T @ rot - np.eye(3)).max())
+    if not err <= ROTATION_TOL:
+        return f"rotation part is not orthonormal (max |R^T R - I| = {err:.2g}, allowed {ROTATION_TOL:.2g})"
+    det = float(np.linalg.det(rot))
+    if not abs(det - 1) <= ROTATION_TOL:
+        return f"rotation part is a reflection (det {det:.3g}, expected +1): a mirrored camera"
+    return None
+
+
+def camera_problem(intr: Intrinsics) -> str | None:
+    """What is wrong with a camera's size or focal lengths (None when sane): more than MAX_PIXELS pixels, or a
+    focal length outside FOCAL_RANGE times the larger image side. Names the transforms.json key."""
+    if intr.w * intr.h > MAX_PIXELS:
+        return f"w x h: {intr.w}x{intr.h} is more than the {MAX_PIXELS} pixels an image may have"
+    lo, hi = (r * max(intr.w, intr.h) for r in FOCAL_RANGE)
+    for key, f in (("fl_x", intr.fx), ("fl_y", intr.fy)):
+        if not lo <= f <= hi:
+            return (f"{key}: {f:g} px is outside [{FOCAL_RANGE[0]:g}, {FOCAL_RANGE[1]:g}] x the larger image "
+                    f"side ({lo:g} to {hi:g} px)")  # fmt: skip
+    return None
 
 
 class _Reader:
@@ -199,10 +240,14 @@ class _Reader:
         cx = self.number(merged, "cx", where, required=False)
         cy = self.number(merged, "cy", where, required=False)
         dist = {k: self.number(merged, k, where, required=False) or 0.0 for k in _DISTORTION_KEYS}
-        return Intrinsics(
+        intr = Intrinsics(
             w=vals["w"], h=vals["h"], fx=fx, fy=fy,
             cx=vals["w"] / 2 if cx is None else cx, cy=vals["h"] / 2 if cy is None else cy, **dist,
         )  # fmt: skip
+        problem = camera_problem(intr)
+        if problem is not None:
+            raise UserError(f"{self.path}: {where}{problem}")
+        return intr
 
 
 def read_scene(path: str | os.PathLike) -> Scene:
@@ -212,10 +257,7 @@ def read_scene(path: str | os.PathLike) -> Scene:
         path = path / "transforms.json"
     if not path.is_file():
         raise UserError(f"{path}: no such file (expected a transforms.json or a folder holding one)")
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise UserError(f"{path}: not valid JSON ({e})") from None
+    doc = read_json(path)
     r = _Reader(path)
     if not isinstance(doc, dict):
         raise r.fail("top level", "expected a JSON object")
@@ -235,15 +277,15 @@ def read_scene(path: str | os.PathLike) -> Scene:
         fp = fr.get("file_path")
         if not isinstance(fp, str) or not fp:
             raise r.fail(f"{where}file_path", "missing or not a string")
-        _inside_root(root, fp, f"frames[{i}].file_path")
+        inside(root, fp, f"frames[{i}].file_path", file=path)
         if "transform_matrix" not in fr:
             raise r.fail(f"{where}transform_matrix", "missing")
         m = r.matrix(fr["transform_matrix"], 4, f"{where}transform_matrix")
         if not np.allclose(m[3], [0, 0, 0, 1]):
             raise r.fail(f"{where}transform_matrix", f"last row must be [0, 0, 0, 1], got {m[3].tolist()}")
-        rot = m[:3, :3]
-        if abs(abs(np.linalg.det(rot)) - 1) > 1e-3 or not np.allclose(rot.T @ rot, np.eye(3), atol=1e-3):
-            raise r.fail(f"{where}transform_matrix", "rotation part is not orthonormal")
+        problem = rotation_problem(m)
+        if problem is not None:
+            raise r.fail(f"{where}transform_matrix", problem)
         per_frame = any(k in fr for k in ("fl_x", "w", "h", "camera_angle_x"))
         if per_frame:
             intr = r.intrinsics(fr, where, top_camera)
@@ -255,7 +297,7 @@ def read_scene(path: str | os.PathLike) -> Scene:
             if fr.get(key) is not None:
                 if not isinstance(fr[key], str):
                     raise r.fail(f"{where}{key}", "expected a string")
-                _inside_root(root, fr[key], f"frames[{i}].{key}")
+                inside(root, fr[key], f"frames[{i}].{key}", file=path)
         frames.append(
             Frame(
                 file_path=fp,
@@ -265,6 +307,12 @@ def read_scene(path: str | os.PathLike) -> Scene:
                 depth_file_path=fr.get("depth_file_path"),
             )  # fmt: skip
         )
+
+    for key in PATH_KEYS:
+        if doc.get(key) is not None:
+            if not isinstance(doc[key], str):
+                raise r.fail(key, "expected a string")
+            inside(root, doc[key], key, file=path)
 
     applied = np.eye(4)[:3]
     if "applied_transform" in doc:
@@ -379,15 +427,11 @@ def write_scene(scene: Scene, path: str | os.PathLike | None = None) -> Path:
 
 
 def load_image(path: str | os.PathLike) -> np.ndarray:
-    """Read an image as float32 [H, W, C] in [0, 1], C = 3 (RGB) or 4 (RGBA). 16-bit PNGs keep precision."""
+    """Read an image as float32 [H, W, C] in [0, 1], C = 3 (RGB) or 4 (RGBA). 16-bit PNGs keep precision.
+    `data.images.read_image`'s checks: at most MAX_PIXELS declared, no truncated file."""
     import cv2  # heavy import kept local
 
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"{path}: image not found")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise UserError(f"{path}: cannot decode image")
+    img = read_image(path)
     scale = 65535.0 if img.dtype == np.uint16 else 255.0
     if img.ndim == 2:
         img = np.repeat(img[..., None], 3, axis=-1)

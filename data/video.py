@@ -2,7 +2,12 @@
 
 - mp4: H.264 (libx264) through imageio-ffmpeg, yuv420p (what browsers play), `+faststart`; yuv420p needs even
   width and height, so odd sizes are padded by one row/column repeating the edge. Written to a temporary name
-  in the same folder and renamed when complete (`data.atomic`).
+  in the same folder and renamed when the `video_writer` block ends: a stage that writes a manifest for the video
+  writes it inside the block (after `VideoWriter.finish`), so the mp4, which `make` takes as done, appears only
+  after it, and a failure anywhere (a full disk at the manifest, Ctrl-C, SIGTERM) leaves no mp4.
+- `removed_on_failure`: the other files a stage writes beside it (PNG frames, the manifest) are deleted when the
+  block fails, with the frames folder when the stage made it; `check_output` refuses an output path that is a
+  folder where a file is wanted (or a file where a folder is) in one line, before any work.
 - PNG: RGB uint8, grey uint8 or grey uint16 (written with OpenCV, which keeps 16 bits), atomically.
 - Colour maps: depth -> matplotlib `turbo` over a fixed [lo, hi] (near = blue/dark end, far = red end),
   pixels marked invalid -> black; opacity -> grey.
@@ -28,6 +33,8 @@ __all__ = [
     "grey",
     "depth_legend_png",
     "VideoWriter",
+    "check_output",
+    "removed_on_failure",
     "video_writer",
 ]
 
@@ -150,10 +157,55 @@ class VideoWriter:
             self._gen.close()
             self._gen = None
 
+    def finish(self) -> None:
+        """End the video (ffmpeg writes its index) and flush it to disk: it is complete, under its temporary name,
+        and only its rename at the end of the `video_writer` block is left."""
+        self.close()
+        if self.count == 0:
+            raise ValueError(f"{self.tmp_path}: no frames written")
+        fd = os.open(self.tmp_path, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def check_output(path: str | os.PathLike, what: str, *, folder: bool = False) -> None:
+    """UserError when `path` cannot be written as a file (with `folder`: made as a folder): it exists as the other
+    kind, or a file stands where one of the folders that hold it should be."""
+    path = Path(path)
+    if folder and path.exists() and not path.is_dir():
+        raise UserError(f"{path} is a file; expected a folder for the {what}")
+    if not folder and path.is_dir():
+        raise UserError(f"{path} is a folder; expected a file name for the {what}")
+    parent = next((p for p in path.parents if p.exists()), None)
+    if parent is not None and not parent.is_dir():
+        raise UserError(f"{parent} is a file; expected a folder to hold the {what} {path}")
+
+
+@contextlib.contextmanager
+def removed_on_failure(*folders: str | os.PathLike | None) -> Iterator[list[Path]]:
+    """A list for the files the block writes: when the block fails (an error, KeyboardInterrupt, SIGTERM's
+    `data.stop.Terminated`) they are deleted, then those of `folders` (None: none) and their parents that did not
+    exist before the block, if empty."""
+    made = {p for f in folders if f is not None for p in (Path(f), *Path(f).parents) if not p.exists()}
+    written: list[Path] = []
+    try:
+        yield written
+    except BaseException:
+        for p in written:
+            with contextlib.suppress(OSError):
+                p.unlink(missing_ok=True)
+        for p in sorted(made, key=lambda p: len(p.parts), reverse=True):  # deepest first; rmdir keeps a non-empty one
+            with contextlib.suppress(OSError):
+                p.rmdir()
+        raise
+
 
 @contextlib.contextmanager
 def video_writer(path: str | os.PathLike, fps: float = 30.0, crf: int = 18) -> Iterator[VideoWriter]:
-    """Context giving a `VideoWriter`; the mp4 appears at `path` only if the block completes with >= 1 frame."""
+    """Context giving a `VideoWriter`; the mp4 appears at `path` only if the block completes with >= 1 frame, when
+    the block ends (what the block writes after `VideoWriter.finish`, a manifest, comes before it)."""
     path = Path(path)
     if path.suffix.lower() != ".mp4":
         raise UserError(f"{path}: expected an .mp4 output path")

@@ -108,7 +108,7 @@ def _manifest_sha256(path: Path) -> str | None:
     """The checkpoint hash in the manifest beside `path` (None: no manifest, or one that predates hashes)."""
     try:
         doc = json.loads((path.parent / "manifest.json").read_text())
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
         return None
     value = doc.get("checkpoint_sha256") if isinstance(doc, dict) else None
     return value if isinstance(value, str) else None

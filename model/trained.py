@@ -12,7 +12,6 @@ scene (OUT/run and OUT/scene) still finds it.
 from __future__ import annotations
 
 import dataclasses
-import json
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -21,6 +20,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from nerfpipe.data.confine import read_json
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.rundir import find_run_scene
 from nerfpipe.data.transforms import Scene, read_scene
@@ -150,7 +150,7 @@ def load_trained(run_dir: str | Path, device: str | torch.device = "auto") -> Tr
     cfg_path = run_dir / "config.json"
     if not cfg_path.is_file():
         raise UserError(f"{run_dir}: not a train run directory (no config.json)")
-    doc = json.loads(cfg_path.read_text())
+    doc = read_json(cfg_path)
     dev = resolve_device(device)
     state = read_checkpoint(run_dir / "checkpoint.pt", dev)
     settings = ModelSettings.from_config(doc, str(cfg_path))

@@ -2,7 +2,9 @@
 
 An X-ray run directory (`xray-train`): config.json, checkpoint.pt, metrics.csv, psnr_vs_time.png, volume.npy
 (the reconstruction on the scene's grid, mu per length unit), manifest.json (last). The scene it was trained on
-is named in config.json (`scene`) and read again with `data.projections.read_any`.
+is named in config.json (`scene`) and read again with `data.projections.read_any`, always without
+`trust_pickle`: a NAF pickle named there goes through the restricted unpickler (data.safe_pickle), so a run
+whose config.json was edited to name a crafted pickle runs no code from it.
 
 The field is `radiance.fields.TensoRF` with `has_color=False` (density only: mu(x) per length unit, no colour,
 no view direction) in the scene's length units over the grid's box. Rendering is `radiance.render.
@@ -32,6 +34,7 @@ from nerfpipe.data.atomic import atomic_path
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.projections import ProjectionScene, read_any
 from nerfpipe.data.rundir import find_run_scene
+from nerfpipe.data.safe_pickle import PickleRefused
 from nerfpipe.model.checkpoint import load_state
 from nerfpipe.model.device import resolve_device
 from nerfpipe.radiance.aabb import ray_aabb_segment
@@ -227,14 +230,22 @@ def load_xray_run(run_dir: str | Path, device: str | torch.device = "auto") -> X
     config_path = run_dir / "config.json"
     if not config_path.is_file():
         raise UserError(f"{run_dir}: not an X-ray run (no config.json)")
-    config = json.loads(config_path.read_text(encoding="utf-8"))
-    if "scene" not in config:
+    try:
+        config = json.loads(config_path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise UserError(f"{config_path}: not valid JSON ({exc})") from None
+    if not isinstance(config, dict) or "scene" not in config:
         raise UserError(f"{config_path}: not an X-ray run config (no 'scene')")
     dev = resolve_device(device)
     state = read_xray_checkpoint(run_dir / "checkpoint.pt", dev)
     tried = find_run_scene(run_dir, config, ("scene", "scene_abs"))
     scene_path = next((p for p in tried if p.exists()), tried[-1])
-    scene = read_any(scene_path)
+    try:
+        scene = read_any(scene_path)  # never trust_pickle: this path comes from the run, not from the user
+    except PickleRefused as exc:
+        raise UserError(
+            f"{exc} (the scene named in {config_path}; a run's scene is never unpickled with trust)"
+        ) from None
     return XrayRun(
         run_dir=run_dir,
         scene=scene,

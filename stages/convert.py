@@ -21,10 +21,16 @@ Writes, in this order:
 Splits: the dataset's own where it has them (Blender files, the tiny-NeRF npz convention, a transforms.json's
 `*_filenames`), else every `holdout_every`-th frame (indices 0, 8, 16, ... as in LLFF's `llffhold`) is test;
 val = test when the source has no val. Frames whose image file is missing are skipped and counted.
+
+Untrusted sources: every path a source names stays inside its folder (`data.confine`, in the importers); each
+image is read once (`data.images.read_image_file`: size checked from its header before decoding, truncated
+files refused) and the bytes that decoded are the bytes written to images/. SCENE_DIR's lock (`data.lock`) is
+held while convert runs: a second writer into the folder is refused.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import shutil
@@ -38,7 +44,9 @@ import numpy as np
 
 from nerfpipe.data.atomic import atomic_path, write_bytes
 from nerfpipe.data.errors import UserError
+from nerfpipe.data.images import read_image_file
 from nerfpipe.data.importers import Source, SourceFrame, load_source
+from nerfpipe.data.lock import folder_lock
 from nerfpipe.data.masks import read_mask
 from nerfpipe.data.rundir import config_to_json, write_manifest
 from nerfpipe.data.sparse_depth import FILE as SPARSE_FILE
@@ -163,11 +171,9 @@ def _write_image(frame: SourceFrame, pixels, dest: Path, factors: list[int]) -> 
         img = cv2.cvtColor(img, cv2.COLOR_RGBA2BGRA if img.shape[-1] == 4 else cv2.COLOR_RGB2BGR)
         _imwrite(dest / "images" / frame.name, img)
     else:
-        img = cv2.imread(str(frame.image), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise UserError(f"{frame.image}: cannot decode image")
-        with atomic_path(dest / "images" / frame.name) as tmp:
-            shutil.copyfile(frame.image, tmp)
+        decoded = read_image_file(frame.image)
+        img = decoded.pixels
+        write_bytes(dest / "images" / frame.name, decoded.data)  # the bytes that decoded, byte for byte
     if img.shape[:2] != (intr.h, intr.w):
         raise UserError(
             f"{frame.image or frame.name}: image is {img.shape[1]}x{img.shape[0]} but its camera says {intr.w}x{intr.h}"
@@ -221,11 +227,35 @@ def _write_ply(path: Path, points: np.ndarray, colors: np.ndarray | None) -> Non
     write_bytes(path, cloud.export(file_type="ply"))
 
 
+def _check_names(source: Path, names: list[str]) -> None:
+    """Output names are plain file names (an importer's `flat_name`), unique: nothing is written outside images/."""
+    bad = next((n for n in names if not n or "/" in n or "\0" in n or n in (".", "..")), None)
+    if bad is not None:
+        raise UserError(f"{source}: image name {bad!r} is not a plain file name")
+    if len(set(names)) != len(names):
+        dup = next(n for n in names if names.count(n) > 1)
+        raise UserError(f"{source}: two images map to the same output name {dup!r}")
+
+
 def run(config: Config) -> Outputs:
+    """Source -> SCENE_DIR (module docstring), holding SCENE_DIR's lock; a SCENE_DIR this call created is removed
+    again when it fails leaving it empty."""
+    scene_dir = Path(config.scene_dir)
+    created = not scene_dir.exists()
+    try:
+        with folder_lock(scene_dir):
+            return _run(config, scene_dir)
+    except BaseException:
+        if created:
+            with contextlib.suppress(OSError):
+                scene_dir.rmdir()  # only when empty
+        raise
+
+
+def _run(config: Config, scene_dir: Path) -> Outputs:
     started = time.time()
     given = _given_box(config.aabb)
     source = load_source(Path(config.source), config.kind, images=config.images)
-    scene_dir = Path(config.scene_dir)
     for inp in source.inputs:
         if inp.resolve() == (scene_dir / "transforms.json").resolve():
             raise UserError(f"{inp}: the source is the output itself; choose another --scene-dir")
@@ -235,10 +265,7 @@ def run(config: Config) -> Outputs:
         raise UserError(f"{config.source}: none of the {len(source.frames)} images listed exist")
     if missing:
         log.warning("convert: skipped %d of %d frames whose image is missing", missing, len(source.frames))
-    names = [f.name for f in frames]
-    if len(set(names)) != len(names):
-        dup = next(n for n in names if names.count(n) > 1)
-        raise UserError(f"{config.source}: two images map to the same output name {dup!r}")
+    _check_names(config.source, [f.name for f in frames])
 
     left_out = dict(source.left_out)
     if given is not None:  # the region of interest: --aabb, else the source's stated box, else the data's

@@ -46,7 +46,14 @@ from nerfpipe.data.atomic import atomic_path, write_json
 from nerfpipe.data.checks import Check, verdict
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.progress import NO_PROGRESS, Progress
-from nerfpipe.data.rundir import MetricsLog, Stopwatch, config_to_json, output_folder, write_manifest
+from nerfpipe.data.rundir import (
+    MetricsLog,
+    Stopwatch,
+    config_to_json,
+    output_folder,
+    refuse_output_inside,
+    write_manifest,
+)
 from nerfpipe.data.video import colorize, depth_legend_png, to_uint8, video_writer, write_png
 from nerfpipe.model import camera_path, load_trained, render_view, resolve_device
 from nerfpipe.radiance.camera import Intrinsics, generate_rays
@@ -121,7 +128,7 @@ def _global_range(paths: list[Path], max_samples: int = 1_000_000) -> tuple[floa
     per_map = max(1, max_samples // max(1, len(paths)))
     vals = []
     for p in paths:
-        d = np.load(p, mmap_mode="r").reshape(-1)
+        d = np.load(p, mmap_mode="r", allow_pickle=False).reshape(-1)
         step = max(1, d.size // per_map)
         v = np.asarray(d[::step])
         vals.append(v[v > 0])
@@ -188,6 +195,7 @@ class _DepthWatch:
 
 def run(config: Config, progress: Progress | None = None) -> Outputs:
     """Hold out_dir (one writer; an earlier output needs --overwrite) and run the stage (`_run`)."""
+    refuse_output_inside(config.out_dir, config.run_dir, "depth output")
     with output_folder(config.out_dir, overwrite=config.overwrite):
         return _run(config, progress)
 
@@ -244,7 +252,7 @@ def _run(config: Config, progress: Progress | None = None) -> Outputs:
     video_path = out_dir / "depth.mp4" if config.video else None
     with _maybe_video(video_path, config.fps) as video:
         for k, name in enumerate(cams.names):
-            depth = np.load(files["depth"][k])
+            depth = np.load(files["depth"][k], allow_pickle=False)
             rgb = colorize(depth, lo, hi, valid=depth > 0)
             color_paths.append(
                 depth_legend_png(out_dir / "depth_color" / f"{name}.png", rgb, lo, hi, "z-depth (user units)")

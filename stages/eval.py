@@ -55,7 +55,7 @@ from nerfpipe.data.errors import UserError
 from nerfpipe.data.ground_truth import GroundTruth, read_ground_truth
 from nerfpipe.data.masks import load_masked_image
 from nerfpipe.data.progress import NO_PROGRESS, Progress
-from nerfpipe.data.rundir import MetricsLog, Stopwatch, config_to_json, sidecar, write_manifest
+from nerfpipe.data.rundir import MetricsLog, Stopwatch, config_to_json, refuse_output_inside, sidecar, write_manifest
 from nerfpipe.data.transforms import Scene
 from nerfpipe.model import OPAQUE, load_trained, render_view, resolve_device
 from nerfpipe.model.appearance import EVAL_RULES as APPEARANCE_RULES
@@ -192,6 +192,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     out = Path(config.out)
     if out.suffix.lower() != ".json":
         raise UserError(f"{out}: expected a .json output path")
+    refuse_output_inside(out, config.run_dir, "eval output")
     gt = read_ground_truth(config.ground_truth) if config.ground_truth is not None else None
     device = resolve_device(config.device)
     trained = load_trained(config.run_dir, device)
@@ -292,7 +293,6 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     result["train_psnr"], result["train_psnr_from"] = train if train is not None else (None, "no metrics.csv value")
     checked = verdict(self_checks(result["psnr"], train))
     result.update(checked)
-    write_json(out, result)
     metrics.save()
     manifest = write_manifest(
         out.parent, stage="eval", started=started, name=sidecar(out, "manifest.json").name,
@@ -306,6 +306,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
                   **({} if gt else {"depth": "no --ground-truth given"})},
         config=config_to_json(config), **checked,
     )  # fmt: skip
+    write_json(out, result)  # last: OUT (make's target) appears only after its manifest, so a failure leaves none
     return Outputs(out=out, metrics=metrics.path, manifest=manifest, result=result)
 
 
@@ -367,7 +368,7 @@ def _depth_errors(trained, view, intr, pose, name, gt, alignment, scale, device)
     path = gt.folder / "depth" / f"{Path(name).stem}.npy"
     if not path.is_file():
         return None, 0, 0
-    gt_depth = np.load(path).astype(np.float64)
+    gt_depth = np.load(path, allow_pickle=False).astype(np.float64)
     if gt_depth.shape != view["depth"].shape:  # ground truth at another resolution: render at its size
         view = render_view(trained, intr.scaled(gt_depth.shape[1] / intr.w), pose, device)
     pred = view["depth"].astype(np.float64) / scale * alignment["scale"]

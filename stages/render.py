@@ -26,7 +26,11 @@ chosen and why.
 
 Outputs stack side by side: rgb | depth (z-depth, turbo over one range for the whole video, from a 1/8-resolution
 preview pass: 1st-99th percentile over pixels with opacity >= 0.5) | accumulation (grey).
-Next to OUT.mp4: `OUT.metrics.csv` (frame, seconds, rays/s, psnr) and `OUT.manifest.json` (written last).
+Next to OUT.mp4: `OUT.metrics.csv` (frame, seconds, rays/s, psnr) and `OUT.manifest.json`. The video is encoded
+under a hidden temporary name and renamed into place after the manifest (`make`'s target is OUT.mp4); on any
+failure (a full disk at the manifest, Ctrl-C, SIGTERM) the temporary and the files this render wrote are deleted
+(metrics, manifest, frames), and an earlier OUT.mp4 stays as it was. Frames: at most `MAX_SIDE` px a side and
+`MAX_PIXELS` pixels.
 Cameras and rendering come from the trained-run library (`model`).
 
 Self-check (`OUT.manifest.json` `check`: ok | suspect, `checks`: `data.checks`), from what every frame's render
@@ -50,12 +54,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from nerfpipe.data.camera_path import MAX_PIXELS, MAX_SIDE
 from nerfpipe.data.checks import Check, verdict
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.progress import NO_PROGRESS, Progress
 from nerfpipe.data.rundir import MetricsLog, Stopwatch, config_to_json, sidecar, write_manifest
 from nerfpipe.data.transforms import Scene, load_image
-from nerfpipe.data.video import colorize, grey, to_uint8, video_writer, write_png
+from nerfpipe.data.video import check_output, colorize, grey, removed_on_failure, to_uint8, video_writer, write_png
 from nerfpipe.model import OPAQUE, PATHS, CameraPath, Renderable, camera_path, load_trained, render_view, resolve_device
 from nerfpipe.model.cameras import is_path_file
 from nerfpipe.radiance.compositing import over_background
@@ -313,11 +318,21 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         raise UserError(f"--fps: expected > 0, got {config.fps}")
     if config.max_seconds is not None and not config.max_seconds > 0:
         raise UserError(f"--max-seconds: expected > 0, got {config.max_seconds}")
+    for path, what in ((out, "video"), (sidecar(out, "metrics.csv"), "metrics log"), (sidecar(out, "manifest.json"),
+                       "manifest")):  # fmt: skip
+        check_output(path, what)
+    if config.frames_dir is not None:
+        check_output(config.frames_dir, "PNG frames", folder=True)
     device = resolve_device(config.device)
     trained = load_trained(config.run_dir, device)
     scene = trained.scene
     cams = camera_path(scene, config.path, frames=config.frames, downscale=config.downscale,
                        elevation=config.elevation, radius=config.radius)  # fmt: skip
+    w, h = max(i.w for i in cams.intrinsics) * len(outputs), max(i.h for i in cams.intrinsics)
+    if max(w, h) > MAX_SIDE or w * h > MAX_PIXELS:
+        raise UserError(f"downscale: {config.downscale:g} makes frames of {w}x{h} px ({'|'.join(outputs)}): more "
+                        f"than the {MAX_SIDE} px a side or {MAX_PIXELS} pixels nerfpipe renders; expected a larger "
+                        "downscale")  # fmt: skip
     budget: dict = {"max_seconds": config.max_seconds}
     if config.max_seconds is not None:
         cams, budget = _within_budget(trained, cams, config, device, started)
@@ -327,7 +342,6 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
 
     metrics = MetricsLog(sidecar(out, "metrics.csv"), ["step", "seconds", "rays_per_s", "psnr"])
     clock = Stopwatch()
-    frame_paths: list[Path] = []
     size = (0, 0)
     progress = progress or NO_PROGRESS
     task = progress.add_task(f"render {config.path}", total=len(cams.names))
@@ -339,7 +353,8 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
                          "reason": f"{len(cams.names)} of {asked_frames} frames: slower, to keep the length asked for "
                                    f"(at least {min(config.fps, MIN_FPS):g} fps)"}  # fmt: skip
     watch = _FrameWatch(shows_depth="depth" in outputs)
-    with video_writer(out, fps=fps) as video:
+    # the mp4 is renamed into place when this block ends, after the manifest; on failure the block's files go
+    with removed_on_failure(out.parent, config.frames_dir) as written, video_writer(out, fps=fps) as video:
         for k in range(len(cams.names)):
             t0 = time.perf_counter()
             view = render_view(trained, cams.intrinsics[k], cams.world_from_cams[k], device)
@@ -357,7 +372,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
             size = frame.shape[:2]
             video.write(frame)
             if config.frames_dir is not None:
-                frame_paths.append(write_png(Path(config.frames_dir) / f"frame_{k:05d}.png", frame))
+                written.append(write_png(Path(config.frames_dir) / f"frame_{k:05d}.png", frame))
             err = ""
             if cams.frame_indices is not None:
                 photo = _photo(scene, cams.frame_indices[k], background, view["rgb"].shape[:2])
@@ -366,16 +381,19 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
             metrics.append(step=k, seconds=round(clock(), 4), rays_per_s=round(rays / max(seconds, 1e-9)),
                            psnr=err)  # fmt: skip
             progress.advance(task)
-    metrics.save()
-    manifest = write_manifest(
-        out.parent, stage="render", started=started, name=sidecar(out, "manifest.json").name,
-        inputs=[Path(config.run_dir) / "checkpoint.pt", Path(config.run_dir) / "config.json"],
-        outputs=[out, metrics.path, *frame_paths],
-        used={**cams.used, "budget": budget, "outputs": list(outputs), "device": str(device), "frames": len(cams.names),
-              "fps": fps, "size_hw": list(size), "codec": "h264 yuv420p crf 18 (odd sizes padded by edge)",
-              **({"depth_range_user_units": [lo, hi], "depth_colormap": "turbo", "depth_background":
-                  f"black where accumulation < {OPAQUE}"} if "depth" in outputs else {})},
-        config=config_to_json(config), **verdict(watch.checks()),
-    )  # fmt: skip
-    return Outputs(video=out, frames=tuple(frame_paths), metrics=metrics.path, manifest=manifest,
+        frame_paths = tuple(written)
+        video.finish()
+        written.append(metrics.save())
+        written.append(write_manifest(
+            out.parent, stage="render", started=started, name=sidecar(out, "manifest.json").name,
+            inputs=[Path(config.run_dir) / "checkpoint.pt", Path(config.run_dir) / "config.json"],
+            outputs=[out, metrics.path, *frame_paths],
+            used={**cams.used, "budget": budget, "outputs": list(outputs), "device": str(device),
+                  "frames": len(cams.names), "fps": fps, "size_hw": list(size),
+                  "codec": "h264 yuv420p crf 18 (odd sizes padded by edge)",
+                  **({"depth_range_user_units": [lo, hi], "depth_colormap": "turbo", "depth_background":
+                      f"black where accumulation < {OPAQUE}"} if "depth" in outputs else {})},
+            config=config_to_json(config), **verdict(watch.checks()),
+        ))  # fmt: skip
+    return Outputs(video=out, frames=frame_paths, metrics=metrics.path, manifest=written[-1],
                    n_frames=len(cams.names), size=(int(size[0]), int(size[1])))  # fmt: skip

@@ -26,7 +26,7 @@ from typing import Any
 
 from nerfpipe.data.atomic import atomic_path, write_text
 from nerfpipe.data.errors import UserError
-from nerfpipe.data.rundir import config_to_json, output_folder, write_manifest
+from nerfpipe.data.rundir import config_to_json, output_folder, refuse_output_inside, write_manifest
 
 __all__ = ["Config", "Outputs", "RunSummary", "read_run", "run"]
 
@@ -173,6 +173,8 @@ def _plot(path: Path, runs: list[RunSummary], levels: tuple[float, ...]) -> None
 
 def run(config: Config, progress: Any | None = None) -> Outputs:
     """Hold out_dir (one writer; an earlier output needs --overwrite) and run the stage (`_run`)."""
+    for run_dir in config.runs:
+        refuse_output_inside(config.out_dir, run_dir, "report output")
     with output_folder(config.out_dir, overwrite=config.overwrite):
         return _run(config, progress)
 

@@ -35,6 +35,7 @@ from nerfpipe.stages import scene as scene_stage
 from nerfpipe.stages import train
 from nerfpipe.stages.view import server as viewer_server
 from nerfpipe.stages.view.cameras import browser_intrinsics, viser_pose, world_from_cam_gl
+from nerfpipe.stages.view.gate import Gate
 from nerfpipe.stages.view.recorder import PathRecorder
 from nerfpipe.stages.view.run_view import frame_image, psnr_summary, render_camera
 from nerfpipe.stages.view.scene_view import box_edges, camera_rays
@@ -143,9 +144,15 @@ def test_scene_viewer_starts_draws_and_stops(tmp_path, capsys):
 
 
 def test_open_host_warns(capsys):
-    server = viewer_server.start("0.0.0.0", 0)
+    gate = Gate(bind_host="0.0.0.0", port=0)
+    server = viewer_server.start("0.0.0.0", 0, gate)
     server.stop()
-    assert "warning: serving on 0.0.0.0" in capsys.readouterr().err
+    assert gate.port == server.get_port() > 0
+    assert f"warning: serving on 0.0.0.0: anyone who can reach this machine on port {gate.port}" in (
+        capsys.readouterr().err
+    )
+    assert viewer_server.url("0.0.0.0", 7007, gate).endswith(f":7007/?token={gate.token}")
+    assert viewer_server.url("::1", 7007, gate).startswith("http://[::1]:7007/?token=")
 
 
 def test_bad_targets_are_one_line_errors(tmp_path):
@@ -155,18 +162,23 @@ def test_bad_targets_are_one_line_errors(tmp_path):
     with pytest.raises(UserError, match="neither a scene"):
         view.serve(view.Config(target=tmp_path / "empty"))
     with pytest.raises(UserError, match="--port"):
-        viewer_server.start("127.0.0.1", 70000)
+        viewer_server.start("127.0.0.1", 70000, Gate(bind_host="127.0.0.1", port=70000))
+    (tmp_path / "scene_file").write_text("")
+    sphere_scene(tmp_path / "scene")
+    with pytest.raises(UserError, match="paths_dir is not a folder"):
+        view.serve(view.Config(target=tmp_path / "scene", paths_dir=tmp_path / "scene_file"))
 
 
 def test_recorded_path_renders(trained_run, tmp_path):
     trained = load_trained(trained_run, "cpu")
-    rec = PathRecorder()
+    rec = PathRecorder(paths_dir=tmp_path)
     for i in (0, 1, 2):
         wxyz, pos = viser_pose(trained.scene.frames[i].world_from_cam)
         rec.add_browser_camera(wxyz, pos, 0.7, 4 / 3)
     with pytest.raises(UserError, match="seconds"):
-        rec.save(tmp_path / "bad.json", seconds=0, fps=4, height=12)
-    path = rec.save(tmp_path / "rec.json", seconds=1.0, fps=4.0, height=12)
+        rec.save("bad.json", seconds=0, fps=4, height=12)
+    path = rec.save("rec.json", seconds=1.0, fps=4.0, height=12)
+    assert path == tmp_path / "rec.json"
     res = render_stage.run(render_stage.Config(run_dir=trained_run, out=tmp_path / "rec.mp4", path=str(path),
                                                device="cpu"))  # fmt: skip
     assert res.n_frames == 5 and res.size == (12, 16)
@@ -357,7 +369,9 @@ def test_signal_stops_the_cli_viewer_in_one_line(tmp_path, signum, code):
     try:
         first = proc.stdout.readline()
         assert "(Ctrl-C stops)" in first, (first, proc.stderr.read() if proc.poll() is not None else "")
-        port = int(first.split("http://127.0.0.1:")[1].split()[0])
+        url = first.split(" at ")[1].split()[0]
+        assert url.startswith("http://127.0.0.1:") and "/?token=" in url, first
+        port = int(url.split(":")[2].split("/")[0])
         t0 = time.monotonic()
         proc.send_signal(signum)
         out, err = proc.communicate(timeout=30)
@@ -369,6 +383,7 @@ def test_signal_stops_the_cli_viewer_in_one_line(tmp_path, signum, code):
     assert proc.returncode == code, err
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"error: interrupted ({signal.Signals(signum).name})"), err
+    assert "token" not in err  # the token is printed once, on stdout
     assert out == "", out  # viser's banner and "Server stopped" stay off stdout
     assert seconds < 10, seconds
     with pytest.raises(OSError):

@@ -87,7 +87,7 @@ def test_browser_run_modes_and_recorder(tmp_path, monkeypatch):
             browser.type_into(labelled("Seconds"), "1")
             browser.type_into(labelled("FPS"), "4")
             browser.click(button("Save path"))
-            wait_until(lambda: (run_dir / "camera_path.json").is_file(), "the saved camera path")
+            wait_until(lambda: (run_dir / "camera_paths" / "camera_path.json").is_file(), "the saved camera path")
     finally:
         viewer.stop()
     for mode, shot in shots.items():
@@ -101,8 +101,9 @@ def test_browser_run_modes_and_recorder(tmp_path, monkeypatch):
 
     scene = viewer.scene_view.scene
     monkeypatch.setattr(render_stage, "load_trained", lambda run_dir, device: SphereRun(scene=scene))
+    saved = run_dir / "camera_paths" / "camera_path.json"
     res = render_stage.run(render_stage.Config(run_dir=run_dir, out=tmp_path / "path.mp4", downscale=10.0,
-                                               path=str(run_dir / "camera_path.json"), device="cpu"))  # fmt: skip
+                                               path=str(saved), device="cpu"))  # fmt: skip
     assert res.n_frames == 5 and res.size[0] == 48  # 1 s at 4 fps (typed in), 480 px high / 10
 
 

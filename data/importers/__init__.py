@@ -5,6 +5,11 @@ Every importer returns poses in the **source** world frame as camera-to-world 4x
 (`radiance.camera.opengl_from_opencv`), LLFF's [down, right, back] columns where they are read. Intrinsics are
 `radiance.camera.Intrinsics` (pixel centres at +0.5, OpenCV distortion kept, not resampled). `stages.convert`
 then normalises, copies the images and writes `transforms.json`.
+
+Every path a source names is resolved inside its folder (`data.confine.inside`: no absolute path, no `..` or
+symlink leading out), every image is read through `data.images` (size from the header first, no truncated
+file), and `load_source` checks every frame's camera (`data.transforms.rotation_problem`, `camera_problem`:
+a proper rotation, a sane focal length) whatever the importer.
 """
 
 from __future__ import annotations
@@ -17,9 +22,10 @@ from typing import Any
 import numpy as np
 
 from nerfpipe.data.errors import UserError
+from nerfpipe.data.images import read_image
 from nerfpipe.radiance.camera import Intrinsics
 
-__all__ = ["KINDS", "Source", "SourceFrame", "detect_kind", "load_source", "flat_name", "image_shape"]
+__all__ = ["KINDS", "Source", "SourceFrame", "detect_kind", "load_source", "flat_name", "image_shape", "check_cameras"]
 
 KINDS = ("colmap", "blender", "llff", "npz", "transforms")
 
@@ -93,13 +99,21 @@ def flat_name(rel: str, suffix: str | None = None) -> str:
 
 
 def image_shape(path: Path) -> tuple[int, int, int]:
-    """(h, w, channels) of an image file."""
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise UserError(f"{path}: cannot decode image")
+    """(h, w, channels) of an image file (`data.images.read_image`'s checks)."""
+    img = read_image(path)
     return img.shape[0], img.shape[1], 1 if img.ndim == 2 else img.shape[2]
+
+
+def check_cameras(source: Source, path: Path) -> Source:
+    """`source` unchanged when every frame has a proper rotation and a sane camera; else UserError naming
+    `path` and the frame."""
+    from nerfpipe.data.transforms import camera_problem, rotation_problem
+
+    for i, f in enumerate(source.frames):
+        problem = rotation_problem(f.world_from_cam) or camera_problem(f.intrinsics)
+        if problem is not None:
+            raise UserError(f"{path}: frame {i} ({f.name}): {problem}")
+    return source
 
 
 def detect_kind(path: Path) -> str:
@@ -153,4 +167,4 @@ def load_source(path: Path, kind: str, *, images: Path | None = None) -> Source:
     }
     if kind not in readers:
         raise UserError(f"unknown source kind {kind!r} (expected auto or one of {', '.join(KINDS)})")
-    return readers[kind]()
+    return check_cameras(readers[kind](), path)

@@ -10,22 +10,26 @@ a box 10x smaller). A fixed box would leave a small object a few voxels wide.
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
 import numpy as np
 
+from nerfpipe.data.confine import inside, read_json
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.importers import Source, SourceFrame, flat_name, image_shape
+from nerfpipe.data.transforms import rotation_problem
 from nerfpipe.radiance.camera import Intrinsics
 
 __all__ = ["load"]
 
 
-def _resolve(root: Path, rel: str) -> Path:
+def _resolve(root: Path, rel: str, what: str, file: Path) -> tuple[str, Path]:
+    """The image `rel` names, `.png` added when the bare path does not exist: (that relative path, the file
+    resolved inside `root`)."""
     p = root / rel
-    return p if p.suffix or p.is_file() else p.with_name(p.name + ".png")
+    rel = rel if p.suffix or p.is_file() else rel + ".png"
+    return rel, inside(root, rel, what, file=file)
 
 
 def _matrix(value, where: str) -> np.ndarray:
@@ -37,6 +41,9 @@ def _matrix(value, where: str) -> np.ndarray:
         raise UserError(f"{where}: expected a 4x4 matrix, got shape {m.shape}")
     if not np.isfinite(m).all():
         raise UserError(f"{where}: contains NaN or infinity")
+    problem = rotation_problem(m)
+    if problem is not None:
+        raise UserError(f"{where}: {problem}")
     return m
 
 
@@ -49,10 +56,7 @@ def load(source: Path) -> Source:
     frames, splits = [], {}
     first_shape = None
     for split, path in files.items():
-        try:
-            doc = json.loads(path.read_text(encoding="utf-8"))
-        except (UnicodeDecodeError, json.JSONDecodeError) as e:
-            raise UserError(f"{path}: not valid JSON ({e})") from None
+        doc = read_json(path)
         ang = doc.get("camera_angle_x") if isinstance(doc, dict) else None
         if isinstance(ang, bool) or not isinstance(ang, int | float) or not (0 < ang < math.pi):
             raise UserError(f"{path}: camera_angle_x: missing or not an angle in (0, pi) radians, got {ang!r}")
@@ -67,10 +71,10 @@ def load(source: Path) -> Source:
             if "transform_matrix" not in fr:
                 raise UserError(f"{path}: frames[{i}].transform_matrix: missing")
             m = _matrix(fr["transform_matrix"], f"{path}: frames[{i}].transform_matrix")
-            img = _resolve(root, fp)
+            rel, img = _resolve(root, fp, f"frames[{i}].file_path", path)
             if first_shape is None and img.is_file():
                 first_shape = image_shape(img)
-            frames.append((flat_name(fp, img.suffix), m, float(ang), img))
+            frames.append((flat_name(fp, Path(rel).suffix), m, float(ang), img))
         splits[split] = tuple(range(start, len(frames)))
     if first_shape is None:
         raise UserError(f"{root}: none of the images listed in {', '.join(f.name for f in files.values())} exist")

@@ -9,6 +9,8 @@ Cameras: COLMAP `cam_from_world` is world -> camera in OpenCV axes; we invert it
 Supported models: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV (distortion kept as k1 k2 p1 p2).
 Masks: `masks/<image name>.png` beside the image folder (COLMAP's mask layout, which `poses --masks` writes),
 when present, become the frames' masks (white = keep, `data.masks`).
+An image name is a path relative to the image folder (COLMAP allows sub-folders): it must stay inside it, and
+its mask inside the mask folder (`data.confine.inside`; no `..`, absolute path or symlink leading out).
 `read_world_from_cam`: only the poses of one model folder, by image name (pose-accuracy checks).
 """
 
@@ -18,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from nerfpipe.data.confine import inside
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.importers import Source, SourceFrame, flat_name
 from nerfpipe.radiance.camera import Intrinsics
@@ -142,13 +145,14 @@ def load(source: Path, *, images: Path | None = None) -> Source:
     row = {pid: k for k, pid in enumerate(ids)}
     frames = []
     for im in posed:
+        what = f"image {im.image_id} name"
         frames.append(
             SourceFrame(
                 name=flat_name(im.name),
                 world_from_cam=_world_from_cam_gl(im),
                 intrinsics=cams[im.camera_id],
-                image=image_dir / im.name,
-                mask=mask_dir / f"{im.name}.png" if mask_dir is not None else None,
+                image=inside(image_dir, im.name, what, file=model),
+                mask=inside(mask_dir, f"{im.name}.png", f"mask of {what}", file=model) if mask_dir else None,
                 point_ids=np.unique(
                     np.array(
                         [row[p.point3D_id] for p in im.points2D if p.has_point3D() and p.point3D_id in row],

@@ -4,7 +4,8 @@ Each row is a 3x5 matrix (row-major) followed by the near/far z-depth bounds. It
 camera's axes in LLFF's [down, right, back] order, the fourth the camera centre, the fifth (height, width,
 focal). As LLFF's own loader does, the OpenGL camera-to-world is [right, up, back, centre] =
 [col1, -col0, col2, col3]. Images are the folder's JPG/jpg/png files in sorted order (LLFF's rule); when they
-are smaller than (height, width) the focal length is scaled like LLFF's `factor` handling.
+are smaller than (height, width) the focal length is scaled like LLFF's `factor` handling. An image may not be
+a symlink leading out of its folder (`data.confine.inside`).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from nerfpipe.data.confine import inside
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.importers import Source, SourceFrame, image_shape
 from nerfpipe.radiance.camera import Intrinsics
@@ -65,10 +67,11 @@ def load(source: Path, *, images: Path | None = None) -> Source:
         raise UserError(f"{pb_path}: contains NaN or infinity")
     image_dir = _image_dir(root, images)
     files = sorted(p for p in image_dir.iterdir() if p.is_file() and p.suffix.lower() in _EXTS)
+    resolved = [inside(image_dir, p.name, "image", file=image_dir) for p in files]  # a symlink may not lead out
     if len(files) != len(pb):
         raise UserError(f"{image_dir}: {len(files)} images but {pb_path.name} has {len(pb)} poses")
     h0, w0, f0 = pb[0, :15].reshape(3, 5)[:, 4]
-    h, w, channels = image_shape(files[0])
+    h, w, channels = image_shape(resolved[0])
     if abs(w / w0 - h / h0) > 0.02 * w / w0:
         raise UserError(f"{files[0]}: image is {w}x{h} but {pb_path.name} says {w0:g}x{h0:g} (aspect differs)")
     factor = w / w0
@@ -77,7 +80,7 @@ def load(source: Path, *, images: Path | None = None) -> Source:
     for i, p in enumerate(files):
         f = float(pb[i, :15].reshape(3, 5)[2, 4]) * factor
         intr = Intrinsics(w=w, h=h, fx=f, fy=f, cx=w / 2, cy=h / 2)
-        frames.append(SourceFrame(name=p.name, world_from_cam=c2w[i], intrinsics=intr, image=p))
+        frames.append(SourceFrame(name=p.name, world_from_cam=c2w[i], intrinsics=intr, image=resolved[i]))
     return Source(
         kind="llff", frames=tuple(frames), has_alpha=channels == 4, up="cameras", scene_type="forward",
         depth_bounds=pb[:, 15:17].copy(), inputs=(pb_path,),

@@ -198,12 +198,12 @@ def _marching_cubes(vol: np.ndarray, level: float, grid: Grid) -> tuple[np.ndarr
     return verts, faces.astype(np.int64)
 
 
-def _export(path: Path, verts: np.ndarray, faces: np.ndarray, colors: np.ndarray | None) -> None:
+def _export(path: Path, tmp: Path, verts: np.ndarray, faces: np.ndarray, colors: np.ndarray | None) -> None:
+    """Write the mesh to `tmp` in the format `path`'s extension names."""
     import trimesh
 
     mesh = trimesh.Trimesh(vertices=verts, faces=faces, vertex_colors=colors, process=False)
-    with atomic_path(path) as tmp:
-        mesh.export(tmp, file_type=path.suffix.lower().lstrip("."))
+    mesh.export(tmp, file_type=path.suffix.lower().lstrip("."))
 
 
 def _level_checks(config: Config, level: float, stats: dict, grid: Grid, how: str) -> None:
@@ -291,25 +291,28 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
         left_out["cleanup"] = "--no-cleanup"
     t = lap("colors", t)
 
-    _export(out, verts, faces, colors)
-    lap("export", t)
-    stats = mesh_stats(verts, faces)
-    timing["total"] = round(time.perf_counter() - t_start, 3)
-    seconds = timing["total"]
-    report = write_manifest(
-        out.parent, name=f"{out.stem}.report.json", stage="mesh", started=started, inputs=inputs, outputs=[out],
-        used={"config": config_to_json(config)}, left_out=left_out, version=VERSION,
-        threshold={"value": level, **threshold_info},
-        grid={"crop": how, "frame": "scene" if np.allclose(grid.scene_from_grid, np.eye(4)) else config.frame,
-              "lo": grid.lo.tolist(), "hi": grid.hi.tolist(), "voxel": grid.h, "samples_per_axis": list(grid.shape),
-              "coarse_stride": grid.stride, "occupancy_skipping": occupancy_binary(trained) is not None,
-              **{k: v for k, v in sample_stats.items()}},
-        steps=steps, final={"vertices": len(verts), "faces": len(faces), **stats},
-        frame=config.frame, out_from_scene=out_from_scene.tolist(),
-        winding_reversed=bool(np.linalg.det(out_from_grid[:3, :3]) < 0),
-        timing_seconds=timing, peak_rss_mb=round(_peak_rss_mb(), 1), device=str(device),
-        **verdict(mesh_checks(v_scene, f_scene, as_np(trained.aabb))),
-    )  # fmt: skip
+    # the mesh takes its name only after its report is written: a failure in between leaves no OUT that `make`
+    # would take for done (the report alone is not a make target)
+    with atomic_path(out) as tmp:
+        _export(out, tmp, verts, faces, colors)
+        lap("export", t)
+        stats = mesh_stats(verts, faces)
+        timing["total"] = round(time.perf_counter() - t_start, 3)
+        seconds = timing["total"]
+        report = write_manifest(
+            out.parent, name=f"{out.stem}.report.json", stage="mesh", started=started, inputs=inputs, outputs=[out],
+            used={"config": config_to_json(config)}, left_out=left_out, version=VERSION,
+            threshold={"value": level, **threshold_info},
+            grid={"crop": how, "frame": "scene" if np.allclose(grid.scene_from_grid, np.eye(4)) else config.frame,
+                  "lo": grid.lo.tolist(), "hi": grid.hi.tolist(), "voxel": grid.h, "samples_per_axis": list(grid.shape),
+                  "coarse_stride": grid.stride, "occupancy_skipping": occupancy_binary(trained) is not None,
+                  **{k: v for k, v in sample_stats.items()}},
+            steps=steps, final={"vertices": len(verts), "faces": len(faces), **stats},
+            frame=config.frame, out_from_scene=out_from_scene.tolist(),
+            winding_reversed=bool(np.linalg.det(out_from_grid[:3, :3]) < 0),
+            timing_seconds=timing, peak_rss_mb=round(_peak_rss_mb(), 1), device=str(device),
+            **verdict(mesh_checks(v_scene, f_scene, as_np(trained.aabb))),
+        )  # fmt: skip
     return Outputs(mesh=out, report=report, vertices=len(verts), faces=len(faces), threshold=level,
                    watertight=stats["watertight"], seconds=seconds)  # fmt: skip
 

@@ -63,10 +63,12 @@ from rich.console import Console
 from rich.progress import Progress
 
 from nerfpipe.data.errors import UserError
+from nerfpipe.data.lock import folder_lock
 from nerfpipe.data.rundir import MetricsLog
 from nerfpipe.stages.poses import colmap as sfm
 from nerfpipe.stages.poses import inputs, output, quality
 from nerfpipe.stages.poses.attempts import ladder, prior_focals, run_attempts
+from nerfpipe.stages.poses.colmap import interrupted_by_sigterm
 from nerfpipe.stages.poses.config import CAMERA_MODELS, CameraModel, Config, Outputs, check
 from nerfpipe.stages.poses.inputs import camera_groups as _camera_groups  # tests/test_poses.py reaches it by this name
 from nerfpipe.stages.poses.report import (
@@ -88,14 +90,20 @@ __all__ = [
 
 
 def run(config: Config, progress: Progress | None = None) -> Outputs:
-    """Photos or video -> SCENE_DIR/colmap (see the module docstring). UserError on bad input or a failed model."""
+    """Photos or video -> SCENE_DIR/colmap (see the module docstring). UserError on bad input or a failed model.
+    Holds SCENE_DIR's lock (`data.lock`: one writer; it sweeps a killed run's `.colmap.tmp-*`); SIGTERM stops it
+    with one line (`interrupted_by_sigterm`)."""
     kind = check(config)
+    with folder_lock(config.scene_dir), interrupted_by_sigterm():
+        return _run(config, kind, progress)
+
+
+def _run(config: Config, kind: str, progress: Progress | None) -> Outputs:
     pycolmap.logging.minloglevel = 1  # COLMAP's INFO lines would drown the summary; warnings and errors stay
     console = Console(stderr=True)
     scene_dir = Path(config.scene_dir)
     colmap_dir = scene_dir / "colmap"
     report_path = scene_dir / "poses_report.json"
-    scene_dir.mkdir(parents=True, exist_ok=True)
     previous = output.set_aside(colmap_dir, report_path)
     build = Path(tempfile.mkdtemp(prefix=".colmap.tmp-", dir=scene_dir))
     images = build / "images"
@@ -144,7 +152,8 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         if isinstance(e, Exception):
             output.write_failed_report(config, state, report_path, e)
         if isinstance(e, UserError) and previous is not None:
-            raise UserError(f"{e} (the earlier model is kept in {previous})") from None
+            e.args = (f"{e} (the earlier model is kept in {previous})",)  # the same error: Interrupted keeps 143
+            raise e from None
         raise
     if previous is not None:
         shutil.rmtree(previous, ignore_errors=True)

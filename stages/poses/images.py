@@ -19,6 +19,8 @@ import cv2
 import numpy as np
 from PIL import Image, ImageOps
 
+from nerfpipe.data.images import declared_size
+
 __all__ = [
     "IMAGE_SUFFIXES",
     "Screen",
@@ -55,6 +57,7 @@ def write_upright(src: Path, out_dir: Path, taken: set[str]) -> tuple[str, np.nd
     rotated JPEGs are re-encoded at quality 95 with their EXIF (orientation reset); other formats become PNG.
     Raises OSError / PIL errors for undecodable files (the caller skips them).
     """
+    declared_size(src.read_bytes(), src)  # the header's size (MAX_PIXELS) and truncation, before decoding
     with warnings.catch_warnings():
         warnings.simplefilter("error", Image.DecompressionBombWarning)
         with Image.open(src) as im:

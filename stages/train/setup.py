@@ -5,12 +5,15 @@ write the resolved config.json.
 config.json: the resolved Config (`Defaults.config`: no None left but final_eval_views, which the end of the run
 writes as the number of views it rendered in full), the fast field's options under `fast`, pose refinement's
 under `refine` (null without it), `scene_dir` resolved (absolute) and `scene_from_run` (the scene folder relative
-to the run folder, tried first by `model.trained.load_trained`: a run moved with its scene still finds it).
+to the run folder, tried first by `model.trained.load_trained`: a run moved with its scene still finds it),
+`scene_sha256` (its transforms.json's) and, once resumed, `resumed` (`stages.train.resume`: `--resume` continues
+the same run, with the same scene and the same settings but for budget ones).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 
 import numpy as np
@@ -29,10 +32,13 @@ from nerfpipe.model.field_model import FieldModel, ModelSettings, build_model, m
 from nerfpipe.stages.train.config import Config, RefineOptions
 from nerfpipe.stages.train.defaults import Defaults, resolve_defaults, resolve_downscale
 from nerfpipe.stages.train.loop import Loop, make_optimizer
+from nerfpipe.stages.train.resume import resume_config, scene_sha256
 from nerfpipe.stages.train.views import Views, load_views
 
 __all__ = ["setup", "write_run_config", "METRICS"]
 
+RECORD = ("scene_sha256", "resumed")
+"""config.json's keys beside the Config: the scene's identity and one entry per resume (`stages.train.resume`)."""
 METRICS = ["step", "seconds", "loss", "train_psnr", "test_psnr", "lr", "samples_per_ray", "skip_fraction"]
 
 
@@ -42,7 +48,12 @@ def setup(config: Config, progress: Progress) -> tuple[Loop, Scene, Path, dict]:
     scene_path, scene = _read_scene(Path(config.scene_dir))
     run_dir = Path(config.run_dir)
     ckpt_path = run_dir / "checkpoint.pt"
-    state = _read_state(config, ckpt_path, device)
+    state = read_checkpoint(ckpt_path, device) if config.resume else None
+    record = {"scene_sha256": scene_sha256(scene_path)}
+    if state is not None:
+        config, resumed = resume_config(config, run_dir, scene_path)  # the same run, or one line naming why not
+        record["resumed"] = [*_recorded(run_dir).get("resumed", []), {"step": int(state["step"]), **resumed}]
+    _check_field(config, ckpt_path, state)
     torch.manual_seed(config.seed)
     gen = torch.Generator().manual_seed(config.seed)
     train_idx, test_idx = scene.split("train"), scene.split("test") or scene.split("val")
@@ -61,7 +72,7 @@ def setup(config: Config, progress: Progress) -> tuple[Loop, Scene, Path, dict]:
         metrics.load()
         metrics.rows = [r for r in metrics.rows if int(r["step"]) <= step]
     run_dir.mkdir(parents=True, exist_ok=True)
-    write_run_config(run_dir, resolved, scene_path)
+    write_run_config(run_dir, resolved, scene_path, record)
     loop = Loop(config=resolved, model=model, opt=opt, train=train, test=test, eval_px=_eval_pixels(resolved, test),
                 gen=gen, device=device, metrics=metrics, ckpt_path=ckpt_path, progress=progress, step=step,
                 seconds_before=seconds_before, lr_factor=lr_factor, cameras=cameras,
@@ -69,12 +80,24 @@ def setup(config: Config, progress: Progress) -> tuple[Loop, Scene, Path, dict]:
     return loop, scene, scene_path, _record(found, model)
 
 
-def write_run_config(run_dir: Path, resolved: Config, scene_path: Path) -> None:
-    """config.json (module doc) for the resolved Config."""
+def write_run_config(run_dir: Path, resolved: Config, scene_path: Path, record: dict | None = None) -> None:
+    """config.json (module doc) for the resolved Config, with the run's `record` (scene_sha256, resumed); None:
+    the record of the config.json already there (the end of the run rewrites what its start wrote)."""
     scene_abs = scene_path.resolve()
+    if record is None:
+        record = {k: v for k, v in _recorded(run_dir).items() if k in RECORD}
     doc = {**config_to_json(dataclasses.replace(resolved, scene_dir=scene_abs)),
-           "scene_from_run": scene_from_run(run_dir, scene_abs)}  # fmt: skip
+           "scene_from_run": scene_from_run(run_dir, scene_abs), **record}  # fmt: skip
     write_json(run_dir / "config.json", doc)
+
+
+def _recorded(run_dir: Path) -> dict:
+    """The run's config.json as it is (empty when there is none or it is unreadable: the caller checked it)."""
+    try:
+        doc = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return doc if isinstance(doc, dict) else {}
 
 
 def _read_scene(scene_path: Path) -> tuple[Path, Scene]:
@@ -83,13 +106,11 @@ def _read_scene(scene_path: Path) -> tuple[Path, Scene]:
     return scene_path, read_scene(scene_path)
 
 
-def _read_state(config: Config, ckpt_path: Path, device: torch.device) -> dict | None:
-    """The checkpoint to resume from (None without --resume); UserError when it holds another field."""
-    state = read_checkpoint(ckpt_path, device) if config.resume else None
+def _check_field(config: Config, ckpt_path: Path, state: dict | None) -> None:
+    """UserError when the checkpoint to resume from holds another field than the config asks for."""
     if state is not None and state["field_config"]["kind"] != config.field:
         raise UserError(f"{ckpt_path}: checkpoint holds a {state['field_config']['kind']} field, "
                         f"config asks for {config.field}")  # fmt: skip
-    return state
 
 
 def _clear_plain_background(found: Defaults, train: Views, test: Views | None) -> None:

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from nerfpipe.data.confine import inside
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.masks import load_masked_image
 from nerfpipe.data.sparse_depth import read_sparse_depth
@@ -194,7 +195,7 @@ class DepthRays:
 def sparse_depth_rays(scene: Scene, rel: str, train_idx: tuple[int, ...]) -> DepthRays | None:
     """The rays through the sparse points (file `rel` in the scene folder) each training photo observed, `view`
     counting the training photos from 0; None when they observed none."""
-    sparse = read_sparse_depth(scene.root / rel)
+    sparse = read_sparse_depth(inside(scene.root, rel, "sparse_depth_path"))  # confined to the scene folder
     os_, ds, depths, views = [], [], [], []
     for k, i in enumerate(train_idx):
         o, d, dist = sparse.rays(scene.frames[i].file_path, scene.frames[i].world_from_cam[:3, 3])

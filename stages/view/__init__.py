@@ -13,10 +13,13 @@ X-ray run.
 - An X-ray run (`xray-train`'s output): DRR / MIP at any gantry angle and a movable slice plane
   (`stages.view.xray_view`).
 
-The server listens on 127.0.0.1 (this machine only) unless `--host` says otherwise, which prints a warning;
-Ctrl-C (or SIGTERM) stops it: one line, exit code 130 (143). `serve(config)` starts it and returns a `Viewer`
-(tests and scripts stop it with `.stop()`);
-`run(config)` serves until Ctrl-C. Camera paths are saved under `--paths-dir` (default: the folder viewed).
+The server listens on 127.0.0.1 (this machine only) unless `--host` says otherwise, which prints a warning.
+It answers only its own page (`stages.view.gate`): a request must carry the token of the URL it prints
+(`http://127.0.0.1:7007/?token=...`, a new one each time), name this machine in its Host header and, from a
+browser, come from the viewer's own page (Origin); anything else gets 403. Ctrl-C (or SIGTERM) stops it: one
+line, exit code 130 (143). `serve(config)` starts it and returns a `Viewer` (tests and scripts stop it with
+`.stop()`); `run(config)` serves until Ctrl-C. The recorder saves new camera paths only, under `paths_dir`
+(default: the folder viewed's `camera_paths/`), never over a file.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from nerfpipe.data.errors import Interrupted, UserError
 from nerfpipe.data.transforms import read_scene
 from nerfpipe.model import load_trained, resolve_device
 from nerfpipe.stages.view import server as viewer_server
+from nerfpipe.stages.view.gate import Gate
 from nerfpipe.stages.view.recorder import PathRecorder, add_recorder_gui
 from nerfpipe.stages.view.run_view import MODES, LiveRender, psnr_summary
 from nerfpipe.stages.view.scene_view import SceneView
@@ -54,7 +58,8 @@ class Config:
     refine: int = 384
     """Long side, in pixels, of the frame rendered once the camera stops."""
     paths_dir: Path | None = None
-    """Where the recorder saves camera paths (default: the folder viewed)."""
+    """The only folder the recorder writes to: new `NAME.json` camera paths, never over an existing file (default:
+    `camera_paths/` in the folder viewed)."""
     device: str = "auto"
     """torch device: auto (cuda if available, else cpu), cpu, cuda, cuda:1, ..."""
 
@@ -62,7 +67,7 @@ class Config:
 @dataclass(frozen=True, kw_only=True)
 class Outputs:
     url: str
-    """Where the viewer was served."""
+    """Where the viewer was served (without its token)."""
     kind: str
     """scene | run | xray."""
 
@@ -73,13 +78,20 @@ class Viewer:
 
     server: object
     url: str
+    """Where to open it: http://HOST:PORT/?token=..."""
     kind: str
     port: int
+    gate: Gate
     live: LiveRender | None = None
     scene_view: SceneView | None = None
     recorder: PathRecorder | None = None
     xray_view: XrayView | None = None
     stopped: threading.Event = field(default_factory=threading.Event)
+
+    @property
+    def address(self) -> str:
+        """The URL without its token (for messages printed once it has stopped)."""
+        return self.url.partition("?")[0]
 
     def stop(self) -> None:
         if self.live is not None:
@@ -120,18 +132,20 @@ def serve(config: Config) -> Viewer:
         raise UserError(f"--preview/--refine: expected >= 8 pixels, got {config.preview}, {config.refine}")
     kind = kind_of(config.target)
     target = Path(config.target)
-    paths_dir = (
-        Path(config.paths_dir) if config.paths_dir is not None else (target if target.is_dir() else target.parent)
-    )
+    folder = target if target.is_dir() else target.parent
+    paths_dir = Path(config.paths_dir) if config.paths_dir is not None else folder / "camera_paths"
+    if paths_dir.exists() and not paths_dir.is_dir():
+        raise UserError(f"{paths_dir}: paths_dir is not a folder (the recorder saves camera paths in it)")
     device = resolve_device(config.device)
     loaded = load_trained(target, device) if kind == "run" else None
     if kind == "xray":
         from nerfpipe.model.xray import load_xray_run
 
         xray = load_xray_run(target, device)
-    server = viewer_server.start(config.host, config.port)
+    gate = Gate(bind_host=config.host, port=config.port)
+    server = viewer_server.start(config.host, config.port, gate)
     port = server.get_port()
-    viewer = Viewer(server=server, url=f"http://{config.host}:{port}", kind=kind, port=port)
+    viewer = Viewer(server=server, url=viewer_server.url(config.host, port, gate), kind=kind, port=port, gate=gate)
     try:
         if kind == "xray":
             viewer.xray_view = XrayView(server, xray)
@@ -179,5 +193,5 @@ def run(config: Config) -> Outputs:
         viewer.stop()
     if signum is not None:
         name = signal.Signals(signum).name
-        raise Interrupted(f"interrupted ({name}): the viewer at {viewer.url} stopped", signum)
-    return Outputs(url=viewer.url, kind=viewer.kind)
+        raise Interrupted(f"interrupted ({name}): the viewer at {viewer.address} stopped", signum)
+    return Outputs(url=viewer.address, kind=viewer.kind)

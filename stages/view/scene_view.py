@@ -105,8 +105,7 @@ class SceneView:
             self._draw_camera(i, images)
 
     def _draw_points(self) -> None:
-        rel = self.scene.extra.get("sparse_points_path")
-        path = self.scene.root / rel if isinstance(rel, str) else None
+        path = self.scene.named_file("sparse_points_path")  # confined to the scene folder (data.confine)
         if path is None or not path.is_file():
             return
         import trimesh

@@ -3,9 +3,11 @@
     nerfpipe xray-train SCENE RUN_DIR [--field grid|tensorf] [--max-seconds 600] [--tv 0.0] [--threads N] [--resume]
 
 SCENE: a projection scene folder (`xray-simulate`), a NAF / SAX-NeRF `*.pickle`, or an R2-Gaussian folder
-(data.projections.read_any). The field is density-only (attenuation mu per length unit, no colour, no view
-direction) over the scene grid's box: "grid" (radiance.fields.voxel.VoxelField, trilinear, the CPU default) or
-"tensorf" (TensoRF VM, has_color=False). Rendering: Beer-Lambert through the compositing core
+(data.projections.read_any). A pickle is read by the restricted unpickler (data.safe_pickle: plain data and
+numpy arrays; any other global is refused and nothing from the file runs) unless `--trust-pickle`. The field
+is density-only (attenuation mu per length unit, no colour, no view direction) over the scene grid's box:
+"grid" (radiance.fields.voxel.VoxelField, trilinear, the CPU default) or "tensorf" (TensoRF VM,
+has_color=False). Rendering: Beer-Lambert through the compositing core
 (radiance.render.render_attenuation); loss on line integrals -log(I / I0) (stages.xray_train.loop).
 
 Error against run time, as for photos (metrics.csv, psnr_vs_time.png): train projection PSNR per logged step;
@@ -41,6 +43,7 @@ from nerfpipe.data.errors import UserError
 from nerfpipe.data.progress import NO_PROGRESS, Progress
 from nerfpipe.data.projections import ProjectionScene, read_any
 from nerfpipe.data.rundir import MetricsLog, config_to_json, output_folder, scene_from_run, write_manifest
+from nerfpipe.data.safe_pickle import PickleRefused
 from nerfpipe.data.stop import stop_on_signals
 from nerfpipe.data.volumes import write_npy
 from nerfpipe.model.device import cpu_threads, resolve_device
@@ -113,6 +116,10 @@ class Config:
     resume: bool = False
     """Continue from run_dir/checkpoint.pt (an interrupted run, or a finished one with a larger budget): the step
     count, training seconds, optimiser state and random state continue."""
+    trust_pickle: bool = False
+    """Unpickle a NAF *.pickle scene with the plain unpickler, which runs any code the file names: only for a
+    file you trust. Off: the restricted reader (data.safe_pickle), which loads plain data and numpy arrays and
+    refuses anything else. Later stages reading this run's scene never trust it."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -206,7 +213,10 @@ def _run(config: Config, progress: Progress) -> Outputs:
 def _setup(config: Config, progress: Progress) -> XraySteps:
     """Read the scene, build the field (or read it back with --resume), write config.json; the run's step."""
     device = resolve_device(config.device)
-    scene = read_any(config.scene)
+    try:
+        scene = read_any(config.scene, trust_pickle=config.trust_pickle)
+    except PickleRefused as exc:
+        raise UserError(f"{exc}; if you trust this file, set trust_pickle=True") from None
     torch.manual_seed(config.seed)
     gen = torch.Generator().manual_seed(config.seed)
     begin = start(config, scene, device, gen)
