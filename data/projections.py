@@ -27,7 +27,6 @@ values, negative attenuation, split indices out of range.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -38,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from nerfpipe.data.atomic import write_json
+from nerfpipe.data.confine import inside, read_json
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.safe_pickle import load_restricted, load_trusted
 from nerfpipe.data.volumes import check_volume, write_npy
@@ -267,10 +267,7 @@ def read_projection_scene(path: str | os.PathLike) -> ProjectionScene:
         path = path / JSON_NAME
     if not path.is_file():
         raise UserError(f"{path}: no projection scene here (expected {JSON_NAME})")
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise UserError(f"{path}: not valid JSON ({exc})") from None
+    doc = read_json(path)
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise UserError(f"{path}: not a nerfpipe projection scene (format {FORMAT!r})")
     root = path.parent
@@ -287,11 +284,17 @@ def read_projection_scene(path: str | os.PathLike) -> ProjectionScene:
         length_unit=str(doc.get("length_unit", "mm")),
     )
     pd = _get(doc, "projections", where)
-    projections = _load_array(root / str(_get(pd, "file", f"{where}: projections")), "projections")
+    projections = _load_array(
+        inside(root, str(_get(pd, "file", f"{where}: projections")), "projections.file", file=path), "projections"
+    )
     gr = _get(doc, "grid", where)
     grid = VoxelGrid(shape=tuple(gr["shape"]), spacing=tuple(gr["spacing"]), center=tuple(gr.get("center", (0, 0, 0))))
     vd = doc.get("volume")
-    volume = _load_array(root / str(_get(vd, "file", f"{where}: volume")), "volume") if vd else None
+    volume = (
+        _load_array(inside(root, str(_get(vd, "file", f"{where}: volume")), "volume.file", file=path), "volume")
+        if vd
+        else None
+    )
     known = {
         "format",
         "version",
@@ -415,10 +418,7 @@ def read_r2_gaussian(folder: str | os.PathLike) -> ProjectionScene:
     folder = meta_path.parent
     if not meta_path.is_file():
         raise UserError(f"{meta_path}: no such file")
-    try:
-        meta = json.loads(meta_path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise UserError(f"{meta_path}: not valid JSON ({exc})") from None
+    meta = read_json(meta_path)
     where = str(meta_path)
     scanner = _get(meta, "scanner", where)
     parts = []
@@ -429,7 +429,7 @@ def read_r2_gaussian(folder: str | os.PathLike) -> ProjectionScene:
         if not entries:
             continue
         try:
-            files = [folder / str(e["file_path"]) for e in entries]
+            files = [inside(folder, str(e["file_path"]), f"proj_{name} file_path", file=meta_path) for e in entries]
             angles = np.array([float(e["angle"]) for e in entries])
         except (KeyError, TypeError, ValueError):
             raise UserError(f"{meta_path}: proj_{name}: expected entries {{file_path, angle}}") from None
@@ -438,7 +438,9 @@ def read_r2_gaussian(folder: str | os.PathLike) -> ProjectionScene:
     projs, angles, splits = _stack_splits(parts)
     volume = None
     if meta.get("vol"):
-        volume = _load_array(folder / str(meta["vol"]), "vol").astype(np.float64) / 1000.0  # 1/m -> 1/mm
+        volume = (
+            _load_array(inside(folder, str(meta["vol"]), "vol", file=meta_path), "vol").astype(np.float64) / 1000.0
+        )  # 1/m -> 1/mm
     shape = volume.shape if volume is not None else tuple(_get(scanner, "nVoxel", where))
     try:
         scene = ProjectionScene(

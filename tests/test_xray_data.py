@@ -101,6 +101,19 @@ def test_reader_names_the_file_and_field(tmp_path):
         read_projection_scene(tmp_path / "s")
 
 
+def test_array_files_named_outside_the_scene_are_refused(tmp_path):
+    """projections.json's `projections.file` / `volume.file` stay inside the scene folder (data.confine)."""
+    write_projection_scene(_scene(), tmp_path / "s")
+    np.save(tmp_path / "outside.npy", np.zeros((4, 5, 6), np.float32))
+    doc = json.loads((tmp_path / "s" / "projections.json").read_text())
+    for key in ("projections", "volume"):
+        bad = json.loads(json.dumps(doc))
+        bad[key]["file"] = "../outside.npy"
+        (tmp_path / "s" / "projections.json").write_text(json.dumps(bad))
+        with pytest.raises(UserError, match=rf"{key}.file '../outside.npy' resolves outside the dataset folder"):
+            read_projection_scene(tmp_path / "s")
+
+
 def test_naf_pickle_reader(tmp_path):
     rng = np.random.default_rng(1)
     image = rng.random((4, 5, 3)).astype(np.float32)
