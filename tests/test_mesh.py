@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
+import types
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +16,8 @@ import trimesh
 from benchmarks.mesh_metrics import chamfer_distance, surface_points
 from benchmarks.standin import StandIn
 from nerfpipe.data.errors import UserError
+from nerfpipe.radiance.compositing import median_depth
+from nerfpipe.radiance.paths import look_at
 from nerfpipe.stages import mesh
 from nerfpipe.stages.mesh.checks import MAX_BOX_FILL, box_fill, component_faces, mesh_checks
 from nerfpipe.stages.mesh.cleanup import mesh_stats
@@ -301,3 +305,55 @@ def test_volume_sampling_refuses_nan_density_and_caps_inf():
     assert np.isfinite(vol).all() and vol.max() == np.finfo(np.float32).max
     with pytest.raises(ValueError, match="NaN density"):
         sample_volume(lambda x: torch.where(x[:, 0] > 0.5, torch.nan, 1.0), grid, None, device=torch.device("cpu"))
+
+
+class _ObjectInRoom(StandIn):
+    """The stand-in's objects standing above a floor (a slab under them, across the whole box), photographed
+    from above it as a real capture is: opaque photos (a space that is not the object's box), the field rendered
+    to median depth for the looked-at rule."""
+
+    FLOOR = -0.55
+
+    def __init__(self, root):
+        super().__init__(root, identity=True, views=16, size=32)
+        self.space = types.SimpleNamespace(object_box=False, name="contract")
+        azimuths, elevations = np.linspace(0, 2 * math.pi, 16, endpoint=False), np.tile([0.35, 0.8], 8)
+        eyes = [3.0 * np.array([math.cos(a) * math.cos(e), math.sin(a) * math.cos(e), math.sin(e)])
+                for a, e in zip(azimuths, elevations, strict=True)]  # fmt: skip
+        frames = tuple(dataclasses.replace(f, world_from_cam=look_at(e, np.zeros(3), np.array([0.0, 0.0, 1.0])))
+                       for f, e in zip(self.scene.frames, eyes, strict=True))  # fmt: skip
+        self.scene = dataclasses.replace(self.scene, frames=frames)
+
+    def sdf(self, x):
+        floor = (x[:, 2] - (self.FLOOR - 0.05)).abs() - 0.05  # a slab z in [FLOOR - 0.1, FLOOR]
+        return torch.minimum(super().sdf(x), floor)
+
+    def render_rays(self, o, d, *, median=True):
+        t = torch.linspace(0.1, 6.0, 600, dtype=torch.float64)
+        x = o.double()[:, None] + t[None, :, None] * d.double()[:, None]
+        inside = ((x >= -1) & (x <= 1)).all(dim=-1)
+        sigma = torch.where(inside, self.density(x.reshape(-1, 3)).reshape(inside.shape), 0.0)
+        step = float(t[1] - t[0])
+        starts = (t - step / 2).expand_as(sigma)
+        return {"depth_median": median_depth(sigma, starts, starts + step).float()}
+
+
+def test_looked_at_crop_meshes_the_object_not_the_floor(tmp_path):
+    """A real capture (not an object scene): the default crop is what the views centre on, the floor every camera
+    looks down at is cut as the support plane, and pieces the box cuts through go; the objects stay whole."""
+    s = _ObjectInRoom(tmp_path)
+    out = mesh.extract(s, mesh.Config(run_dir=tmp_path, out=tmp_path / "m.ply", resolution=48, threshold=50.0,
+                                      frame="normalized", colors=False))  # fmt: skip
+    report = json.loads(out.report.read_text())
+    assert report["crop"]["rule"] == "looked-at" and report["crop"]["support_plane"]["cut"], report["crop"]
+    m = _load(out.mesh)
+    gt = s.surface_points(20_000)
+    gt = gt[gt[:, 2] > s.FLOOR + 0.01]  # the objects' surface (the floor is not the object)
+    assert m.bounds[0, 2] > s.FLOOR, m.bounds  # nothing of the floor
+    assert np.allclose(m.bounds, [gt.min(0), gt.max(0)], atol=0.06), (m.bounds, gt.min(0), gt.max(0))
+    assert report["check"] == "ok"
+    # the same scene with the whole field's box meshes the floor, across the box
+    whole = mesh.extract(s, mesh.Config(run_dir=tmp_path, out=tmp_path / "w.ply", resolution=48, threshold=50.0,
+                                        frame="normalized", colors=False, crop="field"))  # fmt: skip
+    wb = _load(whole.mesh).bounds
+    assert wb[0, 2] < s.FLOOR - 0.05 and (wb[1, :2] - wb[0, :2] > 1.9).all(), wb

@@ -1,11 +1,15 @@
 """Stage `mesh`: a trained radiance field -> a triangle mesh (PLY / OBJ / GLB), in the user's frame by default.
 
-`nerfpipe mesh RUN_DIR OUT.ply|.obj|.glb [--resolution 256] [--threshold auto|VALUE] [--bbox auto|x0,...,z1]
-[--frame user|normalized] [--target-faces N] [--no-cleanup] [--no-colors]`
+`nerfpipe mesh RUN_DIR OUT.ply|.obj|.glb [--resolution 256] [--threshold auto|VALUE] [--bbox x0,...,z1]
+[--crop auto|looked-at|occupied|field] [--frame user|normalized] [--target-faces 300000] [--no-cleanup] [--no-colors]`
 
 Steps:
-1. Box: `--bbox` (in the chosen frame), else the occupied cells of the run's occupancy grid (one cell of
-   margin), else the run's aabb. Voxels are cubes with `resolution` cells along the box's longest side.
+1. Box: `--bbox` (in the chosen frame), else `--crop` (`stages.mesh.crop`): for an object scene (alpha or a
+   plain background) the occupied cells of the run's occupancy grid (one cell of margin; the run's aabb without
+   a grid); for a real capture (contracted or forward-facing: the photos see walls and floors) the box of what
+   the training views' central rays hit, with a support plane (the wall or table every camera faces) cut away.
+   Never beyond the field's box (the inner box of a contracted scene). Voxels are cubes with `resolution` cells
+   along the box's longest side.
 2. Iso-level (`--threshold auto`, `stages.mesh.threshold`): march training-view rays through the field; on
    each ray take the density where the accumulated opacity 1 - exp(-integral sigma dt) first reaches 0.5 (the
    ray's median depth, `radiance.compositing.median_depth`: where the rendered surface is); the level is the
@@ -17,7 +21,8 @@ Steps:
    are zero without querying the field), zero-padded so the surface is closed where it meets the box.
 4. Marching cubes (scikit-image, Lewiner) at the level; faces wind counter-clockwise seen from outside
    (the side of lower density).
-5. Cleanup (`stages.mesh.cleanup`, pymeshlab) and optional quadric decimation to `--target-faces`.
+5. Cleanup (`stages.mesh.cleanup`, pymeshlab) and quadric decimation to `--target-faces` (300k by default, a
+   size a web viewer opens quickly; 0 keeps every face).
 6. Vertex colours: `trained.color(x, -n)`, the colour a camera looking straight at the surface along the
    inward normal sees (a view-independent field ignores the direction).
 7. Export in the output frame: `scene.source_from_scene()` for `--frame user` (winding reversed if it
@@ -48,6 +53,14 @@ from nerfpipe.data.errors import UserError
 from nerfpipe.data.rundir import config_to_json, write_manifest
 from nerfpipe.stages.mesh.checks import mesh_checks
 from nerfpipe.stages.mesh.cleanup import Cleanup, cleanup_mesh, mesh_stats, transform_mesh
+from nerfpipe.stages.mesh.crop import (
+    Plane,
+    cut_density,
+    drop_box_cut_pieces,
+    looked_at_box,
+    looked_at_points,
+    support_plane,
+)
 from nerfpipe.stages.mesh.field_access import (
     as_np,
     density_function,
@@ -74,6 +87,8 @@ __all__ = [
 ]
 
 VERSION = "1"
+SUPPORT_CLEARANCE = 1.5
+"""The support plane's cut keeps what lies beyond this many inlier tolerances on the cameras' side."""
 FORMATS = (".ply", ".obj", ".glb")
 
 
@@ -89,12 +104,17 @@ class Config:
     """Iso-level on density (per scene-frame unit), or "auto" (median density at 50 % accumulated opacity
     along training rays; see the module doc)."""
     bbox: tuple[float, float, float, float, float, float] | None = None
-    """Box to mesh, (x0, y0, z0, x1, y1, z1) in the frame chosen by `frame`; None: the occupied box."""
+    """Box to mesh, (x0, y0, z0, x1, y1, z1) in the frame chosen by `frame`; None: the box `crop` finds."""
+    crop: Literal["auto", "looked-at", "occupied", "field"] = "auto"
+    """Without a bbox, what to mesh: "looked-at" the box of what the training views' central rays hit, the
+    support plane (a wall, floor, table) cut away (`stages.mesh.crop`); "occupied" the occupancy grid's occupied
+    cells; "field" the field's whole (inner) box; "auto": occupied for object scenes (alpha or plain background),
+    looked-at for real captures."""
     frame: Literal["user", "normalized"] = "user"
     """Output (and --bbox) frame: "user" = the source frame before convert (e.g. COLMAP's, metres for the
     synthetic scene); "normalized" = the scene frame the field was trained in."""
-    target_faces: int | None = None
-    """Decimate to at most this many faces (quadric edge collapse); None: keep all."""
+    target_faces: int = 300_000
+    """Decimate to at most this many faces (quadric edge collapse); 0: keep all."""
     cleanup: Cleanup | None = field(default_factory=Cleanup)
     """Cleanup steps (None: the raw marching-cubes mesh, `--no-cleanup`)."""
     colors: bool = True
@@ -166,8 +186,10 @@ def _validate(config: Config) -> None:
         b = np.asarray(config.bbox, np.float64)
         if b.shape != (6,) or not np.isfinite(b).all() or not (b[3:] > b[:3]).all():
             raise UserError(f"--bbox: expected x0,y0,z0,x1,y1,z1 with x1 > x0, y1 > y0, z1 > z0, got {config.bbox}")
-    if config.target_faces is not None and config.target_faces < 4:
-        raise UserError(f"--target-faces: expected at least 4, got {config.target_faces}")
+    if config.target_faces != 0 and config.target_faces < 4:
+        raise UserError(f"--target-faces: expected 0 (keep all) or at least 4, got {config.target_faces}")
+    if config.crop not in ("auto", "looked-at", "occupied", "field"):
+        raise UserError(f"--crop: expected auto, looked-at, occupied or field, got {config.crop!r}")
 
 
 # ---------------------------------------------------------------------------------------------- the stage
@@ -177,16 +199,61 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
 
 
-def _grid_for(config: Config, trained: Any, out_from_scene: np.ndarray) -> tuple[Grid, str]:
+def _grid_for(config: Config, trained: Any, out_from_scene: np.ndarray) -> tuple[Grid, str, dict, Plane | None]:
+    """(grid, the crop rule said in one phrase, the crop's report entry, the support plane to cut or None)."""
     stride = 1
     if config.coarse_resolution > 0 and config.resolution > config.coarse_resolution:
         stride = max(1, round(config.resolution / config.coarse_resolution))
     if config.bbox is not None:  # sample in the chosen frame, so the crop is exactly the user's box
         b = np.asarray(config.bbox, np.float64)
         scene_from_out = np.linalg.inv(out_from_scene)
-        return make_grid(b[:3], b[3:], config.resolution, stride, scene_from_out), f"--bbox ({config.frame} frame)"
+        how = f"--bbox ({config.frame} frame)"
+        return make_grid(b[:3], b[3:], config.resolution, stride, scene_from_out), how, {"rule": how}, None
+    lo, hi, how, info, plane = _default_box(config, trained)
+    return make_grid(lo, hi, config.resolution, stride), how, info, plane
+
+
+def _default_box(config: Config, trained: Any) -> tuple[np.ndarray, np.ndarray, str, dict, Plane | None]:
+    """The crop rule of `config.crop` (module doc of `stages.mesh.crop`); falls back to the occupied box, saying
+    why, where the looked-at rule finds too little."""
+    aabb = as_np(trained.aabb).reshape(2, 3)
+    space = getattr(trained, "space", None)
+    rule = config.crop
+    if rule == "auto":
+        looks = space is not None and not space.object_box and hasattr(trained, "render_rays")
+        rule = "looked-at" if looks else "occupied"
+        why = (f"auto: a real capture (scene model {space.name}: the photos see surroundings)" if looks
+               else "auto: an object scene (alpha or a plain background)")  # fmt: skip
+    else:
+        why = f"--crop {rule}"
+    if rule == "field":
+        return aabb[0], aabb[1], "the field's box", {"rule": "field", "why": why}, None
+    if rule == "looked-at":
+        pts = looked_at_points(lambda o, d: trained.render_rays(o, d, median=True)["depth_median"], trained.scene)
+        box = looked_at_box(pts, aabb)
+        if box is not None:
+            lo, hi = box
+            inside = pts[((pts >= lo) & (pts <= hi)).all(axis=1)]
+            cams = np.stack([f.world_from_cam[:3, 3] for f in trained.scene.frames])
+            tol = 0.01 * float(np.linalg.norm(hi - lo))
+            plane, best = support_plane(inside, cams, tolerance=tol)
+            info = {"rule": "looked-at", "why": why, "points": len(pts), "window": 0.5, "quantiles": [0.01, 0.99],
+                    "margin": 0.1, "support_plane": _plane_report(plane, best, tol)}  # fmt: skip
+            return lo, hi, "looked-at box" + (", support plane cut" if plane else ""), info, plane
+        why += f"; looked-at rule found {len(pts)} surface points (fewer than 64): occupied box instead"
     lo, hi, how = occupied_box(trained)
-    return make_grid(lo, hi, config.resolution, stride), how
+    return lo, hi, how, {"rule": "occupied", "why": why}, None
+
+
+def _plane_report(plane: Plane | None, best: Plane | None, tolerance: float) -> dict:
+    if best is None:
+        return {"cut": False, "why": "no plane found"}
+    entry = {"cut": plane is not None, "normal": best.normal.round(6).tolist(), "offset": round(best.offset, 6),
+             "share": round(best.share, 4), "spans": [round(x, 4) for x in best.spans],
+             "cameras_on_side": round(best.cameras_on_side, 4), "tolerance": round(tolerance, 6),
+             "keep_beyond": round(SUPPORT_CLEARANCE * tolerance, 6),
+             "rule": "share >= 0.2, spans >= 0.9 both ways, every camera on one side"}  # fmt: skip
+    return entry
 
 
 def _marching_cubes(vol: np.ndarray, level: float, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
@@ -236,7 +303,7 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
     _validate(config)
     out = Path(config.out)
     timing: dict[str, float] = {}
-    task = progress.add_task(f"mesh {out.name}", total=6) if progress is not None else None
+    task = progress.add_task(f"mesh {out.name}", total=7) if progress is not None else None
 
     def lap(name: str, t: float) -> float:
         now = time.perf_counter()
@@ -249,8 +316,9 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
     out_from_scene = scene.source_from_scene() if config.frame == "user" else np.eye(4)
     device = field_device(trained)
     density = density_function(trained)
-    grid, how = _grid_for(config, trained, out_from_scene)
     t = time.perf_counter()
+    grid, how, crop_info, plane = _grid_for(config, trained, out_from_scene)
+    t = lap("crop", t)
 
     if config.threshold == "auto":
         level, threshold_info = auto_threshold(
@@ -261,6 +329,8 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
         level, threshold_info = float(config.threshold), {"rule": "given (--threshold)"}
     t = lap("threshold", t)
 
+    if plane is not None:  # after the level: the level is the field's, measured on every training ray
+        density = cut_density(density, plane, SUPPORT_CLEARANCE * crop_info["support_plane"]["tolerance"])
     vol, sample_stats = sample_volume(density, grid, level, device=device, chunk=config.chunk)
     t = lap("sampling", t)
     _level_checks(config, level, sample_stats, grid, how)
@@ -268,11 +338,14 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
     verts_g, faces_g = _marching_cubes(vol, level, grid)
     del vol
     steps = [{"step": "marching_cubes", "vertices": len(verts_g), "faces": len(faces_g)}]
+    if crop_info["rule"] == "looked-at":
+        verts_g, faces_g, step = drop_box_cut_pieces(verts_g, faces_g, grid.lo, grid.hi, 1.5 * grid.h)
+        steps.append(step)
     t = lap("marching_cubes", t)
 
     out_from_grid = out_from_scene @ grid.scene_from_grid
     verts, faces = transform_mesh(verts_g, faces_g, out_from_grid)
-    verts, faces, clean_steps = cleanup_mesh(verts, faces, config.cleanup, config.target_faces)
+    verts, faces, clean_steps = cleanup_mesh(verts, faces, config.cleanup, config.target_faces or None)
     steps += clean_steps
     if len(faces) == 0:
         raise UserError(f"{config.run_dir}: no surface left after cleanup at threshold {level:g}; try --no-cleanup")
@@ -303,6 +376,7 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
             out.parent, name=f"{out.stem}.report.json", stage="mesh", started=started, inputs=inputs, outputs=[out],
             used={"config": config_to_json(config)}, left_out=left_out, version=VERSION,
             threshold={"value": level, **threshold_info},
+            crop=crop_info,
             grid={"crop": how, "frame": "scene" if np.allclose(grid.scene_from_grid, np.eye(4)) else config.frame,
                   "lo": grid.lo.tolist(), "hi": grid.hi.tolist(), "voxel": grid.h, "samples_per_axis": list(grid.shape),
                   "coarse_stride": grid.stride, "occupancy_skipping": occupancy_binary(trained) is not None,
