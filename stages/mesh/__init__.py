@@ -53,21 +53,13 @@ from nerfpipe.data.errors import UserError
 from nerfpipe.data.rundir import config_to_json, write_manifest
 from nerfpipe.stages.mesh.checks import mesh_checks
 from nerfpipe.stages.mesh.cleanup import Cleanup, cleanup_mesh, mesh_stats, transform_mesh
-from nerfpipe.stages.mesh.crop import (
-    Plane,
-    cut_density,
-    drop_box_cut_pieces,
-    looked_at_box,
-    looked_at_points,
-    support_plane,
-)
+from nerfpipe.stages.mesh.crop import SUPPORT_CLEARANCE, Plane, cut_density, default_box, drop_box_cut_pieces
 from nerfpipe.stages.mesh.field_access import (
     as_np,
     density_function,
     field_device,
     has_color,
     occupancy_binary,
-    occupied_box,
     vertex_colors,
 )
 from nerfpipe.stages.mesh.grid import Grid, make_grid, sample_volume
@@ -87,8 +79,6 @@ __all__ = [
 ]
 
 VERSION = "1"
-SUPPORT_CLEARANCE = 1.5
-"""The support plane's cut keeps what lies beyond this many inlier tolerances on the cameras' side."""
 FORMATS = (".ply", ".obj", ".glb")
 
 
@@ -209,51 +199,8 @@ def _grid_for(config: Config, trained: Any, out_from_scene: np.ndarray) -> tuple
         scene_from_out = np.linalg.inv(out_from_scene)
         how = f"--bbox ({config.frame} frame)"
         return make_grid(b[:3], b[3:], config.resolution, stride, scene_from_out), how, {"rule": how}, None
-    lo, hi, how, info, plane = _default_box(config, trained)
+    lo, hi, how, info, plane = default_box(config.crop, trained)
     return make_grid(lo, hi, config.resolution, stride), how, info, plane
-
-
-def _default_box(config: Config, trained: Any) -> tuple[np.ndarray, np.ndarray, str, dict, Plane | None]:
-    """The crop rule of `config.crop` (module doc of `stages.mesh.crop`); falls back to the occupied box, saying
-    why, where the looked-at rule finds too little."""
-    aabb = as_np(trained.aabb).reshape(2, 3)
-    space = getattr(trained, "space", None)
-    rule = config.crop
-    if rule == "auto":
-        looks = space is not None and not space.object_box and hasattr(trained, "render_rays")
-        rule = "looked-at" if looks else "occupied"
-        why = (f"auto: a real capture (scene model {space.name}: the photos see surroundings)" if looks
-               else "auto: an object scene (alpha or a plain background)")  # fmt: skip
-    else:
-        why = f"--crop {rule}"
-    if rule == "field":
-        return aabb[0], aabb[1], "the field's box", {"rule": "field", "why": why}, None
-    if rule == "looked-at":
-        pts = looked_at_points(lambda o, d: trained.render_rays(o, d, median=True)["depth_median"], trained.scene)
-        box = looked_at_box(pts, aabb)
-        if box is not None:
-            lo, hi = box
-            inside = pts[((pts >= lo) & (pts <= hi)).all(axis=1)]
-            cams = np.stack([f.world_from_cam[:3, 3] for f in trained.scene.frames])
-            tol = 0.01 * float(np.linalg.norm(hi - lo))
-            plane, best = support_plane(inside, cams, tolerance=tol)
-            info = {"rule": "looked-at", "why": why, "points": len(pts), "window": 0.5, "quantiles": [0.01, 0.99],
-                    "margin": 0.1, "support_plane": _plane_report(plane, best, tol)}  # fmt: skip
-            return lo, hi, "looked-at box" + (", support plane cut" if plane else ""), info, plane
-        why += f"; looked-at rule found {len(pts)} surface points (fewer than 64): occupied box instead"
-    lo, hi, how = occupied_box(trained)
-    return lo, hi, how, {"rule": "occupied", "why": why}, None
-
-
-def _plane_report(plane: Plane | None, best: Plane | None, tolerance: float) -> dict:
-    if best is None:
-        return {"cut": False, "why": "no plane found"}
-    entry = {"cut": plane is not None, "normal": best.normal.round(6).tolist(), "offset": round(best.offset, 6),
-             "share": round(best.share, 4), "spans": [round(x, 4) for x in best.spans],
-             "cameras_on_side": round(best.cameras_on_side, 4), "tolerance": round(tolerance, 6),
-             "keep_beyond": round(SUPPORT_CLEARANCE * tolerance, 6),
-             "rule": "share >= 0.2, spans >= 0.9 both ways, every camera on one side"}  # fmt: skip
-    return entry
 
 
 def _marching_cubes(vol: np.ndarray, level: float, grid: Grid) -> tuple[np.ndarray, np.ndarray]:

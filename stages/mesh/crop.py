@@ -24,13 +24,27 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 
 from nerfpipe.radiance.camera import generate_rays
+from nerfpipe.stages.mesh.field_access import as_np, occupied_box
 
-__all__ = ["Plane", "looked_at_points", "looked_at_box", "support_plane", "cut_density", "drop_box_cut_pieces"]
+__all__ = [
+    "SUPPORT_CLEARANCE",
+    "Plane",
+    "default_box",
+    "looked_at_points",
+    "looked_at_box",
+    "support_plane",
+    "cut_density",
+    "drop_box_cut_pieces",
+]
+
+SUPPORT_CLEARANCE = 1.5
+"""The support plane's cut keeps what lies beyond this many inlier tolerances on the cameras' side."""
 
 DepthFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 """(rays_o [R, 3], rays_d [R, 3]) float32 -> median depth [R] (inf where the ray never becomes half opaque)."""
@@ -176,3 +190,46 @@ def drop_box_cut_pieces(
     step = {"step": "box_cut_pieces", "removed_pieces": int(cut.sum()), "removed_faces": int(sizes[cut].sum()),
             "vertices": int(used.sum()), "faces": int(keep_face.sum()), "why": why}  # fmt: skip
     return verts[used], index[faces[keep_face]], step
+
+
+def default_box(rule: str, trained: Any) -> tuple[np.ndarray, np.ndarray, str, dict, Plane | None]:
+    """(lo, hi, the rule in one phrase, the report's `crop` entry, the support plane to cut or None) for the crop
+    rule `rule` (auto, looked-at, occupied, field; this module's doc) of a loaded run (`Trained` attributes);
+    falls back to the occupied box, saying why, where the looked-at rule finds too little."""
+    aabb = as_np(trained.aabb).reshape(2, 3)
+    space = getattr(trained, "space", None)
+    if rule == "auto":
+        looks = space is not None and not space.object_box and hasattr(trained, "render_rays")
+        rule = "looked-at" if looks else "occupied"
+        why = (f"auto: a real capture (scene model {space.name}: the photos see surroundings)" if looks
+               else "auto: an object scene (alpha or a plain background)")  # fmt: skip
+    else:
+        why = f"--crop {rule}"
+    if rule == "field":
+        return aabb[0], aabb[1], "the field's box", {"rule": "field", "why": why}, None
+    if rule == "looked-at":
+        pts = looked_at_points(lambda o, d: trained.render_rays(o, d, median=True)["depth_median"], trained.scene)
+        box = looked_at_box(pts, aabb)
+        if box is not None:
+            lo, hi = box
+            inside = pts[((pts >= lo) & (pts <= hi)).all(axis=1)]
+            cams = np.stack([f.world_from_cam[:3, 3] for f in trained.scene.frames])
+            tol = 0.01 * float(np.linalg.norm(hi - lo))
+            plane, best = support_plane(inside, cams, tolerance=tol)
+            info = {"rule": "looked-at", "why": why, "points": len(pts), "window": 0.5, "quantiles": [0.01, 0.99],
+                    "margin": 0.1, "support_plane": _plane_report(plane, best, tol)}  # fmt: skip
+            return lo, hi, "looked-at box" + (", support plane cut" if plane else ""), info, plane
+        why += f"; looked-at rule found {len(pts)} surface points (fewer than 64): occupied box instead"
+    lo, hi, how = occupied_box(trained)
+    return lo, hi, how, {"rule": "occupied", "why": why}, None
+
+
+def _plane_report(plane: Plane | None, best: Plane | None, tolerance: float) -> dict:
+    if best is None:
+        return {"cut": False, "why": "no plane found"}
+    entry = {"cut": plane is not None, "normal": best.normal.round(6).tolist(), "offset": round(best.offset, 6),
+             "share": round(best.share, 4), "spans": [round(x, 4) for x in best.spans],
+             "cameras_on_side": round(best.cameras_on_side, 4), "tolerance": round(tolerance, 6),
+             "keep_beyond": round(SUPPORT_CLEARANCE * tolerance, 6),
+             "rule": "share >= 0.2, spans >= 0.9 both ways, every camera on one side"}  # fmt: skip
+    return entry
