@@ -115,6 +115,10 @@ def _mesh(out: Any) -> str:
     )
 
 
+def _export_points(out: Any) -> str:
+    return f"{out.points} points ({out.outliers} outliers removed) from {out.rays} rays -> {out.out}"
+
+
 def _fit_image(out: Any) -> str:
     scores = ", ".join(f"{m.label} {m.psnr:.1f} dB in {m.seconds:.0f} s" for m in out.models)
     return f"{scores} -> {out.montage}"
@@ -132,6 +136,13 @@ def _xray(out: Any) -> str:
         fdk = r.get("fdk", {}).get("psnr_3d")
         return f"PSNR 3-D {r.get('psnr_3d')}  SSIM 3-D {r.get('ssim_3d')}  FDK PSNR 3-D {fdk} -> {out.out}"
     return _done(out)
+
+
+def _splat(out: Any) -> str:
+    return (
+        f"{out.gaussians} Gaussians, {out.steps} steps in {out.seconds:.1f} s ({out.backend}), training PSNR "
+        f"{out.psnr_init:.2f} -> {out.psnr_final:.2f} dB -> {out.out}"
+    )
 
 
 def _view(out: Any) -> str:
@@ -167,11 +178,13 @@ STAGES: dict[str, Stage] = {
     "eval": Stage(S + "eval", "PSNR, SSIM, render speed (and depth error) on test views, to JSON.", _eval),
     "report": Stage(S + "report", "Compare runs: held-out PSNR against wall-clock time, and a table.", _report),
     "mesh": Stage(S + "mesh", "Mesh the density field: marching cubes, cleanup, vertex colours.", _mesh),
+    "export-points": Stage(S + "export_points", "Coloured point cloud with normals (PLY) from a run.", _export_points),
     "fit-image": Stage(S + "fit_image", "Fit one image with Fourier-feature MLPs and the fast grid.", _fit_image),
     "xray-simulate": Stage(S + "xray_simulate", "X-ray projections of a CT volume -> a projection scene.", _xray),
     "xray-train": Stage(S + "xray_train", "Fit an attenuation field to X-ray projections; 3-D PSNR vs time.", _xray),
     "xray-eval": Stage(S + "xray_eval", "3-D PSNR/SSIM, projection PSNR/SSIM, FDK baseline, to JSON.", _xray),
     "view": Stage(S + "view", "Browse a scene or a run in the browser (viser); record camera paths.", _view),
+    "splat": Stage(S + "splat", "Gaussian splats from a run, optimised on its photos -> INRIA .ply / .splat.", _splat),
     "xray-export": Stage(S + "xray_export", "Slice montages, a rotating DRR/MIP video and an iso-surface mesh."),
 }
 

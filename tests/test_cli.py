@@ -18,7 +18,10 @@ from nerfpipe import cli
 from nerfpipe.data.errors import UserError
 
 ROOT = Path(__file__).resolve().parents[1]
-COMMANDS = ["scene", "poses", "convert", "train", "render", "depth", "eval", "report", "mesh", "fit-image"]
+COMMANDS = [
+    "scene", "poses", "convert", "train", "render", "depth", "eval", "report", "mesh", "fit-image", "export-points",
+    "splat",
+]  # fmt: skip
 # Positional arguments that make each command parse (nothing is run by config_from_args).
 ARGS = {
     "scene": ["s"],
@@ -31,6 +34,8 @@ ARGS = {
     "report": ["r1", "r2", "out"],
     "mesh": ["r", "m.ply"],
     "fit-image": ["image.png", "o"],
+    "export-points": ["r", "c.ply"],
+    "splat": ["r", "s.ply"],
 }
 
 
@@ -231,6 +236,8 @@ def _bad_path_args(tmp_path):
         "report": [str(missing), str(tmp_path / "r")],
         "mesh": [str(missing), str(tmp_path / "m.ply")],
         "fit-image": [str(missing), str(tmp_path / "o")],
+        "export-points": [str(missing), str(tmp_path / "c.ply")],
+        "splat": [str(missing), str(tmp_path / "s.ply")],
     }
 
 

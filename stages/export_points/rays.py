@@ -1,0 +1,150 @@
+"""The training cameras' rays, rendered in passes, to coloured points in the scene frame.
+
+Sampling: each training camera's pixels (at the render size) are split into `stride` x `stride` interleaved
+sub-grids: pixel (row, col) belongs to offset (row % stride, col % stride). A pass renders one sub-grid of every
+camera (rays through the pixel centres); the offsets are taken in a seeded random order, so passes never repeat a
+ray and each pass covers every camera and the whole of each image evenly. `stride` makes one pass about
+`PASS_SHARE` of the points asked for; passes go on until that many points are kept (or every pixel is used),
+then the caller takes an even random subset. Rays of several cameras are rendered together (`batch` rays per
+`render_rays` call, which chunks them further).
+
+A ray gives a point when its accumulated opacity is at least `acc_threshold` and its expected depth and colour
+are finite: the point is `o + t d` at the expected distance t (`Trained.render_rays`' `depth`: sum(w t) / acc,
+world distances in the scene frame), its colour the rendered colour with the evaluation background taken out,
+(rgb - (1 - acc) background) / acc: the colour of what the ray hit, not of the background that shows through a
+ray that is not fully opaque (acc >= acc_threshold > 0, and the division clamps acc at float32's epsilon).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from nerfpipe.data.progress import NO_PROGRESS, Progress
+from nerfpipe.model import CameraPath
+from nerfpipe.radiance.camera import generate_rays
+
+__all__ = ["PASS_SHARE", "Gathered", "gather_points", "pass_stride"]
+
+PASS_SHARE = 0.25
+"""One pass renders about this share of the points asked for (so the last pass overshoots by at most that)."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class Gathered:
+    """The points of the rays rendered, and what the rays gave."""
+
+    points: np.ndarray  # [N, 3] float64, scene frame
+    rgb: np.ndarray  # [N, 3] float32 in [0, 1], background taken out
+    dirs: np.ndarray  # [N, 3] float32 unit: the direction of the ray that gave each point
+    pixels: int
+    """Pixels of every training camera at the render size."""
+    stride: int
+    passes: int
+    """Passes rendered (of stride * stride)."""
+    rays: int
+    """Rays rendered."""
+    opaque: int
+    """Rays with accumulated opacity >= acc_threshold."""
+    non_finite: int
+    """Rays whose opacity, or an opaque ray's depth or colour, is NaN / inf (dropped)."""
+    outside: int
+    """Finite points dropped by `keep` (outside the bbox)."""
+
+
+def pass_stride(pixels: int, target: int) -> int:
+    """The sub-grid stride that makes one pass about `PASS_SHARE * target` rays (1: one pass renders every pixel)."""
+    return max(1, math.floor(math.sqrt(pixels / max(1.0, PASS_SHARE * target))))
+
+
+def _pass_rays(cams: CameraPath, stride: int, offset: tuple[int, int]) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+    """(rays_o, rays_d) [R, 3] float64 of one sub-grid of each camera, camera by camera."""
+    dr, dc = offset
+    for intr, pose in zip(cams.intrinsics, cams.world_from_cams, strict=True):
+        rows = torch.arange(dr, intr.h, stride, dtype=torch.float64)
+        cols = torch.arange(dc, intr.w, stride, dtype=torch.float64)
+        if rows.numel() == 0 or cols.numel() == 0:
+            continue
+        v, u = torch.meshgrid(rows, cols, indexing="ij")
+        uv = torch.stack([u.reshape(-1), v.reshape(-1)], dim=-1) + 0.5  # pixel centres
+        yield generate_rays(intr, torch.as_tensor(np.asarray(pose, np.float64)), uv)
+
+
+def _batches(
+    cams: CameraPath, stride: int, order: np.ndarray, batch: int
+) -> Iterator[tuple[int, torch.Tensor, torch.Tensor]]:
+    """(pass index, rays_o, rays_d) of about `batch` rays each; a batch never spans two passes."""
+    for k, flat in enumerate(order):
+        offset = (int(flat) // stride, int(flat) % stride)
+        buf_o, buf_d, n = [], [], 0
+        for o, d in _pass_rays(cams, stride, offset):
+            buf_o.append(o)
+            buf_d.append(d)
+            n += o.shape[0]
+            if n >= batch:
+                yield k, torch.cat(buf_o), torch.cat(buf_d)
+                buf_o, buf_d, n = [], [], 0
+        if buf_o:
+            yield k, torch.cat(buf_o), torch.cat(buf_d)
+
+
+def _points_of(trained: Any, out: dict[str, torch.Tensor], o: torch.Tensor, d: torch.Tensor, acc_threshold: float):
+    """(opaque rays, NaN / inf rays (opacity, or depth or colour of an opaque ray), points [K, 3] f64,
+    rgb [K, 3] f32, dirs [K, 3] f32)."""
+    acc = out["acc"].detach().float().cpu()
+    opaque = acc >= acc_threshold  # a NaN opacity is never opaque
+    t = out["depth"].detach().double().cpu()[opaque]
+    rgb = out["rgb"].detach().float().cpu()[opaque]
+    a = acc[opaque][:, None]
+    background = torch.as_tensor(trained.background, dtype=torch.float32).cpu().reshape(1, 3)
+    rgb = (rgb - (1 - a) * background) / a.clamp_min(torch.finfo(torch.float32).eps)
+    finite = torch.isfinite(t) & torch.isfinite(rgb).all(dim=-1)
+    o, d = o[opaque][finite], d[opaque][finite]
+    points = (o + t[finite, None] * d).numpy()
+    bad = int((~torch.isfinite(acc)).sum()) + int((~finite).sum())
+    return int(opaque.sum()), bad, points, rgb[finite].clamp(0, 1).numpy(), d.float().numpy()
+
+
+def gather_points(
+    trained: Any, cams: CameraPath, *, target: int, acc_threshold: float,
+    keep: Callable[[np.ndarray], np.ndarray] | None = None, seed: int = 0, batch: int = 1 << 18,
+    progress: Progress | None = None,
+) -> Gathered:  # fmt: skip
+    """Render passes of the cameras' rays (module doc) until at least `target` points are kept or every pixel is
+    rendered. `keep(points_scene [K, 3]) -> mask [K]` drops points (the bbox); `trained` needs `render_rays` and
+    `background` (`model.Trained`)."""
+    pixels = sum(intr.w * intr.h for intr in cams.intrinsics)
+    stride = pass_stride(pixels, target)
+    order = np.random.default_rng(seed).permutation(stride * stride)
+    progress = progress or NO_PROGRESS
+    task = progress.add_task("export-points: rendering", total=target)
+    parts: dict[str, list[np.ndarray]] = {"points": [], "rgb": [], "dirs": []}
+    rays = opaque = non_finite = outside = kept = 0
+    passes, done_pass = 0, -1
+    with torch.no_grad():
+        for k, o, d in _batches(cams, stride, order, batch):
+            if k != done_pass and kept >= target:  # a new pass, and the last one finished with enough points
+                break
+            if k != done_pass:
+                passes, done_pass = passes + 1, k
+            out = trained.render_rays(o.to(trained.device, torch.float32), d.to(trained.device, torch.float32),
+                                      median=False)  # fmt: skip
+            n_opaque, n_bad, points, rgb, dirs = _points_of(trained, out, o, d, acc_threshold)
+            rays, opaque, non_finite = rays + o.shape[0], opaque + n_opaque, non_finite + n_bad
+            if keep is not None:
+                inside = np.asarray(keep(points), bool)
+                outside += int((~inside).sum())
+                points, rgb, dirs = points[inside], rgb[inside], dirs[inside]
+            for name, value in (("points", points), ("rgb", rgb), ("dirs", dirs)):
+                parts[name].append(value)
+            progress.advance(task, min(len(points), max(0, target - kept)))
+            kept += len(points)
+    joined = {name: np.concatenate(v) if v else np.zeros((0, 3)) for name, v in parts.items()}
+    return Gathered(points=joined["points"].astype(np.float64), rgb=joined["rgb"].astype(np.float32),
+                    dirs=joined["dirs"].astype(np.float32), pixels=pixels, stride=stride, passes=passes, rays=rays,
+                    opaque=opaque, non_finite=non_finite, outside=outside)  # fmt: skip
