@@ -52,6 +52,7 @@ import dataclasses
 import functools
 import importlib
 import inspect
+import os
 import re
 import sys
 import textwrap
@@ -444,7 +445,8 @@ def _run_stage(command: str, values: Mapping[str, Any]) -> None:
     takes_progress = "progress" in inspect.signature(module.run).parameters
     with _progress() as progress:
         out = module.run(config, **({"progress": progress} if takes_progress else {}))
-    typer.echo(STAGES[command].summary(out))
+    if os.environ.get("RANK", "0") == "0":  # under torchrun only rank 0 reports (every rank returns the outputs)
+        typer.echo(STAGES[command].summary(out))
     for line in _suspect_lines(command, out):
         typer.echo(line, err=True)
 

@@ -20,6 +20,12 @@ A step whose loss is not finite changes nothing and returns False; the loop then
 (`Stepper.snapshot`, kept every `keep_every` steps and whenever `Stepper.prepare` changed the model), goes back to
 its step, halves the learning rate and goes on; the third time it raises TrainingDiverged.
 
+Data-parallel runs (`model.distributed`, torchrun): every rank runs this loop, and the decisions that read a
+clock or a signal must fall on the same step everywhere. `agree` (`DataParallel.agree`), called once a step and once
+more around the end, gives every rank any rank's stop signal, rank 0's training seconds (the budget, the schedule and
+the interrupt message read them) and rank 0's wall-clock checkpoint decision (taken at the top of the step, acted
+on at its end). Without `agree` (one process) the loop reads its own clock and signal, as it always has.
+
 Why in model/: the loop drives models and their optimisers and decides when checkpoints are written (their format
 is model.checkpoint's, model.xray's); data/ holds file formats and radiance/ the maths, and stages never import one
 another, so the loop the three stages share lives here, below them.
@@ -28,9 +34,10 @@ another, so the loop the three stages share lives here, below them.
 from __future__ import annotations
 
 import contextlib
+import signal
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -40,7 +47,21 @@ import torch
 from nerfpipe.data.errors import Interrupted
 from nerfpipe.data.stop import StopRequest
 
-__all__ = ["Budget", "Clock", "Schedule", "LoopSettings", "Stepper", "TrainingLoop", "TrainingDiverged", "set_lr"]
+__all__ = [
+    "Budget",
+    "Clock",
+    "Schedule",
+    "LoopSettings",
+    "Stepper",
+    "TrainingLoop",
+    "TrainingDiverged",
+    "set_lr",
+    "Agreement",
+]
+
+Agreement = Callable[[int | None, float, bool], tuple[int | None, float, bool]]
+"""(this rank's stop signal, training seconds, wall-clock checkpoint due) -> what every rank takes: any rank's
+signal, rank 0's seconds, rank 0's decision (`model.distributed.DataParallel.agree`)."""
 
 
 class TrainingDiverged(RuntimeError):
@@ -161,16 +182,20 @@ class Stepper(Protocol):
 
 
 class TrainingLoop:
-    """Steps `stepper` until the budget is spent (see the module doc); `stop` is polled between steps."""
+    """Steps `stepper` until the budget is spent (see the module doc); `stop` is polled between steps; `agree`
+    (data-parallel runs) makes every rank take the same decisions."""
 
-    def __init__(self, settings: LoopSettings, stepper: Stepper, clock: Clock, stop: StopRequest | None = None):
+    def __init__(self, settings: LoopSettings, stepper: Stepper, clock: Clock, stop: StopRequest | None = None,
+                 agree: Agreement | None = None):  # fmt: skip
         self.settings, self.stepper, self.clock, self.stop = settings, stepper, clock, stop
+        self.agree = agree
+        self._agreed: tuple[int | None, float, bool] = (None, clock.before, False)
         self._checkpoint_wall = 0.0  # time.perf_counter() at the last checkpoint
         self.failures = 0
 
     def fraction(self) -> float:
-        """Progress through the run now."""
-        return self.settings.budget.fraction(self.stepper.step, self.clock())
+        """Progress through the run now (data-parallel: as of this step's agreement)."""
+        return self.settings.budget.fraction(self.stepper.step, self._now())
 
     def run(self) -> float:
         """Train until the budget is spent; returns the training seconds (across resumes)."""
@@ -179,6 +204,7 @@ class TrainingLoop:
         self._checkpoint_wall = time.perf_counter()
         good = self._keep()
         while stepper.step < settings.budget.max_steps:
+            self._tick()
             self._poll()
             fraction = self.fraction()
             if fraction >= 1.0:
@@ -195,33 +221,56 @@ class TrainingLoop:
                 good = self._keep()
             stepper.log(lr)
             if self._checkpoint_due():
-                self._checkpoint(self.clock())
-        seconds = self.clock()
+                self._checkpoint(self._now())
+        self._tick()
+        seconds = self._now()
         stepper.finish(seconds)
-        if self.stop is not None and self.stop.signum is not None:  # the signal came during the last checkpoint
+        self._tick()
+        if self._signum() is not None:  # the signal came during the last checkpoint
             self._interrupted(seconds)
         return seconds
 
+    def _tick(self) -> None:
+        """Data-parallel: this step's agreement (module doc); alone: nothing."""
+        if self.agree is not None:
+            signum = self.stop.signum if self.stop is not None else None
+            every_s = self.settings.checkpoint_seconds
+            wall_due = every_s > 0 and time.perf_counter() - self._checkpoint_wall >= every_s
+            self._agreed = self.agree(signum, self.clock(), wall_due)
+
+    def _now(self) -> float:
+        """Training seconds: the clock's, or (data-parallel) rank 0's as of the last agreement."""
+        return self.clock() if self.agree is None else self._agreed[1]
+
+    def _signum(self) -> int | None:
+        if self.agree is not None:
+            return self._agreed[0]
+        return self.stop.signum if self.stop is not None else None
+
     def _poll(self) -> None:
-        if self.stop is not None and self.stop.signum is not None:
-            seconds = self.clock()
+        if self._signum() is not None:
+            seconds = self._now()
             self._checkpoint(seconds)
             self._interrupted(seconds)
 
     def _interrupted(self, seconds: float) -> None:
+        signum = self._signum()
         where = f" (checkpoint {self.settings.checkpoint_path})" if self.settings.checkpoint_path else ""
-        raise Interrupted(f"interrupted ({self.stop.name}) at step {self.stepper.step} after {seconds:.1f} s; "
-                          f"continue with --resume{where}", self.stop.signum)  # fmt: skip
+        raise Interrupted(f"interrupted ({signal.Signals(signum).name}) at step {self.stepper.step} after "
+                          f"{seconds:.1f} s; continue with --resume{where}", signum)  # fmt: skip
 
     def _checkpoint_due(self) -> bool:
         every, every_s = self.settings.checkpoint_every, self.settings.checkpoint_seconds
-        return (every > 0 and self.stepper.step % every == 0) or (
-            every_s > 0 and time.perf_counter() - self._checkpoint_wall >= every_s
-        )
+        if every > 0 and self.stepper.step % every == 0:
+            return True
+        if self.agree is not None:
+            return self._agreed[2]
+        return every_s > 0 and time.perf_counter() - self._checkpoint_wall >= every_s
 
     def _checkpoint(self, seconds: float) -> None:
         self.stepper.checkpoint(seconds)
         self._checkpoint_wall = time.perf_counter()
+        self._agreed = (*self._agreed[:2], False)  # the agreed wall-clock checkpoint is taken
 
     def _keep(self) -> tuple[Any, int]:
         return self.stepper.snapshot(), self.stepper.step

@@ -152,3 +152,32 @@ def test_set_lr_keeps_each_groups_scale():
     opt = torch.optim.Adam([{"params": [a], "lr": 1.0}, {"params": [b], "lr": 1.0, "lr_scale": 0.05}])
     set_lr(opt, 0.2)
     assert [g["lr"] for g in opt.param_groups] == pytest.approx([0.2, 0.01])
+
+
+def test_agreement_decides_the_budget_the_stop_and_checkpoints_for_every_rank():
+    """Data-parallel: each step's decisions come from `agree` (rank 0's seconds, any rank's signal, rank 0's
+    wall-clock checkpoint), not from this rank's own clock or signal, so every rank ends at the same step."""
+    calls: list[tuple[int, int | None, bool]] = []
+
+    def rank0_seconds(toy: Toy, stop_at: int | None = None, wall_at: int | None = None):
+        def agree(signum, seconds, wall_due):
+            calls.append((toy.step, signum, wall_due))
+            other = signal.SIGTERM if toy.step == stop_at else None  # another rank got the signal
+            return other, float(toy.step), toy.step == wall_at  # rank 0's clock: one second a step
+
+        return agree
+
+    toy = Toy()
+    toy.clock = Clock()
+    seconds = TrainingLoop(_settings(max_steps=100, max_seconds=5.5, checkpoint_seconds=1e9), toy, toy.clock,
+                           agree=rank0_seconds(toy, wall_at=3)).run()  # fmt: skip
+    assert toy.step == 6 and seconds == 6.0 and toy.finished == [6]  # rank 0's 6 s spent the 5.5 s budget
+    assert toy.lrs == pytest.approx([0.1 * 0.01 ** (k / 5.5) for k in range(6)], rel=1e-12)  # its fraction
+    assert [s for s, _ in toy.checkpoints] == [4]  # due at the top of step 4 (step 3 done), taken at its end
+    assert all(signum is None for _, signum, _ in calls)  # this rank got no signal of its own
+    toy = Toy()
+    toy.clock = Clock()
+    with pytest.raises(Interrupted, match=r"interrupted \(SIGTERM\) at step 2 after 2.0 s") as e:
+        TrainingLoop(_settings(checkpoint_path="ckpt.pt"), toy, toy.clock, StopRequest(),
+                     agree=rank0_seconds(toy, stop_at=2)).run()  # fmt: skip
+    assert e.value.exit_code == 143 and [s for s, _ in toy.checkpoints] == [2] and toy.finished == []

@@ -17,6 +17,11 @@ resumes) the field model (`stages.train.setup`, `model.field_model`), `Loop.run`
 (`stages.train.loop`), `_final_eval` renders evenly spaced test views in full, and the manifest records what was
 used and left out (`stages.train.report`).
 
+Data-parallel (`model.distributed`): under torchrun (`torchrun --nproc-per-node N -m nerfpipe.cli train ...`) the
+N ranks share each step's rays and average their gradients; rank 0 takes the run folder (lock, resume and
+overwrite rules) and tells the others whether it could, writes every file, and alone renders the final evaluation
+and the reports; the manifest's `used.world_size` records N. Without torchrun nothing of this runs.
+
 Conventions: rays in the scene frame, unit directions, t = Euclidean distance (radiance.camera).
 Training draws random rays across all train views (colours held as uint8, rays made per batch from each view's
 camera; `stages.train.views`). RGBA scenes composite a random background per ray during training and white for
@@ -26,8 +31,10 @@ NeRF paper: 64 stratified + 128 importance samples, coarse and fine networks).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,6 +42,7 @@ import numpy as np
 import torch
 
 from nerfpipe.data.checks import verdict
+from nerfpipe.data.errors import UserError
 from nerfpipe.data.progress import NO_PROGRESS, Progress
 from nerfpipe.data.rundir import output_folder, write_manifest
 from nerfpipe.data.stop import stop_on_signals
@@ -42,6 +50,7 @@ from nerfpipe.data.transforms import Scene
 from nerfpipe.model.appearance import EVAL_RULE as APPEARANCE_EVAL_RULE
 from nerfpipe.model.camera_opt import pose_report, write_refined_transforms
 from nerfpipe.model.device import cpu_threads
+from nerfpipe.model.distributed import DataParallel, joined, rank_device, world_from_env
 from nerfpipe.stages.train.checks import train_checks
 from nerfpipe.stages.train.config import Config, FastOptions, RefineOptions, validate
 from nerfpipe.stages.train.defaults import final_eval_views
@@ -74,21 +83,52 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     progress: the CLI's display (`data.progress`); None trains silently.
     """
     validate(config)
+    world = world_from_env()
+    if world.size > 1:
+        with joined(world, rank_device(config.device, world)) as par, _folder(config, par):
+            with cpu_threads(config.threads):
+                return _run(config, (progress or NO_PROGRESS) if par.writer else NO_PROGRESS, par)
     marks = ("checkpoint.pt", "manifest.json")
     with output_folder(config.run_dir, overwrite=config.overwrite, resume=config.resume, marks=marks):
         with cpu_threads(config.threads):
             return _run(config, progress or NO_PROGRESS)
 
 
-def _run(config: Config, progress: Progress) -> Outputs:
+@contextlib.contextmanager
+def _folder(config: Config, par: DataParallel) -> Iterator[None]:
+    """Data-parallel: rank 0 takes the run folder (`output_folder`) and tells the other ranks whether it could;
+    they stop with one line when it could not (rank 0 prints why)."""
+    if not par.writer:
+        if not par.announce():
+            raise UserError(f"{config.run_dir}: rank 0 could not take the run folder (its message says why)")
+        yield
+        return
+    taken = False
+    try:
+        with output_folder(config.run_dir, overwrite=config.overwrite, resume=config.resume,
+                           marks=("checkpoint.pt", "manifest.json")):  # fmt: skip
+            taken = True
+            par.announce(True)
+            yield
+    finally:
+        if not taken:
+            par.announce(False)
+
+
+def _run(config: Config, progress: Progress, par: DataParallel | None = None) -> Outputs:
     started = time.time()
-    loop, scene, scene_path, record = setup(config, progress)
+    loop, scene, scene_path, record = setup(config, progress, par)
     config = loop.config
     run_dir = Path(config.run_dir)
-    (run_dir / "manifest.json").unlink(missing_ok=True)  # resumed: not a finished run until the end
+    if par is None or par.writer:
+        (run_dir / "manifest.json").unlink(missing_ok=True)  # resumed: not a finished run until the end
     with stop_on_signals() as stop:  # the loop checkpoints and raises Interrupted on SIGINT/SIGTERM
         loop.stop = stop
         seconds = loop.run()
+    if par is not None and not par.writer:  # rank 0 evaluates and writes the rest
+        return Outputs(run_dir=run_dir, checkpoint=loop.ckpt_path, metrics=loop.metrics.path,
+                       plot=run_dir / "psnr_vs_time.png", manifest=run_dir / "manifest.json", steps=loop.step,
+                       seconds=seconds, test_psnr=None)  # fmt: skip
     test_psnr, chosen, n_views = _final_eval(config, loop, seconds)
     write_run_config(run_dir, dataclasses.replace(config, final_eval_views=n_views), scene_path)
     plot = run_dir / "psnr_vs_time.png"

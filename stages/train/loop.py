@@ -10,10 +10,17 @@ grid is upsampled at the `upsample_at` fractions. Seconds spent on periodic eval
 Checkpoints: every `checkpoint_every` steps, every `checkpoint_seconds` of wall-clock time (so a killed run loses
 at most that), at the end, and when `stop` (`data.stop`: SIGINT/SIGTERM) is raised, after which the loop raises
 `data.errors.Interrupted` ("interrupted at step N after S s; continue with --resume").
+
+Data-parallel (`parallel`, `model.distributed`): every rank draws the step's whole batch and renders its share;
+the loss's per-ray terms are weighted by the share (n_r W / B), the priors and the depth term count alike on every
+rank, and the gradients (field, background, appearance, cameras) are averaged before the TV gradient and the
+optimiser steps. The loss's finiteness and the logged loss are the whole batch's. Rank 0 alone evaluates, logs and
+writes checkpoints; every rank checks at each checkpoint that the parameters and the grid are still the same.
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
 import time
@@ -31,6 +38,7 @@ from nerfpipe.data.rundir import MetricsLog
 from nerfpipe.data.stop import StopRequest
 from nerfpipe.model.camera_opt import CameraOpt
 from nerfpipe.model.checkpoint import save_checkpoint
+from nerfpipe.model.distributed import DataParallel
 from nerfpipe.model.field_model import FieldModel
 from nerfpipe.model.loop import Budget, Clock, LoopSettings, Schedule, TrainingDiverged, TrainingLoop
 from nerfpipe.radiance.compositing import over_background
@@ -119,6 +127,7 @@ class Loop:
     _losses: list[float] = field(default_factory=list)
     cameras: CameraOpt | None = None  # pose refinement (train --refine-poses; model.camera_opt)
     depth_rays: DepthRays | None = None  # sparse-point depth supervision (train --depth-loss)
+    parallel: DataParallel | None = None  # data-parallel runs (torchrun; model.distributed); None: one process
     _loop: TrainingLoop | None = None  # while run() runs
     _schedule: list[tuple[float, int]] = field(default_factory=list)  # upsampling still to come
     _task: Any = None  # the progress display's task
@@ -144,9 +153,11 @@ class Loop:
         """Train until max_steps or max_seconds; refresh the occupancy grid; checkpoint. Returns seconds."""
         cfg = self.config
         self._schedule = upsample_schedule(cfg.fast.resolution, cfg.fast.upsample_at)
-        self._loop = TrainingLoop(self.settings(), self, Clock(self.seconds_before), self.stop)
+        agree = self.parallel.agree if self.parallel is not None else None
+        self._loop = TrainingLoop(self.settings(), self, Clock(self.seconds_before), self.stop, agree)
         self._task = self.progress.add_task("train", total=cfg.max_seconds)
         self.model.field.train()
+        self._check_same("at the start")
         return self._loop.run()
 
     def prepare(self, fraction: float) -> bool:
@@ -167,29 +178,40 @@ class Loop:
 
     def train_step(self, lr: float) -> bool:
         """One optimiser step on a random batch of rays; False (and no update) when the loss is not finite."""
-        fast, model = self.config.fast, self.model
+        fast, model, par = self.config.fast, self.model, self.parallel
         idx = torch.randint(self.train.n_rays, (self.config.batch_rays,), generator=self.gen)
-        o, d, rgb, alpha = self.train.batch(idx, self.device)
-        view = self.train.view[idx].to(self.device)  # [B] each ray's training view
-        if self.cameras is not None:
-            o, d = self.cameras(o, d, view)
-        bg = model.background.train_colour(o.shape[0], self.gen, transparent=alpha == 0)  # [B, 3] or [3]
+        o, d, rgb, alpha, view, bg, bg_all = self._rays(idx)
         target = over_background(rgb, alpha[:, None], bg.detach())
-        out = model.render(o, d, bg, train=True, gen=None, view=view)
+        with self._draws(idx.numel()):
+            out = model.render(o, d, bg, train=True, gen=None, view=view)
+        share = 1.0 if par is None else o.shape[0] * par.world.size / idx.numel()  # per-ray terms' weight
         loss = torch.mean((out["rgb"] - target) ** 2)
         mse = float(loss.detach())
         if "rgb_coarse" in out:
             loss = loss + torch.mean((out["rgb_coarse"] - target) ** 2)
+        if share != 1.0:
+            loss = loss * share
         if model.kind == "fast" and fast.density_l1 > 0:
             loss = loss + fast.density_l1 * model.field.density_l1()
         if fast.distortion:
-            loss = loss + fast.distortion * model.distortion(out, o, d)
+            loss = loss + share * fast.distortion * model.distortion(out, o, d)
         if self.depth_rays is not None and fast.depth_loss:
-            loss = loss + fast.depth_loss * self._depth_term(bg)
-        if not math.isfinite(float(loss.detach())):
-            return False
-        self.opt.zero_grad(set_to_none=True)
-        loss.backward()
+            loss = loss + fast.depth_loss * self._depth_term(bg_all)
+        samples = float(out["samples"])
+        if par is None:
+            if not math.isfinite(float(loss.detach())):
+                return False
+            self.opt.zero_grad(set_to_none=True)
+            loss.backward()
+        else:
+            self.opt.zero_grad(set_to_none=True)
+            loss.backward()
+            weight = o.shape[0] / idx.numel()
+            total, mse, samples = par.average(
+                self._reduced_params(), [float(loss.detach()) / par.world.size, mse * weight, samples]
+            )
+            if not math.isfinite(total):
+                return False
         if model.kind == "fast" and fast.tv > 0:
             model.field.add_tv_grad_(fast.tv, TV_TEXELS, self.gen)
         self.opt.step()
@@ -197,11 +219,47 @@ class Loop:
         if self.cameras is not None:
             self.cameras.step(self._loop.fraction(), step=self.step + 1)  # the guard records the step it acts at
         self._losses.append(mse)
-        per_ray = float(out["samples"]) / o.shape[0]
+        per_ray = samples / idx.numel()
         self.samples_per_ray = 0.9 * self.samples_per_ray + 0.1 * per_ray if self.step > 0 else per_ray
         if model.grid is not None:
             self.skip_fraction = model.grid.skip_fraction
         return True
+
+    def _rays(self, idx: Tensor) -> tuple[Tensor, ...]:
+        """The batch idx [B] -> this rank's rays o, d [b, 3], rgb [b, 3], alpha [b], view [b] and background
+        ([b, 3] or [3]), and the whole batch's background (one process: b = B). The background colours are drawn
+        for the whole batch on every rank (the same generator as one process)."""
+        if self.parallel is None:
+            o, d, rgb, alpha = self.train.batch(idx, self.device)
+            view = self.train.view[idx].to(self.device)  # [B] each ray's training view
+            if self.cameras is not None:
+                o, d = self.cameras(o, d, view)
+            bg = self.model.background.train_colour(o.shape[0], self.gen, transparent=alpha == 0)  # [B, 3] or [3]
+            return o, d, rgb, alpha, view, bg, bg
+        transparent = (self.train.rgba[idx, 3] == 0).to(self.device)  # [B] as `alpha == 0` above
+        bg_all = self.model.background.train_colour(idx.numel(), self.gen, transparent=transparent)
+        mine = self.parallel.world.share(idx.numel())
+        o, d, rgb, alpha = self.train.batch(idx[mine], self.device)
+        view = self.train.view[idx[mine]].to(self.device)
+        if self.cameras is not None:
+            o, d = self.cameras(o, d, view)
+        return o, d, rgb, alpha, view, (bg_all[mine] if bg_all.ndim == 2 else bg_all), bg_all
+
+    def _draws(self, total: int):
+        """The renderer's random draws of this rank's rays (`DataParallel.share_draws`; one process: as they come).
+        The fast field draws one jitter a ray; the vanilla field's two draws get rank-distinct places."""
+        if self.parallel is None:
+            return contextlib.nullcontext()
+        per_ray = 1 if self.model.kind == "fast" else self.model.field.n_coarse + self.model.field.n_fine
+        return self.parallel.share_draws(total, self.parallel.world.share(total), per_ray)
+
+    def _reduced_params(self) -> list[Tensor]:
+        """Every parameter a step's backward reaches: the optimiser's (field, background, appearance) and the
+        cameras' corrections."""
+        params = [p for g in self.opt.param_groups for p in g["params"]]
+        if self.cameras is not None:
+            params += [p for p in self.cameras.parameters() if p.requires_grad]
+        return params
 
     def _depth_term(self, bg: Tensor) -> Tensor:
         """DS-NeRF's loss on DEPTH_RAYS random rays through the training cameras' sparse points."""
@@ -227,6 +285,9 @@ class Loop:
     def log(self, lr: float) -> None:
         """A metrics row every log_every steps, with the held-out PSNR every eval_every steps."""
         cfg = self.config
+        if self.parallel is not None and not self.parallel.writer:  # rank 0 logs
+            self._losses = []
+            return
         evaluate = self.test is not None and cfg.eval_every > 0 and self.step % cfg.eval_every == 0
         if not (self.step % cfg.log_every == 0 or evaluate):
             return
@@ -253,7 +314,8 @@ class Loop:
     def checkpoint(self, seconds: float) -> None:
         """checkpoint.pt and metrics.csv at the current step (periodic, and on Ctrl-C or SIGTERM)."""
         self._save(seconds)
-        self.metrics.save()
+        if self.parallel is None or self.parallel.writer:
+            self.metrics.save()
 
     def finish(self, seconds: float) -> None:
         """The final occupancy grid and checkpoint."""
@@ -263,6 +325,19 @@ class Loop:
             self.model.grid.update(self.model.field.density, self.step, full=True, points_per_cell=4)
         self._save(seconds)
 
+    def _check_same(self, where: str) -> None:
+        """Data-parallel: stop when the ranks' parameters or occupancy grids differ (`DataParallel.check_same`)."""
+        if self.parallel is not None:
+            named = {f"field.{k}": v for k, v in self.model.field.state_dict().items()}
+            if self.model.grid is not None:
+                named |= {f"occupancy.{k}": v for k, v in self.model.grid.state_dict().items()}
+            if self.cameras is not None:
+                named["cameras"] = self.cameras.raw
+            self.parallel.check_same(named, where)
+
     def _save(self, seconds: float) -> None:
+        self._check_same(f"at step {self.step}")
+        if self.parallel is not None and not self.parallel.writer:  # rank 0 writes
+            return
         self.ckpt_sha256 = save_checkpoint(self.ckpt_path, self.model, self.opt, self.step, seconds, self.lr_factor,
                                            self.gen.get_state(), self.cameras)  # fmt: skip

@@ -96,7 +96,12 @@ def used_and_left_out(
         used["march_step"] = {"train": model.step_size, "render": model.step_size * model.render_step_factor}
     used["scene_model"] = model.space.name
     used["space"] = model.space.describe()
+    used["world_size"] = 1 if loop.parallel is None else loop.parallel.world.size
     left_out = model.space.left_out(is_forward_facing(scene))
+    if loop.parallel is not None:
+        used["data_parallel"] = loop.parallel.describe()
+    else:
+        left_out["data_parallel"] = "one process (torchrun --nproc-per-node N ... shares each step's rays among N)"
     if not test_idx:
         left_out["test_psnr"] = "scene has no test or val split"
     if model.grid is None:

@@ -28,6 +28,7 @@ from nerfpipe.model.appearance import Appearance
 from nerfpipe.model.camera_opt import CameraOpt, CameraSchedule, pivot_depths
 from nerfpipe.model.checkpoint import read_checkpoint, restore_appearance, restore_background, restore_space
 from nerfpipe.model.device import resolve_device
+from nerfpipe.model.distributed import DataParallel
 from nerfpipe.model.field_model import FieldModel, ModelSettings, build_model, make_space
 from nerfpipe.stages.train.config import Config, RefineOptions
 from nerfpipe.stages.train.defaults import Defaults, resolve_defaults, resolve_downscale
@@ -42,9 +43,10 @@ RECORD = ("scene_sha256", "resumed")
 METRICS = ["step", "seconds", "loss", "train_psnr", "test_psnr", "lr", "samples_per_ray", "skip_fraction"]
 
 
-def setup(config: Config, progress: Progress) -> tuple[Loop, Scene, Path, dict]:
-    """The run's loop (its config the resolved one), the scene, its path and the manifest's `used.defaults`."""
-    device = resolve_device(config.device)
+def setup(config: Config, progress: Progress, par: DataParallel | None = None) -> tuple[Loop, Scene, Path, dict]:
+    """The run's loop (its config the resolved one), the scene, its path and the manifest's `used.defaults`.
+    Data-parallel (`par`): every rank reads the run's files, then rank 0 alone writes config.json."""
+    device = resolve_device(config.device) if par is None else par.device
     scene_path, scene = _read_scene(Path(config.scene_dir))
     run_dir = Path(config.run_dir)
     ckpt_path = run_dir / "checkpoint.pt"
@@ -53,6 +55,8 @@ def setup(config: Config, progress: Progress) -> tuple[Loop, Scene, Path, dict]:
     if state is not None:
         config, resumed = resume_config(config, run_dir, scene_path)  # the same run, or one line naming why not
         record["resumed"] = [*_recorded(run_dir).get("resumed", []), {"step": int(state["step"]), **resumed}]
+    if par is not None:
+        par.barrier()  # every rank has read config.json and the checkpoint before rank 0 rewrites them
     _check_field(config, ckpt_path, state)
     torch.manual_seed(config.seed)
     gen = torch.Generator().manual_seed(config.seed)
@@ -64,6 +68,8 @@ def setup(config: Config, progress: Progress) -> tuple[Loop, Scene, Path, dict]:
     _clear_plain_background(found, train, test)
     _check_scene(found)
     resolved = found.config
+    if par is not None and resolved.batch_rays < par.world.size:
+        raise UserError(f"expected batch_rays >= the number of ranks ({par.world.size}), got {resolved.batch_rays}")
     model = _model(resolved, found, scene, state, device, len(train_idx))
     cameras = _camera_opt(resolved.refine, scene, train_idx, state, device)
     opt, step, seconds_before, lr_factor = _optimizer(model, resolved.lr, state, gen)
@@ -71,12 +77,13 @@ def setup(config: Config, progress: Progress) -> tuple[Loop, Scene, Path, dict]:
     if config.resume:
         metrics.load()
         metrics.rows = [r for r in metrics.rows if int(r["step"]) <= step]
-    run_dir.mkdir(parents=True, exist_ok=True)
-    write_run_config(run_dir, resolved, scene_path, record)
+    if par is None or par.writer:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        write_run_config(run_dir, resolved, scene_path, record)
     loop = Loop(config=resolved, model=model, opt=opt, train=train, test=test, eval_px=_eval_pixels(resolved, test),
                 gen=gen, device=device, metrics=metrics, ckpt_path=ckpt_path, progress=progress, step=step,
                 seconds_before=seconds_before, lr_factor=lr_factor, cameras=cameras,
-                depth_rays=found.depth_rays)  # fmt: skip
+                depth_rays=found.depth_rays, parallel=par)  # fmt: skip
     return loop, scene, scene_path, _record(found, model)
 
 
