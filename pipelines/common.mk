@@ -13,6 +13,8 @@ MESH_ARGS ?=
 # data/ and model/ (every .py below them, found afresh on each make run), stages/__init__.py, and the stage's
 # own module stages/NAME.py or package stages/NAME/ (stages never import one another: tests/test_layering.py).
 CORE_CODE := cli.py $(sort $(shell find $(wildcard radiance data model) -name '*.py' -not -path '*/__pycache__/*'))
+# pipelines/Snakefile reads stage_code through make --eval, and each chain target's path: renaming them breaks it
+# (tests/test_snakemake.py).
 stage_code = stages/__init__.py $(wildcard stages/$(1).py) \
 	$(if $(wildcard stages/$(1)/.),$(sort $(shell find stages/$(1) -name '*.py' -not -path '*/__pycache__/*'))) \
 	$(CORE_CODE)
