@@ -2,7 +2,8 @@
 one camera.
 
 Cameras are world_from_cam [4, 4] in the scene frame, OpenGL axes (x right, y up, looking down -z);
-`render_view` returns z-depth (along the optical axis) in scene units. Paths come from `radiance.paths`:
+`render_view` returns z-depth (along the optical axis) in scene units; a field renders the camera's rays, a
+`CameraRenderable` (splats, `model.splat_run`) rasterises the whole camera itself. Paths come from `radiance.paths`:
 `turntable` orbits the point the training cameras look at, `arc` is the part of that orbit the training cameras
 cover, `trajectory` follows the training cameras (capture order, or azimuth order when the capture order wanders)
 smoothed and resampled, `spiral` is LLFF's forward-facing path, `test` / `train` replay a split's cameras with
@@ -19,7 +20,7 @@ import dataclasses
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import torch
@@ -32,8 +33,8 @@ from nerfpipe.radiance.camera import Intrinsics, generate_rays
 from nerfpipe.radiance.space import Space
 
 __all__ = [
-    "PATHS", "OPAQUE", "Renderable", "render_view", "training_intrinsics", "CameraPath", "camera_path",
-    "is_path_file", "path_from_file",
+    "PATHS", "OPAQUE", "Renderable", "CameraRenderable", "render_view", "training_intrinsics", "CameraPath",
+    "camera_path", "is_path_file", "path_from_file",
 ]  # fmt: skip
 
 PATHS = ("auto", "turntable", "arc", "trajectory", "spiral", "test", "train")
@@ -70,11 +71,24 @@ class Renderable(Protocol):
     ) -> dict[str, torch.Tensor]: ...
 
 
+@runtime_checkable
+class CameraRenderable(Protocol):
+    """A renderable drawn a whole camera at a time (a rasteriser: `model.splat_run.SplatRun`), not ray by ray."""
+
+    def render_camera(self, intr: Intrinsics, world_from_cam: np.ndarray, *, depth: bool = True) -> dict: ...
+
+
 @torch.no_grad()
-def render_view(trained: Renderable, intr: Intrinsics, world_from_cam: np.ndarray, device: torch.device):
+def render_view(
+    trained: Renderable, intr: Intrinsics, world_from_cam: np.ndarray, device: torch.device, *, depth: bool = True
+):  # fmt: skip
     """Render one camera (scene frame, OpenGL axes). Returns numpy float32 arrays:
     rgb [H, W, 3], depth [H, W] (z-depth of the expected t, scene units), depth_median [H, W] (z-depth of the
-    median t), acc [H, W]. Memory: `trained.render_rays` works through the rays in chunks."""
+    median t), acc [H, W]. Memory: `trained.render_rays` works through the rays in chunks.
+    A `CameraRenderable` (splats) renders the whole camera itself; with `depth=False` it may leave depth and
+    depth_median out (a second pass for splats). A field returns them whatever `depth` says."""
+    if isinstance(trained, CameraRenderable):
+        return trained.render_camera(intr, world_from_cam, depth=depth)
     pose = torch.as_tensor(np.asarray(world_from_cam, dtype=np.float64))
     rays_o, rays_d = generate_rays(intr, pose)  # float64 [R, 3]
     forward = -pose[:3, 2]

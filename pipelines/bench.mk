@@ -24,6 +24,14 @@ bench-ndc: $(INSTALLED)
 bench-mesh: $(INSTALLED)
 	$(VENV)/bin/python -m benchmarks.bench_mesh --out $(BENCH_OUT)/mesh
 
+# issue 29: the default textured mesh of a real capture against its field, on its held-out cameras (the fox run
+# that bench-real makes; MESH_RUN=DIR for another)
+MESH_RUN ?= $(BENCH_OUT)/real/fox/run
+.PHONY: bench-mesh-texture
+bench-mesh-texture: $(INSTALLED)
+	@test -f $(MESH_RUN)/checkpoint.pt || { echo "bench-mesh-texture: no trained run at $(MESH_RUN) (make bench-real makes it, or MESH_RUN=DIR)"; exit 2; }
+	$(VENV)/bin/python -m benchmarks.bench_mesh_texture $(MESH_RUN) --out $(BENCH_OUT)/mesh_texture
+
 # Peak RSS of train against view count at 1920x1080 (issue 19: big captures in bounded memory); ~5 min.
 .PHONY: bench-memory
 bench-memory: $(INSTALLED)

@@ -1,6 +1,6 @@
 """Stage `eval`: image quality on the held-out views, render speed and (with ground truth) depth error.
 
-    nerfpipe eval RUN_DIR OUT.json [--ground-truth DIR]
+    nerfpipe eval RUN_DIR|SPLATS.ply OUT.json [--ground-truth DIR]
 
 Per test view (the `test` split; `val` when there is none): PSNR, SSIM (`skimage.metrics.structural_similarity`,
 channel_axis, data_range 1) of the render against the photo (RGBA photos composited on the run's evaluation
@@ -24,6 +24,8 @@ NeRF-W's protocol (`--appearance-rule half`): each test view's code is fitted to
 the view is scored on the right half only -- runs without appearance are then scored on the right half too, so
 the two compare on the same pixels (JSON `appearance`, `appearance_rule`, `scored_pixels`).
 
+A splat .ply from `nerfpipe splat` is scored on its run's test views, rasterised (`model.splat_run`; its train PSNR
+is the splat report's); `input` in OUT.json and the manifest's `used` says which (field | splats, the file's sha256).
 Writes OUT.json, OUT.metrics.csv (per view: step, seconds, psnr, ssim, depth_mae) and OUT.manifest.json (last).
 
 Self-check (`check`: ok | suspect and `checks` (`data.checks`), in OUT.manifest.json and OUT.json):
@@ -55,11 +57,12 @@ from nerfpipe.data.errors import UserError
 from nerfpipe.data.ground_truth import GroundTruth, read_ground_truth
 from nerfpipe.data.masks import load_masked_image
 from nerfpipe.data.progress import NO_PROGRESS, Progress
-from nerfpipe.data.rundir import MetricsLog, Stopwatch, config_to_json, refuse_output_inside, sidecar, write_manifest
+from nerfpipe.data.rundir import MetricsLog, Stopwatch, config_to_json, sidecar, write_manifest
 from nerfpipe.data.transforms import Scene
 from nerfpipe.model import OPAQUE, load_trained, render_view, resolve_device
 from nerfpipe.model.appearance import EVAL_RULES as APPEARANCE_RULES
 from nerfpipe.model.appearance import apply_transform, fit_code
+from nerfpipe.model.splat_run import open_input
 from nerfpipe.radiance.align import umeyama
 from nerfpipe.radiance.compositing import over_background
 from nerfpipe.radiance.metrics import psnr
@@ -84,7 +87,7 @@ MAX_GAP_DB = HOLDOUT_GAP_DB
 @dataclass(frozen=True, kw_only=True)
 class Config:
     run_dir: Path
-    """Trained run directory."""
+    """Trained run directory, or a splat .ply made from one by `nerfpipe splat` (scored on the run's test views)."""
     out: Path
     """Output JSON file."""
     views: int | None = None
@@ -192,10 +195,11 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     out = Path(config.out)
     if out.suffix.lower() != ".json":
         raise UserError(f"{out}: expected a .json output path")
-    refuse_output_inside(out, config.run_dir, "eval output")
+    source = open_input(config.run_dir)
+    source.refuse_output(out, "eval output")
     gt = read_ground_truth(config.ground_truth) if config.ground_truth is not None else None
     device = resolve_device(config.device)
-    trained = load_trained(config.run_dir, device)
+    trained = source.load(device, load_trained)
     scene = trained.scene
     split = "test" if scene.split("test") else "val"
     idx = scene.split(split)
@@ -254,7 +258,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
             pose, moved = optimise_test_pose(trained.model, bg_t, pose, intr, photo, pose_steps, centre=centre)
             test_pose_moves.append(moved)
         t0 = time.perf_counter()
-        view = _render_scored(trained, intr, pose, device, photo, half, background)
+        view = _render_scored(trained, intr, pose, device, photo, half, background, depth=gt is not None)
         render_seconds += time.perf_counter() - t0
         rendered_px += w * h
         pred = np.clip(view["rgb"], 0.0, 1.0)
@@ -274,7 +278,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         progress.advance(task)
 
     result: dict[str, Any] = {
-        "run_dir": str(config.run_dir), "split": split, "n_views": len(views),
+        "run_dir": str(source.run_dir), "input": source.record(), "split": split, "n_views": len(views),
         "psnr": _mean([v["psnr"] for v in views]), "ssim": _mean([v["ssim"] for v in views]),
         "lpips": _mean([v["lpips"] for v in views]) if lpips_fn else None, "lpips_unavailable": lpips_reason,
         "rays_per_second": rendered_px / max(render_seconds, 1e-9), "render_seconds": render_seconds,
@@ -289,19 +293,18 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         "scored_pixels": "right half of each test view (--appearance-rule half)" if half else "whole views",
     }  # fmt: skip
     result.update(_depth_summary(gt, alignment, abs_errors, covered, gt_pixels))
-    train = train_psnr(config.run_dir)
+    train = train_psnr(source.run_dir) if source.splat_file is None else source.train_psnr
     result["train_psnr"], result["train_psnr_from"] = train if train is not None else (None, "no metrics.csv value")
     checked = verdict(self_checks(result["psnr"], train))
     result.update(checked)
     metrics.save()
     manifest = write_manifest(
         out.parent, stage="eval", started=started, name=sidecar(out, "manifest.json").name,
-        inputs=[Path(config.run_dir) / "checkpoint.pt", Path(config.run_dir) / "config.json",
-                *([gt.folder / "cameras.json"] if gt else [])],
-        outputs=[out, metrics.path], used={"split": split, "views": len(views), "device": str(device),
+        inputs=[*source.inputs, *([gt.folder / "cameras.json"] if gt else [])],
+        outputs=[out, metrics.path], used={"input": result["input"], "split": split, "views": len(views),
+                                           "device": str(device), "appearance_rule": config.appearance_rule,
                                            "ssim": "skimage structural_similarity, 7x7, data_range 1",
-                                           "test_poses": result["test_poses"], "appearance": result["appearance"],
-                                           "appearance_rule": config.appearance_rule},
+                                           "test_poses": result["test_poses"], "appearance": result["appearance"]},
         left_out={**({"lpips": lpips_reason} if lpips_reason else {}),
                   **({} if gt else {"depth": "no --ground-truth given"})},
         config=config_to_json(config), **checked,
@@ -341,12 +344,13 @@ def self_checks(psnr_value: float | None, train: tuple[float, str] | None) -> li
     return checks
 
 
-def _render_scored(trained, intr, pose, device, photo: np.ndarray, half: bool, background: np.ndarray) -> dict:
+def _render_scored(trained, intr, pose, device, photo: np.ndarray, half: bool, background: np.ndarray,
+                   depth: bool = True) -> dict:  # fmt: skip
     """render_view; with the half rule and appearance codes, the view rendered without appearance, its code
     fitted on the left half of `photo` [H, W, 3] (`model.appearance.fit_code`) and its transform applied."""
     app = trained.appearance
     if not half or app is None:
-        return render_view(trained, intr, pose, device)
+        return render_view(trained, intr, pose, device, depth=depth)
     with trained.appearance_off():
         view = render_view(trained, intr, pose, device)
     h, w = view["acc"].shape

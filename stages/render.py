@@ -1,6 +1,6 @@
-"""Stage `render`: a trained run -> an H.264 mp4 along a camera path (and optionally the PNG frames).
+"""Stage `render`: a trained run, or splats made from one, -> an H.264 mp4 along a camera path (and PNG frames).
 
-    nerfpipe render RUN_DIR OUT.mp4 [--path auto|turntable|arc|trajectory|spiral|test|train|FILE.json]
+    nerfpipe render RUN_DIR|SPLATS.ply OUT.mp4 [--path auto|turntable|arc|trajectory|spiral|test|train|FILE.json]
         [--frames 120] [--fps 30] [--downscale 1] [--max-seconds S] [--elevation DEG] [--radius R]
         [--outputs rgb,depth,accumulation] [--frames-dir DIR]
 
@@ -30,8 +30,8 @@ Next to OUT.mp4: `OUT.metrics.csv` (frame, seconds, rays/s, psnr) and `OUT.manif
 under a hidden temporary name and renamed into place after the manifest (`make`'s target is OUT.mp4); on any
 failure (a full disk at the manifest, Ctrl-C, SIGTERM) the temporary and the files this render wrote are deleted
 (metrics, manifest, frames), and an earlier OUT.mp4 stays as it was. Frames: at most `MAX_SIDE` px a side and
-`MAX_PIXELS` pixels.
-Cameras and rendering come from the trained-run library (`model`).
+`MAX_PIXELS` pixels. Cameras and rendering come from the trained-run library (`model`); a splat .ply from `nerfpipe
+splat` renders on its run's cameras, rasterised (`model.splat_run`: pinhole); the manifest's `used.input` says which.
 
 Self-check (`OUT.manifest.json` `check`: ok | suspect, `checks`: `data.checks`), from what every frame's render
 already returns (opacity per ray), gathered while the video is written:
@@ -63,6 +63,7 @@ from nerfpipe.data.transforms import Scene, load_image
 from nerfpipe.data.video import check_output, colorize, grey, removed_on_failure, to_uint8, video_writer, write_png
 from nerfpipe.model import OPAQUE, PATHS, CameraPath, Renderable, camera_path, load_trained, render_view, resolve_device
 from nerfpipe.model.cameras import is_path_file
+from nerfpipe.model.splat_run import open_input
 from nerfpipe.radiance.compositing import over_background
 from nerfpipe.radiance.metrics import psnr
 
@@ -93,7 +94,7 @@ MAX_STILL = 0.9
 @dataclass(frozen=True, kw_only=True)
 class Config:
     run_dir: Path
-    """Trained run directory (config.json, checkpoint.pt, ...)."""
+    """Trained run directory (config.json, checkpoint.pt, ...), or a splat .ply made from one by `nerfpipe splat`."""
     out: Path
     """Output video, `.mp4`."""
     path: str = "auto"
@@ -324,7 +325,9 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     if config.frames_dir is not None:
         check_output(config.frames_dir, "PNG frames", folder=True)
     device = resolve_device(config.device)
-    trained = load_trained(config.run_dir, device)
+    source = open_input(config.run_dir)
+    source.refuse_output(out, "video")
+    trained = source.load(device, load_trained)
     scene = trained.scene
     cams = camera_path(scene, config.path, frames=config.frames, downscale=config.downscale,
                        elevation=config.elevation, radius=config.radius)  # fmt: skip
@@ -341,9 +344,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     background = trained.background.detach().float().cpu().numpy().reshape(3)
 
     metrics = MetricsLog(sidecar(out, "metrics.csv"), ["step", "seconds", "rays_per_s", "psnr"])
-    clock = Stopwatch()
-    size = (0, 0)
-    progress = progress or NO_PROGRESS
+    clock, size, progress = Stopwatch(), (0, 0), progress or NO_PROGRESS
     task = progress.add_task(f"render {config.path}", total=len(cams.names))
     fps = config.fps
     asked_frames = budget.get("asked", {}).get("frames")
@@ -357,7 +358,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     with removed_on_failure(out.parent, config.frames_dir) as written, video_writer(out, fps=fps) as video:
         for k in range(len(cams.names)):
             t0 = time.perf_counter()
-            view = render_view(trained, cams.intrinsics[k], cams.world_from_cams[k], device)
+            view = render_view(trained, cams.intrinsics[k], cams.world_from_cams[k], device, depth=watch.shows_depth)
             seconds = time.perf_counter() - t0
             watch.add(view)
             panels = []
@@ -386,10 +387,9 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         written.append(metrics.save())
         written.append(write_manifest(
             out.parent, stage="render", started=started, name=sidecar(out, "manifest.json").name,
-            inputs=[Path(config.run_dir) / "checkpoint.pt", Path(config.run_dir) / "config.json"],
-            outputs=[out, metrics.path, *frame_paths],
-            used={**cams.used, "budget": budget, "outputs": list(outputs), "device": str(device),
-                  "frames": len(cams.names), "fps": fps, "size_hw": list(size),
+            inputs=source.inputs, outputs=[out, metrics.path, *frame_paths],
+            used={**cams.used, "input": source.record(), "budget": budget, "outputs": list(outputs),
+                  "device": str(device), "frames": len(cams.names), "fps": fps, "size_hw": list(size),
                   "codec": "h264 yuv420p crf 18 (odd sizes padded by edge)",
                   **({"depth_range_user_units": [lo, hi], "depth_colormap": "turbo", "depth_background":
                       f"black where accumulation < {OPAQUE}"} if "depth" in outputs else {})},

@@ -357,3 +357,26 @@ def test_looked_at_crop_meshes_the_object_not_the_floor(tmp_path):
                                         frame="normalized", colors=False, crop="field"))  # fmt: skip
     wb = _load(whole.mesh).bounds
     assert wb[0, 2] < s.FLOOR - 0.05 and (wb[1, :2] - wb[0, :2] > 1.9).all(), wb
+
+
+def test_texture_baked_from_the_field_through_the_stage(tmp_path):
+    """`texture=True`: OBJ + MTL + PNG (and a GLB with the PNG inside) whose texels read back the field's colour
+    at the surface; a PLY output with a texture is refused in one line."""
+    s = StandIn(tmp_path)
+    out = mesh.extract(s, mesh.Config(run_dir=tmp_path, out=tmp_path / "m.obj", resolution=40, threshold=50.0,
+                                      frame="normalized", texture=True, texture_size=256))  # fmt: skip
+    report = json.loads(out.report.read_text())
+    assert sorted(p.name for p in tmp_path.glob("m.*")) == ["m.mtl", "m.obj", "m.png", "m.report.json"]
+    assert report["texture"]["size"] == [256, 256] and "vertex_colors" in report["left_out"]
+    m = trimesh.load(out.mesh, process=False, force="mesh")
+    from nerfpipe.stages.mesh.texture import sample_texture
+
+    uv = np.asarray(m.visual.uv)
+    got = sample_texture(np.asarray(m.visual.material.image.convert("RGB")), uv) / 255.0
+    want = s.color(torch.as_tensor(np.asarray(m.vertices)), None).numpy()
+    assert np.median(np.abs(got - want)) < 0.03, np.median(np.abs(got - want))
+    glb = mesh.extract(s, mesh.Config(run_dir=tmp_path, out=tmp_path / "g.glb", resolution=32, threshold=50.0,
+                                      texture=True, texture_size=128))  # fmt: skip
+    assert len(trimesh.load(glb.mesh, force="mesh").faces) == glb.faces
+    with pytest.raises(UserError, match="texture needs an .obj or .glb output"):
+        mesh.extract(s, mesh.Config(run_dir=tmp_path, out=tmp_path / "t.ply", texture=True))

@@ -63,6 +63,7 @@ from nerfpipe.stages.mesh.field_access import (
     vertex_colors,
 )
 from nerfpipe.stages.mesh.grid import Grid, make_grid, sample_volume
+from nerfpipe.stages.mesh.texture import bake_texture, write_glb_textured, write_obj_textured
 from nerfpipe.stages.mesh.threshold import auto_threshold
 
 __all__ = [
@@ -109,6 +110,11 @@ class Config:
     """Cleanup steps (None: the raw marching-cubes mesh, `--no-cleanup`)."""
     colors: bool = True
     """Write per-vertex colours from the field (ignored for density-only fields)."""
+    texture: bool = False
+    """Bake a texture from the field instead of vertex colours (`stages.mesh.texture`): OUT.obj writes OUT.obj,
+    OUT.mtl and OUT.png; OUT.glb embeds the PNG. Not for .ply."""
+    texture_size: int | None = None
+    """Texture width = height in texels (a power of two); None: from the face count (256..2048)."""
     coarse_resolution: int = 128
     """Coarse pass: the fine grid is evaluated only in blocks near the surface of a grid about this fine
     (>= resolution: every voxel is evaluated)."""
@@ -166,6 +172,10 @@ def parse_bbox(text: str) -> tuple[float, float, float, float, float, float] | N
 def _validate(config: Config) -> None:
     if Path(config.out).suffix.lower() not in FORMATS:
         raise UserError(f"{config.out}: unknown mesh format; expected one of {', '.join(FORMATS)}")
+    if config.texture and Path(config.out).suffix.lower() == ".ply":
+        raise UserError(f"{config.out}: texture needs an .obj or .glb output (PLY holds no texture)")
+    if config.texture_size is not None and not (16 <= config.texture_size <= 8192):
+        raise UserError(f"texture_size: expected 16..8192 texels, got {config.texture_size}")
     if not 8 <= config.resolution <= 2048:
         raise UserError(f"--resolution: expected 8..2048, got {config.resolution}")
     if config.threshold != "auto" and (isinstance(config.threshold, str) or not math.isfinite(float(config.threshold))):
@@ -298,10 +308,17 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
         raise UserError(f"{config.run_dir}: no surface left after cleanup at threshold {level:g}; try --no-cleanup")
     t = lap("cleanup", t)
 
-    colors = None
+    colors, tex = None, None
     left_out: dict[str, str] = {}
     v_scene, f_scene = transform_mesh(verts, faces, np.linalg.inv(out_from_scene))
-    if config.colors and has_color(trained):
+    if config.texture and has_color(trained):  # colours rendered from the field at each texel, along the normal
+        tex = bake_texture(v_scene, f_scene, trained.color, texture_size=config.texture_size, device=device)
+        timing.update({f"texture_{k}": v for k, v in tex.info["timing_seconds"].items()})
+        tex = tex.transformed(out_from_scene)
+        left_out["vertex_colors"] = "a texture is baked instead (texture)"
+    elif config.texture:
+        left_out["texture"] = "the field is density-only"
+    elif config.colors and has_color(trained):
         colors = vertex_colors(trained, v_scene, f_scene, 1 << 16)
     elif config.colors:
         left_out["colors"] = "the field is density-only"
@@ -314,16 +331,23 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
     # the mesh takes its name only after its report is written: a failure in between leaves no OUT that `make`
     # would take for done (the report alone is not a make target)
     with atomic_path(out) as tmp:
-        _export(out, tmp, verts, faces, colors)
+        extra: list[Path] = []
+        if tex is not None and out.suffix.lower() == ".obj":
+            extra = [p for k, p in write_obj_textured(out, tex, into=tmp).items() if k != "obj"]
+        elif tex is not None:
+            write_glb_textured(out, tex, into=tmp)
+        else:
+            _export(out, tmp, verts, faces, colors)
         lap("export", t)
         stats = mesh_stats(verts, faces)
         timing["total"] = round(time.perf_counter() - t_start, 3)
         seconds = timing["total"]
         report = write_manifest(
-            out.parent, name=f"{out.stem}.report.json", stage="mesh", started=started, inputs=inputs, outputs=[out],
+            out.parent, name=f"{out.stem}.report.json", stage="mesh", started=started, inputs=inputs,
+            outputs=[out, *extra],
             used={"config": config_to_json(config)}, left_out=left_out, version=VERSION,
             threshold={"value": level, **threshold_info},
-            crop=crop_info,
+            crop=crop_info, texture=tex.info if tex is not None else None,
             grid={"crop": how, "frame": "scene" if np.allclose(grid.scene_from_grid, np.eye(4)) else config.frame,
                   "lo": grid.lo.tolist(), "hi": grid.hi.tolist(), "voxel": grid.h, "samples_per_axis": list(grid.shape),
                   "coarse_stride": grid.stride, "occupancy_skipping": occupancy_binary(trained) is not None,

@@ -2,6 +2,7 @@
 X-ray run.
 
     nerfpipe view SCENE_DIR|RUN_DIR [--port 7007] [--host 127.0.0.1] [--preview 256] [--refine 384]
+        [--splats SPLATS.ply]
 
 - SCENE_DIR (a folder with transforms.json): camera frusta with their images, sparse points (transforms.json's
   `sparse_points_path`), the scene box, the up axis; clicking a camera shows its image and name; a toggle draws
@@ -9,7 +10,9 @@ X-ray run.
 - RUN_DIR (`train`'s output): the field rendered live from the browser's camera, coarse while it moves and
   refined when it stops, as rgb / depth / accumulation; the training cameras; the test views' PSNR from the run's
   files (`stages.view.run_view`), and the camera-path recorder (`stages.view.recorder`), whose JSON
-  `nerfpipe render RUN_DIR OUT.mp4 --path FILE.json` plays back.
+  `nerfpipe render RUN_DIR OUT.mp4 --path FILE.json` plays back. With splats made from the run (`--splats FILE.ply`,
+  or RUN_DIR/splats.ply when it is there) the browser draws the Gaussians itself, in real time, and a `Draw`
+  dropdown switches between them and the field's render (`stages.view.splat_view`).
 - An X-ray run (`xray-train`'s output): DRR / MIP at any gantry angle and a movable slice plane
   (`stages.view.xray_view`).
 
@@ -40,6 +43,7 @@ from nerfpipe.stages.view.gate import Gate
 from nerfpipe.stages.view.recorder import PathRecorder, add_recorder_gui
 from nerfpipe.stages.view.run_view import MODES, LiveRender, psnr_summary
 from nerfpipe.stages.view.scene_view import SceneView
+from nerfpipe.stages.view.splat_view import SplatLayer, find_splats
 from nerfpipe.stages.view.xray_view import XrayView
 
 __all__ = ["Config", "Outputs", "Viewer", "kind_of", "serve", "run"]
@@ -60,6 +64,9 @@ class Config:
     paths_dir: Path | None = None
     """The only folder the recorder writes to: new `NAME.json` camera paths, never over an existing file (default:
     `camera_paths/` in the folder viewed)."""
+    splats: Path | None = None
+    """A train run's Gaussian splats to draw in the browser beside the field's render: a .ply the splat stage made
+    from this run (None: RUN_DIR/splats.ply when it is there)."""
     device: str = "auto"
     """torch device: auto (cuda if available, else cpu), cpu, cuda, cuda:1, ..."""
 
@@ -86,6 +93,7 @@ class Viewer:
     scene_view: SceneView | None = None
     recorder: PathRecorder | None = None
     xray_view: XrayView | None = None
+    splats: SplatLayer | None = None
     stopped: threading.Event = field(default_factory=threading.Event)
 
     @property
@@ -136,6 +144,9 @@ def serve(config: Config) -> Viewer:
     paths_dir = Path(config.paths_dir) if config.paths_dir is not None else folder / "camera_paths"
     if paths_dir.exists() and not paths_dir.is_dir():
         raise UserError(f"{paths_dir}: paths_dir is not a folder (the recorder saves camera paths in it)")
+    if config.splats is not None and kind != "run":
+        raise UserError(f"{target}: splats: only a train run's viewer draws splats, this is a {kind} folder")
+    splats = find_splats(target, config.splats) if kind == "run" else None
     device = resolve_device(config.device)
     loaded = load_trained(target, device) if kind == "run" else None
     if kind == "xray":
@@ -160,7 +171,7 @@ def serve(config: Config) -> Viewer:
         if loaded is None:
             view.draw()
         else:
-            _draw_run(server, viewer, loaded, target, config)
+            _draw_run(server, viewer, loaded, target, config, splats)
             train = scene.split("train") or tuple(range(len(scene.frames)))
             view.draw(train, label="Training cameras", images=False)
         viewer.scene_view = view
@@ -171,10 +182,12 @@ def serve(config: Config) -> Viewer:
     return viewer
 
 
-def _draw_run(server, viewer: Viewer, trained, run_dir: Path, config: Config) -> None:
+def _draw_run(server, viewer: Viewer, trained, run_dir: Path, config: Config, splats) -> None:
     live = LiveRender(server, trained, preview=config.preview, refine=config.refine)
     viewer.live = live
     with server.gui.add_folder("Render"):
+        if splats is not None:
+            viewer.splats = SplatLayer.add(server, splats, live)
         mode = server.gui.add_dropdown("Show", MODES, initial_value="rgb")
         server.gui.add_markdown(psnr_summary(run_dir))
 

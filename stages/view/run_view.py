@@ -5,7 +5,8 @@ Each connected browser gets a render thread. A camera update renders at once wit
 setting at `preview` pixels on the long side; when the camera has not moved for `SETTLE_SECONDS`, the same view
 is rendered again at the run's inference step and `refine` pixels. A frame is shown as the scene's background
 image (JPEG). Depth is shown with turbo over the 1st-99th percentile of the frame's opaque z-depth; pixels with
-accumulation < `model.OPAQUE` are black.
+accumulation < `model.OPAQUE` are black. While the browser draws the run's splats instead
+(`stages.view.splat_view`), rendering is paused and the background image cleared.
 """
 
 from __future__ import annotations
@@ -80,6 +81,8 @@ class LiveRender:
     def __init__(self, server, trained, *, preview: int, refine: int) -> None:
         self.server, self.trained, self.preview, self.refine = server, trained, preview, refine
         self.mode = "rgb"
+        self.paused = False
+        """True while the browser draws the run's splats instead (`stages.view.splat_view`): no frame is rendered."""
         self.last_seconds = {"coarse": None, "refined": None}
         self._stop = threading.Event()
         self._events: dict[int, threading.Event] = {}
@@ -90,6 +93,15 @@ class LiveRender:
         self._stop.set()
         for ev in list(self._events.values()):
             ev.set()
+
+    def set_paused(self, paused: bool) -> None:
+        """Pause (clearing every browser's background image) or resume (rendering every browser's view again)."""
+        self.paused = paused
+        if paused:
+            for client in self.server.get_clients().values():
+                client.scene.set_background_image(None)
+        else:
+            self.refresh()
 
     def refresh(self) -> None:
         """Re-render every browser's view (after a mode change)."""
@@ -111,13 +123,13 @@ class LiveRender:
 
     def _render_once(self, client, coarse: bool) -> None:
         cam = client.camera
-        if not cam.fov > 0 or not cam.aspect > 0:
+        if self.paused or not cam.fov > 0 or not cam.aspect > 0:
             return
         t0 = time.perf_counter()
         img = render_camera(self.trained, cam.wxyz, cam.position, cam.fov, cam.aspect,
                             self.preview if coarse else self.refine, coarse=coarse, mode=self.mode)  # fmt: skip
         self.last_seconds["coarse" if coarse else "refined"] = time.perf_counter() - t0
-        if self._stop.is_set() or client.client_id not in self._events:
+        if self._stop.is_set() or self.paused or client.client_id not in self._events:
             return
         client.scene.set_background_image(img, format="jpeg", jpeg_quality=90)
 
