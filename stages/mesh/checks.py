@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from nerfpipe.data.checks import Check
+from nerfpipe.stages.mesh.cleanup import vertex_components
 
 __all__ = ["MAX_BOX_FILL", "MAX_LARGE_COMPONENTS", "LARGE_COMPONENT", "box_fill", "component_faces", "mesh_checks"]
 
@@ -46,19 +47,11 @@ def box_fill(verts: np.ndarray, aabb: np.ndarray) -> np.ndarray:
 
 def component_faces(faces: np.ndarray) -> np.ndarray:
     """Faces per connected component (vertices joined by faces) [C], largest first."""
-    import scipy.sparse
-    import scipy.sparse.csgraph
-
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
     if len(faces) == 0:
         return np.zeros(0, np.int64)
-    n_v = int(faces.max()) + 1
-    a, b, c = faces[:, 0], faces[:, 1], faces[:, 2]
-    graph = scipy.sparse.coo_matrix(
-        (np.ones(2 * len(faces), np.int8), (np.concatenate([a, b]), np.concatenate([b, c]))), shape=(n_v, n_v)
-    )
-    _, labels = scipy.sparse.csgraph.connected_components(graph, directed=False)
-    counts = np.bincount(labels[a])
+    _, labels = vertex_components(faces, int(faces.max()) + 1)
+    counts = np.bincount(labels[faces[:, 0]])
     return np.sort(counts[counts > 0])[::-1]
 
 

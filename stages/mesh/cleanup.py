@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Cleanup", "cleanup_mesh", "mesh_stats", "vertex_normals", "transform_mesh"]
+__all__ = ["Cleanup", "cleanup_mesh", "mesh_stats", "vertex_components", "vertex_normals", "transform_mesh"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -118,9 +118,6 @@ def vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
 def mesh_stats(verts: np.ndarray, faces: np.ndarray) -> dict:
     """Connected components (vertices joined by faces), watertightness (every edge in exactly two faces, once
     in each direction), boundary / non-manifold edge counts, signed volume (> 0: faces wind outward)."""
-    import scipy.sparse
-    import scipy.sparse.csgraph
-
     if len(faces) == 0:
         return {"components": 0, "watertight": False, "boundary_edges": 0, "non_manifold_edges": 0,
                 "signed_volume": 0.0}  # fmt: skip
@@ -128,10 +125,7 @@ def mesh_stats(verts: np.ndarray, faces: np.ndarray) -> dict:
     a, b, c = faces[:, 0], faces[:, 1], faces[:, 2]
     n_v = int(faces.max()) + 1
     used = np.bincount(faces.reshape(-1), minlength=n_v) > 0  # (np.unique is slow on millions of ints)
-    graph = scipy.sparse.coo_matrix(
-        (np.ones(2 * len(faces), np.int8), (np.concatenate([a, b]), np.concatenate([b, c]))), shape=(n_v, n_v)
-    )
-    _, labels = scipy.sparse.csgraph.connected_components(graph, directed=False)
+    _, labels = vertex_components(faces, n_v)
     components = int((np.bincount(labels[used]) > 0).sum())
     src, dst = np.concatenate([a, b, c]), np.concatenate([b, c, a])  # directed edges
     keys = np.sort(src * n_v + dst)
@@ -148,3 +142,17 @@ def mesh_stats(verts: np.ndarray, faces: np.ndarray) -> dict:
         "non_manifold_edges": int((count > 2).sum()),
         "signed_volume": volume,
     }
+
+
+def vertex_components(faces: np.ndarray, n_verts: int) -> tuple[int, np.ndarray]:
+    """(number of components, label [n_verts]) of the graph of vertices joined by faces' edges (a vertex no face
+    uses is a component of its own)."""
+    import scipy.sparse
+    import scipy.sparse.csgraph
+
+    faces = np.asarray(faces, np.int64).reshape(-1, 3)
+    a, b, c = faces[:, 0], faces[:, 1], faces[:, 2]
+    graph = scipy.sparse.coo_matrix(
+        (np.ones(2 * len(faces), np.int8), (np.concatenate([a, b]), np.concatenate([b, c]))), shape=(n_verts, n_verts)
+    )
+    return scipy.sparse.csgraph.connected_components(graph, directed=False)

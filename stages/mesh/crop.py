@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from nerfpipe.radiance.camera import generate_rays
+from nerfpipe.stages.mesh.cleanup import vertex_components
 from nerfpipe.stages.mesh.field_access import as_np, occupied_box
 
 __all__ = [
@@ -168,14 +169,9 @@ def drop_box_cut_pieces(
     """Remove the connected pieces that the crop box cuts through (a vertex within `tolerance` of a face of the
     box [lo, hi]), except the largest piece: with a looked-at box they are surroundings at its edge (a picture
     frame beside the fox), not the object the views centre on. (verts, faces, the report's step)."""
-    import scipy.sparse
-    from scipy.sparse.csgraph import connected_components
-
     if len(faces) == 0:
         return verts, faces, {"step": "box_cut_pieces", "removed_pieces": 0, "faces": 0}
-    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]])
-    graph = scipy.sparse.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(len(verts),) * 2)
-    n, label = connected_components(graph, directed=False)
+    n, label = vertex_components(faces, len(verts))
     face_label = label[faces[:, 0]]
     sizes = np.bincount(face_label, minlength=n)
     at_edge = ((verts - lo < tolerance) | (hi - verts < tolerance)).any(axis=1)
