@@ -27,30 +27,11 @@ from nerfpipe.stages import depth, eval, poses, report, train
 from nerfpipe.stages import scene as scene_stage
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = ["--device", "cpu", "--threads", "1", "--batch-rays", "256", "--resolution", "16,24",
-        "--occupancy-resolution", "16", "--eval-every", "0", "--final-eval-views", "1"]  # fmt: skip
 
-
-@pytest.fixture(scope="module")
-def scene_dir(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("scene") / "rgba"
-    scene_stage.run(scene_stage.Config(out_dir=out, kind="rgba", size=24, views=10, seed=0))
-    return out
-
-
-@pytest.fixture(scope="module")
-def finished_run(scene_dir, tmp_path_factory) -> Path:
-    run_dir = tmp_path_factory.mktemp("run") / "run"
-    train.run(_config(scene_dir, run_dir))
-    return run_dir
-
-
-def _config(scene_dir: Path, run_dir: Path, **kw) -> train.Config:
-    base = dict(scene_dir=scene_dir, run_dir=run_dir, max_steps=2, max_seconds=60.0, batch_rays=256,
-                fast=train.FastOptions(resolution=(16, 24), occupancy_resolution=16), eval_every=0, final_eval_views=1,
-                device="cpu", threads=1)  # fmt: skip
-    base.update(kw)
-    return train.Config(**base)
+try:  # the tiny scene, run and train settings of the reliability tests
+    from test_reliability import TINY, _config, finished_run, scene_dir  # noqa: F401  (fixtures)
+except ImportError:  # tests/ imported as a package
+    from tests.test_reliability import TINY, _config, finished_run, scene_dir  # noqa: F401
 
 
 def _cli(capsys, *args) -> tuple[int, str]:
