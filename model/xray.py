@@ -8,8 +8,9 @@ whose config.json was edited to name a crafted pickle runs no code from it.
 
 The field is `radiance.fields.TensoRF` with `has_color=False` (density only: mu(x) per length unit, no colour,
 no view direction) in the scene's length units over the grid's box. Rendering is `radiance.render.
-render_attenuation` (stratified samples between the ray's entry and exit of the box, Beer-Lambert in the
-compositing core): optical_depth = -log(I / I0) = sum mu_i delta_i.
+render_attenuation` (stratified samples between the ray's entry and exit of the box, or any sampler, e.g. the
+occupancy marcher of `xray_marcher`; Beer-Lambert in the compositing core): optical_depth = -log(I / I0) =
+sum mu_i delta_i.
 
     run = load_xray_run("runs/ct/run")                  # XrayRun
     mu = run.volume()                                   # [nx, ny, nz] on the scene grid (torch, CPU)
@@ -40,7 +41,9 @@ from nerfpipe.model.device import resolve_device
 from nerfpipe.radiance.aabb import ray_aabb_segment
 from nerfpipe.radiance.fields import Field, make_field
 from nerfpipe.radiance.fields.voxel import VoxelField
-from nerfpipe.radiance.render import StratifiedSampler, render_attenuation
+from nerfpipe.radiance.occupancy import OccupancyGrid
+from nerfpipe.radiance.render import Marcher, Sampler, StratifiedSampler, render_attenuation
+from nerfpipe.radiance.space import Box
 from nerfpipe.radiance.xray import VoxelGrid, XrayGeometry, detector_rays, siddon_project
 
 __all__ = [
@@ -50,6 +53,7 @@ __all__ = [
     "build_field",
     "grid_shape_at",
     "field_line_integrals",
+    "xray_marcher",
     "field_volume",
     "load_xray_run",
     "read_xray_checkpoint",
@@ -118,18 +122,36 @@ def field_line_integrals(
     rays_o: Tensor,  # [R, 3]
     rays_d: Tensor,  # [R, 3] unit
     box: Tensor,  # [2, 3]
-    n_samples: int,
+    n_samples: int | None = None,
     *,
     jitter: bool = False,
     generator: torch.Generator | None = None,
+    sampler: Sampler | None = None,
 ) -> Tensor:
-    """-log(I / I0) [R] through the field: n_samples stratified intervals over each ray's chord of the box."""
+    """-log(I / I0) [R] through the field over each ray's chord of the box: n_samples stratified intervals
+    (jittered from `generator` with `jitter`), or the samples of `sampler` instead (e.g. `xray_marcher`: only the
+    occupied cells; a sampler jitters itself)."""
+    if (n_samples is None) == (sampler is None):
+        raise ValueError(f"expected one of n_samples and sampler, got {'neither' if sampler is None else 'both'}")
+    if sampler is not None and (jitter or generator is not None):
+        raise ValueError("expected jitter=False and generator=None with a sampler (the sampler jitters itself)")
     near, far = ray_aabb_segment(rays_o, rays_d, box, 0.0, float("inf"))
-    sampler = StratifiedSampler(n_samples=n_samples, jitter=jitter, generator=generator)
+    if sampler is None:
+        sampler = StratifiedSampler(n_samples=n_samples, jitter=jitter, generator=generator)
     out = render_attenuation(
         rays_o, rays_d, near=near, far=far, sampler=sampler, sigma_fn=lambda x, d: field.density(x)
     )
     return out["optical_depth"]
+
+
+def xray_marcher(grid: OccupancyGrid, step_size: float) -> Marcher:
+    """The occupancy marcher through the grid's box (the scene's, `field_line_integrals`' box) as a line-integral
+    sampler: steps of step_size (length units) whose midpoints lie in occupied cells, from the occupied cells'
+    box; `functools.partial(marcher, jitter=generator)` jitters it. What the cells marked empty hold (mu below
+    the grid's threshold where `OccupancyGrid.update` looked) is left out of the line integrals, and a step whose
+    midpoint is on the wrong side of an occupied cell's face moves up to a step of chord in or out."""
+    aabb = tuple(tuple(float(v) for v in row) for row in grid.aabb.tolist())
+    return Marcher(space=Box(aabb=aabb, near=0.0, far=math.inf), grid=grid, step_size=step_size)
 
 
 @torch.no_grad()

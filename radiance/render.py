@@ -2,9 +2,11 @@
 
 Conventions:
 - Rays: `rays_o [R, 3]`, `rays_d [R, 3]` unit length; `t` is distance along the ray; `near`, `far` are a
-  float or [R] (far may be inf with a disparity sampler; the occupancy sampler clips to the grid's box).
-- A sampler maps (rays_o, rays_d, near [R], far [R]) to `Samples`: intervals [t_start, t_end), padded [R, S]
-  (`ray_indices` None) or packed [N] (`ray_indices [N]`). See radiance.compositing for the maths.
+  float or [R] (far may be inf with a disparity sampler or a marcher; a marcher clips to its grid's box).
+- A sampler (`Sampler`) maps (rays_o, rays_d, near [R], far [R]) to `Samples`: intervals [t_start, t_end), padded
+  [R, S] (`ray_indices` None) or packed [N] (`ray_indices [N]`). See radiance.compositing for the maths. The
+  samplers: `StratifiedSampler`, and `Marcher` (the occupancy march of a scene space, the one `render_marched`
+  uses).
 - The field is queried once per interval at its midpoint (t_start for an infinite last interval):
   `rgb_sigma_fn(x [N, 3], d [N, 3]) -> (rgb [N, 3], sigma [N])`, `sigma_fn(x [N, 3], d [N, 3]) -> sigma [N]`,
   always with flat [N, 3] inputs whatever the layout; the renderer knows nothing else about the model.
@@ -36,7 +38,7 @@ from nerfpipe.radiance.compositing import (
     optical_depth,
     render_weights,
 )
-from nerfpipe.radiance.occupancy import OccupancyGrid, march_rays
+from nerfpipe.radiance.occupancy import OccupancyGrid
 from nerfpipe.radiance.safe import safe_div
 from nerfpipe.radiance.samplers import resample_intervals, stratified_intervals
 from nerfpipe.radiance.space import Space, Steps
@@ -44,8 +46,8 @@ from nerfpipe.radiance.space import Space, Steps
 __all__ = [
     "PER_RAY_KEYS",
     "Samples",
+    "Sampler",
     "StratifiedSampler",
-    "OccupancySampler",
     "sample_points",
     "render_rays",
     "render_rays_hierarchical",
@@ -67,12 +69,20 @@ RgbFn = Callable[[Tensor, Tensor], Tensor]
 
 @dataclass(frozen=True)
 class Samples:
-    """Intervals along rays, padded [R, S] (ray_indices None) or packed [N] (ray_indices [N])."""
+    """Intervals along rays, padded [R, S] (ray_indices None) or packed [N] (ray_indices [N]). A `Marcher`'s
+    samples also carry their midpoints in field coordinates and the factor from the field's density to a density
+    per ray length (`render_marched` reads them; the other renderers query the callbacks at `sample_points`)."""
 
     t_starts: Tensor
     t_ends: Tensor
     ray_indices: Tensor | None
     n_rays: int
+    points: Tensor | None = None  # [N, 3] field coordinates (a marcher's; None: not known)
+    density_scale: Tensor | None = None  # [N] (None: 1)
+
+
+Sampler = Callable[[Tensor, Tensor, Tensor, Tensor], Samples]
+"""(rays_o [R, 3], rays_d [R, 3], near [R], far [R]) -> Samples."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -93,22 +103,6 @@ class StratifiedSampler:
             near, far, self.n_samples, jitter=self.jitter, generator=self.generator, spacing=self.spacing
         )
         return Samples(t_starts, t_ends, None, rays_o.shape[0])
-
-
-@dataclass(frozen=True, kw_only=True)
-class OccupancySampler:
-    """Packed samples at step_size, only in the grid's occupied cells, see occupancy.march_rays."""
-
-    grid: OccupancyGrid
-    """The occupancy grid (its box bounds the march)."""
-    step_size: float
-    """Interval length along the ray (scene units)."""
-
-    def __call__(self, rays_o: Tensor, rays_d: Tensor, near: Tensor, far: Tensor) -> Samples:
-        ray_indices, t_starts, t_ends = march_rays(
-            self.grid, rays_o, rays_d, near=near, far=far, step_size=self.step_size
-        )
-        return Samples(t_starts, t_ends, ray_indices, rays_o.shape[0])
 
 
 def _check_rays(rays_o: Tensor, rays_d: Tensor) -> None:
@@ -171,7 +165,7 @@ def render_rays(
     *,
     near: float | Tensor,
     far: float | Tensor,
-    sampler: Callable[[Tensor, Tensor, Tensor, Tensor], Samples],
+    sampler: Sampler,
     rgb_sigma_fn: RgbSigmaFn,
     background: Tensor | None = None,  # [3] or [R, 3]
 ) -> dict:
@@ -224,7 +218,12 @@ class ColourRule:
 @dataclass(frozen=True, kw_only=True)
 class Marcher:
     """Occupancy-grid marching in a scene space (`radiance.space`): the space's steps of `step_size` through the
-    grid's occupied cells. Rays given to it are the space's march rays (`Space.to_march`)."""
+    grid's occupied cells. Rays given to it are the space's march rays (`Space.to_march`).
+
+    Calling it is the sampler call (`Sampler`: `render_rays`, `render_depth`, `render_attenuation`), the same call
+    `render_marched` takes its samples from. Its samples carry their field points and density scale; the other
+    renderers query their callbacks at the scene points along the march rays instead, which are the field's
+    points in a `Box` space only (NDC, contracted: map them with `Space.density_query`)."""
 
     space: Space
     grid: OccupancyGrid
@@ -233,6 +232,36 @@ class Marcher:
     """In march units (`Space.step_unit`)."""
     segment: int = 32
     """Early-stopping march: steps taken per slab between transmittance checks."""
+
+    def __call__(
+        self,
+        rays_o: Tensor,  # [R, 3] march rays
+        rays_d: Tensor,  # [R, 3] unit
+        near: Tensor | None = None,  # [R]
+        far: Tensor | None = None,  # [R]
+        jitter: bool | torch.Generator = False,
+    ) -> Samples:
+        """Packed samples [N] (`Space.march`): steps of step_size through the occupied cells within the space's
+        near, far and the grid's box, with their field points and density scale.
+
+        near, far: a check, not a bound: the range is the space's, so a sample outside [near, far] raises
+        (narrow the space's near, far instead); None: no check. jitter shifts each ray's steps by U[0, step)
+        (True: the global random source; a Generator: that one); a jittered sampler for `render_attenuation` is
+        `functools.partial(marcher, jitter=generator)`."""
+        u = None
+        if jitter is not False:
+            gen = jitter if isinstance(jitter, torch.Generator) else None
+            u = torch.rand(rays_o.shape[0], generator=gen, dtype=rays_o.dtype, device=rays_o.device)
+        p = self.space.march(self.grid, rays_o, rays_d, self.step_size, u)
+        if near is not None or far is not None:
+            inf = torch.full((rays_o.shape[0],), torch.inf, dtype=rays_o.dtype, device=rays_o.device)
+            lo = (near if near is not None else -inf).index_select(0, p.ray_indices)  # [N]
+            hi = (far if far is not None else inf).index_select(0, p.ray_indices)
+            if bool(((p.t_starts < lo) | (p.t_ends > hi)).any()):
+                raise ValueError(f"expected near, far around the {self.space.name} space's march (near "
+                                 f"{self.space.near}, far {self.space.far} within the grid's box), got samples "
+                                 "outside them: narrow the space's near, far instead")  # fmt: skip
+        return Samples(p.t_starts, p.t_ends, p.ray_indices, rays_o.shape[0], p.points, p.density_scale)
 
 
 def render_marched(
@@ -275,11 +304,7 @@ def render_marched(
                                       with_median=with_median)  # fmt: skip
     if colour.keep is not None:
         raise ValueError("expected ColourRule.keep None when training (it is an inference preview rule)")
-    u = None
-    if jitter is not False:
-        gen = jitter if isinstance(jitter, torch.Generator) else None
-        u = torch.rand(rays_o.shape[0], generator=gen, dtype=rays_o.dtype, device=rays_o.device)
-    s = marcher.space.march(marcher.grid, rays_o, rays_d, marcher.step_size, u)
+    s = marcher(rays_o, rays_d, jitter=jitter)  # the sampler call
     sigma = sigma_fn(s.points)  # [N]
     if s.density_scale is not None:
         sigma = sigma * s.density_scale  # [N] per ray length
@@ -430,7 +455,7 @@ def render_depth(
     *,
     near: float | Tensor,
     far: float | Tensor,
-    sampler: Callable[[Tensor, Tensor, Tensor, Tensor], Samples],
+    sampler: Sampler,
     sigma_fn: SigmaFn,
 ) -> dict:
     """Density-only emission-absorption: depth [R], depth_median [R], acc [R], weights (no colour)."""
@@ -458,7 +483,7 @@ def render_attenuation(
     *,
     near: float | Tensor,
     far: float | Tensor,
-    sampler: Callable[[Tensor, Tensor, Tensor, Tensor], Samples],
+    sampler: Sampler,
     sigma_fn: SigmaFn,
     i0: float | Tensor = 1.0,
 ) -> dict:

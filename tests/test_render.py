@@ -1,6 +1,7 @@
 """render_rays and friends on analytic fields: closed forms, hierarchical sampling, occupancy marching,
 chunking, X-ray."""
 
+import functools
 import math
 
 import pytest
@@ -230,6 +231,24 @@ def test_marched_density_only_budget_jitter_and_empty_grid():
     empty = render_marched(o, d, rgb_fn=blob_rgb, background=torch.ones(3), **kw)
     assert empty["ray_indices"].numel() == 0 and (empty["acc"] == 0).all()
     torch.testing.assert_close(empty["rgb"], torch.ones(32, 3, dtype=torch.float64))
+
+
+def test_marcher_is_the_sampler_render_marched_uses():
+    """The marcher's sampler call gives render_marched's samples (the same jitter draw), so render_depth through it
+    gives render_marched's density-only outputs; near, far that do not hold the space's march raise."""
+    o, d = blob_rays(32, seed=10)
+    marcher = box_marcher(blob_grid())
+    marched = render_marched(o, d, marcher=marcher, sigma_fn=blob_sigma, rgb_fn=None,
+                             jitter=torch.Generator().manual_seed(3))  # fmt: skip
+    sampler = functools.partial(marcher, jitter=torch.Generator().manual_seed(3))
+    via = render_depth(o, d, near=0.5, far=5.0, sampler=sampler, sigma_fn=lambda x, d_: blob_sigma(x))
+    assert marched["ray_indices"].numel() > 0
+    for k in ("ray_indices", "t_starts", "t_ends"):
+        assert torch.equal(via[k], marched[k])
+    for k in ("acc", "depth", "weights", "sigmas"):
+        torch.testing.assert_close(via[k], marched[k], atol=1e-12, rtol=0)
+    with pytest.raises(ValueError, match="near, far"):
+        render_depth(o, d, near=2.5, far=5.0, sampler=marcher, sigma_fn=lambda x, d_: blob_sigma(x))
 
 
 def test_terminating_march_matches_its_plain_twin():
