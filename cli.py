@@ -110,10 +110,8 @@ def _report(out: Any) -> str:
 
 
 def _mesh(out: Any) -> str:
-    return (
-        f"{out.vertices} vertices, {out.faces} faces (level {out.threshold:.4g}, watertight {out.watertight}) "
-        f"-> {out.mesh}"
-    )
+    how = f"level {out.threshold:.4g}" if out.threshold is not None else "poisson"  # method poisson: no level
+    return f"{out.vertices} vertices, {out.faces} faces ({how}, watertight {out.watertight}) -> {out.mesh}"
 
 
 def _export_points(out: Any) -> str:

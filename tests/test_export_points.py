@@ -20,9 +20,10 @@ import trimesh
 from benchmarks.standin import StandIn
 from nerfpipe import cli
 from nerfpipe.data.errors import UserError
+from nerfpipe.model.surface_points import density_normals
 from nerfpipe.radiance.render import StratifiedSampler, render_rays
 from nerfpipe.stages import export_points as ep
-from nerfpipe.stages.export_points.geometry import density_normals, statistical_outliers, to_frame
+from nerfpipe.stages.export_points.geometry import statistical_outliers, to_frame
 from nerfpipe.stages.export_points.ply import write_ply
 
 BACKGROUND = (1.0, 1.0, 1.0)

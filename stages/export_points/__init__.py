@@ -6,7 +6,7 @@ default; what nerfstudio's `ns-export pointcloud` gives.
 [--no-reorient-normals] [--downscale F] [--seed 0]`
 
 Steps:
-1. Rays (`stages.export_points.rays`): the training cameras at the size the run trained at, rendered in passes of
+1. Rays (`model.surface_points`): the training cameras at the size the run trained at, rendered in passes of
    interleaved pixel sub-grids until `num_points` rays gave a point. A ray gives one when its accumulated opacity
    is at least `acc_threshold` (0.5, as nerfstudio): the point at its expected depth, with its rendered colour, the
    background taken out. With `bbox`, points outside it (in the chosen frame) are dropped and do not count.
@@ -49,9 +49,9 @@ from nerfpipe.data.errors import UserError
 from nerfpipe.data.progress import NO_PROGRESS, Progress
 from nerfpipe.data.rundir import config_to_json, write_manifest
 from nerfpipe.model import camera_path, load_trained
-from nerfpipe.stages.export_points.geometry import density_normals, facing_share, statistical_outliers, to_frame
+from nerfpipe.model.surface_points import Gathered, density_normals, facing_share, gather_points
+from nerfpipe.stages.export_points.geometry import statistical_outliers, to_frame
 from nerfpipe.stages.export_points.ply import PLY_PROPERTIES, write_ply
-from nerfpipe.stages.export_points.rays import Gathered, gather_points
 
 __all__ = ["Config", "Outputs", "run", "export", "MIN_HIT_FRACTION", "MAX_OUTLIER_FRACTION", "MIN_FACING"]
 

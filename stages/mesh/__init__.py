@@ -1,7 +1,8 @@
 """Stage `mesh`: a trained radiance field -> a triangle mesh (PLY / OBJ / GLB), in the user's frame by default.
 
-`nerfpipe mesh RUN_DIR OUT.ply|.obj|.glb [--resolution 256] [--threshold auto|VALUE] [--bbox x0,...,z1]
-[--crop auto|looked-at|occupied|field] [--frame user|normalized] [--target-faces 300000] [--no-cleanup] [--no-colors]`
+`nerfpipe mesh RUN_DIR OUT.ply|.obj|.glb [--method density|poisson] [--resolution 256] [--threshold auto|VALUE]
+[--bbox x0,...,z1] [--crop auto|looked-at|occupied|field] [--frame user|normalized] [--target-faces 300000]
+[--no-cleanup] [--no-colors]`
 
 Steps:
 1. Box: `--bbox` (in the chosen frame), else `--crop` (`stages.mesh.crop`): for an object scene (alpha or a
@@ -21,6 +22,8 @@ Steps:
    are zero without querying the field), zero-padded so the surface is closed where it meets the box.
 4. Marching cubes (scikit-image, Lewiner) at the level; faces wind counter-clockwise seen from outside
    (the side of lower density).
+   `--method poisson` replaces steps 2-4 (`stages.mesh.poisson`): screened Poisson through the points where training
+   rays become half opaque, with density-gradient normals, its unsupported hull trimmed, cut to the box.
 5. Cleanup (`stages.mesh.cleanup`, pymeshlab) and quadric decimation to `--target-faces` (300k by default, a
    size a web viewer opens quickly; 0 keeps every face).
 6. Vertex colours: `trained.color(x, -n)`, the colour a camera looking straight at the surface along the
@@ -89,6 +92,9 @@ class Config:
     """Trained run directory (config.json + checkpoint.pt from `train`)."""
     out: Path
     """Output mesh; the format follows the extension: .ply, .obj or .glb. OUT.report.json goes next to it."""
+    method: Literal["density", "poisson"] = "density"
+    """Surface extraction: "density" marching cubes on the density at the iso-level (steps 2-4); "poisson" screened
+    Poisson on the points where training rays end, with density normals (`stages.mesh.poisson`, its defaults)."""
     resolution: int = 256
     """Voxels along the longest side of the box (cubic voxels)."""
     threshold: float | Literal["auto"] = "auto"
@@ -134,8 +140,8 @@ class Outputs:
     """OUT.report.json next to the mesh (written last)."""
     vertices: int
     faces: int
-    threshold: float
-    """The iso-level used (density per scene-frame unit)."""
+    threshold: float | None
+    """The iso-level used (density per scene-frame unit); None for method poisson."""
     watertight: bool
     seconds: float
 
@@ -188,6 +194,8 @@ def _validate(config: Config) -> None:
             raise UserError(f"--bbox: expected x0,y0,z0,x1,y1,z1 with x1 > x0, y1 > y0, z1 > z0, got {config.bbox}")
     if config.target_faces != 0 and config.target_faces < 4:
         raise UserError(f"--target-faces: expected 0 (keep all) or at least 4, got {config.target_faces}")
+    if config.method not in ("density", "poisson"):
+        raise UserError(f"--method: expected 'density' or 'poisson', got {config.method!r}")
     if config.crop not in ("auto", "looked-at", "occupied", "field"):
         raise UserError(f"--crop: expected auto, looked-at, occupied or field, got {config.crop!r}")
 
@@ -277,35 +285,44 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
     grid, how, crop_info, plane = _grid_for(config, trained, out_from_scene)
     t = lap("crop", t)
 
-    if config.threshold == "auto":
+    keep_beyond = SUPPORT_CLEARANCE * crop_info["support_plane"]["tolerance"] if plane is not None else 0.0
+    level, method_info, sample_stats, threshold_info = None, {"name": "density"}, {}, None
+    if config.method == "poisson":
+        from nerfpipe.stages.mesh.poisson import Poisson, poisson_surface
+
+        verts_g, faces_g, steps, method_info = poisson_surface(
+            trained, grid, plane, keep_beyond, device=device, resolution=config.resolution, params=Poisson(), lap=lap
+        )
+        t = time.perf_counter()
+    elif config.threshold == "auto":
         level, threshold_info = auto_threshold(
             density, scene, as_np(trained.aabb).reshape(2, 3), n_rays=config.threshold_rays, device=device,
             chunk=config.chunk,
         )  # fmt: skip
     else:
         level, threshold_info = float(config.threshold), {"rule": "given (--threshold)"}
-    t = lap("threshold", t)
-
-    if plane is not None:  # after the level: the level is the field's, measured on every training ray
-        density = cut_density(density, plane, SUPPORT_CLEARANCE * crop_info["support_plane"]["tolerance"])
-    vol, sample_stats = sample_volume(density, grid, level, device=device, chunk=config.chunk)
-    t = lap("sampling", t)
-    _level_checks(config, level, sample_stats, grid, how)
-
-    verts_g, faces_g = _marching_cubes(vol, level, grid)
-    del vol
-    steps = [{"step": "marching_cubes", "vertices": len(verts_g), "faces": len(faces_g)}]
+    if level is not None:
+        t = lap("threshold", t)
+        if plane is not None:  # after the level: the level is the field's, measured on every training ray
+            density = cut_density(density, plane, keep_beyond)
+        vol, sample_stats = sample_volume(density, grid, level, device=device, chunk=config.chunk)
+        t = lap("sampling", t)
+        _level_checks(config, level, sample_stats, grid, how)
+        verts_g, faces_g = _marching_cubes(vol, level, grid)
+        del vol
+        steps = [{"step": "marching_cubes", "vertices": len(verts_g), "faces": len(faces_g)}]
     if crop_info["rule"] == "looked-at":
         verts_g, faces_g, step = drop_box_cut_pieces(verts_g, faces_g, grid.lo, grid.hi, 1.5 * grid.h)
         steps.append(step)
-    t = lap("marching_cubes", t)
+    t = lap("marching_cubes" if level is not None else "box_cut_pieces", t)
 
     out_from_grid = out_from_scene @ grid.scene_from_grid
     verts, faces = transform_mesh(verts_g, faces_g, out_from_grid)
     verts, faces, clean_steps = cleanup_mesh(verts, faces, config.cleanup, config.target_faces or None)
     steps += clean_steps
     if len(faces) == 0:
-        raise UserError(f"{config.run_dir}: no surface left after cleanup at threshold {level:g}; try --no-cleanup")
+        at = f"at threshold {level:g}" if level is not None else "(method poisson)"
+        raise UserError(f"{config.run_dir}: no surface left after cleanup {at}; try --no-cleanup")
     t = lap("cleanup", t)
 
     colors, tex = None, None
@@ -346,7 +363,7 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
             out.parent, name=f"{out.stem}.report.json", stage="mesh", started=started, inputs=inputs,
             outputs=[out, *extra],
             used={"config": config_to_json(config)}, left_out=left_out, version=VERSION,
-            threshold={"value": level, **threshold_info},
+            method=method_info, threshold={"value": level, **threshold_info} if threshold_info else None,
             crop=crop_info, texture=tex.info if tex is not None else None,
             grid={"crop": how, "frame": "scene" if np.allclose(grid.scene_from_grid, np.eye(4)) else config.frame,
                   "lo": grid.lo.tolist(), "hi": grid.hi.tolist(), "voxel": grid.h, "samples_per_axis": list(grid.shape),

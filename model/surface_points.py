@@ -1,18 +1,32 @@
-"""The training cameras' rays, rendered in passes, to coloured points in the scene frame.
+"""Where a trained run's rays end: coloured surface points with density normals, from its cameras.
 
-Sampling: each training camera's pixels (at the render size) are split into `stride` x `stride` interleaved
-sub-grids: pixel (row, col) belongs to offset (row % stride, col % stride). A pass renders one sub-grid of every
-camera (rays through the pixel centres); the offsets are taken in a seeded random order, so passes never repeat a
-ray and each pass covers every camera and the whole of each image evenly. `stride` makes one pass about
-`PASS_SHARE` of the points asked for; passes go on until that many points are kept (or every pixel is used),
-then the caller takes an even random subset. Rays of several cameras are rendered together (`batch` rays per
-`render_rays` call, which chunks them further).
+Shared by the stages that turn a field into a point set: `export-points` (the cloud itself) and `mesh --method
+poisson` (the cloud Poisson meshes). Only the `Trained` attributes are used: `render_rays`, `background`,
+`density`, `device`.
 
-A ray gives a point when its accumulated opacity is at least `acc_threshold` and its expected depth and colour
-are finite: the point is `o + t d` at the expected distance t (`Trained.render_rays`' `depth`: sum(w t) / acc,
-world distances in the scene frame), its colour the rendered colour with the evaluation background taken out,
-(rgb - (1 - acc) background) / acc: the colour of what the ray hit, not of the background that shows through a
-ray that is not fully opaque (acc >= acc_threshold > 0, and the division clamps acc at float32's epsilon).
+Sampling: each camera's pixels (at the render size) are split into `stride` x `stride` interleaved sub-grids:
+pixel (row, col) belongs to offset (row % stride, col % stride). A pass renders one sub-grid of every camera (rays
+through the pixel centres); the offsets are taken in a seeded random order, so passes never repeat a ray and each
+pass covers every camera and the whole of each image evenly. `stride` makes one pass about `PASS_SHARE` of the
+points asked for; passes go on until that many points are kept (or every pixel is used), then the caller takes an
+even random subset. Rays of several cameras are rendered together (`batch` rays per `render_rays` call, which
+chunks them further).
+
+A ray gives a point when its accumulated opacity is at least `acc_threshold` and its depth and colour are finite:
+the point is `o + t d` (scene frame, world distances) at the ray's expected depth t = sum(w t) / acc
+(`depth="expected"`) or its median depth, where the accumulated opacity reaches 0.5 (`depth="median"`: where the
+surface is, without the blend of a foreground and a background that the expected depth takes at silhouettes). Its
+colour is the rendered colour with the evaluation background taken out, (rgb - (1 - acc) background) / acc: the
+colour of what the ray hit, not of the background that shows through a ray that is not fully opaque (acc >=
+acc_threshold > 0, and the division clamps acc at float32's epsilon).
+
+Normals (`density_normals`): n = -grad sigma / |grad sigma| at the point, by central differences of the density
+with a step h: grad_k = (sigma(x + h e_k) - sigma(x - h e_k)) / 2h. Density grows into an object, so -grad sigma
+points out of it, whichever camera saw the point. Central differences rather than autograd: `Trained.density` is
+the public no-grad query that maps scene points into every run's space (box, contracted, NDC), and the analytic
+gradient of a trilinear hash grid is piecewise constant per cell of its finest level and noisy, while a step of a
+few cells averages over them. Where the gradient is zero or not finite (empty space around the point) the normal
+is the reverse of the ray that gave the point (facing its camera), and counted.
 """
 
 from __future__ import annotations
@@ -20,19 +34,24 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
 
 from nerfpipe.data.progress import NO_PROGRESS, Progress
-from nerfpipe.model import CameraPath
+from nerfpipe.model.cameras import CameraPath
 from nerfpipe.radiance.camera import generate_rays
 
-__all__ = ["PASS_SHARE", "Gathered", "gather_points", "pass_stride"]
+__all__ = ["PASS_SHARE", "Gathered", "gather_points", "pass_stride", "density_normals", "facing_share"]
 
 PASS_SHARE = 0.25
 """One pass renders about this share of the points asked for (so the last pass overshoots by at most that)."""
+
+DensityFn = Callable[[torch.Tensor], torch.Tensor]
+"""x [N, 3] float32 scene frame on the field's device -> sigma [N] (`Trained.density`)."""
+
+_AXES = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.float64)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -43,7 +62,7 @@ class Gathered:
     rgb: np.ndarray  # [N, 3] float32 in [0, 1], background taken out
     dirs: np.ndarray  # [N, 3] float32 unit: the direction of the ray that gave each point
     pixels: int
-    """Pixels of every training camera at the render size."""
+    """Pixels of every camera at the render size."""
     stride: int
     passes: int
     """Passes rendered (of stride * stride)."""
@@ -54,7 +73,7 @@ class Gathered:
     non_finite: int
     """Rays whose opacity, or an opaque ray's depth or colour, is NaN / inf (dropped)."""
     outside: int
-    """Finite points dropped by `keep` (outside the bbox)."""
+    """Finite points dropped by `keep`."""
 
 
 def pass_stride(pixels: int, target: int) -> int:
@@ -93,12 +112,14 @@ def _batches(
             yield k, torch.cat(buf_o), torch.cat(buf_d)
 
 
-def _points_of(trained: Any, out: dict[str, torch.Tensor], o: torch.Tensor, d: torch.Tensor, acc_threshold: float):
+def _points_of(
+    trained: Any, out: dict[str, torch.Tensor], o: torch.Tensor, d: torch.Tensor, acc_threshold: float, key: str
+):
     """(opaque rays, NaN / inf rays (opacity, or depth or colour of an opaque ray), points [K, 3] f64,
-    rgb [K, 3] f32, dirs [K, 3] f32)."""
+    rgb [K, 3] f32, dirs [K, 3] f32); `key` the depth to place points at (depth or depth_median)."""
     acc = out["acc"].detach().float().cpu()
     opaque = acc >= acc_threshold  # a NaN opacity is never opaque
-    t = out["depth"].detach().double().cpu()[opaque]
+    t = out[key].detach().double().cpu()[opaque]
     rgb = out["rgb"].detach().float().cpu()[opaque]
     a = acc[opaque][:, None]
     background = torch.as_tensor(trained.background, dtype=torch.float32).cpu().reshape(1, 3)
@@ -113,16 +134,18 @@ def _points_of(trained: Any, out: dict[str, torch.Tensor], o: torch.Tensor, d: t
 def gather_points(
     trained: Any, cams: CameraPath, *, target: int, acc_threshold: float,
     keep: Callable[[np.ndarray], np.ndarray] | None = None, seed: int = 0, batch: int = 1 << 18,
-    progress: Progress | None = None,
+    progress: Progress | None = None, depth: Literal["expected", "median"] = "expected",
 ) -> Gathered:  # fmt: skip
     """Render passes of the cameras' rays (module doc) until at least `target` points are kept or every pixel is
-    rendered. `keep(points_scene [K, 3]) -> mask [K]` drops points (the bbox); `trained` needs `render_rays` and
-    `background` (`model.Trained`)."""
+    rendered. `keep(points_scene [K, 3]) -> mask [K]` drops points (a box); `depth` where a ray's point lies."""
+    if depth not in ("expected", "median"):
+        raise ValueError(f"depth: expected 'expected' or 'median', got {depth!r}")
+    key = "depth" if depth == "expected" else "depth_median"
     pixels = sum(intr.w * intr.h for intr in cams.intrinsics)
     stride = pass_stride(pixels, target)
     order = np.random.default_rng(seed).permutation(stride * stride)
     progress = progress or NO_PROGRESS
-    task = progress.add_task("export-points: rendering", total=target)
+    task = progress.add_task("surface points: rendering", total=target)
     parts: dict[str, list[np.ndarray]] = {"points": [], "rgb": [], "dirs": []}
     rays = opaque = non_finite = outside = kept = 0
     passes, done_pass = 0, -1
@@ -133,8 +156,8 @@ def gather_points(
             if k != done_pass:
                 passes, done_pass = passes + 1, k
             out = trained.render_rays(o.to(trained.device, torch.float32), d.to(trained.device, torch.float32),
-                                      median=False)  # fmt: skip
-            n_opaque, n_bad, points, rgb, dirs = _points_of(trained, out, o, d, acc_threshold)
+                                      median=depth == "median")  # fmt: skip
+            n_opaque, n_bad, points, rgb, dirs = _points_of(trained, out, o, d, acc_threshold, key)
             rays, opaque, non_finite = rays + o.shape[0], opaque + n_opaque, non_finite + n_bad
             if keep is not None:
                 inside = np.asarray(keep(points), bool)
@@ -148,3 +171,35 @@ def gather_points(
     return Gathered(points=joined["points"].astype(np.float64), rgb=joined["rgb"].astype(np.float32),
                     dirs=joined["dirs"].astype(np.float32), pixels=pixels, stride=stride, passes=passes, rays=rays,
                     opaque=opaque, non_finite=non_finite, outside=outside)  # fmt: skip
+
+
+def density_normals(
+    density: DensityFn, points: np.ndarray, dirs: np.ndarray, step: float, device: torch.device, chunk: int = 1 << 16
+) -> tuple[np.ndarray, np.ndarray]:
+    """(unit normals [N, 3] float64: -grad sigma normalised (module doc), mask [N]: from the gradient; the others
+    are -dirs).
+
+    points [N, 3] scene frame; dirs [N, 3] unit ray directions; step h in scene units (> 0)."""
+    if not step > 0:
+        raise ValueError(f"expected a step > 0, got {step}")
+    normals = np.empty((len(points), 3), np.float64)
+    offsets = step * _AXES  # [6, 3]
+    with torch.no_grad():
+        for a in range(0, len(points), chunk):
+            x = points[a : a + chunk]
+            q = (x[:, None, :] + offsets[None]).reshape(-1, 3)
+            sigma = density(torch.as_tensor(q, dtype=torch.float32, device=device))
+            s = sigma.detach().double().cpu().numpy().reshape(-1, 6)
+            normals[a : a + chunk] = -(s[:, 0::2] - s[:, 1::2]) / (2.0 * step)  # -grad sigma
+    norm = np.linalg.norm(normals, axis=1)
+    good = np.isfinite(norm) & (norm > 0)
+    normals[good] /= norm[good, None]
+    normals[~good] = -np.asarray(dirs, np.float64)[~good]
+    return normals, good
+
+
+def facing_share(normals: np.ndarray, dirs: np.ndarray) -> float:
+    """Share of normals that face the camera whose ray gave the point (n . -d > 0); NaN without points."""
+    if len(normals) == 0:
+        return float("nan")
+    return float((np.einsum("ij,ij->i", normals, -np.asarray(dirs, np.float64)) > 0).mean())
