@@ -33,6 +33,14 @@ cameras of max(theta_k / max_rotation, tau_k / max_translation) passes `stop_med
 rest of the run: every correction (and the focal scale) goes back to zero and the field keeps training on the
 input cameras. `guard_record` is what the manifest gets (`pose_report`'s "guard").
 
+Rollback (the training loop, `stages.train.loop`): the field's state is copied at the cameras' first move (the field
+has seen only the input cameras until then), and when the guard stops refinement the field goes back to that copy
+(resampled to the grid's resolution of the moment), so what it learned against cameras that were running away does
+not stay in it; `GuardLog.rolled_back_to` records the step of the copy. After a stop, rays skip the corrections (they
+are the input cameras). Without the rollback the refined runs that the guard stopped ended 0.28-1.19 dB under plain
+training in the refine benchmark (4 of 10 cases, 120 s; README "Pose refinement"). A run resumed between the first move
+and the stop has no copy: the stop then keeps the field as it is (`rolled_back_to` None).
+
 Test views: the field learns in the frame the refined cameras define, which may drift from the input frame by a
 small rigid motion (`fix_gauge` holds the first-order similarity, not its higher orders). `align_test_poses` fits a
 similarity (Umeyama on camera centres) from the input training cameras to the refined ones and maps every other
@@ -81,6 +89,7 @@ __all__ = [
     "TEST_POSE_RULE",
     "TEST_POSE_OPT_RULE",
     "optimise_test_pose",
+    "test_pose_placement",
 ]
 
 
@@ -174,6 +183,9 @@ class GuardLog:
     """Largest rotation any correction reached (before a pull-back), degrees."""
     largest_translation: float = 0.0
     """Largest centre displacement any correction reached (before a pull-back), fraction of its distance."""
+    rolled_back_to: int | None = None
+    """After a stop: the training step whose field state the field went back to (the cameras' first move); None:
+    no stop, or no copy to go back to (the field kept what it learned)."""
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -351,6 +363,10 @@ class CameraOpt(nn.Module):
         o_new = o + (rot @ corr[:, :3, 3:4])[..., 0]
         return o_new, d_new
 
+    def moves(self, frac: float) -> bool:
+        """Whether a step at run progress frac moves the cameras (after the delay, before any stop)."""
+        return self.log.stopped_at is None and self.schedule.factor(frac) > 0
+
     def step(self, frac: float, step: int | None = None) -> None:
         """One Adam step on the gradients left by the field's backward pass, at the schedule's rate for frac, then
         the guard (`step`: the training step it records; None: the camera steps so far). Once the guard has stopped
@@ -502,13 +518,15 @@ def _pivot(doc: dict[str, Any]) -> Tensor:
 def refined_scene(scene: Scene, doc: dict[str, Any], train_idx: tuple[int, ...]) -> tuple[Scene, dict[str, Any]]:
     """The scene as the run sees it after refinement: training frames at their refined poses, every other frame
     mapped into the refined frame by `align_test_poses`, focal lengths times the shared focal scale. Returns the
-    scene and a record of what was done (for eval's JSON and the manifest)."""
+    scene and a record of what was done (for eval's JSON and the manifest; `stopped_at_step`: the step at which the
+    guard stopped refinement, None when it ran to the end)."""
     w_in = doc["world_from_cam"].double()
     refined = (w_in @ pivoted_exp(doc["delta"].double(), _pivot(doc))).numpy()
     train_in = w_in.numpy()
     others = [i for i in range(len(scene.frames)) if i not in set(train_idx)]
     poses = {i: refined[k] for k, i in enumerate(train_idx)}
-    record: dict[str, Any] = {"train_views": len(train_idx), "focal_scale": 1.0}
+    stopped = (doc.get("guard") or {}).get("stopped_at")  # the guard stopped refinement: the input cameras
+    record: dict[str, Any] = {"train_views": len(train_idx), "focal_scale": 1.0, "stopped_at_step": stopped}
     if others:
         mapped, record["test_poses"] = align_test_poses(
             train_in, refined, np.stack([scene.frames[i].world_from_cam for i in others])
@@ -545,7 +563,9 @@ def guard_record(cameras: CameraOpt, names: list[str]) -> dict[str, Any]:
                        f"{at.get('median_share', float('nan')):.2f} of its bound (median "
                        f"{at.get('median_rotation_deg', float('nan')):.2f} deg, "
                        f"{100 * at.get('median_translation', float('nan')):.1f} % of the distance); the input "
-                       "cameras were kept")  # fmt: skip
+                       "cameras were kept" + (f" and the field went back to its state at step {log.rolled_back_to}, "
+                                              "before the cameras moved" if log.rolled_back_to is not None
+                                              else ""))  # fmt: skip
     if log.cameras:
         suspect.append(f"{len(log.cameras)} of {len(names)} cameras pulled back onto a bound ({log.pulled_back} "
                        f"times, first at step {log.first_step})")  # fmt: skip
@@ -558,6 +578,7 @@ def guard_record(cameras: CameraOpt, names: list[str]) -> dict[str, Any]:
         "pulled_back": log.pulled_back, "cameras_pulled_back": [names[i] for i in log.cameras],
         "first_pulled_back_step": log.first_step,
         "stopped": log.stopped_at is not None, "stopped_at_step": log.stopped_at, "at_stop": log.at_stop,
+        "field_rolled_back_to_step": log.rolled_back_to,
         "largest_rotation_deg": round(log.largest_rotation_deg, 4),
         "largest_translation": round(log.largest_translation, 5),
         "median_share": round(median, 4), "max_share": round(float(share.max()), 4),
@@ -608,6 +629,17 @@ def write_refined_transforms(scene: Scene, doc: dict[str, Any], train_idx: tuple
     frames = tuple(dataclasses.replace(f, file_path=rel(f.file_path), mask_path=rel(f.mask_path),
                                        depth_file_path=rel(f.depth_file_path)) for f in refined.frames)  # fmt: skip
     return write_scene(refined.replace(root=folder, frames=frames), path)
+
+
+def test_pose_placement(refinement: dict[str, Any] | None) -> Any:
+    """How a run's test cameras are placed without test-pose optimisation (eval's JSON `test_poses`), from
+    `Trained.pose_refinement` (`refined_scene`'s record; None: no refinement)."""
+    if refinement is None:
+        return "as in transforms.json (no pose refinement)"
+    if refinement.get("stopped_at_step") is not None:
+        return (f"as in transforms.json: the guard stopped pose refinement at step {refinement['stopped_at_step']} "
+                "and the run kept its input cameras")  # fmt: skip
+    return refinement.get("test_poses")
 
 
 TEST_POSE_OPT_RULE = ("as above, then each test camera's SE(3) optimised against its photo with the field frozen "

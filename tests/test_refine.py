@@ -391,3 +391,64 @@ def test_perturbed_poses_are_recovered(tiny, tmp_path):
     assert 0 < tuned["test_pose_optimisation"]["median_rotation_deg"] < 1.0
     default = eval_stage.run(eval_stage.Config(run_dir=run, out=tmp_path / "d.json", device="cpu", views=1)).result
     assert default["test_pose_optimisation"]["steps"] == eval_stage.TEST_POSE_STEPS  # refined runs: on by default
+
+
+STOP_AT = 12
+
+
+def _stopping_guard(monkeypatch) -> None:
+    """Make the guard stop refinement at training step STOP_AT whatever the corrections' size."""
+    guard = CameraOpt.guard
+
+    def stop_at(self, step: int) -> None:
+        guard(self, step)
+        if self.log.stopped_at is None and step >= STOP_AT:
+            self.log.at_stop = {"median_share": 0.0}
+            self.stop(step)
+
+    monkeypatch.setattr(CameraOpt, "guard", stop_at)
+
+
+def _field_after_each_step(monkeypatch) -> dict[int, dict]:
+    """Record the field's parameters after every training step of the next run."""
+    from nerfpipe.stages.train.loop import Loop
+
+    kept: dict[int, dict] = {}
+    step = Loop.train_step
+
+    def recording(self, lr: float) -> bool:
+        ok = step(self, lr)
+        kept[self.step + 1] = {k: v.detach().clone() for k, v in self.model.field.state_dict().items()}
+        return ok
+
+    monkeypatch.setattr(Loop, "train_step", recording)
+    return kept
+
+
+def test_a_stopped_refinement_takes_the_field_back_to_before_the_cameras_moved(tiny, tmp_path, monkeypatch):
+    """When the guard stops refinement, the field goes back to its state at the cameras' first move (what it
+    learned against cameras that ran away does not stay in it), the manifest says so, and later steps use the input
+    cameras. Checked against a run without refinement: its field after the step of the first move is the refined
+    run's at the stop (the same rays up to then: corrections start at zero)."""
+    grid = train.FastOptions(resolution=(24, 24), upsample_at=(), occupancy_resolution=16)
+    kw = dict(max_steps=STOP_AT, fast=grid, log_every=100)
+    recorded = _field_after_each_step(monkeypatch)
+    train.run(tiny_config(tiny[1], tmp_path / "plain", **kw))
+    plain_fields = dict(recorded)  # the refined run records over it
+    _stopping_guard(monkeypatch)
+    fast_cameras = train.RefineOptions(camera_lr=0.03)  # the cameras move in a few steps
+    out = train.run(tiny_config(tiny[1], tmp_path / "refined", refine=fast_cameras, **kw))
+    guard = json.loads(out.manifest.read_text())["used"]["pose_refinement"]["guard"]
+    first = guard["field_rolled_back_to_step"]
+    assert guard["stopped_at_step"] == STOP_AT and first is not None and 1 < first < STOP_AT - 3, guard
+    assert f"the field went back to its state at step {first}" in guard["suspect"][0]
+    refined = torch.load(out.checkpoint, weights_only=True)["field"]
+    for name, value in plain_fields[first].items():
+        assert torch.allclose(refined[name], value, rtol=1e-4, atol=1e-6), name
+    moved = plain_fields[STOP_AT]  # the plain field kept learning after the first move: the check can fail
+    assert not all(torch.allclose(refined[k], v, rtol=1e-4, atol=1e-6) for k, v in moved.items())
+    scored = eval_stage.run(eval_stage.Config(run_dir=tmp_path / "refined", out=tmp_path / "e.json", device="cpu",
+                                              views=1)).result  # fmt: skip
+    assert scored["test_pose_optimisation"] is None  # the input cameras were kept: test views as given
+    stopped = f"as in transforms.json: the guard stopped pose refinement at step {STOP_AT}"
+    assert scored["test_poses"].startswith(stopped)

@@ -131,6 +131,8 @@ class Loop:
     _loop: TrainingLoop | None = None  # while run() runs
     _schedule: list[tuple[float, int]] = field(default_factory=list)  # upsampling still to come
     _task: Any = None  # the progress display's task
+    _before_refine: tuple[int, dict] | None = None  # (step, field state) when the cameras first moved
+    _rolled_back: bool = False  # the field went back to _before_refine (prepare() tells the loop once)
 
     def test_rays(self) -> Callable | None:
         """The map of test rays into the refined cameras' frame (None without pose refinement)."""
@@ -162,9 +164,10 @@ class Loop:
 
     def prepare(self, fraction: float) -> bool:
         """Fast fields: upsample at the schedule's fractions (a new optimiser), refresh the occupancy grid. True
-        when the grid was upsampled."""
+        when the grid was upsampled, or the field rolled back since the last call (`_camera_step`)."""
+        rolled_back, self._rolled_back = self._rolled_back, False
         if self.model.kind != "fast":
-            return False
+            return rolled_back
         upsampled = False
         while self._schedule and fraction >= self._schedule[0][0]:
             _, res = self._schedule.pop(0)
@@ -174,7 +177,7 @@ class Loop:
                 upsampled = True
         self.model.grid.update(self.model.field.density, self.step, every=self.config.fast.occupancy_every,
                                warmup_steps=64)  # fmt: skip
-        return upsampled
+        return upsampled or rolled_back  # the loop keeps a new good state for its non-finite recovery
 
     def train_step(self, lr: float) -> bool:
         """One optimiser step on a random batch of rays; False (and no update) when the loss is not finite."""
@@ -217,13 +220,55 @@ class Loop:
         self.opt.step()
         model.field.touch()  # fused Adam leaves the version counters: the field's inference caches must know
         if self.cameras is not None:
-            self.cameras.step(self._loop.fraction(), step=self.step + 1)  # the guard records the step it acts at
+            self._camera_step()
         self._losses.append(mse)
         per_ray = samples / idx.numel()
         self.samples_per_ray = 0.9 * self.samples_per_ray + 0.1 * per_ray if self.step > 0 else per_ray
         if model.grid is not None:
             self.skip_fraction = model.grid.skip_fraction
         return True
+
+    def _camera_step(self) -> None:
+        """The cameras' step after the field's; the field's state is kept at the cameras' first move, and restored
+        when the guard stops refinement (`model.camera_opt` "Rollback")."""
+        cams, frac = self.cameras, self._loop.fraction()
+        if self._before_refine is None and cams.moves(frac):  # the field has only seen the input cameras so far
+            self._before_refine = (self.step + 1, self._field_state())
+        cams.step(frac, step=self.step + 1)  # the guard records the step it acts at
+        if cams.log.stopped_at == self.step + 1 and self._before_refine is not None:
+            kept_at, state = self._before_refine
+            self._restore_field_state(state)
+            cams.log.rolled_back_to = kept_at
+            self._rolled_back = True
+            self._before_refine = None
+
+    def _field_state(self) -> dict[str, Any]:
+        """A copy of what the field learned: the field (and its grid resolution), background, appearance codes and
+        occupancy grid."""
+        m = self.model
+        mods = {"field": m.field, "background": m.background, "appearance": m.appearance, "grid": m.grid}
+        state = {k: copy.deepcopy(v.state_dict()) for k, v in mods.items() if v is not None}
+        return state | {"resolution": getattr(m.field, "resolution", None), "opt": copy.deepcopy(self.opt.state_dict())}
+
+    def _restore_field_state(self, state: dict[str, Any]) -> None:
+        """Back to `_field_state`'s copy and its optimiser state; when the grid was upsampled since, the copy is
+        resampled to today's resolution and the optimiser starts afresh (as at an upsampling)."""
+        m = self.model
+        now = getattr(m.field, "resolution", None)
+        resampled = now != state["resolution"]
+        if resampled:
+            m.field.upsample(state["resolution"])  # the copy's shapes, then its values
+        for key, mod in {"field": m.field, "background": m.background, "appearance": m.appearance,
+                         "grid": m.grid}.items():  # fmt: skip
+            if mod is not None:
+                mod.load_state_dict(state[key])
+        self.opt = make_optimizer(m, self.config.lr)
+        if resampled:
+            m.field.upsample(now)
+            self.opt = make_optimizer(m, self.config.lr)
+        else:
+            self.opt.load_state_dict(state["opt"])
+        m.field.touch()
 
     def _rays(self, idx: Tensor) -> tuple[Tensor, ...]:
         """The batch idx [B] -> this rank's rays o, d [b, 3], rgb [b, 3], alpha [b], view [b] and background
@@ -232,7 +277,7 @@ class Loop:
         if self.parallel is None:
             o, d, rgb, alpha = self.train.batch(idx, self.device)
             view = self.train.view[idx].to(self.device)  # [B] each ray's training view
-            if self.cameras is not None:
+            if self._refining():
                 o, d = self.cameras(o, d, view)
             bg = self.model.background.train_colour(o.shape[0], self.gen, transparent=alpha == 0)  # [B, 3] or [3]
             return o, d, rgb, alpha, view, bg, bg
@@ -241,9 +286,14 @@ class Loop:
         mine = self.parallel.world.share(idx.numel())
         o, d, rgb, alpha = self.train.batch(idx[mine], self.device)
         view = self.train.view[idx[mine]].to(self.device)
-        if self.cameras is not None:
+        if self._refining():
             o, d = self.cameras(o, d, view)
         return o, d, rgb, alpha, view, (bg_all[mine] if bg_all.ndim == 2 else bg_all), bg_all
+
+    def _refining(self) -> bool:
+        """Whether rays go through the cameras' corrections: with pose refinement, until the guard stops it (then
+        the corrections are zero and the rays are the input cameras', as in a run without refinement)."""
+        return self.cameras is not None and self.cameras.log.stopped_at is None
 
     def _draws(self, total: int):
         """The renderer's random draws of this rank's rays (`DataParallel.share_draws`; one process: as they come).
@@ -266,7 +316,7 @@ class Loop:
         rays = self.depth_rays
         k = torch.randint(rays.depth.shape[0], (DEPTH_RAYS,), generator=self.gen)
         o, d, depth, view = (t[k].to(self.device) for t in (rays.o, rays.d, rays.depth, rays.view))
-        if self.cameras is not None:
+        if self._refining():
             o, d = self.cameras(o, d, view)
         if bg.ndim == 2:  # per-ray colours of the photometric batch, reused (the colour does not enter the loss)
             bg = bg[torch.arange(o.shape[0], device=bg.device) % bg.shape[0]]
