@@ -13,7 +13,7 @@ import pytest
 import torch
 import trimesh
 
-from benchmarks.mesh_metrics import chamfer_distance, surface_points
+from benchmarks.mesh_metrics import chamfer_distance, signed_offsets, surface_points, surface_samples
 from benchmarks.standin import StandIn
 from nerfpipe.data.errors import UserError
 from nerfpipe.radiance.compositing import median_depth
@@ -46,6 +46,42 @@ def test_chamfer_distance_of_shifted_points():
     assert chamfer_distance(a, a + [0.0, 0.0, 1e-3]) == pytest.approx(1e-3, rel=1e-6)
     with pytest.raises(ValueError):
         chamfer_distance(a, np.zeros((0, 3)))
+
+
+def test_signed_offsets_are_positive_outside_and_negative_inside():
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=1.0)  # faces wind outward
+    surface, normals = surface_samples(np.asarray(sphere.vertices), np.asarray(sphere.faces), 50_000, seed=0)
+    assert np.allclose(np.linalg.norm(surface, axis=1) * np.einsum("nd,nd->n", surface, normals), 1.0, atol=0.01)
+    probe = surface_points(np.asarray(sphere.vertices), np.asarray(sphere.faces), 5_000, seed=1)
+    for shift in (0.02, -0.03):
+        offsets = signed_offsets(probe * (1 + shift), surface, normals)
+        assert np.median(offsets) == pytest.approx(shift, abs=0.002)
+    with pytest.raises(ValueError):
+        signed_offsets(probe, surface, normals[:10])
+
+
+def test_standin_mesh_sits_on_its_levels_iso_surface_and_cleanup_does_not_move_it(tmp_path):
+    """The stand-in's iso-surface at level L lies where sigmoid(-sdf / eps) / eps = L, i.e. at
+    sdf = eps * ln(sigma_max / L - 1) (outside for L < sigma_max / 2). The mesh must sit there whatever the level,
+    with and without the cleanup (Taubin smoothing is shrink-free: it must not inflate or shrink the surface)."""
+    s = StandIn(tmp_path)
+    scale = float(np.cbrt(np.linalg.det(s.scene.source_from_scene()[:3, :3])))  # source units per scene unit
+    voxel = scale * 2.0 / 96  # source units
+    scene_from_source = np.linalg.inv(s.scene.source_from_scene())
+    offsets = {}
+    for threshold in ("auto", 50.0):
+        for name, cleanup in (("raw", None), ("clean", mesh.Cleanup())):
+            cfg = mesh.Config(run_dir=tmp_path, out=tmp_path / f"{name}.ply", resolution=96, threshold=threshold,
+                              cleanup=cleanup, target_faces=0, colors=False)  # fmt: skip
+            out = mesh.extract(s, cfg)
+            m = _load(out.mesh)
+            p = surface_points(np.asarray(m.vertices), np.asarray(m.faces), 20_000, seed=0)
+            p_scene = p @ scene_from_source[:3, :3].T + scene_from_source[:3, 3]
+            sdf = scale * s.sdf(torch.as_tensor(p_scene)).numpy()  # source units, + = outside
+            expected = scale * s.eps * math.log(1.0 / (s.eps * out.threshold) - 1.0)
+            assert sdf.mean() == pytest.approx(expected, abs=0.1 * voxel), (threshold, name, out.threshold)
+            offsets[threshold, name] = sdf.mean()
+        assert abs(offsets[threshold, "clean"] - offsets[threshold, "raw"]) < 0.03 * voxel, offsets
 
 
 def test_auto_threshold_finds_the_half_opacity_density(tmp_path):
