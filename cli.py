@@ -65,6 +65,7 @@ from typing import Annotated, Any, Literal, get_args, get_origin
 import typer
 from typer.core import TyperCommand, TyperGroup
 
+from nerfpipe.data.cpu_load import wait_policy
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.stop import Terminated, reclaim_sigterm, sigterm_raises
 
@@ -579,9 +580,12 @@ def main(argv: list[str] | None = None) -> None:
     """Console entry point: runs the app and turns errors into one line and an exit code."""
     global _debug
     _debug = False
+    args = list(sys.argv[1:] if argv is None else argv)
+    if args and not args[0].startswith("-") and "--help" not in args:  # a stage will run: before torch loads
+        wait_policy(os.environ, torch_loaded="torch" in sys.modules)  # data.cpu_load: busy CPU -> passive waits
     try:
         with sigterm_raises():  # SIGTERM -> Terminated (a KeyboardInterrupt) -> _Interrupted, below
-            app(args=list(sys.argv[1:] if argv is None else argv), prog_name="nerfpipe")  # usage errors end here
+            app(args=args, prog_name="nerfpipe")  # usage errors end here
     except _Interrupted as e:
         if _debug:
             raise e.__cause__ from None

@@ -12,6 +12,7 @@ occluded, badly exposed or mis-posed. The sheet shows the worst views: photo | r
 from __future__ import annotations
 
 import math
+import os
 import resource
 import time
 from pathlib import Path
@@ -78,6 +79,7 @@ def used_and_left_out(
         "field": model.field.config(),
         "device": str(device),
         "cpu_threads": torch.get_num_threads() if device.type == "cpu" else None,
+        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),  # data.cpu_load: PASSIVE when the CPU was busy
         "steps": steps,
         "train_seconds": round(seconds, 3),
         "train_views": len(train_idx),
