@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import contextlib
 import io
-import json
 import math
 import time
 
@@ -65,12 +64,12 @@ from nerfpipe.stages.view.cameras import browser_intrinsics, viser_pose
 from nerfpipe.stages.view.splat_view import viser_arrays
 
 try:  # the DevTools driver lives with the viewer's tests, the stand-in with the render tests
-    from test_render_stage import SphereRun, sphere_scene
-    from test_splat_consumers import _shows_splats
+    from test_mesh_browser import _look_at
+    from test_splat_consumers import _shows_splats, sphere_run
     from test_view import BROWSER_SECONDS, CHROMIUM, NO_CHROMIUM, Browser, wait_until
 except ImportError:  # tests/ imported as a package
-    from tests.test_render_stage import SphereRun, sphere_scene
-    from tests.test_splat_consumers import _shows_splats
+    from tests.test_mesh_browser import _look_at
+    from tests.test_splat_consumers import _shows_splats, sphere_run
     from tests.test_view import BROWSER_SECONDS, CHROMIUM, NO_CHROMIUM, Browser, wait_until
 
 W, H, FOV = 320, 180, 0.8  # the test camera: size and vertical field of view (radians)
@@ -80,17 +79,6 @@ ALPHA_PSNR_MIN = 40.0
 """Alpha PSNR floor, dB (measured 45.6)."""
 CHANGED_MIN = 0.2
 """Share of the splats' pixels that must change when the camera orbits 25 degrees (measured 0.44-0.71)."""
-
-
-def _look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
-    """world_from_cam [4, 4], OpenGL axes (x right, y up, looking down -z)."""
-    back = eye - target
-    back /= np.linalg.norm(back)
-    right = np.cross(up, back)
-    right /= np.linalg.norm(right)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, np.cross(back, right), back, eye
-    return m
 
 
 def _gaussians(n: int = 300) -> SplatData:
@@ -165,12 +153,7 @@ _DRAWS = """(() => { const n = %d; window.__splatDraws = window.__splatDraws || 
 def sphere_splats(tmp_path_factory):
     """A sphere stand-in run and a splat file made from it by the splat stage (as test_splat_consumers)."""
     root = tmp_path_factory.mktemp("splat_browser")
-    scene = sphere_scene(root / "scene", views=6, w=24, h=18)
-    run_dir = root / "run"
-    run_dir.mkdir()
-    (run_dir / "config.json").write_text(json.dumps({"scene_dir": str(root / "scene")}))
-    (run_dir / "checkpoint.pt").write_bytes(b"stand-in")
-    fake = SphereRun(scene=scene)
+    run_dir, fake = sphere_run(root)
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(splat_stage, "load_trained", lambda run_dir, device: fake)
         out = splat_stage.run(splat_stage.Config(run_dir=run_dir, out=root / "s.ply", gaussians=300, max_steps=60,

@@ -42,16 +42,22 @@ except ImportError:  # tests/ imported as a package
 CPU = torch.device("cpu")
 
 
-@pytest.fixture(scope="module")
-def made(tmp_path_factory):
-    """A sphere run (config.json + checkpoint.pt, loaded as the stand-in) and splats made from it in both frames."""
-    root = tmp_path_factory.mktemp("splat_consumers")
+def sphere_run(root: Path) -> tuple[Path, SphereRun]:
+    """A sphere run folder under root (config.json + checkpoint.pt, loaded as the returned stand-in when
+    `load_trained` is monkeypatched to it)."""
     scene = sphere_scene(root / "scene", views=6, w=24, h=18)
     run_dir = root / "run"
     run_dir.mkdir()
     (run_dir / "config.json").write_text(json.dumps({"scene_dir": str(root / "scene")}))
     (run_dir / "checkpoint.pt").write_bytes(b"stand-in")
-    fake = SphereRun(scene=scene)
+    return run_dir, SphereRun(scene=scene)
+
+
+@pytest.fixture(scope="module")
+def made(tmp_path_factory):
+    """A sphere run (config.json + checkpoint.pt, loaded as the stand-in) and splats made from it in both frames."""
+    root = tmp_path_factory.mktemp("splat_consumers")
+    run_dir, fake = sphere_run(root)
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(splat_stage, "load_trained", lambda run_dir, device: fake)
         common = dict(run_dir=run_dir, gaussians=300, max_steps=60, max_seconds=120.0, device="cpu")
