@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from nerfpipe.radiance.paths import look_at
 from nerfpipe.stages.mesh.texture import bake_texture, sample_texture, write_glb_textured
 from nerfpipe.stages.view.cameras import viser_pose
 
@@ -33,17 +34,6 @@ except ImportError:  # tests/ imported as a package
     from tests.test_view import BROWSER_SECONDS, CHROMIUM, NO_CHROMIUM, Browser
 
 W, H, FOV = 320, 240, 0.6  # the render's size and vertical field of view (radians)
-
-
-def _look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
-    """world_from_cam [4, 4], OpenGL axes (x right, y up, looking down -z)."""
-    back = eye - target
-    back /= np.linalg.norm(back)
-    right = np.cross(up, back)
-    right /= np.linalg.norm(right)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, np.cross(back, right), back, eye
-    return m
 
 
 def _rasterize(verts, faces, uv, image, world_from_cam) -> tuple[np.ndarray, np.ndarray]:
@@ -126,7 +116,7 @@ def test_glb_renders_in_three_js_as_in_our_rasteriser(tmp_path):
     baked = bake_texture(sphere.vertices, sphere.faces, lambda x, d: 0.5 + 0.5 * x / x.norm(dim=1, keepdim=True),
                          texture_size=256)  # fmt: skip
     glb = write_glb_textured(tmp_path / "sphere.glb", baked).read_bytes()
-    world_from_cam = _look_at(np.array([2.2, -3.0, 1.6]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    world_from_cam = look_at(np.array([2.2, -3.0, 1.6]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
     want_rgb, want_mask = _rasterize(baked.vertices, baked.faces, baked.uv, baked.image, world_from_cam)
     want_rgb = _three_output(want_rgb)
     field_rgb, field_mask = _field_render(world_from_cam)

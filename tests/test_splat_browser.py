@@ -60,15 +60,14 @@ import nerfpipe.stages.view as view
 from nerfpipe.data.splat_ply import SplatData, read_ply, write_ply
 from nerfpipe.model.splat_run import splats_from_data
 from nerfpipe.radiance import splats as sp
+from nerfpipe.radiance.paths import look_at
 from nerfpipe.stages.view.cameras import browser_intrinsics, viser_pose
 from nerfpipe.stages.view.splat_view import viser_arrays
 
 try:  # the DevTools driver lives with the viewer's tests, the stand-in with the render tests
-    from test_mesh_browser import _look_at
     from test_splat_consumers import _shows_splats, sphere_run
     from test_view import BROWSER_SECONDS, CHROMIUM, NO_CHROMIUM, Browser, wait_until
 except ImportError:  # tests/ imported as a package
-    from tests.test_mesh_browser import _look_at
     from tests.test_splat_consumers import _shows_splats, sphere_run
     from tests.test_view import BROWSER_SECONDS, CHROMIUM, NO_CHROMIUM, Browser, wait_until
 
@@ -100,7 +99,7 @@ def test_ply_renders_in_visers_splat_viewer_as_in_our_rasteriser(tmp_path):
 
     ply = write_ply(tmp_path / "splats.ply", _gaussians())
     splats = splats_from_data(read_ply(ply), np.eye(4), ply)  # the file's frame is the scene frame here
-    world_from_cam = _look_at(np.array([3.0, -3.5, 2.0]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    world_from_cam = look_at(np.array([3.0, -3.5, 2.0]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
     intr = browser_intrinsics(FOV, W / H, W)
     ours = sp.render(splats, torch.from_numpy(world_from_cam), intr, torch.ones(3, dtype=torch.float64))
     want_rgb, want_alpha = ours["rgb"].numpy(), ours["alpha"].numpy()
