@@ -242,33 +242,35 @@ class Loop:
             self._rolled_back = True
             self._before_refine = None
 
-    def _field_state(self) -> dict[str, Any]:
-        """A copy of what the field learned: the field (and its grid resolution), background, appearance codes and
-        occupancy grid."""
+    def _learned(self) -> dict[str, torch.nn.Module]:
+        """What the field learned, by name: the field, background, appearance codes and occupancy grid (those the
+        model has)."""
         m = self.model
         mods = {"field": m.field, "background": m.background, "appearance": m.appearance, "grid": m.grid}
-        state = {k: copy.deepcopy(v.state_dict()) for k, v in mods.items() if v is not None}
-        return state | {"resolution": getattr(m.field, "resolution", None), "opt": copy.deepcopy(self.opt.state_dict())}
+        return {k: v for k, v in mods.items() if v is not None}
+
+    def _field_state(self) -> dict[str, Any]:
+        """A copy of `_learned`'s states, the field's grid resolution and the optimiser's state."""
+        state = {k: copy.deepcopy(v.state_dict()) for k, v in self._learned().items()}
+        resolution = getattr(self.model.field, "resolution", None)
+        return state | {"resolution": resolution, "opt": copy.deepcopy(self.opt.state_dict())}
 
     def _restore_field_state(self, state: dict[str, Any]) -> None:
         """Back to `_field_state`'s copy and its optimiser state; when the grid was upsampled since, the copy is
         resampled to today's resolution and the optimiser starts afresh (as at an upsampling)."""
-        m = self.model
-        now = getattr(m.field, "resolution", None)
+        field = self.model.field
+        now = getattr(field, "resolution", None)
         resampled = now != state["resolution"]
         if resampled:
-            m.field.upsample(state["resolution"])  # the copy's shapes, then its values
-        for key, mod in {"field": m.field, "background": m.background, "appearance": m.appearance,
-                         "grid": m.grid}.items():  # fmt: skip
-            if mod is not None:
-                mod.load_state_dict(state[key])
-        self.opt = make_optimizer(m, self.config.lr)
+            field.upsample(state["resolution"])  # the copy's shapes, then its values
+        for key, mod in self._learned().items():
+            mod.load_state_dict(state[key])
         if resampled:
-            m.field.upsample(now)
-            self.opt = make_optimizer(m, self.config.lr)
-        else:
+            field.upsample(now)
+        self.opt = make_optimizer(self.model, self.config.lr)
+        if not resampled:
             self.opt.load_state_dict(state["opt"])
-        m.field.touch()
+        field.touch()
 
     def _rays(self, idx: Tensor) -> tuple[Tensor, ...]:
         """The batch idx [B] -> this rank's rays o, d [b, 3], rgb [b, 3], alpha [b], view [b] and background
