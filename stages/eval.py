@@ -235,8 +235,9 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     if config.test_pose_steps is not None and config.test_pose_steps < 0:
         raise UserError(f"--test-pose-steps: expected >= 0, got {config.test_pose_steps}")
     refinement = trained.pose_refinement
-    refined_run = refinement is not None and refinement.get("stopped_at_step") is None  # stopped: input cameras
-    pose_steps = (TEST_POSE_STEPS if config.test_pose_steps is None else config.test_pose_steps) if refined_run else 0
+    moved = refinement is not None and refinement.get("stopped_at_step") is None  # stopped: the input cameras kept
+    asked = config.test_pose_steps
+    pose_steps = 0 if refinement is None else (TEST_POSE_STEPS if moved else 0) if asked is None else asked
     bg_t = torch.as_tensor(background, dtype=torch.float32, device=device)
     test_pose_moves: list[dict[str, float]] = []
     centre = np.asarray(scene.aabb, dtype=np.float64).mean(0)  # test-pose corrections turn about its depth
