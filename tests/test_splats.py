@@ -15,6 +15,7 @@ import nerfpipe.stages.splat as splat_stage
 from nerfpipe import cli
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.splat_ply import SH_C0, SPLAT_DTYPE, SplatData, ply_properties, read_ply, splat_bytes, write_ply
+from nerfpipe.radiance import splat_cpu
 from nerfpipe.radiance import splats as sp
 from nerfpipe.radiance.camera import Intrinsics, project
 
@@ -51,12 +52,16 @@ BG = torch.tensor([0.2, 0.5, 0.9], dtype=F64)
 
 
 # ---------------------------------------------------------------------------------------------- rasteriser
+KERNELS = ["torch", pytest.param("numba", marks=pytest.mark.skipif(not splat_cpu.available(), reason="no numba"))]
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
 @pytest.mark.parametrize(("opacity", "degree", "tile"), [(0.0, 0, 16), (4.0, 1, 4), (6.0, 3, 8)])
-def test_tiled_render_matches_the_per_pixel_twin(opacity, degree, tile):
-    """Translucent to opaque (T stops below 1e-4 at high opacity), SH 0..3, several tile sizes."""
+def test_tiled_render_matches_the_per_pixel_twin(opacity, degree, tile, kernel):
+    """Translucent to opaque (T stops below 1e-4 at high opacity), SH 0..3, several tile sizes, both kernels."""
     pose, intr = _camera()
     s = _splats(16, seed=1, degree=degree, opacity=opacity, size=0.12)
-    fast = sp.render(s, pose, intr, BG, tile=tile)
+    fast = sp.render(s, pose, intr, BG, tile=tile, kernel=kernel)
     ref = sp.render_reference(s, pose, intr, BG)
     assert 0.05 < float(fast["alpha"].mean()) and float(fast["alpha"].max()) > 0.5
     assert torch.allclose(fast["rgb"], ref["rgb"], atol=1e-12) and torch.allclose(
@@ -64,7 +69,8 @@ def test_tiled_render_matches_the_per_pixel_twin(opacity, degree, tile):
     )
 
 
-def test_saturated_pixels_stop_as_the_3dgs_kernel_does():
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_saturated_pixels_stop_as_the_3dgs_kernel_does(kernel):
     """Gaussians on the optical axis (the first nearest the camera), alphas 0.98, 0.98, 0.9, 0.5 at the centre
     pixel: T = 4e-4 after two, the third would bring it below 1e-4, so the pixel stops there and the fourth (which
     would leave 2e-4) is not drawn either, though it comes in a later chunk."""
@@ -77,7 +83,7 @@ def test_saturated_pixels_stop_as_the_3dgs_kernel_does():
                   log_scales=torch.full((n, 3), math.log(0.3), dtype=F64),
                   quats=torch.tensor([[1.0, 0, 0, 0]], dtype=F64).expand(n, 4), opacity_logits=torch.log(o / (1 - o)),
                   sh=torch.randn(n, 1, 3, dtype=F64, generator=torch.Generator().manual_seed(0)))  # fmt: skip
-    fast = sp.rasterize(sp.project(s, pose, intr), intr.w, intr.h, BG, chunk=1)
+    fast = sp.rasterize(sp.project(s, pose, intr), intr.w, intr.h, BG, chunk=1, kernel=kernel)
     ref = sp.render_reference(s, pose, intr, BG)
     assert 1 - float(fast["alpha"][4, 4]) == pytest.approx(0.02 * 0.02, rel=1e-9)
     assert torch.allclose(fast["rgb"], ref["rgb"], atol=1e-12) and torch.allclose(
@@ -85,12 +91,16 @@ def test_saturated_pixels_stop_as_the_3dgs_kernel_does():
     )
 
 
-def test_gradients_match_the_twin():
+@pytest.mark.parametrize("kernel", KERNELS)
+@pytest.mark.parametrize("opacity", [1.0, 5.0])
+def test_gradients_match_the_twin(kernel, opacity):
+    """Translucent, and opaque enough that pixels stop and alphas clamp at 0.99 (no gradient through the clamp)."""
     pose, intr = _camera()
-    s = _splats(10, seed=2, degree=1, opacity=1.0, size=0.15)
+    s = _splats(10, seed=2, degree=1, opacity=opacity, size=0.15)
     weights = torch.rand(intr.h, intr.w, 3, dtype=F64, generator=torch.Generator().manual_seed(3))
     grads = []
-    for fn in (lambda x: sp.render(x, pose, intr, BG, tile=8), lambda x: sp.render_reference(x, pose, intr, BG)):
+    for fn in (lambda x: sp.render(x, pose, intr, BG, tile=8, kernel=kernel),
+               lambda x: sp.render_reference(x, pose, intr, BG)):  # fmt: skip
         params = [p.clone().requires_grad_(True) for p in s.parameters()]
         out = fn(sp.Splats(*params))
         ((out["rgb"] * weights).sum() + out["alpha"].sum()).backward()
@@ -100,16 +110,60 @@ def test_gradients_match_the_twin():
         assert torch.allclose(g_fast, g_ref, rtol=1e-8, atol=1e-10), name
 
 
-def test_gradcheck_float64_three_gaussians():
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_gradcheck_float64_three_gaussians(kernel):
     pose, intr = _camera(w=8, h=8, f=12.0)
     s = _splats(3, seed=4, opacity=1.5, size=0.25)
 
     def fn(*params):
-        out = sp.render(sp.Splats(*params), pose, intr, BG, tile=4)
+        out = sp.render(sp.Splats(*params), pose, intr, BG, tile=4, kernel=kernel)
         return out["rgb"], out["alpha"]
 
     params = tuple(p.clone().requires_grad_(True) for p in s.parameters())
     assert torch.autograd.gradcheck(fn, params, eps=1e-6, atol=1e-6)
+
+
+@pytest.mark.skipif(not splat_cpu.available(), reason="no numba")
+def test_numba_kernel_gradcheck_on_its_own_inputs_with_background():
+    """The compositing alone, float64: means2d, conics, opacities, colours and the background, pixels that stop."""
+    g = torch.Generator().manual_seed(7)
+    n, w, h, tile = 6, 7, 5, 4
+    means2d = torch.rand(n, 2, generator=g, dtype=F64) * torch.tensor([w, h], dtype=F64)
+    conics = torch.stack([0.3 + torch.rand(n, generator=g, dtype=F64), 0.1 * torch.randn(n, generator=g, dtype=F64),
+                          0.3 + torch.rand(n, generator=g, dtype=F64)], dim=-1)  # fmt: skip
+    opac = 0.3 + 0.65 * torch.rand(n, generator=g, dtype=F64)
+    rgb = torch.rand(n, 3, generator=g, dtype=F64)
+    nx, ny = -(-w // tile), -(-h // tile)
+    gauss = torch.arange(n).repeat(nx * ny)  # every Gaussian in every tile, in this depth order
+    starts = torch.arange(nx * ny + 1) * n
+
+    def fn(m, c, o, col, bg):
+        tiles = splat_cpu.Tiles(gauss=gauss, starts=starts, w=w, h=h, tile=tile, nx=nx)
+        return splat_cpu.composite(m, c, o, col, bg, tiles, alpha_min=sp.ALPHA_MIN, alpha_max=sp.ALPHA_MAX,
+                                   t_min=sp.T_MIN)  # fmt: skip
+
+    inputs = tuple(x.clone().requires_grad_(True) for x in (means2d, conics, opac, rgb, BG.clone()))
+    out = fn(*inputs)
+    assert float(out[1].detach().min()) < 0.2  # some pixels nearly opaque
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6)
+
+
+@pytest.mark.skipif(not splat_cpu.available(), reason="no numba")
+def test_numba_kernel_float32_matches_the_torch_path():
+    """A few hundred Gaussians in float32, as training runs: both kernels' images and gradients agree."""
+    pose, intr = _camera(w=48, h=40, f=60.0)
+    s = _splats(300, seed=8, degree=1, opacity=0.5, size=0.05)
+    s = sp.Splats(*(p.float() for p in s.parameters()))
+    results = []
+    for kernel in ("numba", "torch"):
+        params = [p.clone().requires_grad_(True) for p in s.parameters()]
+        out = sp.render(sp.Splats(*params), pose, intr, BG.float(), kernel=kernel)
+        (out["rgb"].square().sum() + out["alpha"].sum()).backward()
+        results.append((out["rgb"].detach(), [p.grad for p in params]))
+    (img_a, grads_a), (img_b, grads_b) = results
+    assert float((img_a - img_b).abs().max()) < 1e-4
+    for ga, gb in zip(grads_a, grads_b, strict=True):
+        assert float((ga - gb).abs().max()) <= 1e-3 * float(gb.abs().max()) + 1e-7
 
 
 def test_projection_agrees_with_the_camera_module_and_culls_behind():
@@ -223,14 +277,14 @@ def test_splat_stage_end_to_end_improves_psnr_and_writes_the_user_frame(sphere_s
     assert out.backend == "torch" and out.steps == 150
     assert out.psnr_final > out.psnr_init + 1.0, (out.psnr_init, out.psnr_final)
     data = read_ply(out.out)
-    assert len(data) == out.gaussians > 100  # of 400 asked: 800 rays, about 40 % hit the sphere
+    assert len(data) == out.gaussians > 100  # of 400 asked (about 40 % of the rays hit the sphere: rounds of rays)
     # user frame: scene = 2 x user, the sphere (radius 0.5 scene units) is 0.25 user units around the origin
     radius = np.linalg.norm(data.means, axis=1)
     assert np.median(radius) == pytest.approx(0.25, abs=0.03)
     report = json.loads(out.report.read_text())
     assert report["stage"] == "splat" and report["used"]["backend"] == "torch" and report["check"] == "ok"
     assert np.allclose(report["out_from_scene"], fake.scene.source_from_scene())
-    assert "densification" in report["left_out"]
+    assert report["used"]["kernel"] == ("numba (radiance.splat_cpu)" if splat_cpu.available() else "torch")
     rows = out.metrics.read_text().splitlines()
     assert rows[0] == "step,seconds,loss,psnr" and len(rows) == 151
 
