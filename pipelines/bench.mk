@@ -32,6 +32,12 @@ bench-mesh-texture: $(INSTALLED)
 	@test -f $(MESH_RUN)/checkpoint.pt || { echo "bench-mesh-texture: no trained run at $(MESH_RUN) (make bench-real makes it, or MESH_RUN=DIR)"; exit 2; }
 	$(VENV)/bin/python -m benchmarks.bench_mesh_texture $(MESH_RUN) --out $(BENCH_OUT)/mesh_texture
 
+# issue 30: splats (`nerfpipe splat`, 300 s) from bench-real's fox and lego_400 runs against their fields, on the
+# same held-out views (PSNR, SSIM, seconds a frame); ~20 min. make bench-real first.
+.PHONY: bench-splat
+bench-splat: $(INSTALLED)
+	$(VENV)/bin/python -m benchmarks.bench_splat --runs $(BENCH_OUT)/real --out $(BENCH_OUT)/splat
+
 # Peak RSS of train against view count at 1920x1080 (issue 19: big captures in bounded memory); ~5 min.
 .PHONY: bench-memory
 bench-memory: $(INSTALLED)
