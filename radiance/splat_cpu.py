@@ -48,9 +48,18 @@ def available() -> bool:
     return numba is not None
 
 
+def _jit(fn):  # pragma: no cover - compiled on first call
+    """numba's parallel compile, its machine code cached next to this file (or in the user's cache folder); where
+    neither can be written, numba refuses to cache at decoration time, and the kernels compile in each process."""
+    try:
+        return njit(parallel=True, cache=True)(fn)
+    except RuntimeError:
+        return njit(parallel=True)(fn)
+
+
 if numba is not None:
 
-    @njit(parallel=True, cache=True)
+    @_jit
     def _forward(pairs, qmax, starts, bg, w, h, tile, nx, amax, tmin):  # pragma: no cover
         n_tiles = starts.shape[0] - 1
         color = np.zeros((h, w, 3), dtype=pairs.dtype)
@@ -88,7 +97,7 @@ if numba is not None:
                     last[py, px] = n
         return color, trans, last
 
-    @njit(parallel=True, cache=True)
+    @_jit
     def _backward(pairs, qmax, starts, bg, w, h, tile, nx, amax, trans, last, g_rgb, g_alpha):  # pragma: no cover
         n_tiles = starts.shape[0] - 1
         d_pairs = np.zeros(pairs.shape, dtype=pairs.dtype)
