@@ -9,16 +9,17 @@ Steps:
 2. Optimisation on the shared training loop (`model.loop`: budget, clock, non-finite recovery): each step renders one
    random training view whole and takes an Adam step on the L1 error against its photo (photos with alpha are
    put on the run's background, as the field was evaluated); learning rates are 3DGS's (means scaled by the scene's
-   extent), decaying x LR_DECAY over the run. No densification or pruning during the run (left out).
+   extent), decaying x LR_DECAY over the run. With `--densify` (off by default: `Config.densify` says why),
+   `model.splat_density` clones, splits and prunes every DENSIFY_EVERY steps while the run is in DENSIFY_SPAN.
 3. Export: Gaussians with opacity below 1/255 are dropped (invisible); the rest go to the output frame
    (`--frame user`: `scene.source_from_scene()`, the user's frame viewers expect; `normalized`: the scene frame),
    in INRIA's PLY layout or the `.splat` layout (`data.splat_ply`). OUT.report.json next to it holds
    `out_from_scene` (4x4), the figures and the self-check; OUT.metrics.csv the step, seconds, loss and PSNR of
    each step's view (training seconds: the evaluation before and after is left out of the budget).
 
-Backends (`backend`, decided once: `Backend`): gsplat's CUDA rasteriser when the device is CUDA and `import gsplat`
-works, else `radiance.splats` (any device; on CPU its compositing runs in the numba kernels of `radiance.splat_cpu`,
-elsewhere in torch); the report records which and why (`backend`, `backend_why`, `kernel`).
+Backends (`backend`, decided once: `model.splat_backends`): gsplat's CUDA rasteriser when the device is CUDA and
+`import gsplat` works, else `radiance.splats` (any device; on CPU its compositing runs in the numba kernels of
+`radiance.splat_cpu`, elsewhere in torch); the report records which and why (`backend`, `backend_why`, `kernel`).
 Self-check (report `check`): `psnr_gain`, the mean PSNR on EVAL_VIEWS training views after the optimisation less
 before it (>= 0), and `non_finite` parameters (0). Held-out views are scored by `nerfpipe eval OUT.ply`.
 """
