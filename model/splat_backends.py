@@ -13,7 +13,6 @@ import torch
 from torch import Tensor
 
 from nerfpipe.data.errors import UserError
-from nerfpipe.radiance import splat_cpu
 from nerfpipe.radiance import splats as sp
 from nerfpipe.radiance.camera import OPENGL_FROM_OPENCV, Intrinsics
 
@@ -78,4 +77,4 @@ def kernel_name(backend: Backend, device: torch.device) -> str:
     """What composites the Gaussians: gsplat's CUDA kernels, or `radiance.splats.rasterize`'s numba or torch path."""
     if backend.name == "gsplat":
         return "gsplat CUDA"
-    return "numba (radiance.splat_cpu)" if device.type == "cpu" and splat_cpu.available() else "torch"
+    return "numba (radiance.splat_cpu)" if sp.resolve_kernel("auto", device) == "numba" else "torch"

@@ -53,6 +53,7 @@ __all__ = [
     "sh_to_rgb",
     "rgb_to_sh0",
     "project",
+    "resolve_kernel",
     "rasterize",
     "render",
     "render_reference",
@@ -330,6 +331,16 @@ def _composite_tile(basis: Tensor, coeffs: Tensor, rgb: Tensor, chunk: int) -> t
     return color, log_t
 
 
+def resolve_kernel(kernel: str, device: torch.device | str) -> str:
+    """`rasterize`'s `kernel` (auto | numba | torch) -> the one that runs on `device`: auto is numba on CPU when
+    it imports (`radiance.splat_cpu.available`), else torch."""
+    if kernel not in ("auto", "numba", "torch"):
+        raise ValueError(f"expected kernel auto, numba or torch, got {kernel!r}")
+    if kernel != "auto":
+        return kernel
+    return "numba" if torch.device(device).type == "cpu" and splat_cpu.available() else "torch"
+
+
 def rasterize(proj: Projected, w: int, h: int, background: Tensor, *, tile: int | None = None, chunk: int = 256,
               kernel: str = "auto") -> dict[str, Tensor]:  # fmt: skip
     """Composite the visible Gaussians over `background` [3] -> dict(rgb [H, W, 3], alpha [H, W] = 1 - T_final).
@@ -340,12 +351,10 @@ def rasterize(proj: Projected, w: int, h: int, background: Tensor, *, tile: int 
     Gaussian of a tile at all its pixels, `chunk` Gaussians at a time, memory [tile^2, chunk]), or auto (numba on CPU
     when it imports, else torch). Both give the same values and gradients (tests/test_splats.py)."""
     like = proj.means2d
+    fast = resolve_kernel(kernel, like.device) == "numba"
     background = torch.as_tensor(background).to(like).reshape(3)
     order = torch.nonzero(proj.visible).squeeze(1)
     order = order[torch.sort(proj.depths.detach()[order], stable=True).indices]
-    if kernel not in ("auto", "numba", "torch"):
-        raise ValueError(f"expected kernel auto, numba or torch, got {kernel!r}")
-    fast = kernel == "numba" or (kernel == "auto" and like.device.type == "cpu" and splat_cpu.available())
     tile = tile or (TILE_NUMBA if fast else TILE_TORCH)
     tile_id, gauss, nx, ny = _tile_pairs(proj, order, w, h, tile)
     starts = torch.searchsorted(tile_id, torch.arange(nx * ny + 1, device=tile_id.device))
