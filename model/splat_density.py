@@ -21,7 +21,8 @@ from torch import Tensor
 
 from nerfpipe.radiance import splats as sp
 
-__all__ = ["GRAD_THRESHOLD", "PERCENT_DENSE", "MIN_OPACITY", "SPLIT_SHRINK", "GradStats", "refine", "carry_adam"]
+__all__ = ["GRAD_THRESHOLD", "PERCENT_DENSE", "MIN_OPACITY", "SPLIT_SHRINK", "GradStats", "refine", "swap_parameters",
+           "carry_adam"]  # fmt: skip
 
 GRAD_THRESHOLD = 2e-4
 """Mean view-space gradient norm (half-image units) above which a Gaussian is cloned or split (3DGS)."""
@@ -88,14 +89,19 @@ def refine(splats: sp.Splats, stats: GradStats, *, extent: float, limit: int,
     return sp.Splats(*params), source, fresh, counts
 
 
-def carry_adam(opt: torch.optim.Optimizer, old: list[Tensor], new: list[Tensor], source: Tensor, fresh: Tensor) -> None:
-    """Put the `new` parameters in `opt` where the `old` ones were (one per group), with their Adam moments: row r
-    takes old row source[r]'s, zero where `fresh`."""
+def swap_parameters(opt: torch.optim.Optimizer, old: list[Tensor], new: list[Tensor]) -> list[dict]:
+    """Put each `new` parameter in `opt` where the `old` one was; returns the old ones' optimiser states, taken out
+    of `opt` (in `old`'s order; {} for a parameter that had none yet)."""
     by_id = {id(p): q for p, q in zip(old, new, strict=True)}
     for group in opt.param_groups:
         group["params"] = [by_id.get(id(p), p) for p in group["params"]]
-    for p, q in zip(old, new, strict=True):
-        state = opt.state.pop(p, None)
+    return [opt.state.pop(p, {}) for p in old]
+
+
+def carry_adam(opt: torch.optim.Optimizer, old: list[Tensor], new: list[Tensor], source: Tensor, fresh: Tensor) -> None:
+    """Put the `new` parameters in `opt` where the `old` ones were (`swap_parameters`), with their Adam moments: row r
+    takes old row source[r]'s, zero where `fresh`."""
+    for q, state in zip(new, swap_parameters(opt, old, new), strict=True):
         if not state:
             continue
         for key in ("exp_avg", "exp_avg_sq"):

@@ -35,9 +35,10 @@ __all__ = ["gaussians_from_field", "INIT_RAYS_PER_GAUSSIAN", "INIT_MAX_RAYS_PER_
            "INIT_DEPTH_AGREEMENT", "INIT_KNN_FRACTION"]  # fmt: skip
 
 INIT_RAYS_PER_GAUSSIAN = 2
-"""Rays sent per Gaussian asked for, a round; rounds go on until enough rays hit a surface, or"""
+"""Rays sent a round, per Gaussian asked for; rounds go on until as many rays as Gaussians hit a surface."""
 INIT_MAX_RAYS_PER_GAUSSIAN = 8
-"""this many rays per Gaussian were sent (an object that fills a quarter of its views still gets its count)."""
+"""Rounds stop after this many rays per Gaussian asked for (an object that fills a quarter of its views still gets
+its count)."""
 INIT_OPACITY = 0.3
 INIT_DEPTH_AGREEMENT = 0.1
 """A ray gives a Gaussian only when its expected depth is within this fraction of its median depth (one surface)."""

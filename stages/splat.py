@@ -174,11 +174,11 @@ class _Steps:
     extent: float
     limit: int
     """Most Gaussians densification may reach."""
-    densify: bool = True
+    densify: bool
     step: int = 0
     lr_factor: float = 1.0
     last: dict = field(default_factory=dict)
-    stats: splat_density.GradStats | None = None
+    stats: splat_density.GradStats = field(init=False)
     refined_at: int = -1
     refinements: list[dict] = field(default_factory=list)
 
@@ -199,13 +199,13 @@ class _Steps:
         return True
 
     def _replace(self, params: list[Tensor], source: Tensor | None = None, fresh: Tensor | None = None) -> None:
+        """New Gaussians in place of the current ones: the optimiser's moments follow `source` rows (densification),
+        or are dropped (a restore loads its own)."""
         old = self.splats.parameters()
         if source is not None:
             splat_density.carry_adam(self.opt, old, params, source, fresh)
         else:
-            by_id = {id(p): q for p, q in zip(old, params, strict=True)}
-            for group in self.opt.param_groups:
-                group["params"] = [by_id.get(id(p), p) for p in group["params"]]
+            splat_density.swap_parameters(self.opt, old, params)
         self.splats = sp.Splats(*params)
         self.stats = splat_density.GradStats.zeros(len(self.splats), params[0].device)
 
