@@ -75,8 +75,9 @@ def gaussians_from_field(trained: Any, intrinsics: list[Intrinsics], world_from_
             hits += int(hit.sum())
     means, colors, footprint = torch.cat(pts), torch.cat(cols), torch.cat(foot)
     if means.shape[0] < 4:
-        raise UserError(f"{trained.scene.root}: fewer than 4 of {n_rays} training rays reach opacity {OPAQUE} in the "
-                        "field: nothing to put Gaussians on (an empty or untrained run?)")  # fmt: skip
+        raise UserError(f"{trained.scene.root}: fewer than 4 of {n_rays} training rays end on one surface in the field "
+                        f"(opacity >= {OPAQUE}, expected depth within {INIT_DEPTH_AGREEMENT:g} of the median): nothing "
+                        "to put Gaussians on (an empty or untrained run?)")  # fmt: skip
     keep = torch.randperm(means.shape[0], generator=gen)[:count]
     means, colors, footprint = means[keep], colors[keep], footprint[keep]
     dist, _ = cKDTree(means.numpy()).query(means.numpy(), k=4)

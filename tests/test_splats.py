@@ -300,6 +300,25 @@ def test_splat_stage_writes_splat_format_and_refuses_unknown(sphere_splat_run, t
         splat_stage.run(splat_stage.Config(run_dir=run_dir, out=tmp_path / "g.ply", backend="gsplat", device="cpu"))
 
 
+@pytest.mark.parametrize("field", ["empty", "two surfaces"])
+def test_a_field_with_no_surface_to_start_from_is_one_clear_error(field, sphere_splat_run, tmp_path, monkeypatch):
+    """Nothing opaque, or every ray's weight split between two depths (expected and median depth disagree): the
+    stage refuses, and writes nothing."""
+    run_dir, fake = sphere_splat_run
+    render = fake.render_rays
+
+    def broken(rays_o, rays_d, **kw):
+        out = render(rays_o, rays_d, **kw)
+        if field == "empty":
+            return {**out, "acc": torch.zeros_like(out["acc"])}
+        return {**out, "depth": out["depth"] * 1.5}
+
+    monkeypatch.setattr(fake, "render_rays", broken)
+    with pytest.raises(UserError, match="training rays end on one surface in the field"):
+        splat_stage.run(splat_stage.Config(run_dir=run_dir, out=tmp_path / "s.ply", gaussians=40, device="cpu"))
+    assert not list(tmp_path.glob("s.*"))
+
+
 def _cli(capsys, *args: str) -> tuple[int, str, str]:
     with pytest.raises(SystemExit) as e:
         cli.main([str(a) for a in args])
