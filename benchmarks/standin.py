@@ -115,6 +115,20 @@ class StandIn:
         phase = torch.tensor([0.0, 2.0, 4.0], dtype=x.dtype)
         return 0.5 + 0.4 * torch.sin(3.0 * x.sum(dim=-1, keepdim=True) + phase)
 
+    run_config: dict = {}  # noqa: RUF012  (what a run's config.json holds: nothing the mesh stage reads)
+
+    def render_rays(self, rays_o: Tensor, rays_d: Tensor, *, median: bool = True) -> dict[str, Tensor]:
+        """The analytic field rendered along rays [R, 3] (scene frame, unit directions): 384 samples over the
+        cameras' range of depths through the box (t in [1, 5]), emission-absorption over black."""
+        from nerfpipe.radiance.render import StratifiedSampler, render_rays
+
+        def rgb_sigma(x: Tensor, d: Tensor) -> tuple[Tensor, Tensor]:
+            return self.color(x, d).to(x), self.density(x).to(x)
+
+        out = render_rays(rays_o, rays_d, near=1.0, far=5.0, sampler=StratifiedSampler(n_samples=384),
+                          rgb_sigma_fn=rgb_sigma, background=torch.zeros(3, dtype=rays_o.dtype))  # fmt: skip
+        return {k: out[k] for k in ("rgb", "depth", "acc") + (("depth_median",) if median else ())}
+
     # ------------------------------------------------------------------ ground truth
     def surface_points(self, n: int = 200_000, seed: int = 0) -> np.ndarray:
         """About n points uniformly spread over the exact surface (union boundary), scene frame. [M, 3]."""

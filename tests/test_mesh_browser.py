@@ -25,7 +25,8 @@ import pytest
 import trimesh
 
 from nerfpipe.radiance.paths import look_at
-from nerfpipe.stages.mesh.texture import bake_texture, sample_texture, write_glb_textured
+from nerfpipe.stages.mesh.texture import bake_texture, sample_texture
+from nerfpipe.stages.mesh.texture_files import write_glb_textured
 from nerfpipe.stages.view.cameras import viser_pose
 
 try:  # the DevTools driver lives with the viewer's tests

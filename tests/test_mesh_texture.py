@@ -5,6 +5,7 @@ GLB round trips through trimesh; atomic writes."""
 from __future__ import annotations
 
 import json
+import math
 import struct
 
 import numpy as np
@@ -13,16 +14,16 @@ import torch
 import trimesh
 
 from nerfpipe.data.errors import WriteFailed
-from nerfpipe.stages.mesh import texture
+from nerfpipe.stages.mesh import texture_files
 from nerfpipe.stages.mesh.texture import (
     Textured,
     auto_texture_size,
     bake_texture,
     rasterize,
     sample_texture,
-    write_glb_textured,
-    write_obj_textured,
 )
+from nerfpipe.stages.mesh.texture_files import write_glb_textured, write_obj_textured
+from nerfpipe.stages.mesh.texture_views import ViewSource, project_views, spread_views
 
 
 def sphere_color(x: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
@@ -185,9 +186,90 @@ def test_obj_files_appear_only_together(baked, tmp_path, monkeypatch, fails):
     def broken(*args, **kwargs):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(texture.np if fails == "savetxt" else texture, fails, broken)
+    monkeypatch.setattr(texture_files.np if fails == "savetxt" else texture_files, fails, broken)
     name = "mesh.obj" if fails == "savetxt" else "mesh.png"
     with pytest.raises(WriteFailed, match=f"no space left on device writing .*{name}"):
         write_obj_textured(tmp_path / "mesh.obj", baked)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mesh.obj"]
     assert (tmp_path / "mesh.obj").read_text() == "old"
+
+
+# ---------------------------------------------------------------------------------------------- from the views
+def _two_spheres() -> tuple[np.ndarray, np.ndarray]:
+    """A unit sphere at the origin and a small one (radius 0.3) in front of it along +z, one mesh."""
+    big, small = _sphere(3), _sphere(2)
+    verts = np.concatenate([big.vertices, 0.3 * small.vertices + [0.0, 0.0, 1.6]])
+    return verts, np.concatenate([big.faces, small.faces + len(big.vertices)])
+
+
+def _two_spheres_render(rays_o: torch.Tensor, rays_d: torch.Tensor) -> torch.Tensor:
+    """The exact render of `_two_spheres`: the big sphere in `sphere_color`, the small one pure green, black beyond."""
+    best = torch.full((len(rays_o),), torch.inf, dtype=rays_o.dtype)
+    rgb = torch.zeros(len(rays_o), 3, dtype=rays_o.dtype)
+    for centre, radius, green in (((0.0, 0.0, 0.0), 1.0, False), ((0.0, 0.0, 1.6), 0.3, True)):
+        oc = rays_o - torch.tensor(centre, dtype=rays_o.dtype)
+        b = (oc * rays_d).sum(-1)
+        disc = b * b - (oc * oc).sum(-1) + radius * radius
+        t = -b - torch.sqrt(disc.clamp_min(0))
+        hit = (disc > 0) & (t > 0) & (t < best)
+        best = torch.where(hit, t, best)
+        x = rays_o + t[:, None] * rays_d
+        colour = torch.tensor([0.0, 1.0, 0.0], dtype=rgb.dtype).expand_as(rgb) if green else sphere_color(x, None)
+        rgb = torch.where(hit[:, None], colour, rgb)
+    return rgb
+
+
+def _view_source(eyes: list, size: int = 96) -> ViewSource:
+    from nerfpipe.radiance.camera import Intrinsics
+    from nerfpipe.radiance.paths import look_at
+
+    f = 0.5 * size / math.tan(math.radians(25.0))
+    intr = Intrinsics(w=size, h=size, fx=f, fy=f, cx=size / 2, cy=size / 2)
+    up = np.array([0.0, 1.0, 0.0])
+    return ViewSource(cameras=[(intr, look_at(np.asarray(e, float), np.zeros(3), up)) for e in eyes],
+                      render=_two_spheres_render)  # fmt: skip
+
+
+def test_texels_take_the_colour_the_cameras_render_where_they_see_them():
+    """Texel points on the big sphere, coloured from one camera on +z: the ones it sees take the colour it renders
+    there (the field's, within bilinear sampling's error), the ones the small sphere hides from it or that face
+    away take none (weight 0), and none of them takes the occluder's green."""
+    verts, faces = _two_spheres()
+    rng = np.random.default_rng(0)
+    p = rng.normal(size=(20000, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)  # points on the big sphere; their outward normal is p itself
+    rgb, weight = project_views(p, p, verts, faces, _view_source([(0.0, 0.0, 4.0)]))
+    r = np.hypot(p[:, 0], p[:, 1])
+    seen = weight > 0
+    assert not seen[p[:, 2] < 0.25].any()  # the camera at z = 4 sees the sphere down to z = 1/4
+    assert not seen[r < 0.3].any()  # behind the small sphere, seen from the camera
+    assert seen[(p[:, 2] > 0.5) & (r > 0.45)].mean() > 0.99  # facing it (cos > 0.3), clear of the small sphere
+    want = sphere_color(torch.as_tensor(p), None).numpy()
+    err = np.abs(rgb[seen] - want[seen])
+    assert np.median(err) < 0.01 and np.percentile(err, 99) < 0.08, (np.median(err), np.percentile(err, 99))
+    assert not ((rgb[seen, 1] > 0.95) & (rgb[seen, 0] < 0.05)).any()  # the occluder's colour reached no texel
+
+
+def test_baking_from_views_colours_what_they_see_and_the_rest_from_the_field():
+    """bake_texture with views: texels the cameras see hold their renders (here, the field's colour), the rest
+    `color_fn` along the normal (here a marker colour); the report says how much the views covered."""
+    verts, faces = _two_spheres()
+    eyes = [(0.0, 0.0, 4.0), (4.0, 0.0, 0.0), (-4.0, 0.0, 0.0)]
+    marker = torch.tensor([1.0, 0.0, 1.0])
+    t = bake_texture(verts, faces, lambda x, d: marker.to(x).expand(len(x), 3), texture_size=512,
+                     views=_view_source(eyes))  # fmt: skip
+    assert 0.3 < t.info["views"]["texels_seen"] < 0.9
+    x, uv = _surface_samples(t, 20000, seed=1)
+    on_big = np.linalg.norm(x, axis=1) < 1.01
+    got = sample_texture(t.image, uv) / 255.0
+    front = on_big & (x[:, 2] > 0.5) & (np.hypot(x[:, 0], x[:, 1]) > 0.5)  # seen by the camera on +z
+    back = on_big & (np.abs(x[:, 0]) < 0.2) & (x[:, 2] < 0)  # faces away from every camera (p . eye < |p|^2)
+    want = sphere_color(torch.as_tensor(x), None).numpy()
+    assert np.median(np.abs(got[front] - want[front])) < 0.02
+    assert np.allclose(got[back], marker.numpy(), atol=0.02)
+
+
+def test_spread_views_picks_far_apart_cameras():
+    centres = np.array([[0.0, 0, 0], [0.1, 0, 0], [5.0, 0, 0], [5.1, 0, 0], [0.0, 5, 0]])
+    assert spread_views(centres, 3) == [0, 3, 4]  # the first, the farthest from it, the farthest from both
+    assert spread_views(centres, 9) == [0, 1, 2, 3, 4]

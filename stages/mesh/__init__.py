@@ -27,7 +27,8 @@ Steps:
 5. Cleanup (`stages.mesh.cleanup`, pymeshlab) and quadric decimation to `--target-faces` (300k by default, a
    size a web viewer opens quickly; 0 keeps every face).
 6. Vertex colours: `trained.color(x, -n)`, the colour a camera looking straight at the surface along the
-   inward normal sees (a view-independent field ignores the direction).
+   inward normal sees (a view-independent field ignores the direction). With `--texture`, texels take the mean of
+   the field's renders of the training cameras that see them (`stages.mesh.texture_views`), the rest that colour.
 7. Export in the output frame: `scene.source_from_scene()` for `--frame user` (winding reversed if it
    mirrors), identity for `--frame normalized`; written atomically, then `OUT.report.json` next to it
    (`mesh.ply` -> `mesh.report.json`, so several meshes in one folder keep their own reports).
@@ -63,24 +64,16 @@ from nerfpipe.stages.mesh.field_access import (
     field_device,
     has_color,
     occupancy_binary,
-    vertex_colors,
+    vertex_colors,  # fmt: skip
 )
 from nerfpipe.stages.mesh.grid import Grid, make_grid, sample_volume
-from nerfpipe.stages.mesh.texture import bake_texture, write_glb_textured, write_obj_textured
+from nerfpipe.stages.mesh.texture import bake_texture
+from nerfpipe.stages.mesh.texture_files import write_glb_textured, write_obj_textured
+from nerfpipe.stages.mesh.texture_views import TEXTURE_VIEWS, training_views
 from nerfpipe.stages.mesh.threshold import auto_threshold
 
-__all__ = [
-    "Config",
-    "Outputs",
-    "Cleanup",
-    "run",
-    "extract",
-    "auto_threshold",
-    "density_function",
-    "parse_threshold",
-    "parse_bbox",
-    "FORMATS",
-]
+__all__ = ["Config", "Outputs", "Cleanup", "run", "extract", "auto_threshold", "density_function", "parse_threshold",
+           "parse_bbox", "FORMATS"]  # fmt: skip
 
 VERSION = "1"
 FORMATS = (".ply", ".obj", ".glb")
@@ -121,6 +114,9 @@ class Config:
     OUT.mtl and OUT.png; OUT.glb embeds the PNG. Not for .ply."""
     texture_size: int | None = None
     """Texture width = height in texels (a power of two); None: from the face count (256..2048)."""
+    texture_views: int = TEXTURE_VIEWS
+    """Training cameras whose renders colour the texels they see (`stages.mesh.texture_views`); 0: every texel
+    coloured along its normal only."""
     coarse_resolution: int = 128
     """Coarse pass: the fine grid is evaluated only in blocks near the surface of a grid about this fine
     (>= resolution: every voxel is evaluated)."""
@@ -180,6 +176,8 @@ def _validate(config: Config) -> None:
         raise UserError(f"{config.out}: unknown mesh format; expected one of {', '.join(FORMATS)}")
     if config.texture and Path(config.out).suffix.lower() == ".ply":
         raise UserError(f"{config.out}: texture needs an .obj or .glb output (PLY holds no texture)")
+    if config.texture_views < 0:
+        raise UserError(f"texture_views: expected >= 0, got {config.texture_views}")
     if config.texture_size is not None and not (16 <= config.texture_size <= 8192):
         raise UserError(f"texture_size: expected 16..8192 texels, got {config.texture_size}")
     if not 8 <= config.resolution <= 2048:
@@ -328,8 +326,10 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
     colors, tex = None, None
     left_out: dict[str, str] = {}
     v_scene, f_scene = transform_mesh(verts, faces, np.linalg.inv(out_from_scene))
-    if config.texture and has_color(trained):  # colours rendered from the field at each texel, along the normal
-        tex = bake_texture(v_scene, f_scene, trained.color, texture_size=config.texture_size, device=device)
+    if config.texture and has_color(trained):  # the training views' renders where they see a texel, else the normal
+        views = training_views(trained, config.texture_views)
+        tex = bake_texture(v_scene, f_scene, trained.color, texture_size=config.texture_size, views=views,
+                           device=device)  # fmt: skip
         timing.update({f"texture_{k}": v for k, v in tex.info["timing_seconds"].items()})
         tex = tex.transformed(out_from_scene)
         left_out["vertex_colors"] = "a texture is baked instead (texture)"

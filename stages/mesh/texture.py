@@ -20,25 +20,19 @@ filtering nor a mip level mixes a chart with black.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import io
-import json
 import math
-import struct
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from nerfpipe.data.atomic import atomic_path
 from nerfpipe.stages.mesh.cleanup import transform_mesh, vertex_normals
+from nerfpipe.stages.mesh.texture_views import ViewSource, project_views
 
-__all__ = ["Textured", "bake_texture", "auto_texture_size", "unwrap", "rasterize", "sample_texture",
-           "write_obj_textured", "write_glb_textured", "texture_paths"]  # fmt: skip
+__all__ = ["Textured", "bake_texture", "auto_texture_size", "unwrap", "rasterize", "sample_texture"]
 
 ColorFn = Callable[[torch.Tensor, torch.Tensor], Any]
 
@@ -53,7 +47,6 @@ DILATE = 4
 """Rounds of neighbour-mean dilation into empty texels before the push-pull fill."""
 PACKING = 0.6
 """Expected share of the atlas that xatlas' charts fill; sets its texels per unit of surface."""
-MATERIAL = "material0"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -209,12 +202,15 @@ def bake_texture(
     color_fn: ColorFn,
     *,
     texture_size: int | None = None,
+    views: ViewSource | None = None,
     dilate: int = DILATE,
     chunk: int = 1 << 18,
     device: str | torch.device = "cpu",
 ) -> Textured:
-    """UV-unwrap the mesh (verts [V, 3] float64, faces [F, 3] int64, field frame) and bake `color_fn` into a
-    texture_size x texture_size texture (None: `auto_texture_size`). See the module doc for the conventions."""
+    """UV-unwrap the mesh (verts [V, 3] float64, faces [F, 3] int64, field frame) and bake a texture_size x
+    texture_size texture (None: `auto_texture_size`): with `views`, each texel the cameras see takes the mean of
+    their renders (`stages.mesh.texture_views.project_views`), the rest `color_fn` along the inward normal; without,
+    every texel `color_fn`. See the module doc for the conventions."""
     verts = np.asarray(verts, np.float64)
     faces = np.asarray(faces, np.int64)
     if verts.ndim != 2 or verts.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
@@ -231,7 +227,13 @@ def bake_texture(
     tri = new_faces[face]  # [N, 3]
     x = np.einsum("nk,nkd->nd", bary, pos[tri])
     d = -np.einsum("nk,nkd->nd", bary, normals[tri])
-    rgb = _query(color_fn, x, d, _face_normals(pos, new_faces)[face], chunk, torch.device(device))
+    d, rgb, seen = _normalised(d, _face_normals(pos, new_faces)[face]), np.zeros((len(x), 3), np.float32), None
+    if views is not None:
+        rgb, weight = project_views(x, -d, verts, faces, views)
+        seen = weight > 0
+        info["views"] = {**views.info, "texels_seen": round(float(seen.mean()), 4) if len(seen) else 0.0}
+    rest = np.flatnonzero(~seen) if seen is not None else np.arange(len(x))
+    rgb[rest] = _query(color_fn, x[rest], d[rest], chunk, torch.device(device))
     image = np.zeros((size, size, 3), np.float32)
     filled = np.zeros((size, size), bool)
     image[rows, cols] = rgb
@@ -252,11 +254,16 @@ def _face_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
 
 
-def _query(color_fn: ColorFn, x: np.ndarray, d: np.ndarray, face_n: np.ndarray, chunk: int, device) -> np.ndarray:
-    """color_fn over the texel points in chunks -> float32 [N, 3] in [0, 1] (non-finite values become 0)."""
+def _normalised(d: np.ndarray, face_n: np.ndarray) -> np.ndarray:
+    """Inward directions [N, 3] made unit; a degenerate one takes its face's inward normal, else -z."""
     norm = np.linalg.norm(d, axis=1, keepdims=True)
     fallback = np.where(np.linalg.norm(face_n, axis=1, keepdims=True) > 0, -face_n, [0.0, 0.0, -1.0])
-    d = np.where(norm > 1e-12, d / np.maximum(norm, 1e-12), fallback)  # degenerate normal: the face's, else -z
+    return np.where(norm > 1e-12, d / np.maximum(norm, 1e-12), fallback)
+
+
+def _query(color_fn: ColorFn, x: np.ndarray, d: np.ndarray, chunk: int, device) -> np.ndarray:
+    """color_fn over the texel points [N, 3] along unit d [N, 3], in chunks -> float32 [N, 3] in [0, 1] (non-finite
+    values become 0)."""
     out = np.zeros((len(x), 3), np.float32)
     with torch.inference_mode():
         for a in range(0, len(x), chunk):
@@ -317,82 +324,3 @@ def sample_texture(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     top = im[y0, x0] * (1 - fx) + im[y0, x1] * fx
     bottom = im[y1, x0] * (1 - fx) + im[y1, x1] * fx
     return top * (1 - fy) + bottom * fy
-
-
-def texture_paths(path: str | Path) -> dict[str, Path]:
-    """The files a textured OBJ consists of: OUT.obj, OUT.mtl and OUT.png side by side."""
-    path = Path(path)
-    return {"obj": path, "mtl": path.with_suffix(".mtl"), "png": path.with_suffix(".png")}
-
-
-def _png_bytes(image: np.ndarray) -> bytes:
-    from PIL import Image
-
-    buf = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(image, np.uint8), "RGB").save(buf, format="PNG", compress_level=6)
-    return buf.getvalue()
-
-
-def write_obj_textured(path: str | Path, textured: Textured, *, into: Path | None = None) -> dict[str, Path]:
-    """OUT.obj + OUT.mtl + OUT.png (the MTL names the PNG, the OBJ the MTL, by relative name), each atomic.
-
-    The PNG and the MTL take their names first, the OBJ (make's target) last, and none does unless all were
-    written. `into`: write the OBJ's bytes there instead (a temporary the caller renames to `path` later, e.g.
-    after its report); the MTL and PNG are still named after `path`.
-    """
-    paths = texture_paths(path)
-    mtl = (f"# nerfpipe baked texture\nnewmtl {MATERIAL}\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nd 1\nillum 1\n"
-           f"map_Kd {paths['png'].name}\n")  # fmt: skip
-    with contextlib.ExitStack() as stack:  # exits run innermost first: the PNG, then the MTL, then the OBJ
-        obj_tmp = into if into is not None else stack.enter_context(atomic_path(paths["obj"]))
-        with open(obj_tmp, "w") as f:  # written first, so that a failure here is reported as the OBJ's
-            f.write(f"# nerfpipe textured mesh\nmtllib {paths['mtl'].name}\n")
-            np.savetxt(f, textured.vertices, fmt="v %.7g %.7g %.7g")
-            np.savetxt(f, textured.uv, fmt="vt %.7g %.7g")
-            f.write(f"usemtl {MATERIAL}\n")
-            idx = np.repeat(textured.faces + 1, 2, axis=1)  # v/vt with the same index: one UV per vertex
-            np.savetxt(f, idx, fmt="f %d/%d %d/%d %d/%d")
-        stack.enter_context(atomic_path(paths["mtl"])).write_text(mtl)
-        stack.enter_context(atomic_path(paths["png"])).write_bytes(_png_bytes(textured.image))
-    return paths
-
-
-def write_glb_textured(path: str | Path, textured: Textured, *, into: Path | None = None) -> Path:
-    """One GLB with the PNG embedded: a PBR material (base colour texture, metallic 0, double sided) marked
-    KHR_materials_unlit, since the baked texture already is what a camera sees (clients without the extension
-    fall back to lit PBR). Atomic; `into`: write the bytes there instead (see write_obj_textured)."""
-    import trimesh
-    from PIL import Image
-
-    material = trimesh.visual.material.PBRMaterial(
-        name=MATERIAL, baseColorTexture=Image.fromarray(textured.image, "RGB"), metallicFactor=0.0,
-        roughnessFactor=1.0, doubleSided=True,
-    )  # fmt: skip
-    visual = trimesh.visual.TextureVisuals(uv=textured.uv, material=material)
-    mesh = trimesh.Trimesh(vertices=textured.vertices, faces=textured.faces, visual=visual, process=False)
-    data = _mark_unlit(mesh.export(file_type="glb"))
-    if into is not None:
-        Path(into).write_bytes(data)
-        return Path(path)
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-    return Path(path)
-
-
-def _mark_unlit(glb: bytes) -> bytes:
-    """Add KHR_materials_unlit to every material of a GLB (its JSON chunk rewritten, the binary chunk kept)."""
-    magic, version, _ = struct.unpack_from("<4sII", glb, 0)
-    json_len, json_type = struct.unpack_from("<I4s", glb, 12)
-    if magic != b"glTF" or json_type != b"JSON":
-        raise ValueError("trimesh wrote something other than a GLB")
-    doc = json.loads(glb[20 : 20 + json_len])
-    for mat in doc.get("materials", []):
-        mat.setdefault("extensions", {})["KHR_materials_unlit"] = {}
-    used = doc.setdefault("extensionsUsed", [])
-    if "KHR_materials_unlit" not in used:
-        used.append("KHR_materials_unlit")
-    text = json.dumps(doc, separators=(",", ":")).encode()
-    text += b" " * (-len(text) % 4)  # chunks are 4-byte aligned, JSON padded with spaces
-    rest = glb[20 + json_len :]
-    total = 12 + 8 + len(text) + len(rest)
-    return struct.pack("<4sII", magic, version, total) + struct.pack("<I4s", len(text), b"JSON") + text + rest
