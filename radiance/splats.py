@@ -50,6 +50,8 @@ __all__ = [
     "transformed",
     "covariance",
     "sh_degree",
+    "sh_basis",
+    "sh_rotation",
     "sh_to_rgb",
     "rgb_to_sh0",
     "project",
@@ -162,20 +164,21 @@ def rotmat_to_quat(rot: Tensor) -> Tensor:
 def transformed(splats: Splats, out_from_scene: Tensor) -> Splats:
     """The Gaussians under a similarity `out_from_scene` [4, 4] (A = s R, R orthogonal, a mirror allowed):
     means A x + t, scales times s, orientations R R_g (a mirror flips the Gaussian's third axis, which the
-    Gaussian does not see). SH degree 0 only (higher degrees would need their coefficients rotated)."""
+    Gaussian does not see), SH coefficients rotated with the directions (`sh_rotation`)."""
     m = torch.as_tensor(out_from_scene).to(splats.means)
     a, t = m[:3, :3], m[:3, 3]
     s = torch.abs(torch.linalg.det(a)) ** (1.0 / 3.0)
     rot = a / s
     if not torch.allclose(rot.T @ rot, torch.eye(3).to(rot), atol=1e-5):
         raise ValueError("expected a similarity (rotation, uniform scale, translation), got a shear or uneven scale")
-    if splats.sh.shape[1] != 1 and not torch.allclose(rot, torch.eye(3).to(rot)):
-        raise ValueError(f"expected SH degree 0 to rotate the splats, got degree {sh_degree(splats.sh.shape[1])}")
     r_g = rot @ quat_to_rotmat(splats.quats)
     if torch.linalg.det(rot) < 0:
         r_g = r_g * torch.tensor([1.0, 1.0, -1.0]).to(r_g)  # flip the third column back to a rotation
+    sh = splats.sh
+    if sh.shape[1] > 1:
+        sh = torch.einsum("jk,nkc->njc", sh_rotation(rot.detach().cpu(), sh_degree(sh.shape[1])).to(sh), sh)
     return Splats(means=splats.means @ a.T + t, log_scales=splats.log_scales + torch.log(s),
-                  quats=rotmat_to_quat(r_g), opacity_logits=splats.opacity_logits, sh=splats.sh)  # fmt: skip
+                  quats=rotmat_to_quat(r_g), opacity_logits=splats.opacity_logits, sh=sh)  # fmt: skip
 
 
 def covariance(log_scales: Tensor, quats: Tensor) -> Tensor:
@@ -197,25 +200,56 @@ def rgb_to_sh0(rgb: Tensor) -> Tensor:
     return (rgb - 0.5) / SH_C0
 
 
+def sh_basis(dirs: Tensor, degree: int) -> Tensor:
+    """Unit dirs [N, 3] -> INRIA's real SH basis [N, (degree + 1)^2] (its constants and signs), degree 0..3."""
+    if degree not in (0, 1, 2, 3):
+        raise ValueError(f"expected an SH degree 0..3, got {degree}")
+    x, y, z = dirs.unbind(-1)
+    out = [torch.full_like(x, SH_C0)]
+    if degree > 0:
+        out += [-_SH_C1 * y, _SH_C1 * z, -_SH_C1 * x]
+    if degree > 1:
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        c = _SH_C2
+        out += [c[0] * xy, c[1] * yz, c[2] * (2 * zz - xx - yy), c[3] * xz, c[4] * (xx - yy)]
+        if degree > 2:
+            c = _SH_C3
+            out += [c[0] * y * (3 * xx - yy), c[1] * xy * z, c[2] * y * (4 * zz - xx - yy),
+                    c[3] * z * (2 * zz - 3 * xx - 3 * yy), c[4] * x * (4 * zz - xx - yy), c[5] * z * (xx - yy),
+                    c[6] * x * (xx - 3 * yy)]  # fmt: skip
+    return torch.stack(out, dim=-1)
+
+
 def sh_to_rgb(sh: Tensor, dirs: Tensor) -> Tensor:
     """sh [N, K, 3], unit dirs [N, 3] (camera centre -> mean) -> colour [N, 3] = max(0, 0.5 + SH), INRIA's basis."""
-    degree = sh_degree(sh.shape[1])
-    out = SH_C0 * sh[:, 0]
-    if degree > 0:
-        x, y, z = (dirs[:, i : i + 1] for i in range(3))
-        out = out - _SH_C1 * y * sh[:, 1] + _SH_C1 * z * sh[:, 2] - _SH_C1 * x * sh[:, 3]
-        if degree > 1:
-            xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-            c = _SH_C2
-            out = (out + c[0] * xy * sh[:, 4] + c[1] * yz * sh[:, 5] + c[2] * (2 * zz - xx - yy) * sh[:, 6]
-                   + c[3] * xz * sh[:, 7] + c[4] * (xx - yy) * sh[:, 8])  # fmt: skip
-            if degree > 2:
-                c = _SH_C3
-                out = (out + c[0] * y * (3 * xx - yy) * sh[:, 9] + c[1] * xy * z * sh[:, 10]
-                       + c[2] * y * (4 * zz - xx - yy) * sh[:, 11] + c[3] * z * (2 * zz - 3 * xx - 3 * yy) * sh[:, 12]
-                       + c[4] * x * (4 * zz - xx - yy) * sh[:, 13] + c[5] * z * (xx - yy) * sh[:, 14]
-                       + c[6] * x * (xx - 3 * yy) * sh[:, 15])  # fmt: skip
-    return torch.clamp_min(out + 0.5, 0.0)
+    basis = sh_basis(dirs, sh_degree(sh.shape[1])).to(sh.dtype)  # [N, K]
+    return torch.clamp_min(torch.einsum("nk,nkc->nc", basis, sh) + 0.5, 0.0)
+
+
+def _fibonacci_dirs(n: int, dtype: torch.dtype) -> Tensor:
+    """n unit directions spread over the sphere (a Fibonacci lattice): deterministic, never degenerate for n >= 7."""
+    i = torch.arange(n, dtype=torch.float64) + 0.5
+    z = 1.0 - 2.0 * i / n
+    phi = math.pi * (3.0 - math.sqrt(5.0)) * i
+    r = torch.sqrt(1.0 - z * z)
+    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], dim=-1).to(dtype)
+
+
+def sh_rotation(rot: Tensor, degree: int) -> Tensor:
+    """The [K, K] matrix M (K = (degree + 1)^2) with sh_out = M @ sh for an orthogonal `rot` [3, 3] (a mirror too):
+    sum_k sh_out_k Y_k(rot d) = sum_k sh_k Y_k(d) for every unit d. Each band is closed under rotations and mirrors
+    (its functions are the harmonic polynomials of one degree), so M is block diagonal and each block is solved
+    exactly from the basis at 64 spread directions (float64 least squares; band 0 is 1)."""
+    rot = torch.as_tensor(rot, dtype=torch.float64)
+    d = _fibonacci_dirs(64, torch.float64)
+    y_in, y_out = sh_basis(d, degree), sh_basis(d @ rot.T, degree)  # [64, K]: Y(d) and Y(rot d)
+    m = torch.zeros(y_in.shape[1], y_in.shape[1], dtype=torch.float64)
+    m[0, 0] = 1.0
+    for band in range(1, degree + 1):
+        b = slice(band * band, (band + 1) * (band + 1))
+        # Y_out[:, b] @ M_b = Y_in[:, b]  (sh_out = M_b sh for coefficient columns)
+        m[b, b] = torch.linalg.lstsq(y_out[:, b], y_in[:, b]).solution
+    return m
 
 
 def _cam_from_world_cv(world_from_cam: Tensor, like: Tensor) -> tuple[Tensor, Tensor, Tensor]:

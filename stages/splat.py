@@ -9,10 +9,13 @@ Steps:
 2. Optimisation on the shared training loop (`model.loop`: budget, clock, non-finite recovery): each step renders one
    random training view whole and takes an Adam step on the L1 error against its photo (photos with alpha are
    put on the run's background, as the field was evaluated); learning rates are 3DGS's (means scaled by the scene's
-   extent), decaying x LR_DECAY over the run. With `--densify` (off by default: `Config.densify` says why),
-   `model.splat_density` clones, splits and prunes every DENSIFY_EVERY steps while the run is in DENSIFY_SPAN.
+   extent), decaying x LR_DECAY over the run. Colours are spherical harmonics up to `--sh-degree` (3), one band
+   added at each of SH_AT (the higher bands at SH_REST_LR of the colour's rate, as 3DGS). With `--densify` (off by
+   default: `Config.densify` says why), `model.splat_density` clones, splits and prunes every DENSIFY_EVERY steps
+   while the run is in DENSIFY_SPAN.
 3. Export: Gaussians with opacity below 1/255 are dropped (invisible); the rest go to the output frame
-   (`--frame user`: `scene.source_from_scene()`, the user's frame viewers expect; `normalized`: the scene frame),
+   (`--frame user`: `scene.source_from_scene()`, the user's frame viewers expect, the SH bands turned with it;
+   `normalized`: the scene frame),
    in INRIA's PLY layout or the `.splat` layout (`data.splat_ply`). OUT.report.json next to it holds
    `out_from_scene` (4x4), the figures and the self-check; OUT.metrics.csv the step, seconds, loss and PSNR of
    each step's view (training seconds: the evaluation before and after is left out of the budget).
@@ -40,7 +43,6 @@ from torch import Tensor
 from nerfpipe.data.atomic import atomic_path
 from nerfpipe.data.checks import Check, verdict
 from nerfpipe.data.errors import UserError
-from nerfpipe.data.masks import load_masked_image
 from nerfpipe.data.progress import NO_PROGRESS, Progress
 from nerfpipe.data.rundir import MetricsLog, config_to_json, sidecar, write_manifest
 from nerfpipe.data.splat_ply import SplatData, write_ply, write_splat
@@ -48,8 +50,8 @@ from nerfpipe.model import load_trained, resolve_device, splat_density
 from nerfpipe.model.loop import Budget, Clock, LoopSettings, Schedule, TrainingLoop
 from nerfpipe.model.splat_backends import Backend, choose_backend, kernel_name
 from nerfpipe.model.splat_init import gaussians_from_field
+from nerfpipe.model.splat_views import TrainingPhotos, load_training_photos
 from nerfpipe.radiance import splats as sp
-from nerfpipe.radiance.camera import Intrinsics
 from nerfpipe.radiance.metrics import psnr_from_mse
 
 __all__ = ["Config", "Outputs", "run", "VERSION"]
@@ -58,6 +60,13 @@ VERSION = "1"
 LRS = {"means": 1.6e-4, "log_scales": 5e-3, "quats": 1e-3, "opacity_logits": 5e-2, "sh": 2.5e-3}
 """Adam learning rates per parameter (3DGS's; means' times the scene extent)."""
 LR_DECAY = 0.1
+SH_REST_LR = 1.0 / 20.0
+"""The higher SH coefficients learn at this times the colour's rate (3DGS: 0.0025 / 20). The optimiser holds them
+divided by it (`_shown` multiplies back), so one [N, K, 3] tensor keeps every coefficient of a Gaussian in its row
+(densification copies rows) while Adam, whose step does not depend on the gradient's scale, moves them at that rate."""
+SH_AT = (0.1, 0.2, 0.3)
+"""Run progress at which the colours' SH degree rises to 1, 2, 3 (3DGS: one band every 1000 of 30k steps, so that
+the view-independent colour settles first); bands above `Config.sh_degree` are never used."""
 DENSIFY_EVERY = 100
 """Steps between two densifications (3DGS)."""
 DENSIFY_SPAN = (0.1, 0.6)
@@ -100,6 +109,10 @@ class Config:
     `model.splat_density`), up to DENSIFY_LIMIT x the initial count. Off by default: in 300 s on CPU at 50k
     Gaussians it measured +0.13 dB on the fox and -0.20 dB on lego_400 (noise ~0.3 dB), the steps it costs
     against the detail it adds."""
+    sh_degree: int = 3
+    """Spherical-harmonics degree of the colours (0: one colour a Gaussian; 1..3: view-dependent), raised one band at
+    a time over the run (SH_AT). 3 against 0, 300 s on CPU: lego_400 32.03 against 31.47 dB, the fox 29.73 against
+    28.77 dB held-out (README, "Gaussian splats")."""
     seed: int = 0
     """Seed of the initial rays, the view order and the split Gaussians' centres."""
     device: str = "auto"
@@ -119,39 +132,6 @@ class Outputs:
     backend: str
 
 
-@dataclass
-class _Views:
-    """Training photos on the background (uint8 [H, W, 3] each) and their cameras."""
-
-    photos: list[Tensor]
-    world_from_cams: list[Tensor]  # [4, 4] float64 each
-    intrinsics: list[Intrinsics]
-
-    def target(self, k: int, device: torch.device) -> Tensor:
-        return self.photos[k].to(device).float() / 255.0
-
-
-def _load_views(scene: Any, indices: tuple[int, ...], downscale: float, background: np.ndarray) -> _Views:
-    import cv2
-
-    photos, poses, intrs = [], [], []
-    for i in indices:
-        intr = scene.frame_intrinsics(i)
-        img = load_masked_image(scene, i)
-        if img.shape[:2] != (intr.h, intr.w):
-            raise UserError(f"{scene.image_path(i)}: image is {img.shape[1]}x{img.shape[0]}, transforms.json says "
-                            f"{intr.w}x{intr.h}")  # fmt: skip
-        if downscale != 1.0:
-            intr = intr.scaled(1.0 / downscale)
-            img = cv2.resize(img, (intr.w, intr.h), interpolation=cv2.INTER_AREA)
-        if img.shape[-1] == 4:
-            img = img[..., :3] * img[..., 3:] + background * (1 - img[..., 3:])
-        photos.append(torch.from_numpy(np.round(np.clip(img[..., :3], 0, 1) * 255).astype(np.uint8)))
-        poses.append(torch.as_tensor(scene.frames[i].world_from_cam, dtype=torch.float64))
-        intrs.append(Intrinsics(w=intr.w, h=intr.h, fx=intr.fx, fy=intr.fy, cx=intr.cx, cy=intr.cy))
-    return _Views(photos, poses, intrs)
-
-
 # ---------------------------------------------------------------------------------------------- optimisation
 def _psnr(a: Tensor, b: Tensor) -> float:
     return psnr_from_mse(float(torch.mean((a.detach().float() - b.float()) ** 2)))
@@ -163,7 +143,7 @@ class _Steps:
 
     splats: sp.Splats
     opt: torch.optim.Optimizer
-    views: _Views
+    views: TrainingPhotos
     backend: Backend
     background: Tensor
     gen: torch.Generator
@@ -175,8 +155,12 @@ class _Steps:
     limit: int
     """Most Gaussians densification may reach."""
     densify: bool
+    sh_degree: int
+    """The highest SH degree the run reaches (`Config.sh_degree`)."""
     step: int = 0
     lr_factor: float = 1.0
+    degree: int = 0
+    """The SH degree in use now (raised at SH_AT)."""
     last: dict = field(default_factory=dict)
     stats: splat_density.GradStats = field(init=False)
     refined_at: int = -1
@@ -187,7 +171,8 @@ class _Steps:
 
     def prepare(self, fraction: float) -> bool:
         """Densification (`model.splat_density.refine`) every DENSIFY_EVERY steps while the run's fraction is in
-        DENSIFY_SPAN; True when the Gaussians were replaced."""
+        DENSIFY_SPAN; True when the Gaussians were replaced. The SH degree in use follows the run's fraction (SH_AT)."""
+        self.degree = min(self.sh_degree, sum(fraction >= f for f in SH_AT))
         if not (self.densify and self.step > 0 and self.step % DENSIFY_EVERY == 0 and self.step != self.refined_at
                 and DENSIFY_SPAN[0] <= fraction < DENSIFY_SPAN[1]):  # fmt: skip
             return False
@@ -214,7 +199,8 @@ class _Steps:
         device = self.splats.means.device
         target = self.views.target(k, device)
         intr = self.views.intrinsics[k]
-        rgb, means2d, visible = self.backend.render(self.splats, self.views.world_from_cams[k], intr, self.background)
+        shown = _shown(self.splats, self.degree)
+        rgb, means2d, visible = self.backend.render(shown, self.views.world_from_cams[k], intr, self.background)
         err = torch.mean(torch.abs(rgb - target))
         loss = float(err.detach())
         if not math.isfinite(loss):
@@ -247,14 +233,24 @@ class _Steps:
         pass
 
 
+def _shown(splats: sp.Splats, degree: int | None = None) -> sp.Splats:
+    """The Gaussians the rasteriser sees: the optimiser's (SH_REST_LR: higher coefficients held / SH_REST_LR) with
+    the SH bands up to `degree` (None: all it holds)."""
+    k = splats.sh.shape[1] if degree is None else (degree + 1) ** 2
+    scale = torch.full((k, 1), SH_REST_LR, dtype=splats.sh.dtype, device=splats.sh.device)
+    scale[0] = 1.0
+    return sp.Splats(splats.means, splats.log_scales, splats.quats, splats.opacity_logits, splats.sh[:, :k] * scale)
+
+
 @torch.no_grad()
-def _score(splats: sp.Splats, views: _Views, backend: Backend, background: Tensor, picks: list[int]) -> float:
+def _score(splats: sp.Splats, views: TrainingPhotos, backend: Backend, background: Tensor, picks: list[int]) -> float:
     device = splats.means.device
-    return float(np.mean([_psnr(backend.render(splats, views.world_from_cams[k], views.intrinsics[k], background)[0],
+    shown = _shown(splats)
+    return float(np.mean([_psnr(backend.render(shown, views.world_from_cams[k], views.intrinsics[k], background)[0],
                                 views.target(k, device)) for k in picks]))  # fmt: skip
 
 
-def _extent(views: _Views) -> float:
+def _extent(views: TrainingPhotos) -> float:
     """3DGS's scene extent: 1.1 x the largest distance of a camera centre from their mean (1 for a single view)."""
     centres = torch.stack([p[:3, 3] for p in views.world_from_cams])
     radius = float(torch.linalg.norm(centres - centres.mean(0), dim=-1).max())
@@ -277,6 +273,8 @@ def _validate(config: Config) -> str:
         raise UserError(f"max_steps: expected >= 0, got {config.max_steps}")
     if config.gaussians < 4:
         raise UserError(f"gaussians: expected at least 4, got {config.gaussians}")
+    if config.sh_degree not in (0, 1, 2, 3):
+        raise UserError(f"sh_degree: expected 0, 1, 2 or 3, got {config.sh_degree}")
     if config.downscale is not None and not config.downscale > 0:
         raise UserError(f"downscale: expected > 0, got {config.downscale}")
     return _out_format(config)
@@ -296,8 +294,8 @@ def _to_file(splats: sp.Splats, out_from_scene: np.ndarray) -> tuple[SplatData, 
     """Visible Gaussians in the output frame, as the files store them; and how many were dropped."""
     keep = torch.sigmoid(splats.opacity_logits) >= sp.ALPHA_MIN
     moved = sp.transformed(splats.subset(keep), torch.as_tensor(out_from_scene, dtype=torch.float64))
-    n = len(moved)
-    data = SplatData(means=moved.means.numpy(), f_dc=moved.sh[:, 0].numpy(), f_rest=np.zeros((n, 3, 0)),
+    f_rest = np.transpose(moved.sh[:, 1:].numpy(), (0, 2, 1))  # [N, 3, K - 1], channel-major (INRIA)
+    data = SplatData(means=moved.means.numpy(), f_dc=moved.sh[:, 0].numpy(), f_rest=f_rest,
                      opacity=moved.opacity_logits.numpy(), scales=moved.log_scales.numpy(),
                      quats=moved.quats.numpy())  # fmt: skip
     return data, int((~keep).sum())
@@ -315,9 +313,11 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     train_idx = scene.split("train")
     downscale = config.downscale or float(trained.run_config.get("downscale") or 1.0)
     background = trained.background.detach().float().cpu().reshape(3)
-    views = _load_views(scene, train_idx, downscale, background.numpy())
+    views = load_training_photos(scene, train_idx, downscale, background.numpy())
     gen = torch.Generator().manual_seed(config.seed)
     splats, init = gaussians_from_field(trained, views.intrinsics, views.world_from_cams, config.gaussians, gen)
+    rest = splats.sh.new_zeros(len(splats), (config.sh_degree + 1) ** 2 - 1, 3)  # higher bands start at 0
+    splats = sp.Splats(*splats.parameters()[:4], sh=torch.cat([splats.sh, rest], dim=1))
     splats = sp.Splats(*(p.to(device).requires_grad_(True) for p in splats.parameters()))
     bg = background.to(device)
     picks = sorted({int(i) for i in np.linspace(0, len(train_idx) - 1, min(EVAL_VIEWS, len(train_idx))).round()})
@@ -333,14 +333,14 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     limit = int(DENSIFY_LIMIT * len(splats))
     steps = _Steps(splats=splats, opt=opt, views=views, backend=backend, background=bg, gen=gen, clock=clock,
                    metrics=metrics, progress=progress, task=task, extent=extent, limit=limit,
-                   densify=config.densify)  # fmt: skip
+                   densify=config.densify, sh_degree=config.sh_degree)  # fmt: skip
     settings = LoopSettings(name="splat", budget=Budget(max_steps=config.max_steps, max_seconds=config.max_seconds),
                             schedule=Schedule(lr=1.0, decay=LR_DECAY))  # fmt: skip
     seconds = TrainingLoop(settings, steps, clock).run() if config.max_steps > 0 else 0.0
     splats = steps.splats
     psnr_final = _score(splats, views, backend, bg, picks)
 
-    final = sp.Splats(*(p.detach().cpu().double() for p in splats.parameters()))
+    final = sp.Splats(*(p.detach().cpu().double() for p in _shown(splats).parameters()))
     non_finite = int(sum((~torch.isfinite(p)).sum() for p in final.parameters()))
     out_from_scene = scene.source_from_scene() if config.frame == "user" else np.eye(4)
     data, dropped = _to_file(final, out_from_scene)
@@ -361,12 +361,13 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
                   "device": str(device), "format": fmt,
                   "init": init, "densification": _densification(steps, config),
                   "views": len(train_idx), "downscale": downscale, "scored_views": picks,
-                  "loss": "L1 on one whole training view per step", "learning_rates": scales, "lr_decay": LR_DECAY,
+                  "loss": "L1 on one whole training view per step",
+                  "sh": {"degree": config.sh_degree, "raised_at": list(SH_AT[: config.sh_degree]),
+                         "rest_lr": f"{SH_REST_LR:g} x the colour's"}, "learning_rates": scales, "lr_decay": LR_DECAY,
                   "scene_extent": extent, "background": background.tolist(), "dropped_invisible": dropped,
                   "camera_model": "pinhole (distortion coefficients are not applied)"},
             left_out={**({} if config.densify else {"densification": DENSIFY_OFF}),
-                      "view_dependent_colour": "SH degree 0 only (rotating higher degrees to the user's frame is not "
-                                               "implemented)",
+                      **({} if config.sh_degree else {"view_dependent_colour": "SH degree 0 (--sh-degree 0)"}),
                       "ssim_loss": "L1 only (3DGS adds 0.2 D-SSIM)",
                       "held_out_score": "test views are not scored here (nerfpipe eval OUT.ply scores them)"},
             frame=config.frame, out_from_scene=out_from_scene.tolist(), gaussians=len(data), steps=steps.step,
