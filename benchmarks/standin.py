@@ -64,6 +64,7 @@ class StandIn:
         empty: bool = False,
     ):
         self.eps, self.floater, self.empty = eps, floater, empty
+        self.run_config: dict = {}  # a run's config.json: trained at full size (no downscale)
         self.aabb = torch.tensor([[-1.0] * 3, [1.0] * 3])
         self.occupancy = None
         self.device = torch.device("cpu")
@@ -114,8 +115,6 @@ class StandIn:
         """x [N, 3] -> rgb [N, 3], view independent (a smooth solid texture)."""
         phase = torch.tensor([0.0, 2.0, 4.0], dtype=x.dtype)
         return 0.5 + 0.4 * torch.sin(3.0 * x.sum(dim=-1, keepdim=True) + phase)
-
-    run_config: dict = {}  # noqa: RUF012  (what a run's config.json holds: nothing the mesh stage reads)
 
     def render_rays(self, rays_o: Tensor, rays_d: Tensor, *, median: bool = True) -> dict[str, Tensor]:
         """The analytic field rendered along rays [R, 3] (scene frame, unit directions): 384 samples over the

@@ -227,7 +227,7 @@ def sh_to_rgb(sh: Tensor, dirs: Tensor) -> Tensor:
 
 
 def _fibonacci_dirs(n: int, dtype: torch.dtype) -> Tensor:
-    """n unit directions spread over the sphere (a Fibonacci lattice): deterministic, never degenerate for n >= 7."""
+    """n unit directions spread over the sphere (a Fibonacci lattice, deterministic)."""
     i = torch.arange(n, dtype=torch.float64) + 0.5
     z = 1.0 - 2.0 * i / n
     phi = math.pi * (3.0 - math.sqrt(5.0)) * i
@@ -241,6 +241,8 @@ def sh_rotation(rot: Tensor, degree: int) -> Tensor:
     (its functions are the harmonic polynomials of one degree), so M is block diagonal and each block is solved
     exactly from the basis at 64 spread directions (float64 least squares; band 0 is 1)."""
     rot = torch.as_tensor(rot, dtype=torch.float64)
+    if rot.shape != (3, 3) or not torch.allclose(rot.T @ rot, torch.eye(3, dtype=torch.float64), atol=1e-6):
+        raise ValueError(f"expected an orthogonal [3, 3] matrix, got {list(rot.shape)}: {rot.tolist()}")
     d = _fibonacci_dirs(64, torch.float64)
     y_in, y_out = sh_basis(d, degree), sh_basis(d @ rot.T, degree)  # [64, K]: Y(d) and Y(rot d)
     m = torch.zeros(y_in.shape[1], y_in.shape[1], dtype=torch.float64)

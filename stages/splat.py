@@ -112,7 +112,7 @@ class Config:
     sh_degree: int = 3
     """Spherical-harmonics degree of the colours (0: one colour a Gaussian; 1..3: view-dependent), raised one band at
     a time over the run (SH_AT). 3 against 0, 300 s on CPU: lego_400 32.03 against 31.47 dB, the fox 29.73 against
-    28.77 dB held-out (README, "Gaussian splats")."""
+    28.77 dB held-out (docs/DESIGN.md, "Point clouds and splats")."""
     seed: int = 0
     """Seed of the initial rays, the view order and the split Gaussians' centres."""
     device: str = "auto"
@@ -367,7 +367,9 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
                   "scene_extent": extent, "background": background.tolist(), "dropped_invisible": dropped,
                   "camera_model": "pinhole (distortion coefficients are not applied)"},
             left_out={**({} if config.densify else {"densification": DENSIFY_OFF}),
-                      **({} if config.sh_degree else {"view_dependent_colour": "SH degree 0 (--sh-degree 0)"}),
+                      **({"view_dependent_colour": "SH degree 0 (--sh-degree 0)"} if not config.sh_degree else
+                         {"view_dependent_colour": f"optimised to degree {config.sh_degree}; the .splat layout holds "
+                          "degree 0 only"} if fmt == "splat" else {}),
                       "ssim_loss": "L1 only (3DGS adds 0.2 D-SSIM)",
                       "held_out_score": "test views are not scored here (nerfpipe eval OUT.ply scores them)"},
             frame=config.frame, out_from_scene=out_from_scene.tolist(), gaussians=len(data), steps=steps.step,

@@ -404,6 +404,7 @@ def test_texture_baked_from_the_field_through_the_stage(tmp_path):
     report = json.loads(out.report.read_text())
     assert sorted(p.name for p in tmp_path.glob("m.*")) == ["m.mtl", "m.obj", "m.png", "m.report.json"]
     assert report["texture"]["size"] == [256, 256] and "vertex_colors" in report["left_out"]
+    assert report["texture"]["views"]["views"] == 24 and report["texture"]["views"]["texels_seen"] > 0.8
     m = trimesh.load(out.mesh, process=False, force="mesh")
     from nerfpipe.stages.mesh.texture import sample_texture
 

@@ -219,15 +219,15 @@ def _two_spheres_render(rays_o: torch.Tensor, rays_d: torch.Tensor) -> torch.Ten
     return rgb
 
 
-def _view_source(eyes: list, size: int = 96) -> ViewSource:
+def _view_source(eyes: list, size: int = 96, render=None) -> ViewSource:
     from nerfpipe.radiance.camera import Intrinsics
     from nerfpipe.radiance.paths import look_at
 
     f = 0.5 * size / math.tan(math.radians(25.0))
     intr = Intrinsics(w=size, h=size, fx=f, fy=f, cx=size / 2, cy=size / 2)
     up = np.array([0.0, 1.0, 0.0])
-    return ViewSource(cameras=[(intr, look_at(np.asarray(e, float), np.zeros(3), up)) for e in eyes],
-                      render=_two_spheres_render)  # fmt: skip
+    return ViewSource(cameras=tuple((intr, look_at(np.asarray(e, float), np.zeros(3), up)) for e in eyes),
+                      render=render or _two_spheres_render)  # fmt: skip
 
 
 def test_texels_take_the_colour_the_cameras_render_where_they_see_them():
@@ -238,7 +238,8 @@ def test_texels_take_the_colour_the_cameras_render_where_they_see_them():
     rng = np.random.default_rng(0)
     p = rng.normal(size=(20000, 3))
     p /= np.linalg.norm(p, axis=1, keepdims=True)  # points on the big sphere; their outward normal is p itself
-    rgb, weight = project_views(p, p, verts, faces, _view_source([(0.0, 0.0, 4.0)]))
+    rgb, weight, skipped = project_views(p, p, verts, faces, _view_source([(0.0, 0.0, 4.0)]))
+    assert skipped == 0
     r = np.hypot(p[:, 0], p[:, 1])
     seen = weight > 0
     assert not seen[p[:, 2] < 0.25].any()  # the camera at z = 4 sees the sphere down to z = 1/4
@@ -269,7 +270,54 @@ def test_baking_from_views_colours_what_they_see_and_the_rest_from_the_field():
     assert np.allclose(got[back], marker.numpy(), atol=0.02)
 
 
-def test_spread_views_picks_far_apart_cameras():
-    centres = np.array([[0.0, 0, 0], [0.1, 0, 0], [5.0, 0, 0], [5.1, 0, 0], [0.0, 5, 0]])
-    assert spread_views(centres, 3) == [0, 3, 4]  # the first, the farthest from it, the farthest from both
-    assert spread_views(centres, 9) == [0, 1, 2, 3, 4]
+def test_texels_read_the_pixel_their_point_projects_to():
+    """A render whose colour is the ray's direction: each texel seen takes 0.5 + 0.5 x the direction from the camera
+    to its point, to bilinear interpolation's error (median 7e-6 here; texels at the sphere's silhouette, read from
+    fewer pixels, up to 2e-3); a half-pixel shift would put every texel ~2e-3 off."""
+    verts, faces = _two_spheres()
+    eye = np.array([0.3, -0.2, 4.0])
+    rng = np.random.default_rng(2)
+    p = rng.normal(size=(5000, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    src = _view_source([eye], render=lambda o, d: 0.5 + 0.5 * d)
+    rgb, weight, _ = project_views(p, p, verts, faces, src)
+    seen = weight > 0
+    want = 0.5 + 0.5 * (p - eye) / np.linalg.norm(p - eye, axis=1, keepdims=True)
+    err = np.abs(rgb[seen] - want[seen]).max(axis=1)
+    assert seen.mean() > 0.2 and np.median(err) < 1e-4 and np.percentile(err, 90) < 5e-4, np.percentile(err, [50, 90])
+
+
+def test_a_texel_at_its_surfaces_edge_takes_no_colour_from_the_wall_behind():
+    """A small sphere in front of the big one: its texels at its silhouette project between pixels that show it and
+    pixels that show the big sphere far behind; only its own pixels colour them (never the big sphere's colours)."""
+    verts, faces = _two_spheres()
+    small = 0.3 * np.random.default_rng(3).normal(size=(20000, 3))
+    small = 0.3 * small / np.linalg.norm(small, axis=1, keepdims=True)
+    normals = small / 0.3
+    small = small + [0.0, 0.0, 1.6]
+    rgb, weight, _ = project_views(small, normals, verts, faces, _view_source([(0.0, 0.0, 4.0)]))
+    seen = weight > 0
+    assert seen.mean() > 0.2
+    assert np.allclose(rgb[seen], [0.0, 1.0, 0.0], atol=1e-6), np.abs(rgb[seen] - [0.0, 1.0, 0.0]).max()
+
+
+def test_a_camera_inside_the_mesh_is_skipped():
+    """A camera inside the big sphere: faces cross its plane, so it has no depth buffer and colours nothing (the
+    texels, turned to face it, would otherwise be seen)."""
+    verts, faces = _two_spheres()
+    rgb, weight, skipped = project_views(verts[:10], -verts[:10], verts, faces, _view_source([(0.0, 0.0, 0.5)]))
+    assert skipped == 1 and not (weight > 0).any()
+
+
+def test_spread_views_picks_far_apart_cameras_and_never_one_twice():
+    from nerfpipe.radiance.paths import look_at
+
+    up = np.array([0.0, 0.0, 1.0])
+    eyes = [[3.0, 0, 0], [3.1, 0, 0], [-3.0, 0, 0], [-3.1, 0, 0], [0.0, 3, 0]]
+    c2w = np.stack([look_at(np.array(e), np.zeros(3), up) for e in eyes])
+    assert spread_views(c2w, 3) == [0, 3, 4]  # the first, the farthest from it, the farthest from both
+    assert spread_views(c2w, 9) == [0, 1, 2, 3, 4] and spread_views(c2w, 0) == []
+    still = np.stack([c2w[0]] * 4)  # one camera position and direction four times: one view
+    assert spread_views(still, 3) == [0]
+    turning = np.stack([look_at(np.zeros(3), np.array(e), up) for e in eyes[::2]])  # one centre, three directions
+    assert spread_views(turning, 3) == [0, 1, 2]

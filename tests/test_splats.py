@@ -217,14 +217,18 @@ def test_transformed_splats_render_the_same_image_from_the_transformed_camera(de
     assert torch.allclose(seen, sp.sh_to_rgb(s.sh, d), atol=1e-12)
 
 
-def test_sh_rotation_is_block_diagonal_and_orthogonal():
-    rot = sp.quat_to_rotmat(torch.tensor([[0.9, 0.1, -0.3, 0.2]], dtype=F64))[0]
-    m = sp.sh_rotation(rot, 3)
-    assert torch.allclose(m @ m.T, torch.eye(16, dtype=F64), atol=1e-10)  # INRIA's basis is orthonormal up to scale
-    mask = torch.zeros(16, 16, dtype=torch.bool)
-    for band in range(4):
-        mask[band * band : (band + 1) ** 2, band * band : (band + 1) ** 2] = True
-    assert float(m[~mask].abs().max()) < 1e-12 and m[0, 0] == 1.0
+def test_sh_rotation_composes_like_the_rotations_it_turns():
+    """M(R2) M(R1) = M(R2 R1), M(I) = I, M(R) orthogonal (INRIA's basis is orthonormal up to one scale a band), and a
+    matrix that is not a rotation or mirror is refused."""
+    r1, r2 = sp.quat_to_rotmat(torch.tensor([[0.9, 0.1, -0.3, 0.2], [0.2, -0.7, 0.4, 0.5]], dtype=F64))
+    mirror = r2 @ torch.diag(torch.tensor([-1.0, 1.0, 1.0], dtype=F64))
+    for a, b in ((r1, r2), (r1, mirror)):
+        assert torch.allclose(sp.sh_rotation(b, 3) @ sp.sh_rotation(a, 3), sp.sh_rotation(b @ a, 3), atol=1e-10)
+    assert torch.allclose(sp.sh_rotation(torch.eye(3, dtype=F64), 3), torch.eye(16, dtype=F64), atol=1e-12)
+    m = sp.sh_rotation(r1, 3)
+    assert torch.allclose(m @ m.T, torch.eye(16, dtype=F64), atol=1e-10)
+    with pytest.raises(ValueError, match="orthogonal"):
+        sp.sh_rotation(2.0 * r1, 2)
 
 
 # ---------------------------------------------------------------------------------------------- file layouts

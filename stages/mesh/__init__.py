@@ -64,7 +64,7 @@ from nerfpipe.stages.mesh.field_access import (
     field_device,
     has_color,
     occupancy_binary,
-    vertex_colors,  # fmt: skip
+    vertex_colors,
 )
 from nerfpipe.stages.mesh.grid import Grid, make_grid, sample_volume
 from nerfpipe.stages.mesh.texture import bake_texture

@@ -1,4 +1,4 @@
-"""Texture baking for `stages.mesh`: UV unwrap (xatlas), colours from the field per texel, OBJ+MTL+PNG and GLB.
+"""Texture baking for `stages.mesh`: UV unwrap (xatlas) and colours per texel (the files: `texture_files`).
 
 Conventions:
 - Positions: `bake_texture` takes the mesh in the field's frame (the scene frame) as float64 [V, 3] vertices and
@@ -7,15 +7,17 @@ Conventions:
 - UVs: float32 [V', 2] in [0, 1], u to the right, v up (OBJ's and OpenGL's convention). The image is uint8
   [H, W, 3] with row 0 at the top, so texel (row r, column c) is centred at u = (c + 0.5) / W,
   v = 1 - (r + 0.5) / H. glTF puts v = 0 at the top; trimesh's glTF writer flips v, so one `Textured` serves both.
-- Colour: `color_fn(points [N, 3], view_dirs [N, 3]) -> rgb [N, 3]` in [0, 1] (a torch tensor or an array),
-  called with float32 tensors on `device`: the surface point under each texel's centre and the unit inward normal
-  there (interpolated vertex normals), i.e. the colour a camera looking straight at the surface sees. The baker
-  knows no model (the stage passes `lambda x, d: trained.color(x, d)`).
+- Colour: with `views` (`stages.mesh.texture_views.ViewSource`), a texel the cameras see takes the cosine-weighted
+  mean of their renders there (`project_views`); every other texel (all of them without `views`) takes
+  `color_fn(points [N, 3], view_dirs [N, 3]) -> rgb [N, 3]` in [0, 1] (a torch tensor or an array), called with
+  float32 tensors on `device`: the surface point under its centre and the unit inward normal there (interpolated
+  vertex normals), the colour a camera looking straight at the surface sees. The baker knows no model (the stage
+  passes `trained.color` and the run's renderer).
 
 Steps: charts by box projection, packed by xatlas (`unwrap`); each texel whose centre lies in a UV triangle gets
-its barycentrics (`rasterize`, vectorised per bounding-box size); the texels' surface points are coloured in
-chunks; empty texels take their neighbours' mean for `dilate` rounds, then a push-pull fill, so neither bilinear
-filtering nor a mip level mixes a chart with black.
+its barycentrics (`rasterize`, vectorised per bounding-box size); the texels' surface points are coloured (from the
+views, then by `color_fn` in chunks); empty texels take their neighbours' mean for `dilate` rounds, then a push-pull
+fill, so neither bilinear filtering nor a mip level mixes a chart with black.
 """
 
 from __future__ import annotations
@@ -208,9 +210,9 @@ def bake_texture(
     device: str | torch.device = "cpu",
 ) -> Textured:
     """UV-unwrap the mesh (verts [V, 3] float64, faces [F, 3] int64, field frame) and bake a texture_size x
-    texture_size texture (None: `auto_texture_size`): with `views`, each texel the cameras see takes the mean of
-    their renders (`stages.mesh.texture_views.project_views`), the rest `color_fn` along the inward normal; without,
-    every texel `color_fn`. See the module doc for the conventions."""
+    texture_size texture (None: `auto_texture_size`): with `views`, each texel the cameras see takes the
+    cosine-weighted mean of their renders (`stages.mesh.texture_views.project_views`), the rest `color_fn` along the
+    inward normal; without, every texel `color_fn`. See the module doc for the conventions."""
     verts = np.asarray(verts, np.float64)
     faces = np.asarray(faces, np.int64)
     if verts.ndim != 2 or verts.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
@@ -229,9 +231,10 @@ def bake_texture(
     d = -np.einsum("nk,nkd->nd", bary, normals[tri])
     d, rgb, seen = _normalised(d, _face_normals(pos, new_faces)[face]), np.zeros((len(x), 3), np.float32), None
     if views is not None:
-        rgb, weight = project_views(x, -d, verts, faces, views)
+        rgb, weight, skipped = project_views(x, -d, verts, faces, views)
         seen = weight > 0
-        info["views"] = {**views.info, "texels_seen": round(float(seen.mean()), 4) if len(seen) else 0.0}
+        info["views"] = {**views.info, "texels_seen": round(float(seen.mean()), 4) if len(seen) else 0.0,
+                         "skipped": skipped}  # fmt: skip
     rest = np.flatnonzero(~seen) if seen is not None else np.arange(len(x))
     rgb[rest] = _query(color_fn, x[rest], d[rest], chunk, torch.device(device))
     image = np.zeros((size, size, 3), np.float32)

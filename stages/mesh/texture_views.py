@@ -12,7 +12,7 @@ the camera (`POWER`). Texels no chosen camera sees keep the colour along the nor
 
 Measured on the fox (bench-real's run, 7 held-out views, `make bench-mesh-texture`; 2026-11-27): against the
 photos over the mesh's silhouette, the mesh scored 5.1-9.7 dB below the field (mean 7.2) along the normal, and
-2.6-7.7 dB (mean 4.8) from 24 spread training views rendered at half the run's training size; all 43 views at the
+2.7-7.7 dB (mean 4.8) from 24 spread training views rendered at half the run's training size; all 43 views at the
 training size gave the same mean at five times the cost. Weights cos^0 / cos^1 / cos^2 / cos^8 / cos^32: mean gap
 4.9 / 4.8 / 5.1 / 5.3 / 5.8 dB (sharper weights take a texel from fewer views: a patchwork of their exposures).
 What is left is the photos' view-dependent appearance, which one texture cannot hold: the fox's 43 training photos,
@@ -37,8 +37,8 @@ from torch import Tensor
 
 from nerfpipe.radiance.camera import Intrinsics, generate_rays, project
 
-__all__ = ["ViewSource", "TEXTURE_VIEWS", "POWER", "COS_MIN", "DEPTH_TOL", "spread_views", "depth_buffer",
-           "project_views", "training_views"]  # fmt: skip
+__all__ = ["ViewSource", "TEXTURE_VIEWS", "VIEW_DOWNSCALE", "VIEW_MAX_SIDE", "POWER", "COS_MIN", "DEPTH_TOL",
+           "BEHIND_TOL", "spread_views", "depth_buffer", "project_views", "training_views"]  # fmt: skip
 
 TEXTURE_VIEWS = 24
 """Training cameras rendered for a texture by default (spread out, `spread_views`): on the fox 24 of 43 gave the mean
@@ -46,19 +46,25 @@ gap of all 43 (4.83 against 4.85 dB), 12 gave 5.13 dB (module doc)."""
 VIEW_DOWNSCALE = 2.0
 """The cameras render at 1 / this of the run's training size (the fox: 135x240; 43 views gave a mean gap of 4.85 dB
 at this size and 4.82 dB at the training size, with a quarter of the rays)."""
+VIEW_MAX_SIDE = 480
+"""... and at most this many pixels on their long side (a run that trained at full size: a phone's 1920 px)."""
 POWER = 1.0
 """A camera's weight at a texel: cos(normal, direction to the camera) ** POWER (module doc: 0, 1, 2, 8, 32)."""
 COS_MIN = 0.1
 """Cameras seeing a texel at a grazing angle (cosine below this) are left out for it."""
 DEPTH_TOL = 0.01
-"""A texel is seen by a camera when its depth is within this fraction of the nearest surface's depth there."""
+"""A texel is hidden from a camera when its depth is more than this fraction beyond the nearest surface's there."""
+BEHIND_TOL = 0.1
+"""A pixel whose nearest surface lies more than this fraction beyond the texel shows something behind it (the
+texel at its surface's silhouette, the wall past it): it gives the texel no colour. A slanted surface's depth
+changes by up to ~5 % a pixel at the steepest angle kept (COS_MIN, f ~ 200 px), so its own pixels stay."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class ViewSource:
     """Cameras to project from and the field's renderer (module doc)."""
 
-    cameras: list[tuple[Intrinsics, np.ndarray]]
+    cameras: tuple[tuple[Intrinsics, np.ndarray], ...]
     """(intrinsics, world_from_cam [4, 4] OpenGL, scene frame) per camera."""
     render: Callable[[Tensor, Tensor], Tensor]
     """rays_o [R, 3], rays_d [R, 3] float32 -> rgb [R, 3] in [0, 1]."""
@@ -66,28 +72,42 @@ class ViewSource:
     """What the report says about the cameras (which, at what size)."""
 
 
-def spread_views(centres: np.ndarray, k: int) -> list[int]:
-    """k of the camera centres [N, 3] spread out (farthest-point sampling from the first; deterministic), sorted."""
-    n = len(centres)
-    if k >= n:
-        return list(range(n))
+def spread_views(world_from_cams: np.ndarray, k: int) -> list[int]:
+    """k of the cameras world_from_cams [N, 4, 4] spread out, sorted: farthest-point sampling from the first
+    (deterministic) on the centres and the viewing directions (a unit direction counts as the cameras' median
+    distance from their mean centre), stopping early when every camera left sits on a chosen one."""
+    c2w = np.asarray(world_from_cams, np.float64)
+    if c2w.ndim != 3 or c2w.shape[1:] != (4, 4):
+        raise ValueError(f"expected world_from_cams [N, 4, 4], got {c2w.shape}")
+    centres, forward = c2w[:, :3, 3], -c2w[:, :3, 2]  # OpenGL: the camera looks down -z
+    radius = float(np.median(np.linalg.norm(centres - centres.mean(axis=0), axis=1))) or 1.0
+    feats = np.concatenate([centres, radius * forward], axis=1)
+    if k <= 0 or len(feats) == 0:
+        return []
     chosen = [0]
-    dist = np.linalg.norm(centres - centres[0], axis=1)
-    for _ in range(k - 1):
+    dist = np.linalg.norm(feats - feats[0], axis=1)
+    while len(chosen) < min(k, len(feats)) and dist.max() > 0:
         nxt = int(np.argmax(dist))
         chosen.append(nxt)
-        dist = np.minimum(dist, np.linalg.norm(centres - centres[nxt], axis=1))
+        dist = np.minimum(dist, np.linalg.norm(feats - feats[nxt], axis=1))
     return sorted(chosen)
 
 
-def depth_buffer(verts: np.ndarray, faces: np.ndarray, world_from_cam: np.ndarray, intr: Intrinsics) -> np.ndarray:
-    """The mesh's z-depth at each pixel centre seen by the camera (nearest surface, perspective-correct), [H, W]
-    float64, inf where no face covers the centre."""
+def depth_buffer(verts: np.ndarray, faces: np.ndarray, world_from_cam: np.ndarray,
+                 intr: Intrinsics) -> np.ndarray | None:  # fmt: skip
+    """The mesh's (verts [V, 3], faces [F, 3]) z-depth at each pixel centre seen by the camera (nearest surface,
+    perspective-correct), [H, W] float64, inf where no face covers the centre; None when a face crosses the camera's
+    plane (the mesh around the camera: its depth there is not a triangle's on the screen)."""
     from nerfpipe.stages.mesh.texture import rasterize
 
+    if verts.ndim != 2 or verts.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"expected verts [V, 3] and faces [F, 3], got {verts.shape} and {faces.shape}")
     px, z = (a.numpy() for a in project(torch.as_tensor(verts), torch.as_tensor(world_from_cam, dtype=torch.float64),
                                         intr))  # fmt: skip
-    f = faces[(z[faces] > 1e-9).all(axis=1)]
+    front = z[faces] > 1e-9
+    if (front.any(axis=1) & ~front.all(axis=1)).any():
+        return None
+    f = faces[front.all(axis=1)]
     tri = np.stack([px[f][..., 0] / intr.w, 1.0 - px[f][..., 1] / intr.h], axis=-1)  # rasterize's frame: y up
     rows, cols, face, bary = rasterize(tri, intr.w, intr.h)
     depth = 1.0 / (bary / z[f][face]).sum(axis=1)  # perspective-correct: 1/z is linear on the screen
@@ -112,34 +132,48 @@ def _view_image(source: ViewSource, intr: Intrinsics, world_from_cam: np.ndarray
 
 
 def project_views(points: np.ndarray, normals: np.ndarray, verts: np.ndarray, faces: np.ndarray,
-                  source: ViewSource) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+                  source: ViewSource) -> tuple[np.ndarray, np.ndarray, int]:  # fmt: skip
     """Texel points [N, 3] with unit outward normals [N, 3] on the mesh (verts, faces) -> (rgb [N, 3] float32, the
-    weights' sum [N]: 0 where no camera sees the texel, its rgb is then 0). See the module doc."""
+    weights' sum [N]: 0 where no camera sees the texel, its rgb is then 0; the cameras skipped because the mesh
+    reaches round them, `depth_buffer`). See the module doc."""
+    if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
+        raise ValueError(f"expected points and normals [N, 3], got {points.shape} and {normals.shape}")
     acc = np.zeros((len(points), 3), np.float64)
     wsum = np.zeros(len(points), np.float64)
+    skipped = 0
     for intr, world_from_cam in source.cameras:
-        centre = np.asarray(world_from_cam, np.float64)[:3, 3]
-        to_cam = centre - points
+        to_cam = np.asarray(world_from_cam, np.float64)[:3, 3] - points
         cos = np.einsum("nd,nd->n", to_cam, normals) / np.maximum(np.linalg.norm(to_cam, axis=1), 1e-12)
         ids = np.flatnonzero(cos > COS_MIN)
+        if len(ids) == 0:
+            continue
         zbuf = depth_buffer(verts, faces, world_from_cam, intr)
+        if zbuf is None:
+            skipped += 1
+            continue
         covered = np.isfinite(zbuf)
-        if len(ids) == 0 or not covered.any():
+        if not covered.any():
             continue
         image = _view_image(source, intr, world_from_cam, covered)
         uv, z = (a.numpy() for a in project(torch.as_tensor(points[ids]), torch.as_tensor(world_from_cam), intr))
-        u, v = uv[:, 0] - 0.5, uv[:, 1] - 0.5  # pixel-centre coordinates
-        inside = (z > 0) & (u >= 0) & (v >= 0) & (u <= intr.w - 1) & (v <= intr.h - 1)
-        ids, u, v, z = ids[inside], u[inside], v[inside], z[inside]
-        u0 = np.minimum(np.floor(u).astype(np.int64), max(intr.w - 2, 0))
-        v0 = np.minimum(np.floor(v).astype(np.int64), max(intr.h - 2, 0))
+        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= intr.w) & (uv[:, 1] <= intr.h)
+        ids, uv, z = ids[inside], uv[inside], z[inside]
+        u = np.clip(uv[:, 0] - 0.5, 0, intr.w - 1)  # pixel-centre coordinates; the outer half pixel clamps
+        v = np.clip(uv[:, 1] - 0.5, 0, intr.h - 1)
+        u0, v0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+        u1, v1 = np.minimum(u0 + 1, intr.w - 1), np.minimum(v0 + 1, intr.h - 1)
         fu, fv = u - u0, v - v0
         col, depth, cov = np.zeros((len(ids), 3)), np.zeros(len(ids)), np.zeros(len(ids))
-        for r, c, b in ((v0, u0, (1 - fu) * (1 - fv)), (v0, u0 + 1, fu * (1 - fv)), (v0 + 1, u0, (1 - fu) * fv),
-                        (v0 + 1, u0 + 1, fu * fv)):  # bilinear over the covered pixels only  # fmt: skip
-            b = np.where(covered[r, c], b, 0.0)
+        for r, c, b in (
+            (v0, u0, (1 - fu) * (1 - fv)),
+            (v0, u1, fu * (1 - fv)),
+            (v1, u0, (1 - fu) * fv),
+            (v1, u1, fu * fv),
+        ):  # bilinear over the pixels that show this surface or one before it
+            zt = zbuf[r, c]
+            b = np.where(covered[r, c] & (zt <= z * (1.0 + BEHIND_TOL)), b, 0.0)
             col += image[r, c] * b[:, None]
-            depth += np.where(covered[r, c], zbuf[r, c], 0.0) * b
+            depth += np.where(b > 0, zt, 0.0) * b
             cov += b
         seen = cov > 1e-6
         seen[seen] = z[seen] <= depth[seen] / cov[seen] * (1.0 + DEPTH_TOL)  # the nearest surface there
@@ -148,26 +182,29 @@ def project_views(points: np.ndarray, normals: np.ndarray, verts: np.ndarray, fa
         acc[ids] += col[seen] / cov[seen, None] * weight[:, None]
         wsum[ids] += weight
     rgb = np.divide(acc, wsum[:, None], out=np.zeros_like(acc), where=wsum[:, None] > 0)
-    return rgb.astype(np.float32), wsum
+    return rgb.astype(np.float32), wsum, skipped
 
 
 def training_views(trained: Any, count: int) -> ViewSource | None:
-    """`count` of the run's training cameras (spread out), at 1 / VIEW_DOWNSCALE of the size the run trained at,
-    and the run's renderer; None when count is 0 or the run has no training views."""
+    """`count` of the run's training cameras (spread out), at 1 / VIEW_DOWNSCALE of the size the run trained at (at
+    most VIEW_MAX_SIDE pixels long), and the run's renderer; None when count is 0 or the run has no training views."""
     scene = trained.scene
     train = list(scene.split("train")) if count > 0 else []
     if not train:
         return None
-    centres = np.stack([np.asarray(scene.frames[i].world_from_cam, np.float64)[:3, 3] for i in train])
-    picked = [train[k] for k in spread_views(centres, count)]
-    scale = 1.0 / (VIEW_DOWNSCALE * float(trained.run_config.get("downscale") or 1.0))
-    cameras = [(scene.frame_intrinsics(i).scaled(scale), np.asarray(scene.frames[i].world_from_cam, np.float64))
-               for i in picked]  # fmt: skip
+    c2w = np.stack([np.asarray(scene.frames[i].world_from_cam, np.float64) for i in train])
+    picked = [train[k] for k in spread_views(c2w, count)]
+    cameras = []
+    for i in picked:
+        intr = scene.frame_intrinsics(i)
+        scale = min(1.0 / (VIEW_DOWNSCALE * float(trained.run_config.get("downscale") or 1.0)),
+                    VIEW_MAX_SIDE / max(intr.w, intr.h))  # fmt: skip
+        cameras.append((intr.scaled(scale), np.asarray(scene.frames[i].world_from_cam, np.float64)))
 
     def render(rays_o: Tensor, rays_d: Tensor) -> Tensor:
         return trained.render_rays(rays_o, rays_d, median=False)["rgb"]
 
-    w, h = cameras[0][0].w, cameras[0][0].h
-    info = {"views": len(cameras), "of": len(train), "size": [w, h], "weights": f"cos^{POWER:g}",
+    sizes = sorted({(intr.w, intr.h) for intr, _ in cameras})
+    info = {"views": len(cameras), "of": len(train), "sizes": [list(wh) for wh in sizes], "weights": f"cos^{POWER:g}",
             "rule": "the field's renders of spread-out training cameras, projected onto the texels seen"}  # fmt: skip
-    return ViewSource(cameras=cameras, render=render, info=info)
+    return ViewSource(cameras=tuple(cameras), render=render, info=info)
