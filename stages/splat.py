@@ -10,9 +10,9 @@ Steps:
    random training view whole and takes an Adam step on the L1 error against its photo (photos with alpha are
    put on the run's background, as the field was evaluated); learning rates are 3DGS's (means scaled by the scene's
    extent), decaying x LR_DECAY over the run. Colours are spherical harmonics up to `--sh-degree` (3), one band
-   added at each of SH_AT (the higher bands at SH_REST_LR of the colour's rate, as 3DGS). With `--densify` (off by
-   default: `Config.densify` says why), `model.splat_density` clones, splits and prunes every DENSIFY_EVERY steps
-   while the run is in DENSIFY_SPAN.
+   added at each of SH_AT (the higher bands at SH_REST_LR of the colour's rate: 1 on a CPU budget). With
+   `--densify` (off by default: `Config.densify` says why), `model.splat_density` clones, splits and prunes every
+   DENSIFY_EVERY steps while the run is in DENSIFY_SPAN.
 3. Export: Gaussians with opacity below 1/255 are dropped (invisible); the rest go to the output frame
    (`--frame user`: `scene.source_from_scene()`, the user's frame viewers expect, the SH bands turned with it;
    `normalized`: the scene frame),
@@ -245,6 +245,15 @@ def _shown(splats: sp.Splats, degree: int | None = None) -> sp.Splats:
     return sp.Splats(splats.means, splats.log_scales, splats.quats, splats.opacity_logits, splats.sh[:, :k] * scale)
 
 
+def _colour_left_out(sh_degree: int, fmt: str) -> dict[str, str]:
+    """The report's `left_out` entry for view-dependent colour: none asked for, or a file layout that drops it."""
+    if not sh_degree:
+        return {"view_dependent_colour": "SH degree 0 (--sh-degree 0)"}
+    if fmt == "splat":
+        return {"view_dependent_colour": f"optimised to degree {sh_degree}; the .splat layout holds degree 0 only"}
+    return {}
+
+
 @torch.no_grad()
 def _score(splats: sp.Splats, views: TrainingPhotos, backend: Backend, background: Tensor, picks: list[int]) -> float:
     device = splats.means.device
@@ -370,9 +379,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
                   "scene_extent": extent, "background": background.tolist(), "dropped_invisible": dropped,
                   "camera_model": "pinhole (distortion coefficients are not applied)"},
             left_out={**({} if config.densify else {"densification": DENSIFY_OFF}),
-                      **({"view_dependent_colour": "SH degree 0 (--sh-degree 0)"} if not config.sh_degree else
-                         {"view_dependent_colour": f"optimised to degree {config.sh_degree}; the .splat layout holds "
-                          "degree 0 only"} if fmt == "splat" else {}),
+                      **_colour_left_out(config.sh_degree, fmt),
                       "ssim_loss": "L1 only (3DGS adds 0.2 D-SSIM)",
                       "held_out_score": "test views are not scored here (nerfpipe eval OUT.ply scores them)"},
             frame=config.frame, out_from_scene=out_from_scene.tolist(), gaussians=len(data), steps=steps.step,

@@ -375,6 +375,8 @@ def test_splat_stage_writes_splat_format_and_refuses_unknown(sphere_splat_run, t
     out = splat_stage.run(splat_stage.Config(run_dir=run_dir, out=tmp_path / "s.splat", gaussians=50, max_steps=2,
                                              device="cpu", frame="normalized"))  # fmt: skip
     assert out.out.stat().st_size == 32 * out.gaussians
+    left_out = json.loads((tmp_path / "s.report.json").read_text())["left_out"]
+    assert left_out["view_dependent_colour"] == "optimised to degree 3; the .splat layout holds degree 0 only"
     with pytest.raises(UserError, match=r"s\.xyz: unknown splat format"):
         splat_stage.run(splat_stage.Config(run_dir=run_dir, out=tmp_path / "s.xyz", device="cpu"))
     with pytest.raises(UserError, match="backend: gsplat cannot run here"):

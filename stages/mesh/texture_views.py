@@ -79,11 +79,11 @@ def spread_views(world_from_cams: np.ndarray, k: int) -> list[int]:
     c2w = np.asarray(world_from_cams, np.float64)
     if c2w.ndim != 3 or c2w.shape[1:] != (4, 4):
         raise ValueError(f"expected world_from_cams [N, 4, 4], got {c2w.shape}")
+    if k <= 0 or len(c2w) == 0:
+        return []
     centres, forward = c2w[:, :3, 3], -c2w[:, :3, 2]  # OpenGL: the camera looks down -z
     radius = float(np.median(np.linalg.norm(centres - centres.mean(axis=0), axis=1))) or 1.0
     feats = np.concatenate([centres, radius * forward], axis=1)
-    if k <= 0 or len(feats) == 0:
-        return []
     chosen = [0]
     dist = np.linalg.norm(feats - feats[0], axis=1)
     while len(chosen) < min(k, len(feats)) and dist.max() > 0:
@@ -194,11 +194,11 @@ def training_views(trained: Any, count: int) -> ViewSource | None:
         return None
     c2w = np.stack([np.asarray(scene.frames[i].world_from_cam, np.float64) for i in train])
     picked = [train[k] for k in spread_views(c2w, count)]
+    downscale = VIEW_DOWNSCALE * float(trained.run_config.get("downscale") or 1.0)
     cameras = []
     for i in picked:
         intr = scene.frame_intrinsics(i)
-        scale = min(1.0 / (VIEW_DOWNSCALE * float(trained.run_config.get("downscale") or 1.0)),
-                    VIEW_MAX_SIDE / max(intr.w, intr.h))  # fmt: skip
+        scale = min(1.0 / downscale, VIEW_MAX_SIDE / max(intr.w, intr.h))
         cameras.append((intr.scaled(scale), np.asarray(scene.frames[i].world_from_cam, np.float64)))
 
     def render(rays_o: Tensor, rays_d: Tensor) -> Tensor:
