@@ -21,6 +21,7 @@ from nerfpipe.data.importers.colmap import read_world_from_cam
 from nerfpipe.radiance.align import pose_errors, umeyama
 from nerfpipe.stages import poses
 from nerfpipe.stages.poses import colmap as sfm
+from nerfpipe.stages.poses import lens
 from nerfpipe.stages.poses.attempts import ladder
 from nerfpipe.stages.poses.choice import candidate, choose
 from nerfpipe.stages.poses.images import blurriest, near_duplicates, screen_image
@@ -132,6 +133,11 @@ def test_synthetic_outputs_and_report(synthetic):
     assert report["ladder"]["stopped"].startswith(f"'as configured' registered {VIEWS}/{VIEWS}")
     manifest = json.loads((colmap / "manifest.json").read_text())
     assert manifest["check"] == "ok" and manifest["checks"] == report["checks"]
+    # a centred pinhole render: neither lens step pays (stages.poses.lens), and the report says why
+    assert report["radial_term"].startswith("rejected") and "too little gain" in report["radial_term"]
+    assert (
+        report["cameras"]["1"]["model"] == "SIMPLE_RADIAL" and manifest["used"]["radial_term"] == report["radial_term"]
+    )
     assert manifest["used"]["choice"] == report["choice"]
 
 
@@ -177,6 +183,38 @@ def _pycolmap_defaults_registered(images: Path, work: Path) -> int:
     pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
     models = pycolmap.incremental_mapping(db, images, work / "sparse")
     return max((m.num_reg_images() for m in models.values()), default=0)
+
+
+def _observed_through(rec: pycolmap.Reconstruction, k1: float, k2: float, noise_px: float) -> None:
+    """Every observation of `rec` replaced by its 3D point seen through a RADIAL lens (k1, k2) with the model's
+    focal length and principal point, plus Gaussian noise; then the mapper's SIMPLE_RADIAL fitted to them."""
+    cam = rec.cameras[1]
+    f, cx, cy = (float(v) for v in cam.params[:3])
+    lens_ = pycolmap.Camera(model="RADIAL", width=cam.width, height=cam.height, params=[f, cx, cy, k1, k2])
+    rng = np.random.default_rng(0)
+    for image in rec.images.values():
+        for p in image.points2D:
+            if p.has_point3D():
+                in_cam = image.cam_from_world() * rec.points3D[p.point3D_id].xyz
+                p.xy = lens_.img_from_cam(in_cam[None])[0] + rng.normal(0.0, noise_px, 2)
+    lens._adjust(rec, [1], False, 1)
+
+
+def test_second_radial_term_is_kept_only_where_the_lens_has_one(synthetic):
+    """A shared SIMPLE_RADIAL camera whose photos were taken through a lens with k2 = 0.5 (a 256 px set: the
+    mapper's k1 absorbs part of it) becomes RADIAL and recovers k2; through a lens with k1 alone it stays."""
+    rec = pycolmap.Reconstruction(synthetic["out"].sparse)
+    _observed_through(rec, 0.0, 0.5, 0.05)
+    kept, why = lens.add_radial_term(rec, False, 1)
+    assert kept is not rec and why.startswith("RADIAL (k1, k2)"), why
+    assert kept.cameras[1].model == pycolmap.CameraModelId.RADIAL
+    assert kept.cameras[1].params[4] == pytest.approx(0.5, abs=0.05)
+    assert kept.compute_mean_reprojection_error() < rec.compute_mean_reprojection_error()
+    rec = pycolmap.Reconstruction(synthetic["out"].sparse)
+    _observed_through(rec, 0.05, 0.0, 0.1)
+    kept, why = lens.add_radial_term(rec, False, 1)
+    assert kept is rec and why.startswith("rejected") and "too little gain" in why, why
+    assert kept.cameras[1].model == pycolmap.CameraModelId.SIMPLE_RADIAL
 
 
 def test_retry_recovers_a_starved_first_attempt(tmp_path):

@@ -9,9 +9,10 @@ blindly model 0 -> its cameras and structure checked (`quality`: focal against E
 view, distortion, principal point, reprojection error, track length) -> under 80 % registered or a camera
 check failed, retries with pycolmap's size and feature cap, then a relaxed mapper, then guided matching,
 within a time budget (`attempts`, `choice`), keeping the attempt that registered most among those whose
-cameras pass the checks (a failing one only when all fail, marked suspect) -> with a shared camera, one last
-bundle adjustment that also refines the principal point -> the written model's checks: `check` ("ok" |
-"suspect") and `checks` in poses_report.json and colmap/manifest.json, a warning line per failed check.
+cameras pass the checks (a failing one only when all fail, marked suspect) -> with a shared camera, the last
+bundle adjustments refine the principal point, then try a second radial term (`lens`: each kept where it
+pays) -> the written model's checks: `check` ("ok" | "suspect") and `checks` in poses_report.json and
+colmap/manifest.json, a warning line per failed check.
 
 Outputs (COLMAP conventions: OpenCV camera axes, `cam_from_world` poses, binary model):
   SCENE_DIR/colmap/images/          upright copies / video frames: the image folder of the model
@@ -44,10 +45,11 @@ model the background); a model whose registered cameras all sit at one place is 
 
 Modules: `config` (the Config, its validation, the Outputs), `inputs` (the images, screening, masks, camera groups
 and working size the attempts start from), `images` (upright copies, screening), `exif` (the EXIF focal prior,
-given to COLMAP's cameras), `video` (frame picking), `colmap` (the pycolmap steps, the working size and the
-principal-point refinement), `attempts` (the retry ladder), `quality` (the checks of a model), `choice` (which
-attempt to keep, when to stop), `report` (run state, registration checks, poses_report.json, phase timer),
-`output` (setting aside an earlier colmap/, writing the kept model, report and manifest into place).
+given to COLMAP's cameras), `video` (frame picking), `colmap` (the pycolmap steps and the working size), `lens`
+(the last bundle adjustments: principal point, second radial term), `attempts` (the retry ladder), `quality` (the
+checks of a model), `choice` (which attempt to keep, when to stop), `report` (run state, registration checks,
+poses_report.json, phase timer), `output` (setting aside an earlier colmap/, writing the kept model, report and
+manifest into place).
 """
 
 from __future__ import annotations
@@ -66,7 +68,7 @@ from nerfpipe.data.errors import UserError
 from nerfpipe.data.lock import folder_lock
 from nerfpipe.data.rundir import MetricsLog
 from nerfpipe.stages.poses import colmap as sfm
-from nerfpipe.stages.poses import inputs, output, quality
+from nerfpipe.stages.poses import inputs, lens, output, quality
 from nerfpipe.stages.poses.attempts import ladder, prior_focals, run_attempts
 from nerfpipe.stages.poses.colmap import interrupted_by_sigterm
 from nerfpipe.stages.poses.config import CAMERA_MODELS, CameraModel, Config, Outputs, check
@@ -144,7 +146,13 @@ def _run(config: Config, kind: str, progress: Progress | None) -> Outputs:
         inputs.warn_zoom(state)
         if config.single_camera:
             with phase("principal_point"):
-                state.model, state.principal_point = sfm.refine_principal_point(state.model, config.num_threads)
+                mapped = state.model
+                state.model, state.principal_point = lens.refine_principal_point(mapped, config.num_threads)
+            if config.second_radial_term:
+                with phase("radial_term"):
+                    state.model, state.radial_term = lens.add_radial_term(
+                        state.model, state.model is not mapped, config.num_threads
+                    )
         state.checks = quality.model_checks(state.model, prior_focals(state.focal_prior), len(state.stats.features))
         report = output.write_model(config, state, build, colmap_dir, report_path, metrics, matcher, groups)
     except BaseException as e:

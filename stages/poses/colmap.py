@@ -1,5 +1,5 @@
-"""pycolmap steps of the poses stage: SIFT extraction, matching, incremental mapping, database statistics,
-and the final bundle adjustment that refines a shared camera's principal point.
+"""pycolmap steps of the poses stage: SIFT extraction, matching, incremental mapping, database statistics
+(the last bundle adjustment, which refines the lens, is `lens`).
 
 Every pycolmap option is COLMAP's default unless set here, and each one set here says why (the stage's Config
 docstring lists them). Speed figures are from `benchmarks/bench_poses.py` (fox: 50 photos of 1080x1920 on 2
@@ -17,7 +17,7 @@ from __future__ import annotations
 import contextlib
 import signal
 import threading
-from collections import Counter, defaultdict
+from collections import defaultdict
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -30,7 +30,7 @@ from nerfpipe.data.errors import Interrupted
 __all__ = [
     "SfmSettings", "MapperThresholds", "RELAXED_MAPPER", "PYCOLMAP_MAX_IMAGE_SIZE", "PYCOLMAP_MAX_NUM_FEATURES",
     "WORKING_SIZES", "ENOUGH_FEATURES", "choose_working_size", "count_features", "extract", "match",
-    "reconstruct", "database_stats", "DatabaseStats", "refine_principal_point", "interrupted_by_sigterm",
+    "reconstruct", "database_stats", "DatabaseStats", "interrupted_by_sigterm",
 ]  # fmt: skip
 
 
@@ -75,13 +75,6 @@ PROBE_IMAGES = 3
 MIN_MODEL_SIZE = 3
 """Keep models of 3+ images (pycolmap: 10): the report names every model found, and a set of 6-20 photos
 that splits still shows where (the stage fails under 40 % registered in any case)."""
-PP_REFINE_MIN_IMAGES = 10
-"""The final bundle adjustment refines a camera's principal point only if it is shared by this many images."""
-PP_MAX_SHIFT = 0.1
-"""... and keeps the result only if the principal point moved less than this fraction of the image size"""
-PP_MIN_F = 100.0
-"""... and the reprojection error dropped significantly: F statistic of the improvement per added parameter
-(pure noise gives ~1; fox 1080x1920, where it is real, ~260; the 256 px synthetic scene, centred, ~30)."""
 SMALL_IMAGE = 1000
 """Images whose working long side is below this are upsampled 2x inside SIFT (first_octave -1, COLMAP's
 default); larger ones start at full resolution (first_octave 0: ~3x faster, enough features)."""
@@ -272,61 +265,3 @@ def database_stats(db_path: Path) -> DatabaseStats:
         verified_pairs={n: pairs.get(n, 0) for n in features},
         camera_of=camera_of,
     )
-
-
-def refine_principal_point(rec: pycolmap.Reconstruction, num_threads: int) -> tuple[pycolmap.Reconstruction, str]:
-    """Final BA that also refines the principal point of cameras shared by PP_REFINE_MIN_IMAGES+ images.
-
-    A shared camera constrains it well; the mapper keeps it at the image centre, which shows up as a
-    constant rotation offset of every camera (fox: ~0.65 deg against instant-ngp's COLMAP poses, which
-    refined it the same way). A result that moves it further than PP_MAX_SHIFT of the image size or does not
-    improve the reprojection error significantly (PP_MIN_F) is rejected: the mapper's model is kept.
-    Returns (the model to keep, what was done, for the report).
-    """
-    users = Counter(im.camera_id for im in rec.images.values() if im.has_pose)
-    shared = sorted(c for c, k in users.items() if k >= PP_REFINE_MIN_IMAGES)
-    if not shared:
-        return rec, "kept at the image centre (no camera shared by enough images)"
-    refined = pycolmap.Reconstruction(rec)
-    opts = pycolmap.BundleAdjustmentOptions()
-    opts.refine_principal_point = True
-    opts.print_summary = False
-    opts.ceres.solver_options.num_threads = num_threads
-    ba = pycolmap.BundleAdjustmentConfig()
-    for image_id in refined.reg_image_ids():
-        ba.add_image(image_id)
-    for cam_id in refined.cameras:
-        if cam_id not in shared:
-            ba.set_constant_cam_intrinsics(cam_id)
-    ba.fix_gauge(pycolmap.BundleAdjustmentGauge.THREE_POINTS)
-    pycolmap.create_default_bundle_adjuster(opts, ba, refined).solve()
-    refined.update_point_3d_errors()
-    f_stat = _improvement_f(rec, refined, extra_params=2 * len(shared))
-    moved = 0.0
-    for cam_id in shared:
-        a, b = rec.cameras[cam_id], refined.cameras[cam_id]
-        shift = np.hypot(b.principal_point_x - a.principal_point_x, b.principal_point_y - a.principal_point_y)
-        moved = max(moved, float(shift) / max(a.width, a.height))
-    what = f"moved up to {moved:.2%} of the image size, F = {f_stat:.0f}"
-    if moved > PP_MAX_SHIFT or not np.isfinite(moved) or f_stat < PP_MIN_F:
-        return rec, f"refinement rejected ({what}); kept at the image centre"
-    return refined, f"refined for {len(shared)} shared camera(s) ({what})"
-
-
-def _sse(rec: pycolmap.Reconstruction) -> tuple[float, int]:
-    """Sum of squared reprojection errors (from each point's mean error) and the number of residuals."""
-    sse, n = 0.0, 0
-    for point in rec.points3D.values():
-        k = point.track.length()
-        sse += k * point.error**2
-        n += 2 * k
-    return sse, n
-
-
-def _improvement_f(before: pycolmap.Reconstruction, after: pycolmap.Reconstruction, extra_params: int) -> float:
-    """F statistic of the reprojection improvement bought by `extra_params` more parameters (~1 if noise)."""
-    sse0, _ = _sse(before)
-    sse1, n = _sse(after)
-    if sse1 <= 0 or n <= extra_params:
-        return 0.0
-    return float((sse0 - sse1) / extra_params / (sse1 / (n - extra_params)))

@@ -54,7 +54,7 @@ def write_model(
         build, stage="poses", started=state.started, inputs=[config.input],
         outputs=["images/", *(["masks/"] if masked else []), "names.json", "database.db", "sparse/",
                  "metrics.csv", "../poses_report.json"],
-        used={"matcher": matcher, "principal_point": state.principal_point,
+        used={"matcher": matcher, "principal_point": state.principal_point, "radial_term": report["radial_term"],
               "camera_groups": [len(g) for g in groups], "pycolmap": pycolmap.__version__,
               "working_size": state.working_size, "masks": str(config.masks) if masked else None,
               "stationary_matches": state.stationary, "focal_prior": report["focal_prior"],

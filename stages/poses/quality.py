@@ -29,7 +29,7 @@ Camera checks and their limits:
                    image back on itself, which needs a displacement of 33 % (1 + 3 k1 r^2 = 0).
   principal_point  distance of the principal point from the image centre <= PP_TOLERANCE (10 %) of the long
                    side: lenses are centred to a percent or two; the stage's own refinement
-                   (`colmap.PP_MAX_SHIFT`) rejects larger moves for the same reason.
+                   (`lens.PP_MAX_SHIFT`) rejects larger moves for the same reason.
 Model checks:
   reprojection_error  mean reprojection error <= MAX_REPROJECTION_PX (2 px, the model's pixels): the mapper drops
                    observations over 4 px, so a mean at half that cap says most kept observations sit near it

@@ -75,6 +75,7 @@ class RunState:
     model: pycolmap.Reconstruction | None = None
     all_models: dict[int, pycolmap.Reconstruction] = field(default_factory=dict)
     principal_point: str = ""
+    radial_term: str = ""  # stages.poses.lens.add_radial_term's verdict ("" when not tried)
     working_size: dict[str, Any] = field(default_factory=dict)  # how the SIFT working size was chosen
     attempts: list[dict[str, Any]] = field(default_factory=list)  # one record per attempt (stages.poses.attempts)
     masks: dict[str, str] = field(default_factory=dict)  # copy name -> its mask file (poses --masks)
@@ -207,6 +208,7 @@ def build_report(config: Config, state: RunState, status: str, error: str | None
             for c, cam in (rec.cameras.items() if rec is not None else [])
         },  # fmt: skip
         "principal_point": state.principal_point,
+        "radial_term": state.radial_term or "not tried (--no-second-radial-term or one camera per image)",
         "focal_prior": focal_prior_record(state),
         "working_size": state.working_size,
         "attempts": state.attempts,
