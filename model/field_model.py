@@ -52,6 +52,9 @@ class ModelSettings:
     """"fast" or "vanilla"."""
     resolution: tuple[int, int]
     """fast: grid resolution at the start and at the end of training."""
+    rank: tuple[int, int] = (16, 48)
+    """fast: the VM field's density and appearance components per plane (a new field's; a saved one keeps its
+    own). Runs from before the option were all (16, 48)."""
     step_ratio: float
     """fast: marching step in voxels of the final grid."""
     occupancy_resolution: int
@@ -67,7 +70,9 @@ class ModelSettings:
         before that grouping hold them at the top level); UserError naming a missing key."""
         try:
             fast = doc["fast"] if "fast" in doc else doc
+            rank = fast.get("rank") or (16, 48)
             return cls(field=str(doc["field"]), resolution=(int(fast["resolution"][0]), int(fast["resolution"][1])),
+                       rank=(int(rank[0]), int(rank[1])),
                        step_ratio=float(fast["step_ratio"]), occupancy_resolution=int(fast["occupancy_resolution"]),
                        render_step_factor=float(fast["render_step_factor"]),
                        view_dependent=doc.get("view_dependent"))  # fmt: skip
@@ -298,7 +303,9 @@ def build_model(
     view_dep = True if settings.view_dependent is None else settings.view_dependent
     if field_cfg is None:
         if settings.field == "fast":
-            field_cfg = TensoRF(aabb=aabb, resolution=settings.resolution[0], view_dependent=view_dep).config()
+            density_rank, app_rank = settings.rank
+            field_cfg = TensoRF(aabb=aabb, resolution=settings.resolution[0], density_rank=density_rank,
+                                app_rank=app_rank, view_dependent=view_dep).config()  # fmt: skip
         else:
             field_cfg = VanillaNeRF(view_dependent=view_dep).config()
     field = make_field(field_cfg).to(device)

@@ -44,6 +44,21 @@ def _rows(path: Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
+def test_asked_for_rank_reaches_the_field_and_its_checkpoint(rgba_scene, tmp_path):
+    """--rank A,B: the new field has A density and B appearance components per plane; config.json records it and
+    the trained run loads with them (the rank of a saved field is its own)."""
+    from nerfpipe.model import load_trained
+
+    out = train.run(_config(rgba_scene, tmp_path / "run", fast=dataclasses.replace(TINY, rank=(2, 3))))
+    state = torch.load(out.checkpoint, weights_only=True)
+    assert (state["field_config"]["density_rank"], state["field_config"]["app_rank"]) == (2, 3)
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["fast"]["rank"] == [2, 3]
+    field = load_trained(tmp_path / "run", "cpu").model.field
+    assert tuple(field.density_planes.shape[:2]) == (3, 2) and tuple(field.app_planes.shape[:2]) == (3, 3)
+    manifest = json.loads(out.manifest.read_text())
+    assert manifest["used"]["defaults"]["rank"] == "asked for"
+
+
 @pytest.mark.parametrize("field", ["fast", "vanilla"])
 def test_two_steps_write_every_file(rgba_scene, tmp_path, field):
     kw = dict(batch_rays=32, eval_every=0) if field == "vanilla" else {}

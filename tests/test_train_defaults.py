@@ -140,6 +140,8 @@ def test_each_kind_of_capture_gets_its_own_rules(tmp_path, layout, kind):
     else:
         assert "object" in found.reasons["resolution"] and "z'" not in found.reasons["step_ratio"]
     assert (fast.tv > 0) == (kind != "box")
+    # components per plane: NDC's own (more steps), TensoRF's for the others
+    assert fast.rank == ((4, 12) if kind == "ndc" else (16, 48)) and "components" in found.reasons["rank"]
 
 
 def test_plain_colour_clears_only_the_background_around_the_object():

@@ -32,6 +32,10 @@ class FastOptions:
     """fast: grid resolution per axis at the start and at the end (coarse-to-fine upsampling). None: the scene
     kind's rule (stages.train.defaults.RULES): objects and contracted scenes from the object's size in pixels
     (lego_100 -> 64,160, lego_400 -> 96,300), forward-facing (NDC) scenes from the image's width."""
+    rank: tuple[int, int] | None = None
+    """fast: the VM field's components per plane, density and appearance (`radiance.fields.fast.TensoRF`). None:
+    the scene kind's rule (stages.train.defaults.RULES): TensoRF's 16,48 for objects and contracted scenes, 4,12
+    for forward-facing (NDC) scenes."""
     upsample_at: tuple[float, ...] | None = None
     """fast: run-progress fractions at which the grid is upsampled (geometric steps to the final size). None:
     0.05,0.1,0.2,0.3; with refine_poses 0.2,0.3,0.4,0.5 (coarse-to-fine, `stages.train.defaults`)."""

@@ -157,7 +157,7 @@ def _model(config: Config, found: Defaults, scene: Scene, state: dict | None, de
 
 def _settings(config: Config) -> ModelSettings:
     fast = config.fast
-    return ModelSettings(field=config.field, resolution=fast.resolution, step_ratio=fast.step_ratio,
+    return ModelSettings(field=config.field, resolution=fast.resolution, rank=fast.rank, step_ratio=fast.step_ratio,
                          occupancy_resolution=fast.occupancy_resolution, render_step_factor=fast.render_step_factor,
                          view_dependent=config.view_dependent)  # fmt: skip
 
