@@ -220,6 +220,10 @@ class NDCRules:
     | 16,48, 32 steps, 300                          | 3,256          | 23.83 dB, 0.736 |
     | 4,12, 32 steps, 300                           | 9,347          | 24.15 dB, 0.747 |
     | 4,12, 32 steps, 400 (a voxel every 1.6 px: 399) <- this rule | 8,574 | 24.35 dB, 0.759 |
+    | 8,24, 32 steps, 400                           | 4,989          | 24.16 dB, 0.754 |
+    | 4,12, 32 steps, 500                           | 6,722          | 24.39 dB, 0.758 |
+    | 4,12, 32 steps, 400, TV 0.003 (not 0.01)      | 7,983          | 24.39 dB, 0.761 |
+    Above 400, and with less TV, no gain beyond the noise; 400 is the smaller field and renders faster.
     Single runs again; the chain's figure is in docs/BENCH_REAL.md."""
 
     def resolution(self, need: Need) -> tuple[tuple[int, int], str]:
