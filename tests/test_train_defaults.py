@@ -115,7 +115,7 @@ def test_room_scene_contraction_beats_the_box(tmp_path):
 def test_each_kind_of_capture_gets_its_own_rules(tmp_path, layout, kind):
     """scene --layout orbit|forward|room: the scene model is chosen first, then that kind's grid, step and TV rules
     (`RULES`), each reason naming its kind; no rule of one kind applies to another."""
-    from nerfpipe.stages.train.defaults import NDC_MIN_STEP_VOXELS, NDC_SAMPLES, RULES, resolve_defaults
+    from nerfpipe.stages.train.defaults import NDC_MIN_STEP_VOXELS, NDC_RANK, NDC_SAMPLES, RULES, resolve_defaults
     from nerfpipe.stages.train.views import load_views
 
     src, scene_dir = tmp_path / "src", tmp_path / "scene"
@@ -141,7 +141,7 @@ def test_each_kind_of_capture_gets_its_own_rules(tmp_path, layout, kind):
         assert "object" in found.reasons["resolution"] and "z'" not in found.reasons["step_ratio"]
     assert (fast.tv > 0) == (kind != "box")
     # components per plane: NDC's own (more steps), TensoRF's for the others
-    assert fast.rank == ((4, 12) if kind == "ndc" else (16, 48)) and "components" in found.reasons["rank"]
+    assert fast.rank == (NDC_RANK if kind == "ndc" else (16, 48)) and "components" in found.reasons["rank"]
 
 
 def test_plain_colour_clears_only_the_background_around_the_object():

@@ -34,7 +34,7 @@ class FastOptions:
     (lego_100 -> 64,160, lego_400 -> 96,300), forward-facing (NDC) scenes from the image's width."""
     rank: tuple[int, int] | None = None
     """fast: the VM field's components per plane, density and appearance (`radiance.fields.fast.TensoRF`). None:
-    the scene kind's rule (stages.train.defaults.RULES): TensoRF's 16,48 for objects and contracted scenes, 4,12
+    the scene kind's rule (stages.train.defaults.RULES): TensoRF's 16,48 for objects and contracted scenes, 8,24
     for forward-facing (NDC) scenes."""
     upsample_at: tuple[float, ...] | None = None
     """fast: run-progress fractions at which the grid is upsampled (geometric steps to the final size). None:

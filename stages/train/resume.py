@@ -3,7 +3,7 @@
 config.json records the resolved Config and the scene's identity (`scene_sha256`: the sha256 of its
 transforms.json, written by the run's first start). On resume:
 - automatic defaults left automatic (None: batch_rays, lr, view_dependent, downscale and the fast group's
-  resolution, upsample_at, step_ratio, tv, depth_loss) take the run's recorded values (not the values this device
+  resolution, rank, upsample_at, step_ratio, tv, depth_loss) take the run's recorded values (not the values this device
   or this code version would choose afresh);
 - every other option that shapes the result (the field, seed, scene model, background, learning-rate decay,
   grid and prior settings, pose refinement, appearance, ...) must equal the recorded one, and so must the scene:
@@ -33,7 +33,7 @@ BUDGET = ("max_steps", "max_seconds", "device", "threads", "eval_every", "eval_p
 """Options that change how long the run goes on and what it logs, not what it fits: may change on resume."""
 AUTOMATIC = ("batch_rays", "lr", "view_dependent", "downscale")
 """Options whose None means "chosen by the run" (and the fast group's `AUTOMATIC_FAST`): None takes the record."""
-AUTOMATIC_FAST = ("resolution", "upsample_at", "step_ratio", "tv", "depth_loss")
+AUTOMATIC_FAST = ("resolution", "rank", "upsample_at", "step_ratio", "tv", "depth_loss")
 _NOT_COMPARED = ("scene_dir", "run_dir", "resume", "overwrite")
 _MISSING = object()
 
