@@ -25,6 +25,7 @@ from nerfpipe.model.appearance import Appearance
 from nerfpipe.model.background import Background
 from nerfpipe.radiance.contraction import Contraction
 from nerfpipe.radiance.fields import Field, TensoRF, VanillaNeRF, make_field
+from nerfpipe.radiance.fields.fast import TENSORF_RANK
 from nerfpipe.radiance.ndc import NDC, fit_ndc
 from nerfpipe.radiance.occupancy import OccupancyGrid
 from nerfpipe.radiance.regularizers import distortion_loss
@@ -52,9 +53,9 @@ class ModelSettings:
     """"fast" or "vanilla"."""
     resolution: tuple[int, int]
     """fast: grid resolution at the start and at the end of training."""
-    rank: tuple[int, int] = (16, 48)
+    rank: tuple[int, int] = TENSORF_RANK
     """fast: the VM field's density and appearance components per plane (a new field's; a saved one keeps its
-    own). Runs from before the option were all (16, 48)."""
+    own). Runs from before the option were all TENSORF_RANK."""
     step_ratio: float
     """fast: marching step in voxels of the final grid."""
     occupancy_resolution: int
@@ -70,7 +71,7 @@ class ModelSettings:
         before that grouping hold them at the top level); UserError naming a missing key."""
         try:
             fast = doc["fast"] if "fast" in doc else doc
-            rank = fast.get("rank") or (16, 48)
+            rank = fast.get("rank") or TENSORF_RANK
             return cls(field=str(doc["field"]), resolution=(int(fast["resolution"][0]), int(fast["resolution"][1])),
                        rank=(int(rank[0]), int(rank[1])),
                        step_ratio=float(fast["step_ratio"]), occupancy_resolution=int(fast["occupancy_resolution"]),

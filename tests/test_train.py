@@ -122,7 +122,8 @@ def test_config_errors_come_before_any_file_is_read(tmp_path):
     for fast, match in ((train.FastOptions(tv=-1.0), "--tv: expected >= 0"),
                         (train.FastOptions(depth_loss=-1.0), "--depth-loss: expected >= 0"),
                         (train.FastOptions(distortion=-1.0), "distortion >= 0"),
-                        (train.FastOptions(upsample_at=(0.5, 0.2)), "upsample_at")):  # fmt: skip
+                        (train.FastOptions(upsample_at=(0.5, 0.2)), "upsample_at"),
+                        (train.FastOptions(rank=(0, 24)), r"rank \(density, appearance\) >= 1")):  # fmt: skip
         with pytest.raises(UserError, match=match):
             train.run(_config(missing, run_dir, fast=fast))
     with pytest.raises(UserError, match="camera_lr > 0"):

@@ -22,7 +22,10 @@ from torch import Tensor, nn
 from nerfpipe.radiance.fields.base import Field, check_points
 from nerfpipe.radiance.fields.encodings import positional_encoding
 
-__all__ = ["TensoRF"]
+__all__ = ["TensoRF", "TENSORF_RANK"]
+
+TENSORF_RANK = (16, 48)
+"""TensoRF's density and appearance components per plane: the field's default (and every run's before `--rank`)."""
 
 # Plane m spans axes PLANE_AXES[m]; its line runs along LINE_AXIS[m].
 PLANE_AXES = ((0, 1), (0, 2), (1, 2))
@@ -137,8 +140,8 @@ class TensoRF(Field):
         *,
         aabb: Tensor | list,
         resolution: int = 128,
-        density_rank: int = 16,
-        app_rank: int = 48,
+        density_rank: int = TENSORF_RANK[0],
+        app_rank: int = TENSORF_RANK[1],
         app_dim: int = 27,
         hidden: int = 64,
         view_freqs: int = 2,

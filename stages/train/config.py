@@ -207,6 +207,8 @@ def _fast(fast: FastOptions) -> None:
     """The fast field's grid, march and prior weights."""
     if fast.resolution is not None and (len(fast.resolution) != 2 or min(fast.resolution) < 2):
         raise UserError(f"expected resolution (start, end) >= 2, got {fast.resolution}")
+    if fast.rank is not None and (len(fast.rank) != 2 or min(fast.rank) < 1):
+        raise UserError(f"expected rank (density, appearance) >= 1, got {fast.rank}")
     at = fast.upsample_at
     if at is not None and (any(not 0 <= a <= 1 for a in at) or list(at) != sorted(at)):
         raise UserError(f"expected upsample_at: increasing fractions in [0, 1], got {at}")

@@ -64,6 +64,7 @@ from nerfpipe.data.sparse_depth import KEY as SPARSE_KEY
 from nerfpipe.data.transforms import Scene
 from nerfpipe.model.background import Background
 from nerfpipe.model.field_model import choose_space, make_space
+from nerfpipe.radiance.fields.fast import TENSORF_RANK
 from nerfpipe.radiance.space import Box, Contracted, NDCSpace, Space
 from nerfpipe.stages.train.background import choose_background
 from nerfpipe.stages.train.config import Config, FastOptions
@@ -152,7 +153,8 @@ class BoxRules:
         return self.TV, "0 for box scenes (objects on a clean background)"
 
     def rank(self) -> tuple[tuple[int, int], str]:
-        return (16, 48), "TensoRF's 16 density and 48 appearance components per plane"
+        density, appearance = TENSORF_RANK
+        return TENSORF_RANK, f"TensoRF's {density} density and {appearance} appearance components per plane"
 
 
 class ContractRules(BoxRules):
