@@ -25,7 +25,7 @@ from nerfpipe.model.appearance import Appearance
 from nerfpipe.model.background import Background
 from nerfpipe.radiance.contraction import Contraction
 from nerfpipe.radiance.fields import Field, TensoRF, VanillaNeRF, make_field
-from nerfpipe.radiance.fields.fast import TENSORF_RANK
+from nerfpipe.radiance.fields.fast import TENSORF_RANK, split_rank
 from nerfpipe.radiance.ndc import NDC, fit_ndc
 from nerfpipe.radiance.occupancy import OccupancyGrid
 from nerfpipe.radiance.regularizers import distortion_loss
@@ -53,9 +53,10 @@ class ModelSettings:
     """"fast" or "vanilla"."""
     resolution: tuple[int, int]
     """fast: grid resolution at the start and at the end of training."""
-    rank: tuple[int, int] = TENSORF_RANK
-    """fast: the VM field's density and appearance components per plane (a new field's; a saved one keeps its
-    own). Runs from before the option were all TENSORF_RANK."""
+    rank: tuple[int, ...] = TENSORF_RANK
+    """fast: the VM field's density and appearance components per plane, 2 counts or 6 (per plane:
+    `radiance.fields.fast.split_rank`; a new field's, a saved one keeps its own). Runs from before the option were
+    all TENSORF_RANK."""
     step_ratio: float
     """fast: marching step in voxels of the final grid."""
     occupancy_resolution: int
@@ -73,7 +74,7 @@ class ModelSettings:
             fast = doc["fast"] if "fast" in doc else doc
             rank = fast.get("rank") or TENSORF_RANK
             return cls(field=str(doc["field"]), resolution=(int(fast["resolution"][0]), int(fast["resolution"][1])),
-                       rank=(int(rank[0]), int(rank[1])),
+                       rank=tuple(int(r) for r in rank),
                        step_ratio=float(fast["step_ratio"]), occupancy_resolution=int(fast["occupancy_resolution"]),
                        render_step_factor=float(fast["render_step_factor"]),
                        view_dependent=doc.get("view_dependent"))  # fmt: skip
@@ -304,7 +305,7 @@ def build_model(
     view_dep = True if settings.view_dependent is None else settings.view_dependent
     if field_cfg is None:
         if settings.field == "fast":
-            density_rank, app_rank = settings.rank
+            density_rank, app_rank = split_rank(settings.rank)
             field_cfg = TensoRF(aabb=aabb, resolution=settings.resolution[0], density_rank=density_rank,
                                 app_rank=app_rank, view_dependent=view_dep).config()  # fmt: skip
         else:

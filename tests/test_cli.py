@@ -170,6 +170,7 @@ def test_options_reach_the_config():
     assert cli.config_from_args("convert", ["src", "s", "--downscales", "3,5", "--no-normalize"]).downscales == (3, 5)
     assert cli.config_from_args("convert", ["src", "s", "--downscales", ""]).downscales == ()
     assert cli.config_from_args("train", ["s", "r", "--resolution", "8, 16"]).fast.resolution == (8, 16)
+    assert cli.config_from_args("train", ["s", "r", "--rank", "16,4,4,48,12,12"]).fast.rank == (16, 4, 4, 48, 12, 12)
     report = cli.config_from_args("report", ["a", "b", "o", "--levels", "21.5,30", "--labels", "x,y"])
     assert report.levels == (21.5, 30.0) and report.labels == ("x", "y")
     assert cli.config_from_args("render", ["r", "v.mp4", "--outputs", "rgb,depth"]).outputs == ("rgb", "depth")

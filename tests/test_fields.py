@@ -46,7 +46,7 @@ def test_density_only_field():
     assert rgb is None and sigma.shape == (x.shape[0],)
     assert not hasattr(field, "app_planes")
     sigma.sum().backward()
-    assert torch.isfinite(field.density_planes.grad).all()
+    assert all(torch.isfinite(p.grad).all() for p in field.density_planes)
     with pytest.raises(ValueError, match="density-only"):
         field.color(x, None)
     mlp = NeRFMLP(width=16, has_color=False)
@@ -56,8 +56,8 @@ def test_density_only_field():
 def test_density_finite_for_extreme_inputs_and_zero_outside_box():
     field = TensoRF(aabb=AABB, resolution=8, density_rank=2, has_color=False)
     with torch.no_grad():
-        field.density_planes.fill_(1e3)
-        field.density_lines.fill_(1e3)
+        for p in field.grid_parameters():
+            p.fill_(1e3)
     x = torch.tensor([[0.0, 0.0, 0.5], [5.0, 0.0, 0.0], [0.0, 0.0, -1e30]])
     sigma = field.density(x)
     assert torch.isfinite(sigma).all()
@@ -101,7 +101,7 @@ def test_upsample_keeps_the_function_and_config_round_trips():
     before = field(x, d)
     field.upsample(15)  # 8 -> 15 with align_corners: a refinement of the same piecewise-linear lines
     after = field(x, d)
-    assert field.density_planes.shape[-1] == 15
+    assert [tuple(p.shape[2:]) for p in field.density_planes] == [(15, 15)] * 3
     torch.testing.assert_close(after[0], before[0], rtol=0.2, atol=1e-3)
     clone = make_field(field.config())
     clone.load_state_dict(field.state_dict())
@@ -111,27 +111,70 @@ def test_upsample_keeps_the_function_and_config_round_trips():
         make_field({"kind": "nope"})
 
 
-@pytest.mark.parametrize("channels", [8, 4, 6, 5])  # split in 4 groups of 2, 4 of 1; 6, 5: not split
-def test_vm_features_match_their_reference_twin(channels):
-    """The channel-split grid_sample path gives the plain one's products and gradients (float rounding)."""
-    from nerfpipe.radiance.fields.fast import _vm_features, _vm_features_reference
+@pytest.mark.parametrize(("channels", "sizes"), [((8, 4, 6), (12, 12, 12)), ((5, 8, 4), (12, 10, 3))])
+def test_plane_features_match_their_reference_twin(channels, sizes):
+    """The channel-split grid_sample path gives the plain one's products and gradients (float rounding), with each
+    plane's own component count (split in groups of 2, of 1, or not split) and sizes (x, y, z texels)."""
+    from nerfpipe.radiance.fields.fast import LINE_AXIS, PLANE_AXES, _plane_features, _plane_features_reference
 
     g = torch.Generator().manual_seed(1)
-    planes = torch.randn(3, channels, 12, 12, generator=g)
-    lines = torch.randn(3, channels, 12, 1, generator=g)
+    axes = zip(channels, PLANE_AXES, strict=True)
+    planes = [torch.randn(1, c, sizes[v], sizes[u], generator=g) for c, (u, v) in axes]
+    lines = [torch.randn(1, c, sizes[a], 1, generator=g) for c, a in zip(channels, LINE_AXIS, strict=True)]
     xn = torch.cat([torch.rand(200, 3, generator=g) * 2 - 1, torch.tensor([[1.0, -1.0, 1.0], [-1.0, 1.0, 0.0]])])
     outs, grads = [], []
-    for fn in (_vm_features, _vm_features_reference):
-        p, ln = planes.clone().requires_grad_(), lines.clone().requires_grad_()
-        out = fn(p, ln, xn)
+    for fn in (_plane_features, _plane_features_reference):
+        ps = [p.clone().requires_grad_() for p in planes]
+        ls = [ln.clone().requires_grad_() for ln in lines]
+        out = torch.cat(fn(ps, ls, xn))
         (out * torch.linspace(-1, 2, out.numel()).reshape(out.shape)).sum().backward()
         outs.append(out.detach())
-        grads.append((p.grad, ln.grad))
-    assert outs[0].shape == (3, channels, xn.shape[0])
+        grads.append([t.grad for t in ps + ls])
+    assert outs[0].shape == (sum(channels), xn.shape[0])
     torch.testing.assert_close(outs[0], outs[1], rtol=1e-6, atol=1e-6)
-    torch.testing.assert_close(grads[0][0], grads[1][0], rtol=1e-5, atol=1e-5)
-    torch.testing.assert_close(grads[0][1], grads[1][1], rtol=1e-5, atol=1e-5)
-    assert _vm_features(planes, lines, xn[:0]).shape == (3, channels, 0)
+    for a, b in zip(grads[0], grads[1], strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+    assert [f.shape for f in _plane_features(planes, lines, xn[:0])] == [(c, 0) for c in channels]
+
+
+def test_planes_take_their_own_components():
+    """density_rank / app_rank per plane (xy, xz, yz) give each factor its component count, kept through an
+    upsampling and round-tripped through config(); train's 2 or 6 counts split into them; a bad count is refused."""
+    from nerfpipe.radiance.fields.fast import split_rank
+
+    field = TensoRF(aabb=AABB, resolution=16, density_rank=(4, 2, 2), app_rank=(6, 3, 3), hidden=8)
+    assert [tuple(p.shape) for p in field.density_planes] == [(1, 4, 16, 16), (1, 2, 16, 16), (1, 2, 16, 16)]
+    assert [tuple(p.shape) for p in field.app_lines] == [(1, 6, 16, 1), (1, 3, 16, 1), (1, 3, 16, 1)]
+    assert field.basis.in_features == 12
+    x, d = _inputs(64, scale=0.9)
+    field.upsample(40)
+    assert [tuple(p.shape[1:]) for p in field.app_planes] == [(6, 40, 40), (3, 40, 40), (3, 40, 40)]
+    clone = make_field(field.config())
+    clone.load_state_dict(field.state_dict())
+    torch.testing.assert_close(clone(x, d)[1], field(x, d)[1])
+    assert field.config()["density_rank"] == [4, 2, 2]
+    assert TensoRF(aabb=AABB, resolution=8, density_rank=3).config()["density_rank"] == 3
+    with pytest.raises(ValueError, match="density_rank as one count or three"):
+        TensoRF(aabb=AABB, density_rank=(4, 0, 2))
+    assert split_rank((2, 3)) == (2, 3) and split_rank((16, 4, 4, 48, 12, 12)) == ((16, 4, 4), (48, 12, 12))
+    for bad in ((2, 3, 4), (2, 0), (1, 1, 1, 1, 1, 0)):
+        with pytest.raises(ValueError, match="expected rank as 2 counts"):
+            split_rank(bad)
+
+
+def test_a_checkpoint_with_stacked_factors_still_loads():
+    """Fields saved before per-plane factors hold each group as one [3, C, R, R] tensor (lines [3, C, R, 1]): they
+    load into today's field unchanged, plane by plane."""
+    field = TensoRF(aabb=AABB, resolution=8, density_rank=2, app_rank=3, hidden=8)
+    state = {k: v for k, v in field.state_dict().items() if not k.split(".")[0].endswith(("_planes", "_lines"))}
+    g = torch.Generator().manual_seed(3)
+    for name, c in (("density", 2), ("app", 3)):
+        state[f"{name}_planes"] = torch.randn(3, c, 8, 8, generator=g)
+        state[f"{name}_lines"] = torch.randn(3, c, 8, 1, generator=g)
+    field.load_state_dict(state)
+    for m in range(3):
+        torch.testing.assert_close(field.app_planes[m].data, state["app_planes"][m : m + 1])
+        torch.testing.assert_close(field.density_lines[m].data, state["density_lines"][m : m + 1])
 
 
 def test_sampled_tv_is_unbiased_and_its_direct_gradient_matches_autograd():
@@ -163,18 +206,20 @@ def test_tv_is_zero_for_constant_planes_and_field_adds_its_gradient():
             p.fill_(0.5)
     assert float(f.tv().detach()) == 0.0
     assert f.add_tv_grad_(1.0, 16, torch.Generator().manual_seed(0)) == 0.0
-    assert float(f.density_planes.grad.abs().max()) == 0.0 and f.app_planes.grad is not None
+    assert all(float(p.grad.abs().max()) == 0.0 for p in f.density_planes)
+    assert all(p.grad is not None for p in f.app_planes)
     with torch.no_grad():
-        f.density_planes.normal_()
+        f.density_planes[1].normal_()
     assert float(f.tv().detach()) > 0 and f.add_tv_grad_(1.0, 16) > 0
 
 
 def test_density_volume_matches_the_factors_and_follows_their_updates():
     """Inference density through the node volume equals `density` (bilinear plane x linear line = trilinear on
-    the same nodes), inside, on the faces and outside the box, on a non-cubic box; an optimizer step, a load and an
+    the same nodes), inside, on the faces and outside the box, on a non-cubic box, with a component count per
+    plane; an optimizer step, a load and an
     upsample each refresh it."""
     torch.manual_seed(0)
-    field = TensoRF(aabb=[[-1.0, -0.5, 0.0], [2.0, 0.5, 1.5]], resolution=12, density_rank=3, app_rank=2,
+    field = TensoRF(aabb=[[-1.0, -0.5, 0.0], [2.0, 0.5, 1.5]], resolution=12, density_rank=(3, 2, 1), app_rank=2,
                     app_dim=4, hidden=8, density_shift=0.0, density_scale=1.0)  # fmt: skip
     lo, hi = field.aabb[0], field.aabb[1]
     x = lo + (hi - lo) * (torch.rand(3000, 3) * 1.4 - 0.2)  # 20 % beyond each face
@@ -204,7 +249,7 @@ def test_density_volume_follows_a_fused_adam_step_through_touch():
     opt = torch.optim.Adam(field.parameters(), lr=0.5, fused=True)
     field.density(x).sum().backward()
     opt.step()
-    if field.density_planes._version == 0:  # the case touch() is for
+    if field.density_planes[0]._version == 0:  # the case touch() is for
         assert not torch.allclose(field.density_inference(x), field.density(x).detach(), rtol=1e-4, atol=1e-6)
     field.touch()
     torch.testing.assert_close(field.density_inference(x), field.density(x).detach(), rtol=1e-4, atol=1e-5)

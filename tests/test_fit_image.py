@@ -95,7 +95,7 @@ def test_grid_model_is_the_fast_field_on_a_plane():
     groups = model.param_groups(0.02)
     assert [g["lr"] for g in groups] == [0.02, 0.001]  # grids at lr, basis and MLP at lr / 20 (as train)
     trained = {id(p) for g in groups for p in g["params"]}
-    assert id(model.field.density_planes) not in trained
+    assert not trained & {id(p) for p in (*model.field.density_planes, *model.field.density_lines)}
 
 
 @pytest.mark.parametrize(

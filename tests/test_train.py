@@ -44,17 +44,21 @@ def _rows(path: Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
-def test_asked_for_rank_reaches_the_field_and_its_checkpoint(rgba_scene, tmp_path):
-    """--rank A,B: the new field has A density and B appearance components per plane; config.json records it and
-    the trained run loads with them (the rank of a saved field is its own)."""
+@pytest.mark.parametrize(
+    ("rank", "planes"), [((2, 3), ([2] * 3, [3] * 3)), ((3, 1, 2, 4, 2, 1), ([3, 1, 2], [4, 2, 1]))]
+)
+def test_asked_for_rank_reaches_the_field_and_its_checkpoint(rgba_scene, tmp_path, rank, planes):
+    """--rank A,B: the new field has A density and B appearance components per plane (six counts: each plane's own,
+    xy, xz, yz); config.json records it and the trained run loads with them (the rank of a saved field is its own)."""
     from nerfpipe.model import load_trained
 
-    out = train.run(_config(rgba_scene, tmp_path / "run", fast=dataclasses.replace(TINY, rank=(2, 3))))
+    out = train.run(_config(rgba_scene, tmp_path / "run", fast=dataclasses.replace(TINY, rank=rank)))
     state = torch.load(out.checkpoint, weights_only=True)
-    assert (state["field_config"]["density_rank"], state["field_config"]["app_rank"]) == (2, 3)
-    assert json.loads((tmp_path / "run" / "config.json").read_text())["fast"]["rank"] == [2, 3]
+    saved = [state["field_config"]["density_rank"], state["field_config"]["app_rank"]]
+    assert saved == ([2, 3] if len(rank) == 2 else [[3, 1, 2], [4, 2, 1]])
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["fast"]["rank"] == list(rank)
     field = load_trained(tmp_path / "run", "cpu").model.field
-    assert tuple(field.density_planes.shape[:2]) == (3, 2) and tuple(field.app_planes.shape[:2]) == (3, 3)
+    assert ([p.shape[1] for p in field.density_planes], [p.shape[1] for p in field.app_planes]) == planes
     manifest = json.loads(out.manifest.read_text())
     assert manifest["used"]["defaults"]["rank"] == "asked for"
 
@@ -123,7 +127,7 @@ def test_config_errors_come_before_any_file_is_read(tmp_path):
                         (train.FastOptions(depth_loss=-1.0), "--depth-loss: expected >= 0"),
                         (train.FastOptions(distortion=-1.0), "distortion >= 0"),
                         (train.FastOptions(upsample_at=(0.5, 0.2)), "upsample_at"),
-                        (train.FastOptions(rank=(0, 24)), r"rank \(density, appearance\) >= 1")):  # fmt: skip
+                        (train.FastOptions(rank=(0, 24)), "expected rank as 2 counts")):  # fmt: skip
         with pytest.raises(UserError, match=match):
             train.run(_config(missing, run_dir, fast=fast))
     with pytest.raises(UserError, match="camera_lr > 0"):

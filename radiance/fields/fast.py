@@ -15,6 +15,8 @@ Positions outside the box get zero density (the renderer only samples inside it 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -22,7 +24,7 @@ from torch import Tensor, nn
 from nerfpipe.radiance.fields.base import Field, check_points
 from nerfpipe.radiance.fields.encodings import positional_encoding
 
-__all__ = ["TensoRF", "TENSORF_RANK"]
+__all__ = ["TensoRF", "TENSORF_RANK", "split_rank"]
 
 TENSORF_RANK = (16, 48)
 """TensoRF's density and appearance components per plane: the field's default (and every run's before `--rank`)."""
@@ -32,21 +34,13 @@ PLANE_AXES = ((0, 1), (0, 2), (1, 2))
 LINE_AXIS = (2, 1, 0)
 
 
-# grid_sample's CPU backward parallelises over the batch only: 3 planes on 2 threads leave one idle half the
-# time. Splitting the channels into CHANNEL_SPLIT groups (3 * 4 = 12 batches) balances it; each channel is
-# interpolated exactly as before. Split 2 against none, lego_100, 2 CPU cores, final grid: 23-26 -> 28-31 steps/s;
-# bench_train fast 120 s: 1989 -> 3055 steps, 31.42 -> 32.04 dB (with fused Adam; before both: 1599 steps, 31.08 dB).
-# Split 4 against 2, tiny npz, 600 steps, 2 idle cores, twice each: 42.6 and 46.5 s against 52.5 and 50.0 s.
+# grid_sample's CPU backward parallelises over the batch only: one plane on 2 threads leaves one idle. Splitting its
+# channels into CHANNEL_SPLIT groups (a batch of 4) balances it; each channel is interpolated exactly as before. Split 2
+# against none, lego_100, 2 CPU cores, final grid: 23-26 -> 28-31 steps/s; bench_train fast 120 s: 1989 -> 3055 steps,
+# 31.42 -> 32.04 dB (with fused Adam; before both: 1599 steps, 31.08 dB). Split 4 against 2, tiny npz, 600 steps,
+# 2 idle cores, twice each: 42.6 and 46.5 s against 52.5 and 50.0 s. (Measured with the three planes stacked in one
+# batch; each plane has its own tensor since per-plane sizes and components.)
 CHANNEL_SPLIT = 4
-
-
-def _grid_sample(grids: Tensor, uv: Tensor) -> Tensor:
-    """grids [3, C, H, W], uv [3, N, 2] -> bilinear (align_corners) samples [3, C, N], channels split in groups."""
-    c = grids.shape[1]
-    k = CHANNEL_SPLIT if c % CHANNEL_SPLIT == 0 else 1
-    g = grids.reshape(3 * k, c // k, *grids.shape[2:])
-    out = F.grid_sample(g, uv.repeat_interleave(k, dim=0)[:, :, None, :], mode="bilinear", align_corners=True)
-    return out.reshape(3, c, -1)
 
 
 def _vm_inputs(xn: Tensor) -> tuple[Tensor, Tensor]:
@@ -56,24 +50,34 @@ def _vm_inputs(xn: Tensor) -> tuple[Tensor, Tensor]:
     return plane_uv, torch.stack([torch.zeros_like(line_w), line_w], dim=-1)  # [3, N, 2]
 
 
-def _vm_features(planes: Tensor, lines: Tensor, xn: Tensor) -> Tensor:
-    """planes [3, C, R, R], lines [3, C, R, 1], xn [N, 3] in [-1, 1] -> per-axis products [3, C, N]."""
-    if xn.shape[0] == 0:
-        return planes.new_zeros(3, planes.shape[1], 0)
+def _sample_one(grid: Tensor, uv: Tensor) -> Tensor:
+    """grid [1, C, H, W], uv [N, 2] -> bilinear (align_corners) samples [C, N], channels split in groups."""
+    c = grid.shape[1]
+    k = CHANNEL_SPLIT if c % CHANNEL_SPLIT == 0 else 1
+    g = grid.reshape(k, c // k, *grid.shape[2:])
+    out = F.grid_sample(g, uv[None, :, None, :].expand(k, -1, -1, -1), mode="bilinear", align_corners=True)
+    return out.reshape(c, -1)
+
+
+def _plane_features(planes: Sequence[Tensor], lines: Sequence[Tensor], xn: Tensor) -> list[Tensor]:
+    """planes (xy, xz, yz) [1, C_m, H_m, W_m], lines (z, y, x) [1, C_m, L_m, 1], xn [N, 3] in [-1, 1] -> each axis's
+    products [C_m, N] (a plane and its line may have their own component count and sizes)."""
     plane_uv, line_uv = _vm_inputs(xn)
-    return _grid_sample(planes, plane_uv) * _grid_sample(lines, line_uv)
+    pairs = enumerate(zip(planes, lines, strict=True))
+    return [_sample_one(p, plane_uv[m]) * _sample_one(ln, line_uv[m]) for m, (p, ln) in pairs]
 
 
-def _vm_features_reference(planes: Tensor, lines: Tensor, xn: Tensor) -> Tensor:
-    """Plain twin of `_vm_features` (index lists, one grid_sample per grid, channels unsplit; for tests)."""
-    if xn.shape[0] == 0:
-        return planes.new_zeros(3, planes.shape[1], 0)
-    plane_uv = torch.stack([xn[:, list(ax)] for ax in PLANE_AXES])  # [3, N, 2] (x -> W, y -> H)
-    line_w = xn[:, list(LINE_AXIS)].T  # [3, N]
-    line_uv = torch.stack([torch.zeros_like(line_w), line_w], dim=-1)  # [3, N, 2]
-    p = F.grid_sample(planes, plane_uv[:, :, None, :], mode="bilinear", align_corners=True)  # [3, C, N, 1]
-    ln = F.grid_sample(lines, line_uv[:, :, None, :], mode="bilinear", align_corners=True)  # [3, C, N, 1]
-    return (p * ln)[..., 0]
+def _plane_features_reference(planes: Sequence[Tensor], lines: Sequence[Tensor], xn: Tensor) -> list[Tensor]:
+    """Plain twin of `_plane_features` (index lists, one grid_sample per grid, channels unsplit; for tests)."""
+    out = []
+    for m, (p, ln) in enumerate(zip(planes, lines, strict=True)):
+        uv = xn[:, list(PLANE_AXES[m])]  # [N, 2] (first axis -> W, second -> H)
+        w = xn[:, LINE_AXIS[m]]
+        line_uv = torch.stack([torch.zeros_like(w), w], dim=-1)  # [N, 2]
+        ps = F.grid_sample(p, uv[None, :, None, :], mode="bilinear", align_corners=True)  # [1, C, N, 1]
+        ls = F.grid_sample(ln, line_uv[None, :, None, :], mode="bilinear", align_corners=True)  # [1, C, N, 1]
+        out.append((ps * ls)[0, :, :, 0])
+    return out
 
 
 def _plane_tv(planes: Tensor) -> Tensor:
@@ -132,16 +136,49 @@ def add_plane_tv_grad_(planes: nn.Parameter, pairs: Tensor, weight: float) -> fl
     return float(4.0 * diff.pow(2).mean(dim=(1, 2)).sum())
 
 
+Rank = int | Sequence[int]
+"""Components per plane: one count for all three, or one per plane (xy, xz, yz)."""
+
+
+def per_plane(rank: Rank, what: str) -> tuple[int, int, int]:
+    """`rank` as three counts (xy, xz, yz); ValueError unless each is >= 1."""
+    ranks = (int(rank),) * 3 if isinstance(rank, int) else tuple(int(r) for r in rank)
+    if len(ranks) != 3 or min(ranks) < 1:
+        raise ValueError(f"expected {what} as one count or three (xy, xz, yz plane), each >= 1, got {rank!r}")
+    return ranks  # type: ignore[return-value]
+
+
+def split_rank(rank: Sequence[int]) -> tuple[Rank, Rank]:
+    """train's `--rank`: two counts (density, appearance: every plane alike) or six (density's xy, xz, yz planes, then
+    appearance's) -> (density_rank, app_rank) as `TensoRF` takes them; ValueError otherwise."""
+    values = tuple(int(r) for r in rank)
+    if len(values) not in (2, 6) or min(values) < 1:
+        raise ValueError(
+            f"expected rank as 2 counts (density, appearance) or 6 (density xy, xz, yz, appearance xy, xz, yz), "
+            f"each >= 1, got {tuple(rank)}"
+        )
+    if len(values) == 2:
+        return values[0], values[1]
+    return values[:3], values[3:]
+
+
+def _uniform(ranks: tuple[int, int, int]) -> int | list[int]:
+    return ranks[0] if len(set(ranks)) == 1 else list(ranks)
+
+
 class TensoRF(Field):
-    """VM-decomposed density (+ appearance) grid with a small shading MLP."""
+    """VM-decomposed density (+ appearance) grid with a small shading MLP.
+
+    `density_rank` / `app_rank` give the components of each plane (xy, xz, yz) and its line (z, y, x): one count, or
+    three (TensoRF's LLFF setting puts most in the xy plane, a forward-facing capture's image plane)."""
 
     def __init__(
         self,
         *,
         aabb: Tensor | list,
         resolution: int = 128,
-        density_rank: int = TENSORF_RANK[0],
-        app_rank: int = TENSORF_RANK[1],
+        density_rank: Rank = TENSORF_RANK[0],
+        app_rank: Rank = TENSORF_RANK[1],
         app_dim: int = 27,
         hidden: int = 64,
         view_freqs: int = 2,
@@ -158,20 +195,19 @@ class TensoRF(Field):
             raise ValueError(f"expected aabb [[min], [max]] with max > min, got {aabb.tolist()}")
         self.register_buffer("aabb", aabb)
         self.resolution = int(resolution)
-        self.density_rank, self.app_rank, self.app_dim, self.hidden = density_rank, app_rank, app_dim, hidden
+        self.density_rank = per_plane(density_rank, "density_rank")
+        self.app_rank = per_plane(app_rank, "app_rank")
+        self.app_dim, self.hidden = app_dim, hidden
         self.view_freqs, self.feat_freqs = view_freqs, feat_freqs
         self.has_color = has_color
         self.view_dependent = view_dependent and has_color
         self.density_shift, self.density_scale, self.init_std = density_shift, density_scale, init_std
-        r = self.resolution
         self._volume: tuple | None = None  # density_volume's cache: (factors' key, volume)
         self._edits = 0  # bumped by `touch` (fused Adam leaves the version counters as they are)
-        self.density_planes = nn.Parameter(init_std * torch.randn(3, density_rank, r, r))
-        self.density_lines = nn.Parameter(init_std * torch.randn(3, density_rank, r, 1))
+        self.density_planes, self.density_lines = self._factors(self.density_rank)
         if has_color:
-            self.app_planes = nn.Parameter(init_std * torch.randn(3, app_rank, r, r))
-            self.app_lines = nn.Parameter(init_std * torch.randn(3, app_rank, r, 1))
-            self.basis = nn.Linear(3 * app_rank, app_dim, bias=False)
+            self.app_planes, self.app_lines = self._factors(self.app_rank)
+            self.basis = nn.Linear(sum(self.app_rank), app_dim, bias=False)
             n_in = app_dim + 2 * feat_freqs * app_dim
             if self.view_dependent:
                 n_in += 3 + 2 * view_freqs * 3
@@ -181,6 +217,13 @@ class TensoRF(Field):
                 nn.Linear(hidden, 3),
             )  # fmt: skip
             nn.init.constant_(self.mlp[-1].bias, 0.0)
+        self.register_load_state_dict_pre_hook(_unstack_factors)
+
+    def _factors(self, ranks: tuple[int, int, int]) -> tuple[nn.ParameterList, nn.ParameterList]:
+        """Planes (xy, xz, yz) [1, C_m, R, R] and lines (z, y, x) [1, C_m, R, 1], C_m = ranks[m]."""
+        r, std = self.resolution, self.init_std
+        return (nn.ParameterList([std * torch.randn(1, c, r, r) for c in ranks]),
+                nn.ParameterList([std * torch.randn(1, c, r, 1) for c in ranks]))  # fmt: skip
 
     def normalize(self, x: Tensor) -> Tensor:
         """Scene frame [N, 3] -> box coordinates in [-1, 1]^3 (outside the box: beyond +-1)."""
@@ -192,22 +235,25 @@ class TensoRF(Field):
     def density(self, x: Tensor) -> Tensor:
         check_points(x)
         xn = self.normalize(x)
-        f = _vm_features(self.density_planes, self.density_lines, xn.clamp(-1, 1)).sum(dim=(0, 1))  # [N]
+        if x.shape[0] == 0:
+            return x.new_zeros(0)
+        f = sum(p.sum(0) for p in _plane_features(self.density_planes, self.density_lines, xn.clamp(-1, 1)))  # [N]
         sigma = self.density_scale * F.softplus((f + self.density_shift).clamp(max=1e4))
         return torch.where(self._inside(xn), sigma, torch.zeros_like(sigma))
 
     def density_volume(self) -> Tensor:
-        """The density factors' sum at every grid node, [1, 1, R, R, R] indexed (z, y, x) as `F.grid_sample` reads a
-        volume: a plane's bilinear interpolation times a line's linear one is the trilinear interpolation of their
+        """The density factors' sum at every grid node, [1, 1, R, R, R] indexed (z, y, x) as `F.grid_sample` reads
+        a volume: a plane's bilinear interpolation times a line's linear one is the trilinear interpolation of their
         products at the nodes, so trilinear sampling of this volume gives `density`'s factor sum exactly (up to
         float rounding) from 8 values a point instead of 3 x (4 + 2) x density_rank. Kept until the factors
         change (their version counters: optimizer steps, loads and upsampling all bump or replace them)."""
-        planes, lines = self.density_planes, self.density_lines
-        key = (planes.data_ptr(), planes._version, lines.data_ptr(), lines._version, self._edits, planes.shape,
-               planes.dtype, planes.device)  # fmt: skip
+        factors = [*self.density_planes, *self.density_lines]
+        key = (tuple((t.data_ptr(), t._version, t.shape) for t in factors), self._edits, factors[0].dtype,
+               factors[0].device)  # fmt: skip
         if self._volume is None or self._volume[0] != key:
             with torch.no_grad():
-                p, ln = planes.detach(), lines.detach()[..., 0]  # [3, C, R, R], [3, C, R]
+                p = [t.detach()[0] for t in self.density_planes]  # [C, H, W] each
+                ln = [t.detach()[0, :, :, 0] for t in self.density_lines]  # [C, L] each
                 vol = torch.einsum("cyx,cz->zyx", p[0], ln[0])  # plane (x, y), line z
                 vol += torch.einsum("czx,cy->zyx", p[1], ln[1])  # plane (x, z), line y
                 vol += torch.einsum("czy,cx->zyx", p[2], ln[2])  # plane (y, z), line x
@@ -225,7 +271,7 @@ class TensoRF(Field):
         """`density` through `density_volume` (no gradient): the renderers' sigma_fn at inference."""
         check_points(x)
         xn = self.normalize(x)
-        grid = xn.clamp(-1, 1)[None, :, None, None, :].to(self.density_planes.dtype)  # [1, N, 1, 1, 3] (x, y, z)
+        grid = xn.clamp(-1, 1)[None, :, None, None, :].to(self.density_planes[0].dtype)  # [1, N, 1, 1, 3] (x, y, z)
         f = F.grid_sample(self.density_volume(), grid, mode="bilinear", align_corners=True).reshape(-1).to(x.dtype)
         sigma = self.density_scale * F.softplus((f + self.density_shift).clamp(max=1e4))
         return torch.where(self._inside(xn), sigma, torch.zeros_like(sigma))
@@ -235,8 +281,8 @@ class TensoRF(Field):
         if not self.has_color:
             raise ValueError("this field is density-only (has_color=False)")
         xn = self.normalize(x).clamp(-1, 1)
-        f = _vm_features(self.app_planes, self.app_lines, xn)  # [3, Ra, N]
-        feat = self.basis(f.permute(2, 0, 1).reshape(x.shape[0], 3 * self.app_rank))  # [N, app_dim]
+        f = torch.cat(_plane_features(self.app_planes, self.app_lines, xn))  # [sum(app_rank), N]
+        feat = self.basis(f.T)  # [N, app_dim]
         parts = [feat]
         if self.feat_freqs:
             parts.append(positional_encoding(feat, self.feat_freqs, include_input=False))
@@ -247,8 +293,8 @@ class TensoRF(Field):
         return torch.sigmoid(self.mlp(torch.cat(parts, dim=-1)))
 
     def grid_parameters(self) -> list[nn.Parameter]:
-        names = ["density_planes", "density_lines"] + (["app_planes", "app_lines"] if self.has_color else [])
-        return [getattr(self, n) for n in names]
+        groups = ["density_planes", "density_lines"] + (["app_planes", "app_lines"] if self.has_color else [])
+        return [p for g in groups for p in getattr(self, g)]
 
     def param_groups(self, lr: float) -> list[dict]:
         """Grids at `lr`, the basis and MLP at lr / 20 (TensoRF: 0.02 and 0.001)."""
@@ -261,8 +307,15 @@ class TensoRF(Field):
         return groups
 
     def density_l1(self) -> Tensor:
-        """Mean absolute value of the density factors (TensoRF's L1 sparsity prior)."""
-        return self.density_planes.abs().mean() + self.density_lines.abs().mean()
+        """Mean absolute value of the density factors, texel-weighted over planes and over lines (TensoRF's L1
+        sparsity prior)."""
+        planes, lines = list(self.density_planes), list(self.density_lines)
+        return sum(p.abs().sum() for p in planes) / sum(p.numel() for p in planes) + sum(
+            ln.abs().sum() for ln in lines
+        ) / sum(ln.numel() for ln in lines)
+
+    def _tv_planes(self) -> list[Tensor]:
+        return [*self.density_planes, *(self.app_planes if self.has_color else [])]
 
     def tv(self) -> Tensor:
         """TensoRF's total-variation prior on the planes (its `TVLoss`): for each factor group, 2 x (mean squared
@@ -270,31 +323,27 @@ class TensoRF(Field):
         appearance (when present). Smooths the factors, which removes the streaks and floaters a VM field paints
         into sparsely seen space (TensoRF applies it to real captures). Every texel: the plain twin of
         `add_tv_grad_`."""
-        total = _plane_tv(self.density_planes)
-        if self.has_color:
-            total = total + _plane_tv(self.app_planes)
-        return total
+        return sum(_plane_tv(p) for p in self._tv_planes())
 
     def add_tv_grad_(self, weight: float, texels: int, gen: torch.Generator | None = None) -> float:
         """Add weight x the gradient of an unbiased `tv` estimate from `texels` random neighbour pairs per plane to
         the planes' .grad (call after backward, before the optimizer step); returns the estimate. At 256^2 the
         full `tv` costs about as much as a training step, this a few milliseconds."""
         total = 0.0
-        for planes in [self.density_planes] + ([self.app_planes] if self.has_color else []):
-            pairs = tv_pairs(planes.shape, texels, gen, planes.device)
-            total += add_plane_tv_grad_(planes, pairs, weight)
+        for plane in self._tv_planes():
+            total += add_plane_tv_grad_(plane, tv_pairs(plane.shape, texels, gen, plane.device), weight)
         return total
 
     @torch.no_grad()
     def upsample(self, resolution: int) -> None:
         """Resample every plane and line to `resolution` per axis (new Parameters: rebuild the optimizer)."""
         r = int(resolution)
-        for name in [n for n in ("density_planes", "app_planes") if hasattr(self, n)]:
-            p = getattr(self, name)
-            setattr(self, name, nn.Parameter(F.interpolate(p.data, size=(r, r), mode="bilinear", align_corners=True)))
-        for name in [n for n in ("density_lines", "app_lines") if hasattr(self, n)]:
-            p = getattr(self, name)
-            setattr(self, name, nn.Parameter(F.interpolate(p.data, size=(r, 1), mode="bilinear", align_corners=True)))
+        for kind in ("density", "app") if self.has_color else ("density",):
+            planes, lines = getattr(self, f"{kind}_planes"), getattr(self, f"{kind}_lines")
+            for m in range(3):
+                for factors, size in ((planes, (r, r)), (lines, (r, 1))):
+                    grown = F.interpolate(factors[m].data, size=size, mode="bilinear", align_corners=True)
+                    factors[m] = nn.Parameter(grown)
         self.resolution = r
 
     def config(self) -> dict:
@@ -302,8 +351,8 @@ class TensoRF(Field):
             "kind": "fast",
             "aabb": self.aabb.tolist(),
             "resolution": self.resolution,
-            "density_rank": self.density_rank,
-            "app_rank": self.app_rank,
+            "density_rank": _uniform(self.density_rank),
+            "app_rank": _uniform(self.app_rank),
             "app_dim": self.app_dim,
             "hidden": self.hidden,
             "view_freqs": self.view_freqs,
@@ -314,3 +363,16 @@ class TensoRF(Field):
             "density_scale": self.density_scale,
             "init_std": self.init_std,
         }
+
+
+FACTOR_NAMES = ("density_planes", "density_lines", "app_planes", "app_lines")
+
+
+def _unstack_factors(module: nn.Module, state: dict, prefix: str, *args) -> None:
+    """A checkpoint from before per-plane factors holds each group as one stacked tensor [3, C, R, R] (lines
+    [3, C, R, 1]): split it into the three [1, C, R, R] tensors the field holds now."""
+    for name in FACTOR_NAMES:
+        stacked = state.pop(prefix + name, None)
+        if stacked is not None:
+            for m in range(3):
+                state[f"{prefix}{name}.{m}"] = stacked[m : m + 1]

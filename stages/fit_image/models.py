@@ -46,7 +46,7 @@ class GridImage(nn.Module):
         self.field = TensoRF(aabb=[[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], resolution=resolution, density_rank=1,
                              app_rank=GRID_RANK, view_dependent=False)  # fmt: skip
         # Density is never queried: leave its factors out of the optimizer and the parameter count.
-        self.field.density_planes.requires_grad_(False)
+        self.field.density_planes.requires_grad_(False)  # ParameterList: each plane
         self.field.density_lines.requires_grad_(False)
 
     def forward(self, uv: Tensor) -> Tensor:  # uv [N, 2] -> rgb [N, 3]
@@ -61,6 +61,6 @@ def parameters(model: nn.Module) -> int:
     if isinstance(model, GridImage):
         f, r = model.field, model.field.resolution
         rows = 1 if r % 2 else 2  # z = 0 falls on one row (odd R) or between two (even R)
-        grid = f.app_planes.shape[1] * (r * (r + 2 * rows) + 2 * r + rows)  # planes xy, xz, yz; lines x, y, z
+        grid = f.app_rank[0] * (r * (r + 2 * rows) + 2 * r + rows)  # planes xy, xz, yz; lines x, y, z (one rank)
         return grid + sum(p.numel() for p in (*f.basis.parameters(), *f.mlp.parameters()))
     return sum(p.numel() for p in model.parameters() if p.requires_grad)

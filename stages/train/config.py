@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Literal
 
 from nerfpipe.data.errors import UserError
+from nerfpipe.radiance.fields.fast import split_rank
 from nerfpipe.radiance.space import SPACES
 
 __all__ = ["Config", "FastOptions", "RefineOptions", "validate"]
@@ -32,10 +33,11 @@ class FastOptions:
     """fast: grid resolution per axis at the start and at the end (coarse-to-fine upsampling). None: the scene
     kind's rule (stages.train.defaults.RULES): objects and contracted scenes from the object's size in pixels
     (lego_100 -> 64,160, lego_400 -> 96,300), forward-facing (NDC) scenes from the image's width."""
-    rank: tuple[int, int] | None = None
-    """fast: the VM field's components per plane, density and appearance (`radiance.fields.fast.TensoRF`). None:
-    the scene kind's rule (stages.train.defaults.RULES): TensoRF's 16,48 for objects and contracted scenes, 8,24
-    for forward-facing (NDC) scenes."""
+    rank: tuple[int, ...] | None = None
+    """fast: the VM field's components per plane (`radiance.fields.fast.TensoRF`): density and appearance, alike on
+    every plane (2 counts), or each plane's own (6: density on the xy, xz, yz planes, then appearance). None: the
+    scene kind's rule (stages.train.defaults.RULES): TensoRF's 16,48 for objects and contracted scenes, TensoRF's
+    LLFF 16,4,4,48,12,12 for forward-facing (NDC) scenes (the xy plane is the image plane)."""
     upsample_at: tuple[float, ...] | None = None
     """fast: run-progress fractions at which the grid is upsampled (geometric steps to the final size). None:
     0.05,0.1,0.2,0.3; with refine_poses 0.2,0.3,0.4,0.5 (coarse-to-fine, `stages.train.defaults`)."""
@@ -207,8 +209,11 @@ def _fast(fast: FastOptions) -> None:
     """The fast field's grid, march and prior weights."""
     if fast.resolution is not None and (len(fast.resolution) != 2 or min(fast.resolution) < 2):
         raise UserError(f"expected resolution (start, end) >= 2, got {fast.resolution}")
-    if fast.rank is not None and (len(fast.rank) != 2 or min(fast.rank) < 1):
-        raise UserError(f"expected rank (density, appearance) >= 1, got {fast.rank}")
+    if fast.rank is not None:
+        try:
+            split_rank(fast.rank)
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
     at = fast.upsample_at
     if at is not None and (any(not 0 <= a <= 1 for a in at) or list(at) != sorted(at)):
         raise UserError(f"expected upsample_at: increasing fractions in [0, 1], got {at}")
