@@ -63,6 +63,49 @@ def test_asked_for_rank_reaches_the_field_and_its_checkpoint(rgba_scene, tmp_pat
     assert manifest["used"]["defaults"]["rank"] == "asked for"
 
 
+def test_a_run_saved_with_stacked_factors_resumes_as_it_would_have(rgba_scene, tmp_path):
+    """A checkpoint from before per-plane factors (each factor group one [3, C, R, R] / [3, C, R, 1] tensor, its Adam
+    moments alike) still resumes: the factors and their moments are split plane by plane, and the run continues
+    exactly as from today's checkpoint of the same state."""
+    import shutil
+
+    from nerfpipe.data.rundir import sha256_file
+    from nerfpipe.radiance.fields.fast import FACTOR_NAMES
+
+    now, before = tmp_path / "now", tmp_path / "before"
+    train.run(_config(rgba_scene, now, max_steps=3))
+    shutil.copytree(now, before)
+    state = torch.load(before / "checkpoint.pt", weights_only=True)
+    field, opt = state["field"], state["optimizer"]
+    stacked_state, stacked_groups = {}, []
+    for g, group in enumerate(opt["param_groups"]):
+        ids = group["params"]
+        if g == 0:  # the grids: 3 per factor group, in FACTOR_NAMES' order
+            triples = [ids[i : i + 3] for i in range(0, len(ids), 3)]
+            for n, triple in enumerate(triples):
+                moments = [opt["state"][i] for i in triple]
+                stacked_state[n] = {k: torch.cat([m[k] for m in moments]) if moments[0][k].dim() else moments[0][k]
+                                    for k in moments[0]}  # fmt: skip
+            stacked_groups.append({**group, "params": list(range(len(triples)))})
+        else:
+            start = sum(len(gr["params"]) for gr in stacked_groups)
+            stacked_state |= {start + j: opt["state"][i] for j, i in enumerate(ids) if i in opt["state"]}
+            stacked_groups.append({**group, "params": list(range(start, start + len(ids)))})
+    for name in FACTOR_NAMES:
+        field[name] = torch.cat([field.pop(f"{name}.{m}") for m in range(3)])
+    state["optimizer"] = {"state": stacked_state, "param_groups": stacked_groups}
+    torch.save(state, before / "checkpoint.pt")
+    manifest = json.loads((before / "manifest.json").read_text())
+    manifest["checkpoint_sha256"] = sha256_file(before / "checkpoint.pt")
+    (before / "manifest.json").write_text(json.dumps(manifest))
+    for run in (now, before):
+        train.run(_config(rgba_scene, run, resume=True, max_steps=6))
+    a, b = (torch.load(run / "checkpoint.pt", weights_only=True)["field"] for run in (now, before))
+    assert a.keys() == b.keys() and "density_planes.0" in b
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0)
+
+
 @pytest.mark.parametrize("field", ["fast", "vanilla"])
 def test_two_steps_write_every_file(rgba_scene, tmp_path, field):
     kw = dict(batch_rays=32, eval_every=0) if field == "vanilla" else {}

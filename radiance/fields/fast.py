@@ -3,9 +3,12 @@
 The scene box `aabb` [2, 3] is mapped to [-1, 1]^3. Density and appearance are each a sum of
 vector-matrix (VM) components: for each axis m, a plane over the two other axes times a line along m,
     f(x) = sum_m sum_r P_m,r(x_u, x_v) * L_m,r(x_m)   (bilinear / linear interpolation, align_corners).
+Each plane and its line hold their own tensor ([1, C_m, R, R] and [1, C_m, R, 1]) and component count C_m
+(`density_rank` / `app_rank`: one count for all three, or one per plane xy, xz, yz: TensoRF's LLFF setting puts most
+in the xy plane, a forward-facing capture's image plane).
 - density: `density_rank` components per axis, summed, then
   sigma = density_scale * softplus(f + density_shift)   (per world unit; never overflows),
-- colour: `app_rank` components per axis give 3 * app_rank features, a linear basis maps them to
+- colour: `app_rank` components per axis give sum(app_rank) features, a linear basis maps them to
   `app_dim`, and a small MLP (with optional view-direction encoding) gives RGB through a sigmoid.
 `upsample(resolution)` resamples planes and lines to a finer grid (coarse-to-fine as TensoRF does);
 the optimizer must then be rebuilt. `has_color=False` gives a density-only field (X-ray).
@@ -376,3 +379,33 @@ def _unstack_factors(module: nn.Module, state: dict, prefix: str, *args) -> None
         if stacked is not None:
             for m in range(3):
                 state[f"{prefix}{name}.{m}"] = stacked[m : m + 1]
+
+
+def has_stacked_factors(field_state: dict) -> bool:
+    """A field state dict saved before per-plane factors (`_unstack_factors` reads it)."""
+    return any(name in field_state for name in FACTOR_NAMES)
+
+
+def _split(value: Tensor, m: int) -> Tensor:
+    """Plane m's share of a stacked factor's Adam entry: its slice of a moment, its own copy of the step count (fused
+    Adam counts each parameter's steps in place: a shared count would advance three times a step)."""
+    return value[m : m + 1].clone() if value.dim() > 0 else value.clone()
+
+
+def unstack_adam_state(opt_state: dict) -> dict:
+    """An Adam state dict saved with stacked factors -> today's: the grid group's (the first) parameters, each a
+    stacked [3, ...] factor in `grid_parameters`' order, become three [1, ...] entries each; every later parameter is
+    renumbered. The moments are split exactly as `_unstack_factors` splits the factors."""
+    groups, old_state = opt_state["param_groups"], opt_state["state"]
+    new_groups, new_state, index = [], {}, 0
+    for g, group in enumerate(groups):
+        ids = []
+        for old in group["params"]:
+            entry = old_state.get(old)
+            for m in range(3) if g == 0 else range(1):
+                if entry is not None:
+                    new_state[index] = {k: _split(v, m) if g == 0 else v for k, v in entry.items()}
+                ids.append(index)
+                index += 1
+        new_groups.append({**group, "params": ids})
+    return {"state": new_state, "param_groups": new_groups}

@@ -30,6 +30,7 @@ from nerfpipe.model.checkpoint import read_checkpoint, restore_appearance, resto
 from nerfpipe.model.device import resolve_device
 from nerfpipe.model.distributed import DataParallel
 from nerfpipe.model.field_model import FieldModel, ModelSettings, build_model, make_space
+from nerfpipe.radiance.fields.fast import TensoRF, has_stacked_factors, unstack_adam_state
 from nerfpipe.stages.train.config import Config, RefineOptions
 from nerfpipe.stages.train.defaults import Defaults, resolve_defaults, resolve_downscale
 from nerfpipe.stages.train.loop import Loop, make_optimizer
@@ -187,7 +188,10 @@ def _optimizer(model: FieldModel, lr: float, state: dict | None,
     if model.grid is not None and state["occupancy"] is not None:
         model.grid.load_state_dict(state["occupancy"])
     opt = make_optimizer(model, lr)
-    opt.load_state_dict(state["optimizer"])
+    saved = state["optimizer"]
+    if isinstance(model.field, TensoRF) and has_stacked_factors(state["field"]):
+        saved = unstack_adam_state(saved)  # a run from before per-plane factors
+    opt.load_state_dict(saved)
     gen.set_state(state["rng"])
     return opt, int(state["step"]), float(state["seconds"]), float(state["lr_factor"])
 
