@@ -233,18 +233,14 @@ class NDCRules:
     | 8,24  | -          | 25.89 dB (977)     |
     | 4,12  | 14.81 dB   | 24.24 dB (841)     |
     8,24 is the best there at equal time and within the noise of 4,12 on the fern (-0.19 dB, single runs).
-    Then (2026-11-27, the field's planes each with their own component count) TensoRF's own LLFF setting: 16 density
-    and 48 appearance components on the xy plane (NDC's x, y: the image plane, where a forward-facing capture's
-    detail is), 4 and 12 on the xz and yz planes, at the cost of 8,24 (the same 24 + 72 components). Same command,
-    fern; and the 48 px forward scene as above (400 steps / 20 s):
-    | rank (density, appearance)             | fern steps | fern held-out | 48 px: 400 steps | 20 s     |
-    | 8,24 (the rule above)                  | 4,989      | 24.16 dB      | 23.08 dB         | 25.86 dB |
-    | 16,4,4,48,12,12 <- this rule           | 4,997      | 24.32 dB      | 23.66 dB         | 25.99 dB |
-    | the same, z' at a quarter of x, y's texels | 5,531  | 24.19 dB      | 22.87 dB         | 25.50 dB |
-    | 8,24, z' at a quarter                  | 6,095      | 24.26 dB      | 22.35 dB         | 25.50 dB |
-    Fewer texels along z' buy steps (a throw-away field option, not kept) but lose on the 48 px scene, whose depth
-    varies more; the per-plane rank is as good or better on both. Single runs again; the chain's figure is in
-    docs/BENCH_REAL.md."""
+    Then (2026-11-27, each plane with its own component count) TensoRF's own LLFF setting: 16 density and 48
+    appearance components on the xy plane (NDC's x, y: the image plane, where a forward-facing capture's detail is), 4
+    and 12 on xz and yz, at the cost of 8,24. Same command, fern; the 48 px forward scene as above (400 steps / 20 s):
+    | rank (density, appearance)    | fern steps | fern held-out | 48 px: 400 steps | 20 s     |
+    | 8,24 (the rule above)         | 4,989      | 24.16 dB      | 23.08 dB         | 25.86 dB |
+    | 16,4,4,48,12,12 <- this rule  | 4,997      | 24.32 dB      | 23.66 dB         | 25.99 dB |
+    Fewer texels along z' bought 10-20 % more fern steps but lost 0.4 dB on the 48 px scene (not kept). Single runs
+    again; the chain's figure is in docs/BENCH_REAL.md."""
 
     def resolution(self, need: Need) -> tuple[tuple[int, int], str]:
         side = _ndc_box_side(need.space)
