@@ -84,15 +84,16 @@ def _plane_features_reference(planes: Sequence[Tensor], lines: Sequence[Tensor],
 
 
 def _plane_tv(planes: Tensor) -> Tensor:
-    """planes [3, C, H, W] -> sum over the 3 planes of 2 * (mean squared H-difference + mean squared W-difference)."""
+    """planes [P, C, H, W] -> sum over the P planes of 2 * (mean squared H-difference + mean squared W-difference)
+    (the field passes each plane alone, P = 1)."""
     dh = (planes[:, :, 1:, :] - planes[:, :, :-1, :]).pow(2).mean(dim=(1, 2, 3))
     dw = (planes[:, :, :, 1:] - planes[:, :, :, :-1]).pow(2).mean(dim=(1, 2, 3))
     return 2.0 * (dh + dw).sum()
 
 
 def tv_pairs(shape: torch.Size, texels: int, gen: torch.Generator | None, device: torch.device) -> Tensor:
-    """K = texels random neighbour pairs per plane of planes [3, C, H, W] (the same in every channel), half along H
-    and half along W -> flat indices into H * W, [2 (texel, its neighbour), 3, 1, K]."""
+    """K = texels random neighbour pairs per plane of planes [P, C, H, W] (the same in every channel), half along H
+    and half along W -> flat indices into H * W, [2 (texel, its neighbour), P, 1, K]."""
     n, _, h, w = shape
     if texels < 2 or h < 2 or w < 2:
         raise ValueError(f"expected texels >= 2 and planes at least 2 x 2, got {texels} and {tuple(shape)}")
@@ -108,8 +109,8 @@ def tv_pairs(shape: torch.Size, texels: int, gen: torch.Generator | None, device
 
 
 def _pair_differences(planes: Tensor, pairs: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """planes [3, C, H, W], pairs from `tv_pairs` -> (neighbour minus texel [3, C, K], the texels' and the
-    neighbours' flat indices expanded over the channels [3, C, K])."""
+    """planes [P, C, H, W], pairs from `tv_pairs` -> (neighbour minus texel [P, C, K], the texels' and the
+    neighbours' flat indices expanded over the channels [P, C, K])."""
     n, c = planes.shape[:2]
     k = pairs.shape[-1]
     a, b = pairs[0].expand(n, c, k), pairs[1].expand(n, c, k)
