@@ -166,6 +166,11 @@ def split_rank(rank: Sequence[int]) -> tuple[Rank, Rank]:
     return values[:3], values[3:]
 
 
+def _mean_abs(factors: Sequence[Tensor]) -> Tensor:
+    """Mean absolute value over every texel of `factors` (tensors of any sizes)."""
+    return sum(t.abs().sum() for t in factors) / sum(t.numel() for t in factors)
+
+
 def _uniform(ranks: tuple[int, int, int]) -> int | list[int]:
     return ranks[0] if len(set(ranks)) == 1 else list(ranks)
 
@@ -239,8 +244,6 @@ class TensoRF(Field):
     def density(self, x: Tensor) -> Tensor:
         check_points(x)
         xn = self.normalize(x)
-        if x.shape[0] == 0:
-            return x.new_zeros(0)
         f = sum(p.sum(0) for p in _plane_features(self.density_planes, self.density_lines, xn.clamp(-1, 1)))  # [N]
         sigma = self.density_scale * F.softplus((f + self.density_shift).clamp(max=1e4))
         return torch.where(self._inside(xn), sigma, torch.zeros_like(sigma))
@@ -313,10 +316,7 @@ class TensoRF(Field):
     def density_l1(self) -> Tensor:
         """Mean absolute value of the density factors, texel-weighted over planes and over lines (TensoRF's L1
         sparsity prior)."""
-        planes, lines = list(self.density_planes), list(self.density_lines)
-        return sum(p.abs().sum() for p in planes) / sum(p.numel() for p in planes) + sum(
-            ln.abs().sum() for ln in lines
-        ) / sum(ln.numel() for ln in lines)
+        return _mean_abs(self.density_planes) + _mean_abs(self.density_lines)
 
     def _tv_planes(self) -> list[Tensor]:
         return [*self.density_planes, *(self.app_planes if self.has_color else [])]
