@@ -6,10 +6,12 @@ Modes (train --background; the names nerfstudio's `background_color` and instant
   whatever the colour; opaque photos: every pixel must come from the field), its colour (white unless given)
   for evaluation and rendering;
 - `learned`: sigmoid of a 3-vector optimised with the field; evaluation uses its current value;
-- `plain`: images composited on one plain colour, whose pixels were marked transparent (alpha 0): those rays
-  get a random colour in training (empty space must be empty), every other ray the plain colour, as the image
-  was made (a partly covered edge pixel is alpha x object + (1 - alpha) x colour: the field can say so; a random
-  colour behind it would force a dark, opaque halo); evaluation on the plain colour.
+- `plain`: images composited on one plain colour, whose pixels around the object were marked transparent (alpha
+  0): the rays the caller marks `random` get a random colour in training (the transparent ones: empty space must
+  be empty; and the object's pixels away from the plain colour: the object must be opaque), every other ray the
+  plain colour, as the image was made (a partly covered edge pixel is alpha x object + (1 - alpha) x colour: the
+  field can say so; a random colour behind it would force a dark, opaque halo; `stages.train.views.Views.
+  random_behind` marks them); evaluation on the plain colour.
 Photos with alpha are composited on the same colour the model is (radiance.compositing.over_background).
 """
 
@@ -42,15 +44,15 @@ class Background(torch.nn.Module):
         self,
         n: int,
         generator: torch.Generator | None = None,
-        transparent: Tensor | None = None,  # [n] bool: pixels marked transparent (`plain` mode)
+        random: Tensor | None = None,  # [n] bool: the rays that get a random colour (`plain` mode)
     ) -> Tensor:  # [n, 3] or [3]
         if self.mode in ("random", "plain"):
             rand = torch.rand(n, 3, generator=generator).to(self.fixed.device)
             if self.mode == "random":
                 return rand
-            if transparent is None or transparent.shape != (n,):
-                raise ValueError(f"plain background: expected transparent [{n}] bool, got {transparent!r:.60}")
-            return torch.where(transparent.to(rand.device)[:, None], rand, self.fixed)
+            if random is None or random.shape != (n,):
+                raise ValueError(f"plain background: expected random [{n}] bool, got {random!r:.60}")
+            return torch.where(random.to(rand.device)[:, None], rand, self.fixed)
         return self.eval_colour()
 
     def params(self) -> list[torch.nn.Parameter]:

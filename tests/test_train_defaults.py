@@ -46,13 +46,13 @@ def test_plain_border_colour_is_detected(colour, expected):
     assert np.allclose(bg.eval_colour().numpy(), expected, atol=1e-6)
 
 
-def test_plain_background_is_random_only_behind_transparent_pixels():
+def test_plain_background_is_random_only_behind_the_rays_marked_random():
     bg = Background("plain", (0.0, 0.0, 0.0))
-    transparent = torch.tensor([True, False, True, False])
-    colour = bg.train_colour(4, torch.Generator().manual_seed(0), transparent=transparent)  # [4, 3]
-    assert colour.shape == (4, 3) and (colour[~transparent] == 0).all()  # edge and object pixels: as made
-    assert (colour[transparent] > 0).all() and not torch.equal(colour[0], colour[2])
-    with pytest.raises(ValueError, match="transparent"):
+    random = torch.tensor([True, False, True, False])
+    colour = bg.train_colour(4, torch.Generator().manual_seed(0), random=random)  # [4, 3]
+    assert colour.shape == (4, 3) and (colour[~random] == 0).all()  # edge and object pixels: as made
+    assert (colour[random] > 0).all() and not torch.equal(colour[0], colour[2])
+    with pytest.raises(ValueError, match="random"):
         bg.train_colour(4)
 
 
@@ -156,3 +156,20 @@ def test_plain_colour_clears_only_the_background_around_the_object():
     assert (alpha[7:13, 9:15] == 255).all() and (alpha[4:16, 6:18] == 255).all()
     assert (alpha[:4] == 0).all() and (alpha[:, :6] == 0).all()
     assert share == pytest.approx((20 * 24 - 12 * 12) / (20 * 24))
+    idx = torch.arange(20 * 24)
+    assert torch.equal(views.random_behind(idx), views.rgba[:, 3] == 0)  # the object on the plain colour
+
+
+def test_with_pose_refinement_the_object_trains_on_a_random_colour_but_its_plain_face_does_not():
+    """opaque_object (pose refinement): the object's pixels get a random colour behind them, as with alpha; its
+    own white face (it may be a hole) and the transparent background keep theirs (plain colour / random)."""
+    img = np.full((20, 24, 3), 255, np.uint8)
+    img[4:16, 6:18] = (200, 30, 30)
+    img[7:13, 9:15] = 255
+    views = _views([img])
+    views.mask_colour((1.0, 1.0, 1.0), opaque_object=True)
+    rand = views.random_behind(torch.arange(20 * 24)).reshape(20, 24)
+    assert not rand[7:13, 9:15].any()  # the white face: on the plain colour
+    red = torch.zeros(20, 24, dtype=torch.bool)
+    red[4:16, 6:18], red[7:13, 9:15] = True, False
+    assert rand[red].all() and rand[:4].all() and rand[:, :6].all()  # the object and the background: random

@@ -281,10 +281,11 @@ class Loop:
             view = self.train.view[idx].to(self.device)  # [B] each ray's training view
             if self._refining():
                 o, d = self.cameras(o, d, view)
-            bg = self.model.background.train_colour(o.shape[0], self.gen, transparent=alpha == 0)  # [B, 3] or [3]
+            rand = self.train.random_behind(idx).to(self.device)  # [B]
+            bg = self.model.background.train_colour(o.shape[0], self.gen, random=rand)  # [B, 3] or [3]
             return o, d, rgb, alpha, view, bg, bg
-        transparent = (self.train.rgba[idx, 3] == 0).to(self.device)  # [B] as `alpha == 0` above
-        bg_all = self.model.background.train_colour(idx.numel(), self.gen, transparent=transparent)
+        rand = self.train.random_behind(idx).to(self.device)  # [B]
+        bg_all = self.model.background.train_colour(idx.numel(), self.gen, random=rand)
         mine = self.parallel.world.share(idx.numel())
         o, d, rgb, alpha = self.train.batch(idx[mine], self.device)
         view = self.train.view[idx[mine]].to(self.device)

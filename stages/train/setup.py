@@ -123,14 +123,18 @@ def _check_field(config: Config, ckpt_path: Path, state: dict | None) -> None:
 
 def _clear_plain_background(found: Defaults, train: Views, test: Views | None) -> None:
     """Auto background on a plain colour: the plain colour's regions that touch the image border become
-    transparent in every view; the share of training pixels joins the background's reason."""
+    transparent in every view; with pose refinement the object's pixels train on a random colour too
+    (`Views.mask_colour`'s opaque_object). The share of training pixels joins the background's reason."""
     if found.plain_colour is None:
         return
-    share = train.mask_colour(found.plain_colour)
+    refine = found.config.refine is not None
+    share = train.mask_colour(found.plain_colour, opaque_object=refine)
     if test is not None:
         test.mask_colour(found.plain_colour)
     found.reasons["background"] += (f"; {share:.1%} of the training pixels (the plain colour's regions that touch "
-                                    "the image border) made transparent")  # fmt: skip
+                                    "the image border) made transparent" + ("; pose refinement: the object's "
+                                    "pixels train on a random colour too (they must be opaque)" if refine
+                                    else ""))  # fmt: skip
 
 
 def _check_scene(found: Defaults) -> None:
