@@ -452,3 +452,34 @@ def test_a_stopped_refinement_takes_the_field_back_to_before_the_cameras_moved(t
     assert scored["test_pose_optimisation"] is None  # the input cameras were kept: test views as given
     stopped = f"as in transforms.json: the guard stopped pose refinement at step {STOP_AT}"
     assert scored["test_poses"].startswith(stopped)
+
+
+def test_on_a_plain_background_refinement_trains_the_object_on_a_random_colour(tmp_path, monkeypatch):
+    """A scene rendered on white (plain mode): without refinement every opaque pixel trains on white; with it the
+    object's pixels (opaque, not white) get a random colour too, so the object must be opaque (`Views.mask_colour`
+    opaque_object: on white, refinement ran away); the background's reason says so."""
+    scene_stage.run(scene_stage.Config(out_dir=tmp_path / "posed", kind="posed", size=24, views=12, seed=0))
+    from nerfpipe.model.background import Background
+
+    seen: list[tuple[torch.Tensor, torch.Tensor]] = []
+    plain_colour = Background.train_colour
+
+    def spy(self, n, generator=None, random=None):
+        colour = plain_colour(self, n, generator, random)
+        seen.append((random.clone(), colour.clone()))
+        return colour
+
+    monkeypatch.setattr(Background, "train_colour", spy)
+    shares = {}
+    for name, refine in (("plain", None), ("refined", REFINE)):
+        seen.clear()
+        out = train.run(tiny_config(tmp_path / "posed", tmp_path / name, refine=refine))
+        used = json.loads(out.manifest.read_text())["used"]
+        assert used["background"]["mode"] == "plain"
+        assert ("pose refinement: the object's pixels" in used["defaults"]["background"]) == (refine is not None)
+        random = torch.cat([r for r, _ in seen])
+        colour = torch.cat([c for _, c in seen])
+        assert (colour[~random] == 1.0).all()  # the rest on the plain white
+        shares[name] = float(random.float().mean())
+    # the transparent background is random in both; with refinement the object is too
+    assert 0.2 < shares["plain"] < shares["refined"] and shares["refined"] > shares["plain"] + 0.05, shares
