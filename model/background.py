@@ -8,10 +8,10 @@ Modes (train --background; the names nerfstudio's `background_color` and instant
 - `learned`: sigmoid of a 3-vector optimised with the field; evaluation uses its current value;
 - `plain`: images composited on one plain colour, whose pixels around the object were marked transparent (alpha
   0): the rays the caller marks `random` get a random colour in training (the transparent ones: empty space must
-  be empty; and the object's pixels away from the plain colour: the object must be opaque), every other ray the
-  plain colour, as the image was made (a partly covered edge pixel is alpha x object + (1 - alpha) x colour: the
-  field can say so; a random colour behind it would force a dark, opaque halo; `stages.train.views.Views.
-  random_behind` marks them); evaluation on the plain colour.
+  be empty; with pose refinement also the object's pixels not of the plain colour: the object must be opaque;
+  `stages.train.views.Views.random_behind` marks them), every other ray the plain colour, as the image was made
+  (a partly covered edge pixel is alpha x object + (1 - alpha) x colour: the field can say so; a random colour
+  behind it would force a dark, opaque halo); evaluation on the plain colour.
 Photos with alpha are composited on the same colour the model is (radiance.compositing.over_background).
 """
 
