@@ -157,7 +157,8 @@ def test_plain_colour_clears_only_the_background_around_the_object():
     assert (alpha[:4] == 0).all() and (alpha[:, :6] == 0).all()
     assert share == pytest.approx((20 * 24 - 12 * 12) / (20 * 24))
     idx = torch.arange(20 * 24)
-    assert torch.equal(views.random_behind(idx), views.rgba[:, 3] == 0)  # the object on the plain colour
+    transparent = views.rgba[:, 3] == 0
+    assert torch.equal(views.random_behind(idx, transparent), transparent)  # the object on the plain colour
 
 
 def test_with_pose_refinement_the_object_trains_on_a_random_colour_but_its_plain_face_does_not():
@@ -168,7 +169,7 @@ def test_with_pose_refinement_the_object_trains_on_a_random_colour_but_its_plain
     img[7:13, 9:15] = 255
     views = _views([img])
     views.mask_colour((1.0, 1.0, 1.0), opaque_object=True)
-    rand = views.random_behind(torch.arange(20 * 24)).reshape(20, 24)
+    rand = views.random_behind(torch.arange(20 * 24), views.rgba[:, 3] == 0).reshape(20, 24)
     assert not rand[7:13, 9:15].any()  # the white face: on the plain colour
     red = torch.zeros(20, 24, dtype=torch.bool)
     red[4:16, 6:18], red[7:13, 9:15] = True, False

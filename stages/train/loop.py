@@ -281,10 +281,10 @@ class Loop:
             view = self.train.view[idx].to(self.device)  # [B] each ray's training view
             if self._refining():
                 o, d = self.cameras(o, d, view)
-            rand = self.train.random_behind(idx).to(self.device)  # [B]
+            rand = self.train.random_behind(idx, alpha == 0)  # [B]
             bg = self.model.background.train_colour(o.shape[0], self.gen, random=rand)  # [B, 3] or [3]
             return o, d, rgb, alpha, view, bg, bg
-        rand = self.train.random_behind(idx).to(self.device)  # [B]
+        rand = self.train.random_behind(idx, (self.train.rgba[idx, 3] == 0).to(self.device))  # [B] as above
         bg_all = self.model.background.train_colour(idx.numel(), self.gen, random=rand)
         mine = self.parallel.world.share(idx.numel())
         o, d, rgb, alpha = self.train.batch(idx[mine], self.device)

@@ -129,7 +129,7 @@ class Views:
 
         c = torch.tensor([round(v * 255) for v in colour], dtype=torch.int16)
         cleared = 0
-        behind = torch.zeros(self.n_rays if opaque_object else 0, dtype=torch.bool)
+        behind = torch.zeros(self.n_rays, dtype=torch.bool) if opaque_object else None
         for v, (h, w) in enumerate(self.shapes):
             part = self.rgba[int(self.offsets[v]) : int(self.offsets[v + 1])]
             close = ((part[:, :3].to(torch.int16) - c).abs() <= tolerance).all(dim=1).reshape(h, w)
@@ -138,17 +138,18 @@ class Views:
             background = torch.from_numpy(np.isin(labels, edge[edge != 0]).reshape(-1))  # label 0: other colours
             part[background, 3] = 0
             cleared += int(background.sum())
-            if opaque_object:
+            if behind is not None:
                 behind[int(self.offsets[v]) : int(self.offsets[v + 1])] = close.reshape(-1) & ~background
-        self.plain_behind = behind if opaque_object else None
+        self.plain_behind = behind
         return cleared / max(self.n_rays, 1)
 
-    def random_behind(self, idx: Tensor) -> Tensor:
+    def random_behind(self, idx: Tensor, transparent: Tensor) -> Tensor:
         """[B] bool: the rays idx [B] that train on a random background colour in `plain` mode (model.background):
-        the transparent ones and, after `mask_colour(..., opaque_object=True)`, the opaque ones not of the plain
-        colour."""
-        transparent = self.rgba[idx, 3] == 0
-        return transparent if self.plain_behind is None else transparent | ~self.plain_behind[idx]
+        the transparent ones (`transparent` [B], alpha 0, on any device; the result is on its device) and, after
+        `mask_colour(..., opaque_object=True)`, the opaque ones not of the plain colour."""
+        if self.plain_behind is None:
+            return transparent
+        return transparent | ~self.plain_behind[idx].to(transparent.device)
 
     def any_transparent(self, chunk: int = 1 << 22) -> bool:
         """Whether any pixel has alpha < 255 (in chunks: a mask of every pixel would be a quarter of the images)."""
