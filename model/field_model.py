@@ -65,6 +65,9 @@ class ModelSettings:
     """fast: inference marches at this fraction of the training step."""
     view_dependent: bool | None
     """Colour depends on view direction (None: on)."""
+    density_activation: str = "softplus"
+    """fast: a new field's density activation (`radiance.fields.fast.TensoRF`, with that activation's shift); a saved
+    field keeps its own. Runs from before the option were all softplus."""
 
     @classmethod
     def from_config(cls, doc: dict[str, Any], where: str) -> ModelSettings:
@@ -77,7 +80,8 @@ class ModelSettings:
                        rank=tuple(int(r) for r in rank),
                        step_ratio=float(fast["step_ratio"]), occupancy_resolution=int(fast["occupancy_resolution"]),
                        render_step_factor=float(fast["render_step_factor"]),
-                       view_dependent=doc.get("view_dependent"))  # fmt: skip
+                       view_dependent=doc.get("view_dependent"),
+                       density_activation=str(fast.get("density_activation", "softplus")))  # fmt: skip
         except (KeyError, TypeError, ValueError, IndexError) as exc:
             raise UserError(
                 f"{where}: config.json lacks a valid {exc} (written by another nerfpipe version?)"
@@ -307,7 +311,8 @@ def build_model(
         if settings.field == "fast":
             density_rank, app_rank = split_rank(settings.rank)
             field_cfg = TensoRF(aabb=aabb, resolution=settings.resolution[0], density_rank=density_rank,
-                                app_rank=app_rank, view_dependent=view_dep).config()  # fmt: skip
+                                app_rank=app_rank, view_dependent=view_dep,
+                                density_activation=settings.density_activation).config()  # fmt: skip
         else:
             field_cfg = VanillaNeRF(view_dependent=view_dep).config()
     field = make_field(field_cfg).to(device)

@@ -23,9 +23,10 @@ def _inputs(n: int = 257, scale: float = 1.0):
     [
         TensoRF(aabb=AABB, resolution=16, density_rank=4, app_rank=6, hidden=16),
         TensoRF(aabb=AABB, resolution=16, density_rank=4, app_rank=6, hidden=16, view_dependent=False),
+        TensoRF(aabb=AABB, resolution=16, density_rank=4, app_rank=6, hidden=16, density_activation="relu"),
         NeRFMLP(width=32),
     ],
-    ids=["fast", "fast-lambertian", "vanilla"],
+    ids=["fast", "fast-lambertian", "fast-relu", "vanilla"],
 )
 def test_field_shapes_finite_and_gradients(field):
     x, d = _inputs()
@@ -62,6 +63,40 @@ def test_density_finite_for_extreme_inputs_and_zero_outside_box():
     sigma = field.density(x)
     assert torch.isfinite(sigma).all()
     assert sigma[0] > 0 and sigma[1] == 0 and sigma[2] == 0
+
+
+def test_relu_density_is_the_scaled_factor_sum_clipped_at_zero_with_its_gradient():
+    """density_activation="relu" (NDC scenes): sigma = density_scale * relu(f), shift 0 unless given; exactly 0 where
+    f < 0 with no gradient there, the factors' own gradient times the scale where f > 0; finite for huge factors;
+    the inference volume agrees; the config keeps the activation, and a config from before it means softplus."""
+    from nerfpipe.radiance.fields.fast import _plane_features
+
+    torch.manual_seed(0)
+    field = TensoRF(aabb=AABB, resolution=8, density_rank=(3, 2, 1), has_color=False, density_activation="relu")
+    assert field.density_shift == 0.0 and field.config()["density_activation"] == "relu"
+    x, _ = _inputs(500, scale=0.9)
+    sigma = field.density(x)
+    f = sum(p.sum(0) for p in _plane_features(field.density_planes, field.density_lines, field.normalize(x)))
+    torch.testing.assert_close(sigma, field.density_scale * f.clamp(min=0))
+    assert (f < 0).any() and (f > 0).any() and (sigma[f < 0] == 0).all()
+    on = f > 0
+    (g_sigma,) = torch.autograd.grad(sigma.sum(), field.density_planes[0])
+    (g_f,) = torch.autograd.grad(field.density_scale * f[on].sum(), field.density_planes[0])
+    torch.testing.assert_close(g_sigma, g_f)
+    with torch.no_grad():
+        torch.testing.assert_close(field.density_inference(x), field.density(x), rtol=1e-5, atol=1e-5)
+        for p in field.grid_parameters():
+            p.fill_(1e3)
+        assert torch.isfinite(field.density(x)).all()
+        for p in field.density_planes:
+            p.fill_(-1.0)
+        assert (field.density(x) == 0).all()
+    old = {k: v for k, v in TensoRF(aabb=AABB, resolution=8, has_color=False).config().items()
+           if k != "density_activation"}  # fmt: skip
+    assert make_field(old).density_activation == "softplus" and make_field(old).density_shift == -10.0
+    assert make_field(field.config()).density_activation == "relu"
+    with pytest.raises(ValueError, match="density_activation"):
+        TensoRF(aabb=AABB, resolution=8, density_activation="exp")
 
 
 def test_view_dependent_field_requires_directions():

@@ -113,9 +113,10 @@ def test_room_scene_contraction_beats_the_box(tmp_path):
 
 @pytest.mark.parametrize(("layout", "kind"), [("orbit", "box"), ("forward", "ndc"), ("room", "contract")])
 def test_each_kind_of_capture_gets_its_own_rules(tmp_path, layout, kind):
-    """scene --layout orbit|forward|room: the scene model is chosen first, then that kind's grid, step and TV rules
-    (`RULES`), each reason naming its kind; no rule of one kind applies to another."""
-    from nerfpipe.stages.train.defaults import NDC_MIN_STEP_VOXELS, NDC_RANK, NDC_SAMPLES, RULES, resolve_defaults
+    """scene --layout orbit|forward|room: the scene model is chosen first, then that kind's grid, step, TV and
+    density activation rules (`RULES`), each reason naming its kind; no rule of one kind applies to another."""
+    from nerfpipe.stages.train.defaults import resolve_defaults
+    from nerfpipe.stages.train.rules import NDC_MIN_STEP_VOXELS, NDC_RANK, NDC_SAMPLES, RULES
     from nerfpipe.stages.train.views import load_views
 
     src, scene_dir = tmp_path / "src", tmp_path / "scene"
@@ -142,6 +143,9 @@ def test_each_kind_of_capture_gets_its_own_rules(tmp_path, layout, kind):
     assert (fast.tv > 0) == (kind != "box")
     # components per plane: NDC's own (more steps), TensoRF's for the others
     assert fast.rank == (NDC_RANK if kind == "ndc" else (16, 48)) and "components" in found.reasons["rank"]
+    # density through relu on NDC scenes only (TensoRF's LLFF setting), softplus for objects and contracted scenes
+    assert fast.density_activation == ("relu" if kind == "ndc" else "softplus")
+    assert found.reasons["density_activation"].startswith(fast.density_activation)
 
 
 def test_plain_colour_clears_only_the_background_around_the_object():

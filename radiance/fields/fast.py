@@ -7,7 +7,9 @@ Each plane and its line hold their own tensor ([1, C_m, R, R] and [1, C_m, R, 1]
 (`density_rank` / `app_rank`: one count for all three, or one per plane xy, xz, yz: TensoRF's LLFF setting puts most
 in the xy plane, a forward-facing capture's image plane).
 - density: `density_rank` components per axis, summed, then
-  sigma = density_scale * softplus(f + density_shift)   (per world unit; never overflows),
+  sigma = density_scale * act(f + density_shift)   (per world unit; never overflows: f is clamped at 1e4),
+  act = softplus (`density_activation`, the default, TensoRF's for objects, with shift -10) or relu (TensoRF's LLFF
+  setting, shift 0: exactly zero where f < 0; `stages.train.rules.NDCRules` measures it on forward-facing scenes),
 - colour: `app_rank` components per axis give sum(app_rank) features, a linear basis maps them to
   `app_dim`, and a small MLP (with optional view-direction encoding) gives RGB through a sigmoid.
 `upsample(resolution)` resamples planes and lines to a finer grid (coarse-to-fine as TensoRF does);
@@ -27,7 +29,11 @@ from torch import Tensor, nn
 from nerfpipe.radiance.fields.base import Field, check_points
 from nerfpipe.radiance.fields.encodings import positional_encoding
 
-__all__ = ["TensoRF", "TENSORF_RANK", "split_rank"]
+__all__ = ["TensoRF", "TENSORF_RANK", "DENSITY_ACTIVATIONS", "split_rank"]
+
+DENSITY_SHIFT = {"softplus": -10.0, "relu": 0.0}
+"""Each density activation's shift (TensoRF's: softplus(f - 10) starts near zero density, relu(f) is zero below 0)."""
+DENSITY_ACTIVATIONS = tuple(DENSITY_SHIFT)
 
 TENSORF_RANK = (16, 48)
 """TensoRF's density and appearance components per plane: the field's default (and every run's before `--rank`)."""
@@ -194,8 +200,9 @@ class TensoRF(Field):
         feat_freqs: int = 0,
         has_color: bool = True,
         view_dependent: bool = True,
-        density_shift: float = -10.0,
+        density_shift: float | None = None,
         density_scale: float = 25.0,
+        density_activation: str = "softplus",
         init_std: float = 0.1,
     ) -> None:
         super().__init__()
@@ -210,7 +217,12 @@ class TensoRF(Field):
         self.view_freqs, self.feat_freqs = view_freqs, feat_freqs
         self.has_color = has_color
         self.view_dependent = view_dependent and has_color
+        if density_activation not in DENSITY_ACTIVATIONS:
+            raise ValueError(f"expected density_activation in {DENSITY_ACTIVATIONS}, got {density_activation!r}")
+        if density_shift is None:
+            density_shift = DENSITY_SHIFT[density_activation]
         self.density_shift, self.density_scale, self.init_std = density_shift, density_scale, init_std
+        self.density_activation = density_activation
         self._volume: tuple | None = None  # density_volume's cache: (factors' key, volume)
         self._edits = 0  # bumped by `touch` (fused Adam leaves the version counters as they are)
         self.density_planes, self.density_lines = self._factors(self.density_rank)
@@ -245,8 +257,12 @@ class TensoRF(Field):
         check_points(x)
         xn = self.normalize(x)
         f = sum(p.sum(0) for p in _plane_features(self.density_planes, self.density_lines, xn.clamp(-1, 1)))  # [N]
-        sigma = self.density_scale * F.softplus((f + self.density_shift).clamp(max=1e4))
-        return torch.where(self._inside(xn), sigma, torch.zeros_like(sigma))
+        return torch.where(self._inside(xn), self._sigma(f), torch.zeros_like(f))
+
+    def _sigma(self, f: Tensor) -> Tensor:
+        """The density factors' sum f [N] -> sigma [N] (module doc)."""
+        x = (f + self.density_shift).clamp(max=1e4)
+        return self.density_scale * (F.relu(x) if self.density_activation == "relu" else F.softplus(x))
 
     def density_volume(self) -> Tensor:
         """The density factors' sum at every grid node, [1, 1, R, R, R] indexed (z, y, x) as `F.grid_sample` reads
@@ -280,8 +296,7 @@ class TensoRF(Field):
         xn = self.normalize(x)
         grid = xn.clamp(-1, 1)[None, :, None, None, :].to(self.density_planes[0].dtype)  # [1, N, 1, 1, 3] (x, y, z)
         f = F.grid_sample(self.density_volume(), grid, mode="bilinear", align_corners=True).reshape(-1).to(x.dtype)
-        sigma = self.density_scale * F.softplus((f + self.density_shift).clamp(max=1e4))
-        return torch.where(self._inside(xn), sigma, torch.zeros_like(sigma))
+        return torch.where(self._inside(xn), self._sigma(f), torch.zeros_like(f))
 
     def color(self, x: Tensor, d: Tensor | None) -> Tensor:
         check_points(x)
@@ -365,6 +380,7 @@ class TensoRF(Field):
             "view_dependent": self.view_dependent,
             "density_shift": self.density_shift,
             "density_scale": self.density_scale,
+            "density_activation": self.density_activation,
             "init_std": self.init_std,
         }
 

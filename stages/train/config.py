@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Literal
 
 from nerfpipe.data.errors import UserError
-from nerfpipe.radiance.fields.fast import split_rank
+from nerfpipe.radiance.fields.fast import DENSITY_ACTIVATIONS, split_rank
 from nerfpipe.radiance.space import SPACES
 
 __all__ = ["Config", "FastOptions", "RefineOptions", "validate"]
@@ -31,12 +31,12 @@ class FastOptions:
 
     resolution: tuple[int, int] | None = None
     """fast: grid resolution per axis at the start and at the end (coarse-to-fine upsampling). None: the scene
-    kind's rule (stages.train.defaults.RULES): objects and contracted scenes from the object's size in pixels
+    kind's rule (stages.train.rules.RULES): objects and contracted scenes from the object's size in pixels
     (lego_100 -> 64,160, lego_400 -> 96,300), forward-facing (NDC) scenes from the image's width."""
     rank: tuple[int, ...] | None = None
     """fast: the VM field's components per plane (`radiance.fields.fast.TensoRF`): density and appearance, alike on
     every plane (2 counts), or each plane's own (6: density on the xy, xz, yz planes, then appearance). None: the
-    scene kind's rule (stages.train.defaults.RULES): TensoRF's 16,48 for objects and contracted scenes, TensoRF's
+    scene kind's rule (stages.train.rules.RULES): TensoRF's 16,48 for objects and contracted scenes, TensoRF's
     LLFF 16,4,4,48,12,12 for forward-facing (NDC) scenes (the xy plane is the image plane)."""
     upsample_at: tuple[float, ...] | None = None
     """fast: run-progress fractions at which the grid is upsampled (geometric steps to the final size). None:
@@ -56,9 +56,13 @@ class FastOptions:
     """fast: weight of the L1 sparsity prior on the density factors."""
     tv: float | None = None
     """fast: weight of TensoRF's total-variation prior on the field's planes (`TensoRF.tv`; TensoRF's LLFF setting
-    is 0.01). None: the scene kind's rule (stages.train.defaults.RULES): 0.01 for contracted scenes (real captures,
+    is 0.01). None: the scene kind's rule (stages.train.rules.RULES): 0.01 for contracted scenes (real captures,
     where a VM field otherwise paints streaks and floaters into sparsely seen space: fox held-out 13.7 -> 17.8 dB),
     NDC's own measured weight, 0 for box scenes (objects)."""
+    density_activation: Literal["auto", "softplus", "relu"] = "auto"
+    """fast: the field's density activation (`radiance.fields.fast.TensoRF`): softplus (shift -10) or relu. auto:
+    the scene kind's rule (stages.train.rules.RULES): relu for forward-facing (NDC) scenes, TensoRF's LLFF setting
+    (fern: +1.3 dB at 2,000 steps), softplus for objects and contracted scenes."""
     depth_loss: float | None = None
     """fast, contracted scenes: weight of DS-NeRF's depth loss on rays through the sparse points each training
     photo observed (transforms.json's `sparse_depth_path`, written by `convert` from COLMAP; data.sparse_depth).
@@ -209,6 +213,9 @@ def _fast(fast: FastOptions) -> None:
     """The fast field's grid, march and prior weights."""
     if fast.resolution is not None and (len(fast.resolution) != 2 or min(fast.resolution) < 2):
         raise UserError(f"expected resolution (start, end) >= 2, got {fast.resolution}")
+    if fast.density_activation != "auto" and fast.density_activation not in DENSITY_ACTIVATIONS:
+        raise UserError(f"unknown density activation {fast.density_activation!r}: expected auto, "
+                        f"{', '.join(DENSITY_ACTIVATIONS)}")  # fmt: skip
     if fast.rank is not None:
         try:
             split_rank(fast.rank)
