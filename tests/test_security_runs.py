@@ -267,3 +267,16 @@ def test_resume_with_a_new_budget_goes_on_and_is_recorded(scene_dir, finished_ru
     assert entry["step"] == 2 and entry["changed"]["max_steps"] == [2, 4] and entry["changed"]["max_seconds"] == [
         60.0, 90.0] and entry["changed"]["scene_dir"][1] == str(moved.resolve())  # fmt: skip
     assert set(entry["changed"]) == {"max_steps", "max_seconds", "scene_dir"}
+
+
+def test_a_run_recorded_before_the_density_activation_option_resumes_as_softplus(scene_dir, finished_run, tmp_path):
+    """config.json from before `--density-activation` has no such key: the run's density was softplus, so resume
+    takes softplus (not the rule this version would choose), and a different value given is refused naming it."""
+    run_dir = _copy(finished_run, tmp_path)
+    stored = json.loads((run_dir / "config.json").read_text())
+    assert stored["fast"].pop("density_activation") == "softplus"  # an object scene: the box rule's
+    (run_dir / "config.json").write_text(json.dumps(stored))
+    fast = train.FastOptions(resolution=(16, 24), occupancy_resolution=16, density_activation="relu")
+    _resume_refused(scene_dir, run_dir, "fast.density_activation: softplus -> relu", fast=fast)
+    train.run(_config(scene_dir, run_dir, resume=True, max_steps=3))
+    assert json.loads((run_dir / "config.json").read_text())["fast"]["density_activation"] == "softplus"

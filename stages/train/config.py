@@ -59,8 +59,8 @@ class FastOptions:
     is 0.01). None: the scene kind's rule (stages.train.rules.RULES): 0.01 for contracted scenes (real captures,
     where a VM field otherwise paints streaks and floaters into sparsely seen space: fox held-out 13.7 -> 17.8 dB),
     NDC's own measured weight, 0 for box scenes (objects)."""
-    density_activation: Literal["auto", "softplus", "relu"] = "auto"
-    """fast: the field's density activation (`radiance.fields.fast.TensoRF`): softplus (shift -10) or relu. auto:
+    density_activation: Literal["softplus", "relu"] | None = None
+    """fast: the field's density activation (`radiance.fields.fast.TensoRF`): softplus (shift -10) or relu. None:
     the scene kind's rule (stages.train.rules.RULES): relu for forward-facing (NDC) scenes, TensoRF's LLFF setting
     (fern: +1.3 dB at 2,000 steps), softplus for objects and contracted scenes."""
     depth_loss: float | None = None
@@ -213,8 +213,8 @@ def _fast(fast: FastOptions) -> None:
     """The fast field's grid, march and prior weights."""
     if fast.resolution is not None and (len(fast.resolution) != 2 or min(fast.resolution) < 2):
         raise UserError(f"expected resolution (start, end) >= 2, got {fast.resolution}")
-    if fast.density_activation != "auto" and fast.density_activation not in DENSITY_ACTIVATIONS:
-        raise UserError(f"unknown density activation {fast.density_activation!r}: expected auto, "
+    if fast.density_activation is not None and fast.density_activation not in DENSITY_ACTIVATIONS:
+        raise UserError(f"unknown density activation {fast.density_activation!r}: expected one of "
                         f"{', '.join(DENSITY_ACTIVATIONS)}")  # fmt: skip
     if fast.rank is not None:
         try:

@@ -140,7 +140,7 @@ def _fast_options(fast: FastOptions, rules: BoxRules | NDCRules, need: Need, rea
     tv, reasons["tv"] = (float(fast.tv), "given") if fast.tv is not None else rules.tv()
     rank, reasons["rank"] = (tuple(fast.rank), "asked for") if fast.rank is not None else rules.rank()
     act = fast.density_activation
-    act, reasons["density_activation"] = (act, "asked for") if act != "auto" else rules.density_activation()
+    act, reasons["density_activation"] = (act, "asked for") if act is not None else rules.density_activation()
     return dataclasses.replace(fast, resolution=resolution, rank=rank, upsample_at=upsample_at, step_ratio=step_ratio,
                                tv=tv, density_activation=act)  # fmt: skip
 

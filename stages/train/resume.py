@@ -3,8 +3,9 @@
 config.json records the resolved Config and the scene's identity (`scene_sha256`: the sha256 of its
 transforms.json, written by the run's first start). On resume:
 - automatic defaults left automatic (None: batch_rays, lr, view_dependent, downscale and the fast group's
-  resolution, rank, upsample_at, step_ratio, tv, depth_loss) take the run's recorded values (not the values this device
-  or this code version would choose afresh);
+  resolution, rank, upsample_at, step_ratio, tv, depth_loss, density_activation) take the run's recorded values (not
+  the values this device or this code version would choose afresh; a run recorded before an option existed had the
+  value `RECORDED_BEFORE` names);
 - every other option that shapes the result (the field, seed, scene model, background, learning-rate decay,
   grid and prior settings, pose refinement, appearance, ...) must equal the recorded one, and so must the scene:
   the same transforms.json content (runs without `scene_sha256`: the same scene folder). A difference is refused
@@ -26,14 +27,16 @@ from nerfpipe.data.errors import UserError
 from nerfpipe.data.rundir import config_to_json, find_run_scene, sha256_file
 from nerfpipe.stages.train.config import Config, FastOptions
 
-__all__ = ["BUDGET", "AUTOMATIC", "scene_sha256", "resume_config"]
+__all__ = ["BUDGET", "AUTOMATIC", "RECORDED_BEFORE", "scene_sha256", "resume_config"]
 
 BUDGET = ("max_steps", "max_seconds", "device", "threads", "eval_every", "eval_pixels", "log_every",
           "checkpoint_every", "checkpoint_seconds", "final_eval_views", "final_eval_fraction")  # fmt: skip
 """Options that change how long the run goes on and what it logs, not what it fits: may change on resume."""
 AUTOMATIC = ("batch_rays", "lr", "view_dependent", "downscale")
 """Options whose None means "chosen by the run" (and the fast group's `AUTOMATIC_FAST`): None takes the record."""
-AUTOMATIC_FAST = ("resolution", "rank", "upsample_at", "step_ratio", "tv", "depth_loss")
+AUTOMATIC_FAST = ("resolution", "rank", "upsample_at", "step_ratio", "tv", "depth_loss", "density_activation")
+RECORDED_BEFORE = {"density_activation": "softplus"}
+"""What a run recorded before the option existed had (every fast field's density was softplus)."""
 _NOT_COMPARED = ("scene_dir", "run_dir", "resume", "overwrite")
 _MISSING = object()
 
@@ -95,8 +98,9 @@ def _stored_fast(stored: dict[str, Any]) -> dict[str, Any]:
 def _inherit(config: Config, stored: dict[str, Any]) -> Config:
     """`config` with its automatic options (None) replaced by the recorded values."""
     fast_doc = _stored_fast(stored)
-    fast = {k: _typed(fast_doc[k]) for k in AUTOMATIC_FAST
-            if getattr(config.fast, k) is None and fast_doc.get(k) is not None}  # fmt: skip
+    recorded = RECORDED_BEFORE | {k: v for k, v in fast_doc.items() if v is not None}
+    fast = {k: _typed(recorded[k]) for k in AUTOMATIC_FAST
+            if getattr(config.fast, k) is None and k in recorded}  # fmt: skip
     top = {k: _typed(stored[k]) for k in AUTOMATIC if getattr(config, k) is None and stored.get(k) is not None}
     return dataclasses.replace(config, fast=dataclasses.replace(config.fast, **fast), **top)
 
@@ -106,8 +110,10 @@ def _typed(value: Any) -> Any:
 
 
 def _defaults_for_missing(stored: dict[str, Any]) -> dict[str, Any]:
-    """The record flattened (`fast.x`); an option the recording version did not have counts as its default."""
+    """The record flattened (`fast.x`); an option the recording version did not have counts as its default (or as
+    `RECORDED_BEFORE` says)."""
     base = _flat(config_to_json(Config(scene_dir=Path(), run_dir=Path(), fast=FastOptions())))
+    base |= {f"fast.{k}": v for k, v in RECORDED_BEFORE.items()}
     flat = {k: v for k, v in stored.items() if k != "fast"} | {f"fast.{k}": v for k, v in _stored_fast(stored).items()}
     return {k: flat.get(k, base[k]) for k in base}
 
