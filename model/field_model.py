@@ -25,7 +25,7 @@ from nerfpipe.model.appearance import Appearance
 from nerfpipe.model.background import Background
 from nerfpipe.radiance.contraction import Contraction
 from nerfpipe.radiance.fields import Field, TensoRF, VanillaNeRF, make_field
-from nerfpipe.radiance.fields.fast import TENSORF_RANK, split_rank
+from nerfpipe.radiance.fields.fast import DEFAULT_ACTIVATION, TENSORF_RANK, split_rank
 from nerfpipe.radiance.ndc import NDC, fit_ndc
 from nerfpipe.radiance.occupancy import OccupancyGrid
 from nerfpipe.radiance.regularizers import distortion_loss
@@ -65,7 +65,7 @@ class ModelSettings:
     """fast: inference marches at this fraction of the training step."""
     view_dependent: bool | None
     """Colour depends on view direction (None: on)."""
-    density_activation: str = "softplus"
+    density_activation: str = DEFAULT_ACTIVATION
     """fast: a new field's density activation (`radiance.fields.fast.TensoRF`, with that activation's shift); a saved
     field keeps its own. Runs from before the option were all softplus."""
 
@@ -81,7 +81,7 @@ class ModelSettings:
                        step_ratio=float(fast["step_ratio"]), occupancy_resolution=int(fast["occupancy_resolution"]),
                        render_step_factor=float(fast["render_step_factor"]),
                        view_dependent=doc.get("view_dependent"),
-                       density_activation=str(fast.get("density_activation", "softplus")))  # fmt: skip
+                       density_activation=str(fast.get("density_activation", DEFAULT_ACTIVATION)))  # fmt: skip
         except (KeyError, TypeError, ValueError, IndexError) as exc:
             raise UserError(
                 f"{where}: config.json lacks a valid {exc} (written by another nerfpipe version?)"

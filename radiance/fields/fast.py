@@ -29,11 +29,13 @@ from torch import Tensor, nn
 from nerfpipe.radiance.fields.base import Field, check_points
 from nerfpipe.radiance.fields.encodings import positional_encoding
 
-__all__ = ["TensoRF", "TENSORF_RANK", "DENSITY_ACTIVATIONS", "split_rank"]
+__all__ = ["TensoRF", "TENSORF_RANK", "DENSITY_ACTIVATIONS", "DEFAULT_ACTIVATION", "split_rank"]
 
 DENSITY_SHIFT = {"softplus": -10.0, "relu": 0.0}
 """Each density activation's shift (TensoRF's: softplus(f - 10) starts near zero density, relu(f) is zero below 0)."""
 DENSITY_ACTIVATIONS = tuple(DENSITY_SHIFT)
+DEFAULT_ACTIVATION = "softplus"
+"""TensoRF's default activation, and the one of every field saved before the option existed."""
 
 TENSORF_RANK = (16, 48)
 """TensoRF's density and appearance components per plane: the field's default (and every run's before `--rank`)."""
@@ -202,7 +204,7 @@ class TensoRF(Field):
         view_dependent: bool = True,
         density_shift: float | None = None,
         density_scale: float = 25.0,
-        density_activation: str = "softplus",
+        density_activation: str = DEFAULT_ACTIVATION,
         init_std: float = 0.1,
     ) -> None:
         super().__init__()

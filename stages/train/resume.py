@@ -25,6 +25,7 @@ from typing import Any
 
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.rundir import config_to_json, find_run_scene, sha256_file
+from nerfpipe.radiance.fields.fast import DEFAULT_ACTIVATION
 from nerfpipe.stages.train.config import Config, FastOptions
 
 __all__ = ["BUDGET", "AUTOMATIC", "RECORDED_BEFORE", "scene_sha256", "resume_config"]
@@ -35,7 +36,7 @@ BUDGET = ("max_steps", "max_seconds", "device", "threads", "eval_every", "eval_p
 AUTOMATIC = ("batch_rays", "lr", "view_dependent", "downscale")
 """Options whose None means "chosen by the run" (and the fast group's `AUTOMATIC_FAST`): None takes the record."""
 AUTOMATIC_FAST = ("resolution", "rank", "upsample_at", "step_ratio", "tv", "depth_loss", "density_activation")
-RECORDED_BEFORE = {"density_activation": "softplus"}
+RECORDED_BEFORE = {"density_activation": DEFAULT_ACTIVATION}
 """What a run recorded before the option existed had (every fast field's density was softplus)."""
 _NOT_COMPARED = ("scene_dir", "run_dir", "resume", "overwrite")
 _MISSING = object()
