@@ -203,14 +203,15 @@ def render_rays_hierarchical(
 @dataclass(frozen=True, kw_only=True)
 class ColourRule:
     """Which samples of a march get a colour (TensoRF's rule): weight above `threshold`, at most the
-    `per_ray x R` largest of a batch of R rays (bounds the cost early on, when every sample is faint), at least
+    `per_ray x R` largest of a batch of R rays (training: bounds the cost early on, when every sample is faint;
+    None: no budget, every sample above the threshold), at least
     the `min_per_ray x R` largest when fewer pass (training: a gradient reaches the density even when every weight
     is below the threshold). `keep` (inference only, the viewer's coarse preview): of those, only the samples of
     weight >= keep and each ray's largest, each ray's colour rescaled to its full weight. Samples left out
     contribute no colour (their weight still counts in `acc`)."""
 
     threshold: float = 1e-4
-    per_ray: float = 16.0
+    per_ray: float | None = 16.0
     min_per_ray: float = 0.0
     keep: float | None = None
 
@@ -435,12 +436,12 @@ def _shade_packed(
     return {**out, "weights": weights, "sigmas": sigma, "t_starts": t0, "t_ends": t1, "ray_indices": ray_idx}
 
 
-def _colour_samples(w: Tensor, n: int, threshold: float, per_ray: float, min_per_ray: float) -> Tensor:
+def _colour_samples(w: Tensor, n: int, threshold: float, per_ray: float | None, min_per_ray: float) -> Tensor:
     """Which samples get a colour, from their weights w [N] in a batch of n rays -> bool [N]: weight above
-    `threshold`, at most the `per_ray * n` largest; and at least the `min_per_ray * n` largest when fewer pass
-    (a faint batch: at initialisation every weight is below any threshold)."""
+    `threshold`, at most the `per_ray * n` largest (None: no budget); and at least the `min_per_ray * n` largest
+    when fewer pass (a faint batch: at initialisation every weight is below any threshold)."""
     keep = w > threshold
-    budget = int(per_ray * n)
+    budget = w.numel() if per_ray is None else int(per_ray * n)
     if w.numel() > budget:
         keep &= w >= torch.topk(w, budget, sorted=False).values.min()
     floor = min(int(min_per_ray * n), w.numel())

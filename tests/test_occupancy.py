@@ -200,3 +200,37 @@ def test_occupied_span_holds_every_occupied_point(factors):
     g.binary.copy_(torch.zeros_like(g.binary))  # the cached coarse grids follow the grid's updates
     first, last = occupied_span(g, o, d, t0, t1, factors)
     assert bool((first > last).all())
+
+
+@pytest.mark.parametrize("infer", [True, False], ids=["early-stopping", "differentiable"])
+def test_inference_colours_every_sample_of_a_long_faint_ray(infer):
+    """A field model rendering (not training) colours every sample whose weight passes the threshold, however many
+    a ray has: a constant colour c in a faint fog crossed in ~600 steps gives rgb = acc c + (1 - acc) bg exactly.
+    The training budget of 16 coloured samples a ray darkened such rays (the fern at a fine render step)."""
+    from nerfpipe.model.field_model import FieldModel, Inference
+    from nerfpipe.radiance.space import Box
+
+    colour = torch.tensor([0.9, 0.6, 0.3])
+
+    class Fog:
+        has_color, view_dependent = True, False
+
+        def density_inference(self, x):
+            return torch.full((x.shape[0],), 0.5)
+
+        density = density_inference
+
+        def color(self, x, d):
+            return colour.expand(x.shape[0], 3)
+
+    grid = OccupancyGrid([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0], 8)
+    grid.binary.fill_(True)
+    space = Box(aabb=((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)), near=0.1, far=10.0)
+    model = FieldModel(Fog(), grid, "fast", space, step_size=0.003, render_step_factor=1.0)
+    o = torch.tensor([[0.0, 0.0, 3.0], [0.3, -0.2, 3.0], [0.0, 0.0, -3.0]])
+    d = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0], [0.0, 0.0, 1.0]])
+    bg = torch.tensor([0.1, 0.2, 0.3])
+    out = model.render(o, d, bg, train=False, infer=Inference() if infer else None)
+    assert (out["acc"] > 0.5).all() and (out["acc"] < 0.99).all()  # faint: every step's weight is about 1e-3
+    want = out["acc"][:, None] * colour + (1 - out["acc"][:, None]) * bg
+    torch.testing.assert_close(out["rgb"], want, atol=1e-5, rtol=0)
