@@ -25,7 +25,7 @@ from nerfpipe.model.appearance import Appearance
 from nerfpipe.model.background import Background
 from nerfpipe.radiance.contraction import Contraction
 from nerfpipe.radiance.fields import Field, TensoRF, VanillaNeRF, make_field
-from nerfpipe.radiance.fields.fast import DEFAULT_ACTIVATION, TENSORF_RANK, split_rank
+from nerfpipe.radiance.fields.fast import DEFAULT_ACTIVATION, DEFAULT_HIDDEN, TENSORF_RANK, split_rank
 from nerfpipe.radiance.ndc import NDC, fit_ndc
 from nerfpipe.radiance.occupancy import OccupancyGrid
 from nerfpipe.radiance.regularizers import distortion_loss
@@ -74,6 +74,9 @@ class ModelSettings:
     density_activation: str = DEFAULT_ACTIVATION
     """fast: a new field's density activation (`radiance.fields.fast.TensoRF`, with that activation's shift); a saved
     field keeps its own. Runs from before the option were all softplus."""
+    mlp_width: int = DEFAULT_HIDDEN
+    """fast: a new field's colour MLP width (`TensoRF(hidden=...)`); a saved field keeps its own. Runs from before the
+    option were all DEFAULT_HIDDEN."""
 
     @classmethod
     def from_config(cls, doc: dict[str, Any], where: str) -> ModelSettings:
@@ -87,7 +90,8 @@ class ModelSettings:
                        step_ratio=float(fast["step_ratio"]), occupancy_resolution=int(fast["occupancy_resolution"]),
                        render_step_factor=float(fast["render_step_factor"]),
                        view_dependent=doc.get("view_dependent"),
-                       density_activation=str(fast.get("density_activation", DEFAULT_ACTIVATION)))  # fmt: skip
+                       density_activation=str(fast.get("density_activation", DEFAULT_ACTIVATION)),
+                       mlp_width=int(fast.get("mlp_width", DEFAULT_HIDDEN)))  # fmt: skip
         except (KeyError, TypeError, ValueError, IndexError) as exc:
             raise UserError(
                 f"{where}: config.json lacks a valid {exc} (written by another nerfpipe version?)"
@@ -321,7 +325,8 @@ def build_model(
             density_rank, app_rank = split_rank(settings.rank)
             field_cfg = TensoRF(aabb=aabb, resolution=settings.resolution[0], density_rank=density_rank,
                                 app_rank=app_rank, view_dependent=view_dep,
-                                density_activation=settings.density_activation).config()  # fmt: skip
+                                density_activation=settings.density_activation,
+                                hidden=settings.mlp_width).config()  # fmt: skip
         else:
             field_cfg = VanillaNeRF(view_dependent=view_dep).config()
     field = make_field(field_cfg).to(device)

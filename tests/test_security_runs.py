@@ -270,13 +270,18 @@ def test_resume_with_a_new_budget_goes_on_and_is_recorded(scene_dir, finished_ru
 
 
 def test_a_run_recorded_before_the_density_activation_option_resumes_as_softplus(scene_dir, finished_run, tmp_path):
-    """config.json from before `--density-activation` has no such key: the run's density was softplus, so resume
-    takes softplus (not the rule this version would choose), and a different value given is refused naming it."""
+    """config.json from before `--density-activation` and `--mlp-width` has no such keys: the run's density was
+    softplus and its colour MLP 64 wide, so resume takes those (not the rule this version would choose), and a
+    different value given is refused naming it."""
     run_dir = _copy(finished_run, tmp_path)
     stored = json.loads((run_dir / "config.json").read_text())
     assert stored["fast"].pop("density_activation") == "softplus"  # an object scene: the box rule's
+    assert stored["fast"].pop("mlp_width") == 64
     (run_dir / "config.json").write_text(json.dumps(stored))
     fast = train.FastOptions(resolution=(16, 24), occupancy_resolution=16, density_activation="relu")
     _resume_refused(scene_dir, run_dir, "fast.density_activation: softplus -> relu", fast=fast)
+    fast = train.FastOptions(resolution=(16, 24), occupancy_resolution=16, mlp_width=128)
+    _resume_refused(scene_dir, run_dir, "fast.mlp_width: 64 -> 128", fast=fast)
     train.run(_config(scene_dir, run_dir, resume=True, max_steps=3))
-    assert json.loads((run_dir / "config.json").read_text())["fast"]["density_activation"] == "softplus"
+    resumed = json.loads((run_dir / "config.json").read_text())["fast"]
+    assert resumed["density_activation"] == "softplus" and resumed["mlp_width"] == 64

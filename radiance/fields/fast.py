@@ -36,6 +36,9 @@ DENSITY_SHIFT = {"softplus": -10.0, "relu": 0.0}
 DENSITY_ACTIVATIONS = tuple(DENSITY_SHIFT)
 DEFAULT_ACTIVATION = "softplus"
 """TensoRF's default activation, and the one of every field saved before the option existed."""
+DEFAULT_HIDDEN = 64
+"""Width of the colour MLP's two hidden layers by default (`TensoRF(hidden=...)`), and that of every run recorded
+before train's `--mlp-width` existed."""
 
 TENSORF_RANK = (16, 48)
 """TensoRF's density and appearance components per plane: the field's default (and every run's before `--rank`)."""
@@ -197,7 +200,7 @@ class TensoRF(Field):
         density_rank: Rank = TENSORF_RANK[0],
         app_rank: Rank = TENSORF_RANK[1],
         app_dim: int = 27,
-        hidden: int = 64,
+        hidden: int = DEFAULT_HIDDEN,
         view_freqs: int = 2,
         feat_freqs: int = 0,
         has_color: bool = True,

@@ -63,6 +63,10 @@ class FastOptions:
     """fast: the field's density activation (`radiance.fields.fast.TensoRF`): softplus (shift -10) or relu. None:
     the scene kind's rule (stages.train.rules.RULES): relu for forward-facing (NDC) scenes, TensoRF's LLFF setting
     (fern: +1.3 dB at 2,000 steps), softplus for objects and contracted scenes."""
+    mlp_width: int | None = None
+    """fast: width of the colour MLP's two hidden layers (`radiance.fields.fast.TensoRF`'s hidden). None: the scene
+    kind's rule (stages.train.rules.RULES): 128 for forward-facing (NDC) scenes, TensoRF's LLFF setting (fern +0.1 dB
+    over 64, two runs each), 64 for objects and contracted scenes."""
     depth_loss: float | None = None
     """fast, contracted scenes: weight of DS-NeRF's depth loss on rays through the sparse points each training
     photo observed (transforms.json's `sparse_depth_path`, written by `convert` from COLMAP; data.sparse_depth).
@@ -216,6 +220,8 @@ def _fast(fast: FastOptions) -> None:
     if fast.density_activation is not None and fast.density_activation not in DENSITY_ACTIVATIONS:
         raise UserError(f"unknown density activation {fast.density_activation!r}: expected one of "
                         f"{', '.join(DENSITY_ACTIVATIONS)}")  # fmt: skip
+    if fast.mlp_width is not None and fast.mlp_width < 1:
+        raise UserError(f"--mlp-width: expected >= 1, got {fast.mlp_width}")
     if fast.rank is not None:
         try:
             split_rank(fast.rank)

@@ -141,8 +141,10 @@ def _fast_options(fast: FastOptions, rules: BoxRules | NDCRules, need: Need, rea
     rank, reasons["rank"] = (tuple(fast.rank), "asked for") if fast.rank is not None else rules.rank()
     act = fast.density_activation
     act, reasons["density_activation"] = (act, "asked for") if act is not None else rules.density_activation()
+    width = fast.mlp_width
+    width, reasons["mlp_width"] = (width, "asked for") if width is not None else rules.mlp_width()
     return dataclasses.replace(fast, resolution=resolution, rank=rank, upsample_at=upsample_at, step_ratio=step_ratio,
-                               tv=tv, density_activation=act)  # fmt: skip
+                               tv=tv, density_activation=act, mlp_width=width)  # fmt: skip
 
 
 def _grid(fast: FastOptions, rules: BoxRules | NDCRules, need: Need,

@@ -3,9 +3,9 @@
 config.json records the resolved Config and the scene's identity (`scene_sha256`: the sha256 of its
 transforms.json, written by the run's first start). On resume:
 - automatic defaults left automatic (None: batch_rays, lr, view_dependent, downscale and the fast group's
-  resolution, rank, upsample_at, step_ratio, tv, depth_loss, density_activation) take the run's recorded values (not
-  the values this device or this code version would choose afresh; a run recorded before an option existed had the
-  value `RECORDED_BEFORE` names);
+  resolution, rank, upsample_at, step_ratio, tv, depth_loss, density_activation, mlp_width) take the run's recorded
+  values (not the values this device or this code version would choose afresh; a run recorded before an option
+  existed had the value `RECORDED_BEFORE` names);
 - every other option that shapes the result (the field, seed, scene model, background, learning-rate decay,
   grid and prior settings, pose refinement, appearance, ...) must equal the recorded one, and so must the scene:
   the same transforms.json content (runs without `scene_sha256`: the same scene folder). A difference is refused
@@ -25,7 +25,7 @@ from typing import Any
 
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.rundir import config_to_json, find_run_scene, sha256_file
-from nerfpipe.radiance.fields.fast import DEFAULT_ACTIVATION
+from nerfpipe.radiance.fields.fast import DEFAULT_ACTIVATION, DEFAULT_HIDDEN
 from nerfpipe.stages.train.config import Config, FastOptions
 
 __all__ = ["BUDGET", "AUTOMATIC", "RECORDED_BEFORE", "scene_sha256", "resume_config"]
@@ -35,9 +35,11 @@ BUDGET = ("max_steps", "max_seconds", "device", "threads", "eval_every", "eval_p
 """Options that change how long the run goes on and what it logs, not what it fits: may change on resume."""
 AUTOMATIC = ("batch_rays", "lr", "view_dependent", "downscale")
 """Options whose None means "chosen by the run" (and the fast group's `AUTOMATIC_FAST`): None takes the record."""
-AUTOMATIC_FAST = ("resolution", "rank", "upsample_at", "step_ratio", "tv", "depth_loss", "density_activation")
-RECORDED_BEFORE = {"density_activation": DEFAULT_ACTIVATION}
-"""What a run recorded before the option existed had (every fast field's density was softplus)."""
+AUTOMATIC_FAST = ("resolution", "rank", "upsample_at", "step_ratio", "tv", "depth_loss", "density_activation",
+                  "mlp_width")  # fmt: skip
+RECORDED_BEFORE = {"density_activation": DEFAULT_ACTIVATION, "mlp_width": DEFAULT_HIDDEN}
+"""What a run recorded before the option existed had (every fast field's density was softplus, its colour MLP
+DEFAULT_HIDDEN wide)."""
 _NOT_COMPARED = ("scene_dir", "run_dir", "resume", "overwrite")
 _MISSING = object()
 

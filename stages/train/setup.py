@@ -165,7 +165,7 @@ def _settings(config: Config) -> ModelSettings:
     return ModelSettings(field=config.field, resolution=fast.resolution, rank=fast.rank, step_ratio=fast.step_ratio,
                          occupancy_resolution=fast.occupancy_resolution, render_step_factor=fast.render_step_factor,
                          view_dependent=config.view_dependent,
-                         density_activation=fast.density_activation)  # fmt: skip
+                         density_activation=fast.density_activation, mlp_width=fast.mlp_width)  # fmt: skip
 
 
 def _camera_opt(refine: RefineOptions | None, scene: Scene, train_idx: tuple[int, ...], state: dict | None,
