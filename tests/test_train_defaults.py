@@ -146,8 +146,8 @@ def test_each_kind_of_capture_gets_its_own_rules(tmp_path, layout, kind):
     # density through relu on NDC scenes only (TensoRF's LLFF setting), softplus for objects and contracted scenes
     assert fast.density_activation == ("relu" if kind == "ndc" else "softplus")
     assert found.reasons["density_activation"].startswith(fast.density_activation)
-    # a colour MLP 128 wide on NDC scenes only (TensoRF's LLFF featureC), 64 elsewhere
-    assert fast.mlp_width == (128 if kind == "ndc" else 64)
+    # a colour MLP 64 wide for every kind (128, TensoRF's LLFF width, only when asked for)
+    assert fast.mlp_width == 64
     assert found.reasons["mlp_width"].startswith(str(fast.mlp_width))
 
 
