@@ -269,7 +269,7 @@ def test_resume_with_a_new_budget_goes_on_and_is_recorded(scene_dir, finished_ru
     assert set(entry["changed"]) == {"max_steps", "max_seconds", "scene_dir"}
 
 
-def test_a_run_recorded_before_the_density_activation_option_resumes_as_softplus(scene_dir, finished_run, tmp_path):
+def test_a_run_recorded_before_the_activation_and_width_options_resumes_as_it_was(scene_dir, finished_run, tmp_path):
     """config.json from before `--density-activation` and `--mlp-width` has no such keys: the run's density was
     softplus and its colour MLP 64 wide, so resume takes those (not the rule this version would choose), and a
     different value given is refused naming it."""
