@@ -29,7 +29,7 @@ from torch import Tensor, nn
 from nerfpipe.radiance.fields.base import Field, check_points
 from nerfpipe.radiance.fields.encodings import positional_encoding
 
-__all__ = ["TensoRF", "TENSORF_RANK", "DENSITY_ACTIVATIONS", "DEFAULT_ACTIVATION", "split_rank"]
+__all__ = ["TensoRF", "TENSORF_RANK", "DENSITY_ACTIVATIONS", "DEFAULT_ACTIVATION", "DEFAULT_HIDDEN", "split_rank"]
 
 DENSITY_SHIFT = {"softplus": -10.0, "relu": 0.0}
 """Each density activation's shift (TensoRF's: softplus(f - 10) starts near zero density, relu(f) is zero below 0)."""
