@@ -63,3 +63,12 @@ def test_checks_that_do_not_apply_are_left_out():
     checks = train_checks(rows=_rows(30.0)[:3], test_psnr=None, per_view=None, occupied=None, object_box=True,
                           pose=None)  # fmt: skip
     assert checks == []
+
+
+def test_a_run_shorter_than_one_logging_interval_leaves_the_gap_out():
+    """No training PSNR logged (metrics.csv holds only the final held-out row): the gap cannot be read, so it is
+    left out rather than reported as a NaN gap under the overfitting message; the held-out floor still applies."""
+    rows = [{"step": "20", "seconds": "0.3", "train_psnr": "", "test_psnr": "8.5"}]
+    checks = train_checks(rows=rows, test_psnr=8.5, per_view=None, occupied=None, object_box=False, pose=None)
+    assert {c.name for c in checks} == {"holdout_psnr"}
+    assert set(_failed(checks)) == {"holdout_psnr"}

@@ -14,12 +14,12 @@ Each rule, its limit and why (figures from `make bench-real`, docs/BENCH_REAL.md
   and > 0 everywhere (an empty field renders nothing).
 - **pose corrections** (--refine-poses): the guard's record (`model.camera_opt.pose_report`): refinement pulled
   back or stopped is reported with its figures.
-Checks that do not apply (no test split, no refinement) are left out.
+Checks that do not apply (no test split, no refinement, no training PSNR logged: a run shorter than one logging
+interval) are left out.
 """
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
@@ -40,9 +40,11 @@ def _series(rows: list[dict], key: str) -> list[tuple[float, float]]:
     return [(float(r["seconds"]), float(r[key])) for r in rows if r.get(key) not in (None, "")]
 
 
-def _train_psnr_end(rows: list[dict]) -> float:
+def _train_psnr_end(rows: list[dict]) -> float | None:
+    """Mean training PSNR of the last LAST_ROWS logged rows; None when the run logged none (shorter than one logging
+    interval)."""
     pts = _series(rows, "train_psnr")
-    return float(np.mean([p for _, p in pts[-LAST_ROWS:]])) if pts else math.nan
+    return float(np.mean([p for _, p in pts[-LAST_ROWS:]])) if pts else None
 
 
 def _rise(rows: list[dict]) -> float | None:
@@ -68,8 +70,9 @@ def train_checks(*, rows: list[dict], test_psnr: float | None, per_view: dict[st
         out.append(Check.lower("holdout_psnr", test_psnr, HOLDOUT_FLOOR_DB, unit=" dB",
                                says="the field reproduces the held-out photos poorly (poses, background rule or "
                                     "too little training)"))  # fmt: skip
-        gap = _train_psnr_end(rows) - test_psnr
-        out.append(Check.upper("holdout_gap", gap, GAP_DB, unit=" dB",
+    train_end = _train_psnr_end(rows)
+    if test_psnr is not None and train_end is not None:
+        out.append(Check.upper("holdout_gap", train_end - test_psnr, GAP_DB, unit=" dB",
                                says="training photos are reproduced far better than held-out ones: the field learned "
                                     "the photos, not the scene (mis-posed or too few views)"))  # fmt: skip
     rise = _rise(rows)
