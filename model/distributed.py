@@ -41,6 +41,7 @@ reduction with backward (bucketed hooks), which matters once the reduction costs
 from __future__ import annotations
 
 import contextlib
+import datetime
 import math
 import os
 from collections.abc import Iterable, Iterator, Mapping
@@ -52,7 +53,11 @@ from torch import Tensor
 from nerfpipe.data.errors import UserError
 from nerfpipe.model.device import resolve_device
 
-__all__ = ["World", "SINGLE", "world_from_env", "rank_device", "DataParallel", "joined"]
+__all__ = ["World", "SINGLE", "world_from_env", "rank_device", "DataParallel", "joined", "FINISH_WAIT"]
+
+FINISH_WAIT = datetime.timedelta(hours=24)
+"""How long the other ranks wait at the end of a run for rank 0's final evaluation and writes (`joined`): minutes in
+practice; the bound only ends the wait of a rank whose writer hangs."""
 
 
 @dataclass(frozen=True)
@@ -217,7 +222,11 @@ class DataParallel:
 @contextlib.contextmanager
 def joined(world: World, device: torch.device) -> Iterator[DataParallel]:
     """The process group of this rank (env://: torchrun's MASTER_ADDR and MASTER_PORT; NCCL on CUDA, gloo on
-    CPU), destroyed on the way out."""
+    CPU), destroyed on the way out. A block that ends without an exception ends at a barrier: every rank leaves
+    when rank 0 has written the run's outputs. Without it the other ranks exited while rank 0 still evaluated and
+    wrote, and torchrun ends the whole run when a rank's process ends badly: rarely (twice in some 300 two-rank CPU
+    runs here) rank 1 aborted on its way out ("terminate called without an active exception", cause not found) and
+    torchrun sent SIGTERM to rank 0 in the middle of its writes."""
     import torch.distributed as dist
 
     backend = "nccl" if device.type == "cuda" else "gloo"
@@ -230,5 +239,10 @@ def joined(world: World, device: torch.device) -> Iterator[DataParallel]:
                         "the command with torchrun") from None  # fmt: skip
     try:
         yield DataParallel(world, device, backend)
+        try:
+            dist.barrier(timeout=FINISH_WAIT)
+        except RuntimeError as exc:  # another rank ended with an error after training: its own line says why
+            raise UserError(f"rank {world.rank}: another rank stopped before the end of the run (its message says "
+                            f"why; {backend}: {str(exc).splitlines()[0]})") from None  # fmt: skip
     finally:
         dist.destroy_process_group()

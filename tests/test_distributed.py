@@ -150,3 +150,57 @@ def test_ctrl_c_to_torchrun_checkpoints_every_rank_at_one_step_and_resume_contin
     assert manifest["used"]["steps"] == state["step"] + 3 and manifest["used"]["world_size"] == 2
     resumed = json.loads((run_dir / "config.json").read_text())["resumed"]
     assert [r["step"] for r in resumed] == [state["step"]]
+
+
+_RANK_SCRIPT = """
+import sys, time
+from pathlib import Path
+import torch
+from nerfpipe.data.errors import UserError
+from nerfpipe.model.distributed import joined, world_from_env
+out, mode = Path(sys.argv[1]), sys.argv[2]
+try:
+    with joined(world_from_env(), torch.device("cpu")) as par:
+        if par.writer:
+            time.sleep(1.0)  # rank 0's final evaluation and writes
+            if mode == "fail":
+                raise ValueError("rank 0 failed while writing")
+            (out / "written").write_text("done")
+except UserError as exc:
+    print(f"error: {exc}", flush=True)
+    sys.exit(1)
+print("left; rank 0 had written:", (out / "written").exists(), flush=True)
+"""
+
+
+def _two_ranks(tmp_path: Path, mode: str) -> list[tuple[int, str]]:
+    """The script above as ranks 0 and 1 of a gloo group on a free local port -> (exit code, stdout) of each."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    (tmp_path / "rank.py").write_text(_RANK_SCRIPT)
+    env = {
+        **os.environ,
+        "MASTER_ADDR": "127.0.0.1",
+        "MASTER_PORT": str(port),
+        "WORLD_SIZE": "2",
+        "OMP_NUM_THREADS": "1",
+    }
+    procs = [subprocess.Popen([sys.executable, str(tmp_path / "rank.py"), str(tmp_path), mode], cwd=ROOT,
+                              env={**env, "RANK": str(r), "LOCAL_RANK": str(r)}, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for r in range(2)]  # fmt: skip
+    return [(p.returncode, out) for p in procs for out, _ in [p.communicate(timeout=120)]]
+
+
+def test_every_rank_leaves_the_group_after_rank_0_has_written_and_says_when_it_did_not(tmp_path):
+    """`joined` ends at a barrier: rank 1, done training, waits for rank 0's writes before it leaves (before, it
+    left at once, and a rank that ended badly on its way out made torchrun stop rank 0 mid-write). When rank 0
+    fails after training, rank 1 stops with one line pointing at rank 0's message."""
+    ok = _two_ranks(tmp_path, "ok")
+    assert ok == [(0, "left; rank 0 had written: True\n")] * 2, ok
+    (tmp_path / "written").unlink()
+    (rc0, _), (rc1, out1) = _two_ranks(tmp_path, "fail")
+    assert rc0 != 0 and rc1 == 1, (rc0, rc1, out1)
+    assert out1.startswith("error: rank 1: another rank stopped before the end of the run (its message says why")
