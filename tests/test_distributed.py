@@ -19,6 +19,7 @@ from nerfpipe.data.errors import UserError
 from nerfpipe.model.distributed import SINGLE, DataParallel, World, world_from_env
 from nerfpipe.stages import scene as scene_stage
 from nerfpipe.stages import train
+from tests.ports import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 OPTIONS = ["--device", "cpu", "--resolution", "16,24", "--occupancy-resolution", "16", "--eval-every", "0",
@@ -175,23 +176,17 @@ print("left; rank 0 had written:", (out / "written").exists(), flush=True)
 
 def _two_ranks(tmp_path: Path, mode: str) -> list[tuple[int, str]]:
     """The script above as ranks 0 and 1 of a gloo group on a free local port -> (exit code, stdout) of each."""
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
     (tmp_path / "rank.py").write_text(_RANK_SCRIPT)
-    env = {
-        **os.environ,
-        "MASTER_ADDR": "127.0.0.1",
-        "MASTER_PORT": str(port),
-        "WORLD_SIZE": "2",
-        "OMP_NUM_THREADS": "1",
-    }
+    env = {**os.environ, "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(free_port()), "WORLD_SIZE": "2",
+           "OMP_NUM_THREADS": "1"}  # fmt: skip
     procs = [subprocess.Popen([sys.executable, str(tmp_path / "rank.py"), str(tmp_path), mode], cwd=ROOT,
                               env={**env, "RANK": str(r), "LOCAL_RANK": str(r)}, stdout=subprocess.PIPE,
                               stderr=subprocess.PIPE, text=True) for r in range(2)]  # fmt: skip
-    return [(p.returncode, out) for p in procs for out, _ in [p.communicate(timeout=120)]]
+    results = []
+    for p in procs:
+        out, _ = p.communicate(timeout=120)
+        results.append((p.returncode, out))
+    return results
 
 
 def test_every_rank_leaves_the_group_after_rank_0_has_written_and_says_when_it_did_not(tmp_path):

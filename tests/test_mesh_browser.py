@@ -16,7 +16,6 @@ from __future__ import annotations
 import contextlib
 import io
 import math
-import socket
 import time
 
 import imageio.v2 as iio
@@ -28,6 +27,7 @@ from nerfpipe.radiance.paths import look_at
 from nerfpipe.stages.mesh.texture import bake_texture, sample_texture
 from nerfpipe.stages.mesh.texture_files import write_glb_textured
 from nerfpipe.stages.view.cameras import viser_pose
+from tests.ports import free_port
 
 try:  # the DevTools driver lives with the viewer's tests
     from test_view import BROWSER_SECONDS, CHROMIUM, NO_CHROMIUM, Browser
@@ -100,12 +100,6 @@ def _three_output(rgb: np.ndarray) -> np.ndarray:
     return np.where(c <= 0.0031308, c * 12.92, 1.055 * c ** (1 / 2.4) - 0.055)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.mark.skipif(CHROMIUM is None, reason=NO_CHROMIUM)
 def test_glb_renders_in_three_js_as_in_our_rasteriser(tmp_path):
     """Silhouette IoU >= 0.98 and, inside it (one pixel in from the edge), colour error mean <= 0.01 and 99th
@@ -125,7 +119,7 @@ def test_glb_renders_in_three_js_as_in_our_rasteriser(tmp_path):
     wxyz, position = viser_pose(world_from_cam)
 
     with contextlib.redirect_stdout(io.StringIO()):  # viser's banner
-        server = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
+        server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
     try:
         server.scene.add_glb("/sphere", glb)
         with Browser(f"http://127.0.0.1:{server.get_port()}/", tmp_path / "profile") as _:
