@@ -60,18 +60,43 @@ def make_capture(out: Path, views: int) -> Path:
         pose[:3, 3] = eye
         frames.append(Frame(file_path=f"photo{i % DISTINCT}.jpg", world_from_cam=pose))
     intr = Intrinsics(w=W, h=H, fx=1500.0, fy=1500.0, cx=W / 2, cy=H / 2)
-    scene = Scene(root=out, frames=tuple(frames), intrinsics=intr, applied_transform=np.eye(4)[:3],
-                  applied_scale=1.0, aabb=np.array([[-1.0] * 3, [1.0] * 3]), near=0.5, far=6.0,
-                  splits={"train": tuple(range(views))}, has_alpha=False, extra={})  # fmt: skip
+    scene = Scene(
+        root=out,
+        frames=tuple(frames),
+        intrinsics=intr,
+        applied_transform=np.eye(4)[:3],
+        applied_scale=1.0,
+        aabb=np.array([[-1.0] * 3, [1.0] * 3]),
+        near=0.5,
+        far=6.0,
+        splits={"train": tuple(range(views))},
+        has_alpha=False,
+        extra={},
+    )
     write_scene(scene, out / "transforms.json")
     return out
 
 
 def measure(scene: Path, run: Path, downscale: str, steps: int, code: Path) -> dict:
     """Train `steps` steps in a child process; its peak RSS (MB), wall seconds and exit status."""
-    args = [sys.executable, str(code / "cli.py"), "train", str(scene), str(run), "--max-steps", str(steps),
-            "--device", "cpu", "--threads", "1", "--eval-every", "0", "--resolution", "16,32",
-            "--overwrite"]  # fmt: skip
+    args = [
+        sys.executable,
+        str(code / "cli.py"),
+        "train",
+        str(scene),
+        str(run),
+        "--max-steps",
+        str(steps),
+        "--device",
+        "cpu",
+        "--threads",
+        "1",
+        "--eval-every",
+        "0",
+        "--resolution",
+        "16,32",
+        "--overwrite",
+    ]
     if downscale != "auto":
         args += ["--downscale", downscale]
     if code != ROOT:
@@ -82,8 +107,11 @@ def measure(scene: Path, run: Path, downscale: str, steps: int, code: Path) -> d
     proc = subprocess.Popen(args, cwd=code, env={**os.environ, "PYTHONPATH": str(code)})
     _, status, usage = os.wait4(proc.pid, 0)
     proc.returncode = os.waitstatus_to_exitcode(status)
-    return {"peak_rss_mb": round(usage.ru_maxrss / 1024), "seconds": round(time.perf_counter() - t0, 1),
-            "exit": proc.returncode}  # fmt: skip
+    return {
+        "peak_rss_mb": round(usage.ru_maxrss / 1024),
+        "seconds": round(time.perf_counter() - t0, 1),
+        "exit": proc.returncode,
+    }
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -99,8 +127,13 @@ def main(argv: list[str] | None = None) -> dict:
         scene = make_capture(a.out / f"scene_{n}", n)
         factor = 4 if a.downscale == "auto" else float(a.downscale)  # auto on CPU: long side <= 800 -> 4
         pixels = n * round(W / factor) * round(H / factor)
-        row = {"views": n, "downscale": a.downscale, "code": str(a.code), "pixels": pixels,
-               "images_mb": round(4 * pixels / 2**20)}  # fmt: skip
+        row = {
+            "views": n,
+            "downscale": a.downscale,
+            "code": str(a.code),
+            "pixels": pixels,
+            "images_mb": round(4 * pixels / 2**20),
+        }
         row.update(measure(scene, a.out / f"run_{n}_{a.downscale}", a.downscale, a.steps, a.code.resolve()))
         print(json.dumps(row), flush=True)
         rows.append(row)

@@ -51,8 +51,12 @@ def measure(spec: dict) -> dict:
     from nerfpipe.stages import mesh
 
     out = Path(spec["out"])
-    cfg = mesh.Config(run_dir=Path(spec.get("run_dir", out.parent)), out=out, resolution=spec["resolution"],
-                      threshold=spec.get("threshold", "auto"))  # fmt: skip
+    cfg = mesh.Config(
+        run_dir=Path(spec.get("run_dir", out.parent)),
+        out=out,
+        resolution=spec["resolution"],
+        threshold=spec.get("threshold", "auto"),
+    )
     t0 = time.perf_counter()
     if spec["kind"] == "standin":
         from benchmarks.standin import StandIn
@@ -77,17 +81,26 @@ def measure(spec: dict) -> dict:
     diag = float(np.linalg.norm(gt.max(0) - gt.min(0)))
     chamfer = chamfer_distance(pred, gt)
     return {
-        "kind": spec["kind"], "resolution": spec["resolution"], "threshold": result.threshold,
-        "threshold_rule": spec.get("threshold", "auto"), "chamfer": chamfer, "chamfer_pct_diag": 100 * chamfer / diag,
-        "seconds": round(seconds, 2), "peak_rss_mb": report["peak_rss_mb"], "faces": result.faces,
-        "evaluated": report["grid"]["evaluated"], "samples": report["grid"]["samples"],
-        "timing": report["timing_seconds"], "watertight": result.watertight,
-    }  # fmt: skip
+        "kind": spec["kind"],
+        "resolution": spec["resolution"],
+        "threshold": result.threshold,
+        "threshold_rule": spec.get("threshold", "auto"),
+        "chamfer": chamfer,
+        "chamfer_pct_diag": 100 * chamfer / diag,
+        "seconds": round(seconds, 2),
+        "peak_rss_mb": report["peak_rss_mb"],
+        "faces": result.faces,
+        "evaluated": report["grid"]["evaluated"],
+        "samples": report["grid"]["samples"],
+        "timing": report["timing_seconds"],
+        "watertight": result.watertight,
+    }
 
 
 def _in_subprocess(spec: dict) -> dict:
-    proc = subprocess.run([sys.executable, "-m", "benchmarks.bench_mesh", "--measure", json.dumps(spec)],
-                          capture_output=True, text=True)  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-m", "benchmarks.bench_mesh", "--measure", json.dumps(spec)], capture_output=True, text=True
+    )
     if proc.returncode != 0:
         raise RuntimeError(f"measure {spec} failed:\n{proc.stderr[-3000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -107,13 +120,17 @@ def _train(out: Path, seconds: float) -> tuple[Path, Path]:
 
 
 def _table(rows: list[dict]) -> None:
-    print(f"{'field':10s} {'level':>14s} {'res':>5s} {'Chamfer':>10s} {'% diag':>7s} {'time s':>7s} "
-          f"{'peak MB':>8s} {'faces':>8s} {'queried':>8s}")  # fmt: skip
+    print(
+        f"{'field':10s} {'level':>14s} {'res':>5s} {'Chamfer':>10s} {'% diag':>7s} {'time s':>7s} "
+        f"{'peak MB':>8s} {'faces':>8s} {'queried':>8s}"
+    )
     for r in rows:
         level = f"{r['threshold']:.3g} ({'auto' if r['threshold_rule'] == 'auto' else 'given'})"
-        print(f"{r['kind']:10s} {level:>14s} {r['resolution']:5d} {r['chamfer']:10.5f} {r['chamfer_pct_diag']:7.3f} "
-              f"{r['seconds']:7.2f} {r['peak_rss_mb']:8.0f} {r['faces']:8d} "
-              f"{100 * r['evaluated'] / r['samples']:7.1f}%")  # fmt: skip
+        print(
+            f"{r['kind']:10s} {level:>14s} {r['resolution']:5d} {r['chamfer']:10.5f} {r['chamfer_pct_diag']:7.3f} "
+            f"{r['seconds']:7.2f} {r['peak_rss_mb']:8.0f} {r['faces']:8d} "
+            f"{100 * r['evaluated'] / r['samples']:7.1f}%"
+        )
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -137,8 +154,12 @@ def main(argv: list[str] | None = None) -> None:
     if not args.skip_standin:
         for res in resolutions:
             for threshold in ("auto", 50.0):
-                spec = {"kind": "standin", "resolution": res, "threshold": threshold,
-                        "out": str(out / f"standin_{res}_{threshold}" / "mesh.ply")}  # fmt: skip
+                spec = {
+                    "kind": "standin",
+                    "resolution": res,
+                    "threshold": threshold,
+                    "out": str(out / f"standin_{res}_{threshold}" / "mesh.ply"),
+                }
                 rows.append(_in_subprocess(spec))
                 print(json.dumps(rows[-1]), flush=True)
     if not args.skip_trained:
@@ -151,8 +172,13 @@ def main(argv: list[str] | None = None) -> None:
             run_dir, src = _train(out, args.train_seconds)
             print(f"scene + convert + train: {time.perf_counter() - t0:.0f} s", flush=True)
         for res in resolutions:
-            spec = {"kind": "trained", "resolution": res, "run_dir": str(run_dir), "scene_src": str(src),
-                    "out": str(out / f"trained_{res}" / "mesh.ply")}  # fmt: skip
+            spec = {
+                "kind": "trained",
+                "resolution": res,
+                "run_dir": str(run_dir),
+                "scene_src": str(src),
+                "out": str(out / f"trained_{res}" / "mesh.ply"),
+            }
             rows.append(_in_subprocess(spec))
             print(json.dumps(rows[-1]), flush=True)
     _table(rows)

@@ -75,8 +75,17 @@ def main(argv: list[str] | None = None) -> None:
 
     args.out.mkdir(parents=True, exist_ok=True)
     mesh_path = args.mesh or args.out / "mesh.obj"
-    cmd = [sys.executable, "-m", "nerfpipe.cli", "mesh", str(args.run), str(mesh_path), "--texture",
-           "--frame", "normalized"]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "nerfpipe.cli",
+        "mesh",
+        str(args.run),
+        str(mesh_path),
+        "--texture",
+        "--frame",
+        "normalized",
+    ]
     t0 = time.perf_counter()
     if args.mesh is None:
         subprocess.run(cmd, check=True)
@@ -102,19 +111,31 @@ def main(argv: list[str] | None = None) -> None:
         photo = load_image(scene.root / scene.frames[i].file_path)
         photo = photo if photo.shape[:2] == (intr.h, intr.w) else _resize(photo, intr.w, intr.h)
         ph = photo[ys, xs, :3].astype(np.float64)
-        row = {"view": i, "pixels": int(mask.sum()), "silhouette_share": round(float(mask.mean()), 3),
-               "mesh_vs_field_db": round(_psnr(rgb[ys, xs], field), 2),
-               "field_vs_photo_db": round(_psnr(field, ph), 2),
-               "mesh_vs_photo_db": round(_psnr(rgb[ys, xs], ph), 2)}  # fmt: skip
+        row = {
+            "view": i,
+            "pixels": int(mask.sum()),
+            "silhouette_share": round(float(mask.mean()), 3),
+            "mesh_vs_field_db": round(_psnr(rgb[ys, xs], field), 2),
+            "field_vs_photo_db": round(_psnr(field, ph), 2),
+            "mesh_vs_photo_db": round(_psnr(rgb[ys, xs], ph), 2),
+        }
         rows.append(row)
         print(json.dumps(row), flush=True)
     for r in rows:
         r["gap_db"] = round(r["field_vs_photo_db"] - r["mesh_vs_photo_db"], 2)  # the goal: <= 3 dB on every view
     worst = max(r["gap_db"] for r in rows)
-    summary = {"run": str(args.run), "faces": report["final"]["faces"], "mesh_command_seconds": round(mesh_seconds, 1),
-               "mesh_stage_seconds": report["timing_seconds"], "texture": report.get("texture"), "crop": report["crop"],
-               "check": report["check"], "views": rows, "worst_gap_db": worst, "background": None if bg is None
-               else bg.tolist()}  # fmt: skip
+    summary = {
+        "run": str(args.run),
+        "faces": report["final"]["faces"],
+        "mesh_command_seconds": round(mesh_seconds, 1),
+        "mesh_stage_seconds": report["timing_seconds"],
+        "texture": report.get("texture"),
+        "crop": report["crop"],
+        "check": report["check"],
+        "views": rows,
+        "worst_gap_db": worst,
+        "background": None if bg is None else bg.tolist(),
+    }
     (args.out / "results.json").write_text(json.dumps(summary, indent=1))
     print(
         f"faces {summary['faces']}, mesh command {summary['mesh_command_seconds']} s; against the photos over the "

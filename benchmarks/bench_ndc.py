@@ -46,12 +46,21 @@ def _depth_error(run_dir: Path, scene_dir: Path) -> float:
 def main(seconds: float, size: int, views: int, out: Path, threads: int | None) -> dict:
     scene_dir = out / "scene"
     if not (scene_dir / "transforms.json").is_file():
-        scene_stage.run(scene_stage.Config(out_dir=scene_dir, kind="posed", size=size, views=views, seed=0,
-                                           layout="forward"))  # fmt: skip
+        scene_stage.run(
+            scene_stage.Config(out_dir=scene_dir, kind="posed", size=size, views=views, seed=0, layout="forward")
+        )
     results = {}
     for model in ("box", "ndc"):
-        cfg = train.Config(scene_dir=scene_dir, run_dir=out / model, scene_model=model, max_seconds=seconds,
-                           max_steps=10**9, eval_every=100, threads=threads, overwrite=True)  # fmt: skip
+        cfg = train.Config(
+            scene_dir=scene_dir,
+            run_dir=out / model,
+            scene_model=model,
+            max_seconds=seconds,
+            max_steps=10**9,
+            eval_every=100,
+            threads=threads,
+            overwrite=True,
+        )
         res = train.run(cfg)
         used = json.loads(res.manifest.read_text())["used"]
         results[model] = {

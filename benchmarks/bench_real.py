@@ -51,18 +51,31 @@ class Capture:
 
 
 CAPTURES = (
-    Capture("fern", "forward-facing (NDC)",
-            (f"POSED={DATA}/fern", "CONVERT_ARGS=--images images_8", "TRAIN_ARGS=--max-seconds=300"),
-            ">= 25.2 dB held-out (NeRF paper 25.17)"),
-    Capture("tiny", "object on black (box)",
-            (f"POSED={DATA}/lego_100/tiny_lego_100px.npz", "TRAIN_ARGS=--max-seconds=120"), ">= 32 dB"),
-    Capture("fox", "phone photos, unbounded (contract)",
-            (f"PHOTOS={DATA}/fox/images", "TRAIN_ARGS=--max-seconds=300"),
-            ">= 26.9 dB, <= 13 min, 50/50 within 0.3 deg"),
-    Capture("lego_400", "object RGBA (box)",
-            (f"POSED={DATA}/lego_400", "TRAIN_ARGS=--max-seconds=900", "EVAL_ARGS=--views 25",
-             "DEPTH_ARGS=--views train"), ">= 32.6 dB"),
-)  # fmt: skip
+    Capture(
+        "fern",
+        "forward-facing (NDC)",
+        (f"POSED={DATA}/fern", "CONVERT_ARGS=--images images_8", "TRAIN_ARGS=--max-seconds=300"),
+        ">= 25.2 dB held-out (NeRF paper 25.17)",
+    ),
+    Capture(
+        "tiny",
+        "object on black (box)",
+        (f"POSED={DATA}/lego_100/tiny_lego_100px.npz", "TRAIN_ARGS=--max-seconds=120"),
+        ">= 32 dB",
+    ),
+    Capture(
+        "fox",
+        "phone photos, unbounded (contract)",
+        (f"PHOTOS={DATA}/fox/images", "TRAIN_ARGS=--max-seconds=300"),
+        ">= 26.9 dB, <= 13 min, 50/50 within 0.3 deg",
+    ),
+    Capture(
+        "lego_400",
+        "object RGBA (box)",
+        (f"POSED={DATA}/lego_400", "TRAIN_ARGS=--max-seconds=900", "EVAL_ARGS=--views 25", "DEPTH_ARGS=--views train"),
+        ">= 32.6 dB",
+    ),
+)
 """lego_400's test split has 200 views: eval scores 25 evenly spaced ones (as bench-train did) and depth maps the
 100 training cameras at their size, so that the chain stays within an hour."""
 
@@ -107,27 +120,38 @@ def row(capture: Capture, out: Path, wall: float | None) -> dict:
     registered = "given"
     if report is not None:
         registered = f"{report.get('registered', '?')}/{report.get('total', '?')}"
-    suspect = [f"{stage}: {c['name']} {c['value']}" for stage, d in docs.items() if d
-               for c in d.get("checks", []) if not c["ok"]]  # fmt: skip
+    suspect = [
+        f"{stage}: {c['name']} {c['value']}"
+        for stage, d in docs.items()
+        if d
+        for c in d.get("checks", [])
+        if not c["ok"]
+    ]
     checks = {stage: d.get("check", "-") for stage, d in docs.items() if d}
     size = render.get("budget", {}).get("chosen", {}).get("size_hw")
     return {
-        "capture": capture.name, "kind": capture.kind, "goal": capture.goal, "registered": registered,
+        "capture": capture.name,
+        "kind": capture.kind,
+        "goal": capture.goal,
+        "registered": registered,
         "pose_error": _pose_error(out) if capture.name == "fox" else "given",
-        "psnr": ev.get("psnr"), "ssim": ev.get("ssim"),
+        "psnr": ev.get("psnr"),
+        "ssim": ev.get("ssim"),
         "steps": train.get("used", {}).get("steps"),
         "seconds": {stage: round(d["wall_seconds"]) for stage, d in docs.items() if d and "wall_seconds" in d},
         "end_to_end_s": None if wall is None else round(wall),
         "video": f"{render.get('frames', '?')} frames {size[1]}x{size[0]}" if size else "-",
         "mesh_faces": mesh.get("final", {}).get("faces"),
-        "checks": checks, "suspect": suspect,
-    }  # fmt: skip
+        "checks": checks,
+        "suspect": suspect,
+    }
 
 
 def _git() -> str:
     head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout
-    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
-                           text=True).stdout.strip()  # fmt: skip
+    dirty = subprocess.run(
+        ["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True, text=True
+    ).stdout.strip()
     return head.strip() + (" (with uncommitted changes)" if dirty else "")
 
 
@@ -149,9 +173,11 @@ def markdown(rows: list[dict], commit: str, load: str) -> str:
         e2e = f"{r['end_to_end_s']} s" if r["end_to_end_s"] is not None else "-"
         psnr = f"{r['psnr']:.2f} dB" if r["psnr"] is not None else "-"
         ssim = f"{r['ssim']:.3f}" if r["ssim"] is not None else "-"
-        lines.append(f"| {r['capture']} | {r['kind']} | {r['registered']} | {r['pose_error']} | {psnr} | "
-                     f"{ssim} | {r['steps']} | {secs} | {e2e} | {r['video']} | {r['mesh_faces']} | {checks} | "
-                     f"{r['goal']} |")  # fmt: skip
+        lines.append(
+            f"| {r['capture']} | {r['kind']} | {r['registered']} | {r['pose_error']} | {psnr} | "
+            f"{ssim} | {r['steps']} | {secs} | {e2e} | {r['video']} | {r['mesh_faces']} | {checks} | "
+            f"{r['goal']} |"
+        )
     return "\n".join(lines) + "\n"
 
 

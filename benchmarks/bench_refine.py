@@ -70,8 +70,14 @@ def perturb_scene(src: Path, dst: Path, rot_deg: float, trans_frac: float, seed:
     return dst
 
 
-def degrade_scene(src: Path, dst: Path, gain: tuple[float, float] = (0.6, 1.4), cast: float = 0.15,
-                  seed: int = 0, splits: tuple[str, ...] = ("train",)) -> Path:  # fmt: skip
+def degrade_scene(
+    src: Path,
+    dst: Path,
+    gain: tuple[float, float] = (0.6, 1.4),
+    cast: float = 0.15,
+    seed: int = 0,
+    splits: tuple[str, ...] = ("train",),
+) -> Path:
     """Copy the scene folder src to dst with each image of `splits` times a random gain in `gain` and a random
     per-channel cast in [1 - cast, 1 + cast] (clipped; alpha kept). Other images are left as they are. Each
     split draws from its own generator, so the training images are the same whichever splits are degraded."""
@@ -126,22 +132,38 @@ def _true_poses(out: Path, scene: Path, train_idx: tuple[int, ...]) -> np.ndarra
 def _train_eval(scene: Path, run: Path, seconds: float, extra: str = "") -> dict:
     out = nerfpipe("train", f"{scene} {run} {BUDGET['args']} --threads 1 --overwrite {extra}".strip())
     ev = nerfpipe("eval", f"{run} {run}/eval.json").result
-    return {"steps": out.steps, "train_seconds": round(out.seconds, 1), "eval_psnr": round(ev["psnr"], 3),
-            "eval_ssim": round(ev["ssim"], 4), "train_test_psnr": round(out.test_psnr, 3),
-            "test_poses": ev.get("test_poses")}  # fmt: skip
+    return {
+        "steps": out.steps,
+        "train_seconds": round(out.seconds, 1),
+        "eval_psnr": round(ev["psnr"], 3),
+        "eval_ssim": round(ev["ssim"], 4),
+        "train_test_psnr": round(out.test_psnr, 3),
+        "test_poses": ev.get("test_poses"),
+    }
 
 
 def _errors(poses: np.ndarray, truth: np.ndarray) -> dict:
     from nerfpipe.radiance.align import pose_errors
 
     err = pose_errors(poses, truth)
-    return {"median_rotation_error_deg": round(err.median_rotation_deg, 4),
-            "max_rotation_error_deg": round(float(err.rotation_deg.max()), 4),
-            "median_centre_error_rel": round(err.median_centre_error_rel, 5)}  # fmt: skip
+    return {
+        "median_rotation_error_deg": round(err.median_rotation_deg, 4),
+        "max_rotation_error_deg": round(float(err.rotation_deg.max()), 4),
+        "median_centre_error_rel": round(err.median_centre_error_rel, 5),
+    }
 
 
-def bench_poses_case(out: Path, seconds: float, kind: str, size: int, seed: int, views: int, rot_deg: float,
-                     trans_frac: float, exact: bool) -> dict:  # fmt: skip
+def bench_poses_case(
+    out: Path,
+    seconds: float,
+    kind: str,
+    size: int,
+    seed: int,
+    views: int,
+    rot_deg: float,
+    trans_frac: float,
+    exact: bool,
+) -> dict:
     """One case: plain and refined runs (and with `exact` the exact-pose run) on the perturbed scene."""
     from nerfpipe.model import load_trained
 
@@ -149,8 +171,14 @@ def bench_poses_case(out: Path, seconds: float, kind: str, size: int, seed: int,
     noisy = perturb_scene(scene, out / "scene_perturbed", rot_deg, trans_frac, seed=seed)
     train_idx = read_scene(scene).split("train")
     truth = _true_poses(out, scene, train_idx)
-    res: dict = {"kind": kind, "size": size, "seed": seed, "views": views, "train_views": len(train_idx),
-                 "measured": time.strftime("%Y-%m-%d %H:%M")}  # fmt: skip
+    res: dict = {
+        "kind": kind,
+        "size": size,
+        "seed": seed,
+        "views": views,
+        "train_views": len(train_idx),
+        "measured": time.strftime("%Y-%m-%d %H:%M"),
+    }
     if exact:
         res["exact"] = _train_eval(scene, out / "exact", seconds, f"--seed {seed}")
     res["input"] = _errors(np.stack([read_scene(scene).frames[i].world_from_cam for i in train_idx]), truth)
@@ -160,11 +188,23 @@ def bench_poses_case(out: Path, seconds: float, kind: str, size: int, seed: int,
     refined = load_trained(out / "refined", "cpu").scene
     res["refined"].update(_errors(np.stack([refined.frames[i].world_from_cam for i in train_idx]), truth))
     guard = json.loads((out / "refined" / "manifest.json").read_text())["used"]["pose_refinement"]["guard"]
-    res["guard"] = {k: guard[k] for k in ("stopped", "stopped_at_step", "pulled_back", "cameras_pulled_back",
-                                          "median_share", "max_share", "summary")}  # fmt: skip
+    res["guard"] = {
+        k: guard[k]
+        for k in (
+            "stopped",
+            "stopped_at_step",
+            "pulled_back",
+            "cameras_pulled_back",
+            "median_share",
+            "max_share",
+            "summary",
+        )
+    }
     res["psnr_gain_db"] = round(res["refined"]["eval_psnr"] - res["plain"]["eval_psnr"], 3)
-    res["goals"] = {"not_worse_than_plain": res["psnr_gain_db"] >= 0.0,
-                    "median_rotation_below_0.5deg": res["refined"]["median_rotation_error_deg"] < 0.5}  # fmt: skip
+    res["goals"] = {
+        "not_worse_than_plain": res["psnr_gain_db"] >= 0.0,
+        "median_rotation_below_0.5deg": res["refined"]["median_rotation_error_deg"] < 0.5,
+    }
     if exact:
         res["psnr_gap_to_exact_db"] = round(res["exact"]["eval_psnr"] - res["refined"]["eval_psnr"], 3)
         res["goals"]["median_rotation_below_0.2deg"] = res["refined"]["median_rotation_error_deg"] < 0.2
@@ -175,23 +215,36 @@ def bench_poses_case(out: Path, seconds: float, kind: str, size: int, seed: int,
 
 def poses_table(cases: list[dict]) -> str:
     """The cases as a Markdown table (one row a case)."""
-    head = ("| kind | size | seed | steps plain / refined | PSNR plain | PSNR refined | gain | rotation error "
-            "perturbed -> refined (median / max) | guard |")  # fmt: skip
+    head = (
+        "| kind | size | seed | steps plain / refined | PSNR plain | PSNR refined | gain | rotation error "
+        "perturbed -> refined (median / max) | guard |"
+    )
     rows = [head, "|" + "---|" * 9]
     for c in cases:
         p, r, g = c["plain"], c["refined"], c["guard"]
         pulled = len(g["cameras_pulled_back"])
         guard = f"stopped at {g['stopped_at_step']}" if g["stopped"] else f"{pulled} pulled back" if pulled else "ok"
-        rows.append(f"| {c['kind']} | {c['size']} | {c['seed']} | {p['steps']} / {r['steps']} | "
-                    f"{p['eval_psnr']:.2f} | {r['eval_psnr']:.2f} | {c['psnr_gain_db']:+.2f} | "
-                    f"{p['median_rotation_error_deg']:.2f} / {p['max_rotation_error_deg']:.2f} -> "
-                    f"{r['median_rotation_error_deg']:.3f} / {r['max_rotation_error_deg']:.2f} deg | "
-                    f"{guard} |")  # fmt: skip
+        rows.append(
+            f"| {c['kind']} | {c['size']} | {c['seed']} | {p['steps']} / {r['steps']} | "
+            f"{p['eval_psnr']:.2f} | {r['eval_psnr']:.2f} | {c['psnr_gain_db']:+.2f} | "
+            f"{p['median_rotation_error_deg']:.2f} / {p['max_rotation_error_deg']:.2f} -> "
+            f"{r['median_rotation_error_deg']:.3f} / {r['max_rotation_error_deg']:.2f} deg | "
+            f"{guard} |"
+        )
     return "\n".join(rows)
 
 
-def bench_poses(out: Path, seconds: float, kinds: list[str], sizes: list[int], seeds: list[int], views: int,
-                rot_deg: float, trans_frac: float, exact: bool) -> dict:  # fmt: skip
+def bench_poses(
+    out: Path,
+    seconds: float,
+    kinds: list[str],
+    sizes: list[int],
+    seeds: list[int],
+    views: int,
+    rot_deg: float,
+    trans_frac: float,
+    exact: bool,
+) -> dict:
     """Every case of kinds x sizes x seeds, one after another (one training process at a time)."""
     cases = []
     for kind in kinds:
@@ -201,8 +254,9 @@ def bench_poses(out: Path, seconds: float, kinds: list[str], sizes: list[int], s
                 case.mkdir(parents=True, exist_ok=True)
                 cases.append(bench_poses_case(case, seconds, kind, size, seed, views, rot_deg, trans_frac, exact))
     table = poses_table(cases)
-    (out / "poses_table.json").write_text(json.dumps({"budget": BUDGET["args"], "cases": cases, "table": table},
-                                                     indent=2))  # fmt: skip
+    (out / "poses_table.json").write_text(
+        json.dumps({"budget": BUDGET["args"], "cases": cases, "table": table}, indent=2)
+    )
     print(table)
     return {"cases": cases, "table": table}
 
@@ -214,16 +268,20 @@ def bench_appearance(out: Path, seconds: float, size: int, views: int, test_view
     splits = ("train", "test") if test_views == "varied" else ("train",)
     tag = f"_{test_views}"
     varied = degrade_scene(clean, out / f"scene_appearance{tag}", splits=splits)
-    res: dict = {"test_views": test_views,
-                 "without": _train_eval(varied, out / f"appearance_off{tag}", seconds),
-                 "with": _train_eval(varied, out / f"appearance_on{tag}", seconds, "--appearance")}  # fmt: skip
+    res: dict = {
+        "test_views": test_views,
+        "without": _train_eval(varied, out / f"appearance_off{tag}", seconds),
+        "with": _train_eval(varied, out / f"appearance_on{tag}", seconds, "--appearance"),
+    }
     res["gain_db"] = round(res["with"]["eval_psnr"] - res["without"]["eval_psnr"], 3)
     for key, name in (("without", f"appearance_off{tag}"), ("with", f"appearance_on{tag}")):  # NeRF-W's rule
         ev = nerfpipe("eval", f"{out / name} {out / name}/eval_half.json --appearance-rule half").result
         res[key]["eval_psnr_half_rule"] = round(ev["psnr"], 3)
     res["gain_db_half_rule"] = round(res["with"]["eval_psnr_half_rule"] - res["without"]["eval_psnr_half_rule"], 3)
-    res["goals"] = {"gain_at_least_2dB": res["gain_db"] >= 2.0,
-                    "gain_at_least_2dB_half_rule": res["gain_db_half_rule"] >= 2.0}  # fmt: skip
+    res["goals"] = {
+        "gain_at_least_2dB": res["gain_db"] >= 2.0,
+        "gain_at_least_2dB_half_rule": res["gain_db_half_rule"] >= 2.0,
+    }
     return res
 
 
@@ -243,8 +301,12 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--kinds", default="rgba", help="poses part: comma-separated scene kinds (rgba, posed, photos)")
     p.add_argument("--sizes", default="64", help="poses part: comma-separated image sizes")
     p.add_argument("--seeds", default="0", help="poses part: comma-separated seeds (scene, perturbation, train)")
-    p.add_argument("--exact", action=argparse.BooleanOptionalAction, default=True,
-                   help="poses part: also train on the exact poses (the goal against them)")  # fmt: skip
+    p.add_argument(
+        "--exact",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="poses part: also train on the exact poses (the goal against them)",
+    )
     p.add_argument("--rot-deg", type=float, default=3.0)
     p.add_argument("--trans-frac", type=float, default=0.03)
     p.add_argument(

@@ -63,8 +63,14 @@ def _model_render(trained: Trained, o, d, **infer) -> dict:
     parts: dict[str, list] = {k: [] for k in (*KEYS, "samples")}
     with torch.no_grad():
         for i in range(0, o.shape[0], trained.chunk):
-            out = trained.model.render(o[i : i + trained.chunk], d[i : i + trained.chunk], trained.background,
-                                       train=False, median=True, **infer)  # fmt: skip
+            out = trained.model.render(
+                o[i : i + trained.chunk],
+                d[i : i + trained.chunk],
+                trained.background,
+                train=False,
+                median=True,
+                **infer,
+            )
             for k in KEYS:
                 parts[k].append(out[k])
             parts["samples"].append(float(out["samples"]))
@@ -113,11 +119,17 @@ def bench_run(
         fast = _render_all(trained, rays)
         times.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
-    res: dict = {"run": run_dir, "space": trained.space.name, "rays": n_rays, "views": len(rays),
-                 "seconds": [round(t, 3) for t in times], "cpu_seconds": [round(t, 3) for t in cpu],
-                 "rays_per_s_best": round(n_rays / min(times)),
-                 "rays_per_s_median": round(n_rays / statistics.median(times)),
-                 "rays_per_cpu_s_median": round(n_rays / statistics.median(cpu))}  # fmt: skip
+    res: dict = {
+        "run": run_dir,
+        "space": trained.space.name,
+        "rays": n_rays,
+        "views": len(rays),
+        "seconds": [round(t, 3) for t in times],
+        "cpu_seconds": [round(t, 3) for t in cpu],
+        "rays_per_s_best": round(n_rays / min(times)),
+        "rays_per_s_median": round(n_rays / statistics.median(times)),
+        "rays_per_cpu_s_median": round(n_rays / statistics.median(cpu)),
+    }
     if check:
         samples = sum(_model_render(trained, o, d)["samples"] for o, d in rays)
         res["samples_per_ray"] = round(samples / n_rays, 2)
@@ -133,12 +145,18 @@ def bench_run(
 
 
 def _print(res: dict) -> None:
-    print(f"{res['run']} ({res['space']}): {res['views']} views, {res['rays']} rays; seconds {res['seconds']}; "
-          f"rays/s best {res['rays_per_s_best']}, median {res['rays_per_s_median']} (per CPU second, median "
-          f"{res['rays_per_cpu_s_median']})", flush=True)  # fmt: skip
+    print(
+        f"{res['run']} ({res['space']}): {res['views']} views, {res['rays']} rays; seconds {res['seconds']}; "
+        f"rays/s best {res['rays_per_s_best']}, median {res['rays_per_s_median']} (per CPU second, median "
+        f"{res['rays_per_cpu_s_median']})",
+        flush=True,
+    )
     if "vs_plain_twin" in res:
-        print(f"  samples/ray {res['samples_per_ray']} (plain twin {res['plain_samples_per_ray']}); largest "
-              f"difference to the plain twin: {res['vs_plain_twin']}", flush=True)  # fmt: skip
+        print(
+            f"  samples/ray {res['samples_per_ray']} (plain twin {res['plain_samples_per_ray']}); largest "
+            f"difference to the plain twin: {res['vs_plain_twin']}",
+            flush=True,
+        )
     if "vs_saved" in res:
         print(f"  largest difference to the saved renders: {res['vs_saved']}", flush=True)
     if "profile" in res:
@@ -158,11 +176,21 @@ def summarize(path: Path) -> list[dict]:
     for (tag, run), e in sorted(pooled.items(), key=lambda kv: (kv[0][1], kv[0][0])):
         best, med = e["rays"] / min(e["seconds"]), e["rays"] / statistics.median(e["seconds"])
         cpu_best, cpu_med = e["rays"] / min(e["cpu"]), e["rays"] / statistics.median(e["cpu"])
-        print(f"{run} [{tag}]: {len(e['seconds'])} repetitions, rays/s best {best:.0f}, median {med:.0f}; per CPU "
-              f"second best {cpu_best:.0f}, median {cpu_med:.0f}")  # fmt: skip
-        out.append({"tag": tag, "run": run, "repetitions": len(e["seconds"]), "rays_per_s_best": round(best),
-                    "rays_per_s_median": round(med), "rays_per_cpu_s_best": round(cpu_best),
-                    "rays_per_cpu_s_median": round(cpu_med)})  # fmt: skip
+        print(
+            f"{run} [{tag}]: {len(e['seconds'])} repetitions, rays/s best {best:.0f}, median {med:.0f}; per CPU "
+            f"second best {cpu_best:.0f}, median {cpu_med:.0f}"
+        )
+        out.append(
+            {
+                "tag": tag,
+                "run": run,
+                "repetitions": len(e["seconds"]),
+                "rays_per_s_best": round(best),
+                "rays_per_s_median": round(med),
+                "rays_per_cpu_s_best": round(cpu_best),
+                "rays_per_cpu_s_median": round(cpu_med),
+            }
+        )
     return out
 
 
@@ -189,8 +217,15 @@ def main(argv: list[str] | None = None) -> list[dict]:
     saved = dict(np.load(args.compare)) if args.compare is not None else None
     results, arrays = [], {}
     for i, run in enumerate(args.run_dirs):
-        res, renders = bench_run(run, views=args.views, size=args.size, repeats=args.repeats, device=dev,
-                                 check=args.check, profile=args.profile)  # fmt: skip
+        res, renders = bench_run(
+            run,
+            views=args.views,
+            size=args.size,
+            repeats=args.repeats,
+            device=dev,
+            check=args.check,
+            profile=args.profile,
+        )
         arrays.update({f"{i}/{k}": v for k, v in renders.items()})
         if saved is not None:
             views = sorted({k.split("/")[0] for k in renders})

@@ -48,17 +48,28 @@ def measure(name: str, run: Path, out: Path, seconds: float) -> dict:
     _sh([*NERFPIPE, "splat", str(run), str(ply), "--max-seconds", str(seconds)])
     _sh([*NERFPIPE, "eval", str(ply), str(out / "splats_eval.json"), *eval_args])
     _sh([*NERFPIPE, "eval", str(run), str(out / "field_eval.json"), *eval_args])
-    report, splats, field = (_json(p) for p in (out / "splats.report.json", out / "splats_eval.json",
-                                                 out / "field_eval.json"))  # fmt: skip
+    report, splats, field = (
+        _json(p) for p in (out / "splats.report.json", out / "splats_eval.json", out / "field_eval.json")
+    )
     return {
-        "run": name, "what": what, "views": splats["n_views"], "field_psnr": field["psnr"], "field_ssim": field["ssim"],
-        "splat_psnr": splats["psnr"], "splat_ssim": splats["ssim"], "gap_db": field["psnr"] - splats["psnr"],
+        "run": name,
+        "what": what,
+        "views": splats["n_views"],
+        "field_psnr": field["psnr"],
+        "field_ssim": field["ssim"],
+        "splat_psnr": splats["psnr"],
+        "splat_ssim": splats["ssim"],
+        "gap_db": field["psnr"] - splats["psnr"],
         "field_s_per_frame": field["render_seconds"] / field["n_views"],
-        "splat_s_per_frame": splats["render_seconds"] / splats["n_views"], "gaussians": report["gaussians"],
-        "steps": report["steps"], "splat_seconds": report["seconds"], "kernel": report["used"].get("kernel"),
-        "psnr_train_init": report["psnr_train_init"], "psnr_train_final": report["psnr_train_final"],
+        "splat_s_per_frame": splats["render_seconds"] / splats["n_views"],
+        "gaussians": report["gaussians"],
+        "steps": report["steps"],
+        "splat_seconds": report["seconds"],
+        "kernel": report["used"].get("kernel"),
+        "psnr_train_init": report["psnr_train_init"],
+        "psnr_train_final": report["psnr_train_final"],
         "check": report["check"],
-    }  # fmt: skip
+    }
 
 
 def markdown(rows: list[dict]) -> str:
@@ -78,7 +89,7 @@ def markdown(rows: list[dict]) -> str:
             f"{r['field_s_per_frame']:.2f} / {r['splat_s_per_frame']:.2f} | {r['gaussians']:,} | "
             f"{r['steps']} ({r['splat_seconds']:.0f}) | {r['psnr_train_init']:.2f} -> {r['psnr_train_final']:.2f} | "
             f"{r['kernel']} | {r['check']} |"
-        )  # fmt: skip
+        )
     return "\n".join(lines) + "\n"
 
 

@@ -43,10 +43,17 @@ def _train_eval(scene: Path, run: Path, seconds: float, field: str, eval_views: 
     views = f" --views {eval_views}" if eval_views else ""
     ev = nerfpipe("eval", f"{run} {run}/eval.json{views}").result
     used = json.loads(out.manifest.read_text())["used"]
-    return {"field": field, "steps": out.steps, "train_seconds": round(out.seconds, 1),
-            "eval_psnr": round(ev["psnr"], 3), "eval_ssim": round(ev["ssim"], 4), "eval_views": ev["n_views"],
-            "train_final_psnr": out.test_psnr, "peak_rss_mb": used["peak_rss_mb"],
-            "defaults": used.get("defaults", {}).get("resolved")}  # fmt: skip
+    return {
+        "field": field,
+        "steps": out.steps,
+        "train_seconds": round(out.seconds, 1),
+        "eval_psnr": round(ev["psnr"], 3),
+        "eval_ssim": round(ev["ssim"], 4),
+        "eval_views": ev["n_views"],
+        "train_final_psnr": out.test_psnr,
+        "peak_rss_mb": used["peak_rss_mb"],
+        "defaults": used.get("defaults", {}).get("resolved"),
+    }
 
 
 def bench_tiny(out: Path, seconds: float, fields: tuple[str, ...]) -> dict:

@@ -57,29 +57,53 @@ def _print(line: dict) -> dict:
 
 def run(out: Path, size: int, views: int, seed: int, train_seconds: float, threads: int) -> dict:
     scene_dir = out / "scene"
-    _, wall, cpu = _timed(lambda: scene_stage.run(config_from_args(
-        "scene", [str(scene_dir), "--kind", "posed", "--layout", "turntable", "--size", str(size), "--views",
-                  str(views), "--seed", str(seed)])))  # fmt: skip
+    _, wall, cpu = _timed(
+        lambda: scene_stage.run(
+            config_from_args(
+                "scene",
+                [
+                    str(scene_dir),
+                    "--kind",
+                    "posed",
+                    "--layout",
+                    "turntable",
+                    "--size",
+                    str(size),
+                    "--views",
+                    str(views),
+                    "--seed",
+                    str(seed),
+                ],
+            )
+        )
+    )
     summary = {"scene": _print({"step": "scene", "size": size, "views": views, "wall_s": wall, "cpu_s": cpu})}
     truth = read_ground_truth(scene_dir).by_file_name()
     images, masks = scene_dir / "images", scene_dir / "masks"
     common = ["--num-threads", str(threads)]
 
-    result, wall, cpu = _timed(lambda: poses.run(config_from_args(
-        "poses", [str(images), str(out / "masked"), "--masks", str(masks), *common])))  # fmt: skip
+    result, wall, cpu = _timed(
+        lambda: poses.run(config_from_args("poses", [str(images), str(out / "masked"), "--masks", str(masks), *common]))
+    )
     est = read_world_from_cam(result.sparse)
     names = sorted(set(est) & set(truth))
     err = pose_errors(np.stack([est[n] for n in names]), np.stack([truth[n] for n in names]))
     report = json.loads(result.report.read_text())
-    summary["poses_masked"] = _print({
-        "step": "poses --masks", "registered": f"{result.registered}/{result.total}",
-        "rot_median_deg": round(err.median_rotation_deg, 3), "rot_max_deg": round(float(err.rotation_deg.max()), 3),
-        "centre_median_pct": round(100 * err.median_centre_error_rel, 3),
-        "stationary_matches": report["stationary_matches"]["fraction"],
-        "attempts": [a["name"] for a in report["attempts"]], "wall_s": wall, "cpu_s": cpu,
-        "goal": "all registered, median rotation < 0.5 deg",
-        "met": result.registered == result.total and err.median_rotation_deg < 0.5,
-    })  # fmt: skip
+    summary["poses_masked"] = _print(
+        {
+            "step": "poses --masks",
+            "registered": f"{result.registered}/{result.total}",
+            "rot_median_deg": round(err.median_rotation_deg, 3),
+            "rot_max_deg": round(float(err.rotation_deg.max()), 3),
+            "centre_median_pct": round(100 * err.median_centre_error_rel, 3),
+            "stationary_matches": report["stationary_matches"]["fraction"],
+            "attempts": [a["name"] for a in report["attempts"]],
+            "wall_s": wall,
+            "cpu_s": cpu,
+            "goal": "all registered, median rotation < 0.5 deg",
+            "met": result.registered == result.total and err.median_rotation_deg < 0.5,
+        }
+    )
 
     def unmasked() -> str:
         try:
@@ -89,27 +113,52 @@ def run(out: Path, size: int, views: int, seed: int, train_seconds: float, threa
         return f"no error: {r.registered}/{r.total} registered"
 
     message, wall, cpu = _timed(unmasked)
-    summary["poses_unmasked"] = _print({
-        "step": "poses (no masks)", "result": message, "wall_s": wall, "cpu_s": cpu,
-        "goal": "one-line refusal naming --masks",
-        "met": message.startswith("error: static camera") and "--masks" in message and "\n" not in message,
-    })  # fmt: skip
+    summary["poses_unmasked"] = _print(
+        {
+            "step": "poses (no masks)",
+            "result": message,
+            "wall_s": wall,
+            "cpu_s": cpu,
+            "goal": "one-line refusal naming --masks",
+            "met": message.startswith("error: static camera") and "--masks" in message and "\n" not in message,
+        }
+    )
 
     if train_seconds > 0:
         conv = convert.run(config_from_args("convert", [str(out / "masked"), str(out / "converted")]))
-        trained, wall, cpu = _timed(lambda: train.run(config_from_args(
-            "train", [str(conv.transforms.parent), str(out / "run"), "--max-seconds", str(train_seconds),
-                      "--threads", "1"])))  # fmt: skip
+        trained, wall, cpu = _timed(
+            lambda: train.run(
+                config_from_args(
+                    "train",
+                    [
+                        str(conv.transforms.parent),
+                        str(out / "run"),
+                        "--max-seconds",
+                        str(train_seconds),
+                        "--threads",
+                        "1",
+                    ],
+                )
+            )
+        )
         manifest = json.loads(trained.manifest.read_text())
         per_view = manifest["used"]["per_view"]
-        summary["train"] = _print({
-            "step": "convert + train", "test_psnr": round(trained.test_psnr or float("nan"), 2),
-            "steps": trained.steps, "train_s": round(trained.seconds, 1),
-            "background": manifest["used"]["background"]["mode"], "scene_model": manifest["used"]["scene_model"],
-            "per_view_s": per_view["seconds"], "per_view_budget_s": per_view["budget_seconds"],
-            "per_view_median_psnr": per_view["median_psnr"], "worst": per_view["worst"][:2],
-            "wall_s": wall, "cpu_s": cpu,
-        })  # fmt: skip
+        summary["train"] = _print(
+            {
+                "step": "convert + train",
+                "test_psnr": round(trained.test_psnr or float("nan"), 2),
+                "steps": trained.steps,
+                "train_s": round(trained.seconds, 1),
+                "background": manifest["used"]["background"]["mode"],
+                "scene_model": manifest["used"]["scene_model"],
+                "per_view_s": per_view["seconds"],
+                "per_view_budget_s": per_view["budget_seconds"],
+                "per_view_median_psnr": per_view["median_psnr"],
+                "worst": per_view["worst"][:2],
+                "wall_s": wall,
+                "cpu_s": cpu,
+            }
+        )
     summary["load"] = " ".join(f"{v:.2f}" for v in os.getloadavg())
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary

@@ -62,8 +62,11 @@ def main(argv: list[str] | None = None) -> dict:
     for name, ts in times.items():
         med = statistics.median(ts)
         res[name] = {"median_s": round(med, 3), "max_s": round(max(ts), 3), "rays_per_s": round(rays / med)}
-        print(f"{name} on {dev}: {intr.w}x{intr.h}, {len(ts)} frames: median {med:.3f} s (largest {max(ts):.3f} s), "
-              f"{rays / med:.0f} rays/s, {1 / med:.1f} frames/s", flush=True)  # fmt: skip
+        print(
+            f"{name} on {dev}: {intr.w}x{intr.h}, {len(ts)} frames: median {med:.3f} s (largest {max(ts):.3f} s), "
+            f"{rays / med:.0f} rays/s, {1 / med:.1f} frames/s",
+            flush=True,
+        )
     ref, fine, coarse = (images[name] for name in kinds)
     diff = max(float(np.abs(fine[k] - ref[k]).max()) for k in views)
     mse = [float(((coarse[k] - fine[k]) ** 2).mean()) for k in views]

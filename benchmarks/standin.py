@@ -85,11 +85,15 @@ class StandIn:
             )
         focal = 0.5 * size / math.tan(math.radians(20.0))
         self.scene = Scene(
-            root=Path(root), frames=tuple(frames),
+            root=Path(root),
+            frames=tuple(frames),
             intrinsics=Intrinsics(w=size, h=size, fx=focal, fy=focal, cx=size / 2, cy=size / 2),
-            applied_transform=np.eye(4)[:3] if identity else applied, applied_scale=1.0 if identity else 0.25,
-            aabb=self.aabb.numpy().astype(np.float64), near=0.1, far=10.0,
-        )  # fmt: skip
+            applied_transform=np.eye(4)[:3] if identity else applied,
+            applied_scale=1.0 if identity else 0.25,
+            aabb=self.aabb.numpy().astype(np.float64),
+            near=0.1,
+            far=10.0,
+        )
 
     # ------------------------------------------------------------------ field
     def sdf(self, x: Tensor) -> Tensor:
@@ -124,8 +128,15 @@ class StandIn:
         def rgb_sigma(x: Tensor, d: Tensor) -> tuple[Tensor, Tensor]:
             return self.color(x, d).to(x), self.density(x).to(x)
 
-        out = render_rays(rays_o, rays_d, near=1.0, far=5.0, sampler=StratifiedSampler(n_samples=384),
-                          rgb_sigma_fn=rgb_sigma, background=torch.zeros(3, dtype=rays_o.dtype))  # fmt: skip
+        out = render_rays(
+            rays_o,
+            rays_d,
+            near=1.0,
+            far=5.0,
+            sampler=StratifiedSampler(n_samples=384),
+            rgb_sigma_fn=rgb_sigma,
+            background=torch.zeros(3, dtype=rays_o.dtype),
+        )
         return {k: out[k] for k in ("rgb", "depth", "acc") + (("depth_median",) if median else ())}
 
     # ------------------------------------------------------------------ ground truth

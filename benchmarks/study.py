@@ -45,8 +45,22 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["Plan", "FULL", "QUICK", "Context", "Section", "SECTIONS", "stage", "compositing", "stability", "training",
-           "mesh", "fit_image", "write_page", "main"]  # fmt: skip
+__all__ = [
+    "Plan",
+    "FULL",
+    "QUICK",
+    "Context",
+    "Section",
+    "SECTIONS",
+    "stage",
+    "compositing",
+    "stability",
+    "training",
+    "mesh",
+    "fit_image",
+    "write_page",
+    "main",
+]
 
 FAR = 4.0
 """Compositing rays run over t in [0, FAR]."""
@@ -77,19 +91,45 @@ class Plan:
 
 
 FULL = Plan(
-    name="full", samples=(4, 8, 16, 32, 64, 128, 256, 512, 1024), rays=2048, repeats=3,
-    scene_size=48, scene_views=24, train_seconds=90.0, fast_resolutions=((16, 48), (32, 96), (64, 160)),
-    vanilla_batch=64, eval_every=(50, 10), final_eval_views=3, levels=(15.0, 20.0, 25.0),
-    mesh_resolutions=(16, 32, 64, 128, 256), mesh_auto=True, mesh_warm_up=True, trained_mesh_resolutions=(64, 128),
-    fit_sweep=(0, 2, 5, 10), fit_seconds=12.0,
-)  # fmt: skip
+    name="full",
+    samples=(4, 8, 16, 32, 64, 128, 256, 512, 1024),
+    rays=2048,
+    repeats=3,
+    scene_size=48,
+    scene_views=24,
+    train_seconds=90.0,
+    fast_resolutions=((16, 48), (32, 96), (64, 160)),
+    vanilla_batch=64,
+    eval_every=(50, 10),
+    final_eval_views=3,
+    levels=(15.0, 20.0, 25.0),
+    mesh_resolutions=(16, 32, 64, 128, 256),
+    mesh_auto=True,
+    mesh_warm_up=True,
+    trained_mesh_resolutions=(64, 128),
+    fit_sweep=(0, 2, 5, 10),
+    fit_seconds=12.0,
+)
 QUICK = Plan(
-    name="quick", samples=(4, 8, 16, 32, 64, 128, 256), rays=512, repeats=1,
-    scene_size=32, scene_views=12, train_seconds=5.0, fast_resolutions=((16, 32), (32, 64)),
-    vanilla_batch=64, eval_every=(10, 0), final_eval_views=1, levels=(10.0, 15.0, 20.0),
-    mesh_resolutions=(16, 32, 64), mesh_auto=False, mesh_warm_up=False, trained_mesh_resolutions=(),
-    fit_sweep=(0, 6), fit_seconds=2.0,
-)  # fmt: skip
+    name="quick",
+    samples=(4, 8, 16, 32, 64, 128, 256),
+    rays=512,
+    repeats=1,
+    scene_size=32,
+    scene_views=12,
+    train_seconds=5.0,
+    fast_resolutions=((16, 32), (32, 64)),
+    vanilla_batch=64,
+    eval_every=(10, 0),
+    final_eval_views=1,
+    levels=(10.0, 15.0, 20.0),
+    mesh_resolutions=(16, 32, 64),
+    mesh_auto=False,
+    mesh_warm_up=False,
+    trained_mesh_resolutions=(),
+    fit_sweep=(0, 6),
+    fit_seconds=2.0,
+)
 
 
 @dataclass
@@ -250,9 +290,13 @@ def media(rays: int) -> list[Medium]:
         Medium("slab", "σ = 1.5 on [0.9, 2.5)", slab_sigma, slab_exact),
         Medium("sphere", "σ = 1.2 in a unit sphere, rays at impact 0..0.97", sphere_sigma, sphere_exact),
         Medium("steps", "σ = 0.4, 2.5, 0, 1.2 on [0.3, 1.1, 1.9, 2.6, 3.3)", steps_sigma, steps_exact),
-        Medium("gaussian", f"σ = {a:g} exp(-(t - {mu:g})² / 2·{s:g}²)",
-               lambda t, off: a * np.exp(-((t - mu - off) ** 2) / (2 * s * s)), _gauss_exact),
-    ]  # fmt: skip
+        Medium(
+            "gaussian",
+            f"σ = {a:g} exp(-(t - {mu:g})² / 2·{s:g}²)",
+            lambda t, off: a * np.exp(-((t - mu - off) ** 2) / (2 * s * s)),
+            _gauss_exact,
+        ),
+    ]
 
 
 def _composite_rays(sigma: np.ndarray, n: int, dtype: torch.dtype) -> dict[str, torch.Tensor]:
@@ -295,9 +339,15 @@ def compositing(ctx: Context) -> Section:
         order = {k: _slope([plan.samples[i] for i in asymptotic], [v[i] for i in asymptotic]) for k, v in errs.items()}
         curves[m.name] = {"errors": errs, "order": order, "exact_opacity_mean": float(acc_x.mean())}
         pick = [n for n in (16, 64, 256, 1024) if n in plan.samples]
-        rows.append([m.name, m.formula, f"{acc_x.mean():.3f}",
-                     *(_g(errs["opacity"][plan.samples.index(n)]) for n in pick),
-                     *(_g(None if order[k] is None else -order[k], 3) for k in ("opacity", "depth"))])  # fmt: skip
+        rows.append(
+            [
+                m.name,
+                m.formula,
+                f"{acc_x.mean():.3f}",
+                *(_g(errs["opacity"][plan.samples.index(n)]) for n in pick),
+                *(_g(None if order[k] is None else -order[k], 3) for k in ("opacity", "depth")),
+            ]
+        )
     plt = _pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), dpi=110)
     for i, (name, c) in enumerate(curves.items()):
@@ -320,8 +370,17 @@ def compositing(ctx: Context) -> Section:
     fig.tight_layout()
     plot = _save(fig, ctx.out / "compositing.png")
     pick = [n for n in (16, 64, 256, 1024) if n in plan.samples]
-    table = _table(["medium", "density on t ∈ [0, 4] (+ offset U[0, 0.5) per ray)", "opacity",
-                    *(f"opacity error, N={n}" for n in pick), "order (opacity)", "order (depth)"], rows)  # fmt: skip
+    table = _table(
+        [
+            "medium",
+            "density on t ∈ [0, 4] (+ offset U[0, 0.5) per ray)",
+            "opacity",
+            *(f"opacity error, N={n}" for n in pick),
+            "order (opacity)",
+            "order (depth)",
+        ],
+        rows,
+    )
     timing = _table(["N", *map(str, plan.samples)], [["ms", *(f"{s * 1e3:.2f}" for s in seconds)]])
     md = f"""Each ray is cut into N equal intervals on [0, {FAR:g}]; the density is taken at each interval's midpoint
 (as a field query is) and `radiance.compositing.composite` gives opacity and expected depth, compared with the exact
@@ -344,8 +403,12 @@ Composite time (float32, {plan.rays} rays):
 
 {timing}
 """
-    return Section("compositing", "Compositing: error against samples per ray and against time", md,
-                   {"samples": list(plan.samples), "seconds": seconds, "media": curves})  # fmt: skip
+    return Section(
+        "compositing",
+        "Compositing: error against samples per ray and against time",
+        md,
+        {"samples": list(plan.samples), "seconds": seconds, "media": curves},
+    )
 
 
 # ---------------------------------------------------------------------------------------------- 2. stability
@@ -391,8 +454,18 @@ def stability(ctx: Context) -> Section:
     ax.legend(fontsize=7)
     fig.tight_layout()
     plot = _save(fig, ctx.out / "stability.png")
-    table = _table(["dtype", "eps", *(f"worst rel. error: {q}" for q in QUANTITIES), "worst / eps (where)",
-                    "values finite", "gradients finite", "Σw ≤ 1 + eps"], rows)  # fmt: skip
+    table = _table(
+        [
+            "dtype",
+            "eps",
+            *(f"worst rel. error: {q}" for q in QUANTITIES),
+            "worst / eps (where)",
+            "values finite",
+            "gradients finite",
+            "Σw ≤ 1 + eps",
+        ],
+        rows,
+    )
     md = f"""`radiance.stability.run_sweep(dtype)`, the sweep `tests/test_compositing.py` asserts on: 52 rays, one per
 decade of σδ from 1e-12 to 1e12 in four intervals `[0, 1)`, a zero-length `[1, 1)`, `[1, 2)` and an infinite
 `[2, ∞)`, the same rays with a finite far `[2, 3)`, an empty ray and a ray opening with σ = ∞; composited in each
@@ -440,17 +513,55 @@ def _curve(metrics: Path) -> list[tuple[float, float]]:
 def training(ctx: Context) -> Section:
     plan, work = ctx.plan, ctx.out / "work"
     src, scene_dir, commands = _scene(ctx)
-    common = ("--max-seconds", plan.train_seconds, "--max-steps", 10**9, "--threads", ctx.threads, "--device",
-              ctx.device)  # fmt: skip
+    common = (
+        "--max-seconds",
+        plan.train_seconds,
+        "--max-steps",
+        10**9,
+        "--threads",
+        ctx.threads,
+        "--device",
+        ctx.device,
+    )
     # Periodic held-out PSNR on 1024 pixels (fast) or 512 (vanilla: 192 samples per ray through an 8x256 MLP cost
     # seconds per evaluation on a CPU, so it also renders only one full test view at the end); evaluation time is
     # not training time (train excludes it).
     fast_eval, vanilla_eval = plan.eval_every
-    runs = [(f"fast {a}-{b}", ("--field", "fast", "--resolution", f"{a},{b}", "--eval-every", fast_eval,
-                               "--eval-pixels", 1024, "--final-eval-views", plan.final_eval_views))
-            for a, b in plan.fast_resolutions]  # fmt: skip
-    runs.append(("vanilla", ("--field", "vanilla", "--batch-rays", plan.vanilla_batch, "--eval-every", vanilla_eval,
-                             "--eval-pixels", 512, "--final-eval-views", 1)))  # fmt: skip
+    runs = [
+        (
+            f"fast {a}-{b}",
+            (
+                "--field",
+                "fast",
+                "--resolution",
+                f"{a},{b}",
+                "--eval-every",
+                fast_eval,
+                "--eval-pixels",
+                1024,
+                "--final-eval-views",
+                plan.final_eval_views,
+            ),
+        )
+        for a, b in plan.fast_resolutions
+    ]
+    runs.append(
+        (
+            "vanilla",
+            (
+                "--field",
+                "vanilla",
+                "--batch-rays",
+                plan.vanilla_batch,
+                "--eval-every",
+                vanilla_eval,
+                "--eval-pixels",
+                512,
+                "--final-eval-views",
+                1,
+            ),
+        )
+    )
     results, run_dirs = {}, []
     for label, extra in runs:
         run_dir = work / "runs" / label.replace(" ", "_")
@@ -460,8 +571,13 @@ def training(ctx: Context) -> Section:
         commands.append(_command_line("train", *args))
         t = time.perf_counter()
         out = stage("train", *args)
-        results[label] = {"steps": out.steps, "seconds": round(out.seconds, 1), "test_psnr": out.test_psnr,
-                          "wall_seconds": round(time.perf_counter() - t, 1), "curve": _curve(out.metrics)}  # fmt: skip
+        results[label] = {
+            "steps": out.steps,
+            "seconds": round(out.seconds, 1),
+            "test_psnr": out.test_psnr,
+            "wall_seconds": round(time.perf_counter() - t, 1),
+            "curve": _curve(out.metrics),
+        }
         run_dirs.append(run_dir)
     report_dir = ctx.out / "training"
     labels = [label for label, _ in runs]
@@ -547,8 +663,13 @@ def mesh(ctx: Context, trained: tuple[Path, Path] | None = None) -> Section:
             rows.append(row | {"vertex_error": _vertex_error(out)})
     trained_res = plan.trained_mesh_resolutions if trained is not None else ()
     for res in trained_res:
-        spec = {"kind": "trained", "resolution": res, "run_dir": str(trained[0]), "scene_src": str(trained[1]),
-                "out": str(work / f"trained_{res}" / "mesh.ply")}  # fmt: skip
+        spec = {
+            "kind": "trained",
+            "resolution": res,
+            "run_dir": str(trained[0]),
+            "scene_src": str(trained[1]),
+            "out": str(work / f"trained_{res}" / "mesh.ply"),
+        }
         rows.append(measure(spec) | {"vertex_error": None})
     floor = _sampling_floor()
     groups: dict[str, list[dict]] = {}
@@ -563,10 +684,18 @@ def mesh(ctx: Context, trained: tuple[Path, Path] | None = None) -> Section:
                 [r[x] for r in rs], [r["chamfer"] for r in rs], "o-", color=f"C{i}", ms=4, label=f"{key}: Chamfer"
             )
             if rs[0]["vertex_error"] is not None:
-                ax.loglog([r[x] for r in rs], [r["vertex_error"] for r in rs], "s--", color=f"C{i}", ms=3,
-                          label=f"{key}: vertex distance")  # fmt: skip
-    for ax, xlabel in ((axes[0], "marching-cubes resolution (voxels along the longest side)"),
-                       (axes[1], "meshing seconds (stages.mesh, incl. cleanup and colours)")):  # fmt: skip
+                ax.loglog(
+                    [r[x] for r in rs],
+                    [r["vertex_error"] for r in rs],
+                    "s--",
+                    color=f"C{i}",
+                    ms=3,
+                    label=f"{key}: vertex distance",
+                )
+    for ax, xlabel in (
+        (axes[0], "marching-cubes resolution (voxels along the longest side)"),
+        (axes[1], "meshing seconds (stages.mesh, incl. cleanup and colours)"),
+    ):
         ax.axhline(floor, color="grey", ls=":", lw=1, label="Chamfer sampling floor")
         ax.set_xlabel(xlabel)
         ax.set_ylabel("distance (source units)")
@@ -582,14 +711,36 @@ def mesh(ctx: Context, trained: tuple[Path, Path] | None = None) -> Section:
     body = []
     for r in rows:
         level = f"{r['threshold']:.3g} ({'auto' if r['threshold_rule'] == 'auto' else 'given'})"
-        body.append([r["kind"], level, r["resolution"], f"{r['chamfer']:.5f}", f"{r['chamfer_pct_diag']:.3f}",
-                     "—" if r["vertex_error"] is None else f"{r['vertex_error']:.5f}", r["seconds"], r["faces"],
-                     r["watertight"]])  # fmt: skip
-    header = ["field", "level", "resolution", "Chamfer", "Chamfer % of diagonal", "vertex distance to surface",
-              "seconds", "faces", "watertight"]  # fmt: skip
+        body.append(
+            [
+                r["kind"],
+                level,
+                r["resolution"],
+                f"{r['chamfer']:.5f}",
+                f"{r['chamfer_pct_diag']:.3f}",
+                "—" if r["vertex_error"] is None else f"{r['vertex_error']:.5f}",
+                r["seconds"],
+                r["faces"],
+                r["watertight"],
+            ]
+        )
+    header = [
+        "field",
+        "level",
+        "resolution",
+        "Chamfer",
+        "Chamfer % of diagonal",
+        "vertex distance to surface",
+        "seconds",
+        "faces",
+        "watertight",
+    ]
     table = _table(header, body)
-    orders = {key: _slope([r["resolution"] for r in rs], [r["vertex_error"] for r in rs])
-              for key, rs in groups.items() if rs[0]["vertex_error"] is not None}  # fmt: skip
+    orders = {
+        key: _slope([r["resolution"] for r in rs], [r["vertex_error"] for r in rs])
+        for key, rs in groups.items()
+        if rs[0]["vertex_error"] is not None
+    }
     order_text = ", ".join(f"{k}: {_g(-v, 3)}" for k, v in orders.items() if v is not None) or "—"
     trained_text = ", and on the last fast run of the training section (visible surface only)" if trained_res else ""
     auto_text = " and at the auto threshold" if plan.mesh_auto else ""
@@ -626,9 +777,23 @@ def fit_image(ctx: Context) -> Section:
     src, _, _ = _scene(ctx)
     image = sorted((src / "images").glob("*.png"))[0]
     out_dir = ctx.out / "fit_image"
-    args = (image, out_dir, "--sweep", ",".join(map(str, plan.fit_sweep)), "--encoding", "both", "--steps", 10**9,
-            "--max-seconds", plan.fit_seconds, "--threads", ctx.threads, "--device", ctx.device,
-            "--overwrite")  # fmt: skip
+    args = (
+        image,
+        out_dir,
+        "--sweep",
+        ",".join(map(str, plan.fit_sweep)),
+        "--encoding",
+        "both",
+        "--steps",
+        10**9,
+        "--max-seconds",
+        plan.fit_seconds,
+        "--threads",
+        ctx.threads,
+        "--device",
+        ctx.device,
+        "--overwrite",
+    )
     out = stage("fit-image", *args)
     rel = out_dir.relative_to(ctx.out)
     rows = [[m.label, f"{m.parameters:,}", m.steps, f"{m.seconds:.1f}", f"{m.psnr:.2f}"] for m in out.models]
@@ -657,18 +822,29 @@ SECTIONS = ("compositing", "stability", "training", "mesh", "fit_image")
 
 def _machine(ctx: Context) -> dict:
     load = os.getloadavg() if hasattr(os, "getloadavg") else (math.nan,) * 3
-    return {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
-            "cpu_count": os.cpu_count(), "threads": ctx.threads, "device": ctx.device, "torch": torch.__version__,
-            "python": platform.python_version(), "load_average_at_start": [round(v, 2) for v in load]}  # fmt: skip
+    return {
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "threads": ctx.threads,
+        "device": ctx.device,
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+        "load_average_at_start": [round(v, 2) for v in load],
+    }
 
 
 def write_page(ctx: Context, sections: list[Section], machine: dict, wall: float) -> Path:
     """OUT/results.json, then OUT/README.md (last)."""
     from nerfpipe.data.atomic import write_json, write_text
 
-    doc = {"plan": dataclasses.asdict(ctx.plan), "machine": machine, "wall_seconds": round(wall, 1),
-           "written": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-           "sections": {s.key: {"seconds": round(s.seconds, 1), **s.data} for s in sections}}  # fmt: skip
+    doc = {
+        "plan": dataclasses.asdict(ctx.plan),
+        "machine": machine,
+        "wall_seconds": round(wall, 1),
+        "written": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "sections": {s.key: {"seconds": round(s.seconds, 1), **s.data} for s in sections},
+    }
     write_json(ctx.out / "results.json", json.loads(json.dumps(doc, default=str), parse_constant=lambda c: None))
     rebuild = "make study" if ctx.plan.name == "full" else "make study-quick"
     toc = "\n".join(f"{i}. [{s.title}](#{i}-{_anchor(s.title)}) ({s.seconds:.0f} s)" for i, s in enumerate(sections, 1))
@@ -720,8 +896,12 @@ def main(argv: list[str] | None = None) -> Path:
         if key == "mesh":
             section = mesh(ctx, trained)
         else:
-            section = {"compositing": compositing, "stability": stability, "training": training,
-                       "fit_image": fit_image}[key](ctx)  # fmt: skip
+            section = {
+                "compositing": compositing,
+                "stability": stability,
+                "training": training,
+                "fit_image": fit_image,
+            }[key](ctx)
         if key == "training":
             trained = (Path(section.data["default_run"]), Path(section.data["scene_src"]))
         section.seconds = time.perf_counter() - t

@@ -29,8 +29,16 @@ from nerfpipe.data.atomic import write_json
 from nerfpipe.data.errors import UserError
 from nerfpipe.radiance.keyframes import interpolate_keyframes
 
-__all__ = ["FORMAT", "VERSION", "MAX_SIDE", "MAX_PIXELS", "CameraPathFile", "check_frame_size", "read_camera_path",
-           "write_camera_path"]  # fmt: skip
+__all__ = [
+    "FORMAT",
+    "VERSION",
+    "MAX_SIDE",
+    "MAX_PIXELS",
+    "CameraPathFile",
+    "check_frame_size",
+    "read_camera_path",
+    "write_camera_path",
+]
 
 FORMAT = "nerfpipe-camera-path"
 VERSION = 1
@@ -81,8 +89,10 @@ def check_frame_size(width: int, height: int, where: str, names: tuple[str, str]
         if value > MAX_SIDE:
             raise UserError(f"{where}: field {name!r}: {value} px is more than the {MAX_SIDE} px nerfpipe renders")
     if width * height > MAX_PIXELS:
-        raise UserError(f"{where}: field '{names[0]} x {names[1]}': {width} x {height} = {width * height} pixels is "
-                        f"more than the {MAX_PIXELS} nerfpipe renders in one frame")  # fmt: skip
+        raise UserError(
+            f"{where}: field '{names[0]} x {names[1]}': {width} x {height} = {width * height} pixels is "
+            f"more than the {MAX_PIXELS} nerfpipe renders in one frame"
+        )
 
 
 def read_camera_path(path: str | Path) -> CameraPathFile:
@@ -120,8 +130,14 @@ def read_camera_path(path: str | Path) -> CameraPathFile:
         if isinstance(fov, bool) or not isinstance(fov, (int, float)) or not 0 < fov < 180:
             raise UserError(f"{where}.fov: expected a vertical field of view in degrees in (0, 180), got {fov!r}")
         fovs.append(float(fov))
-    return CameraPathFile(world_from_cams=np.stack(poses), fovs_deg=np.array(fovs), width=width, height=height,
-                          fps=fps, source="nerfpipe" if doc.get("format") == FORMAT else "nerfstudio")  # fmt: skip
+    return CameraPathFile(
+        world_from_cams=np.stack(poses),
+        fovs_deg=np.array(fovs),
+        width=width,
+        height=height,
+        fps=fps,
+        source="nerfpipe" if doc.get("format") == FORMAT else "nerfstudio",
+    )
 
 
 def write_camera_path(

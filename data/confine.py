@@ -45,8 +45,9 @@ def inside(
     if path != root_resolved and root_resolved not in path.parents:
         raise UserError(f"{file}: {what} '{relative}' resolves outside the dataset folder {root}")
     if Path(relative).is_absolute():
-        raise UserError(f"{file}: {what} '{relative}' is an absolute path; expected one relative to the "
-                        f"dataset folder {root}")  # fmt: skip
+        raise UserError(
+            f"{file}: {what} '{relative}' is an absolute path; expected one relative to the dataset folder {root}"
+        )
     return path
 
 

@@ -117,8 +117,10 @@ def declared_size(data: bytes, path: str | os.PathLike, what: str = "image") -> 
         raise UserError(f"{path}: cannot decode {what} (no valid {kind} header)")
     w, h = size
     if w * h > MAX_PIXELS:
-        raise UserError(f"{path}: {what} declares {w}x{h} pixels ({w * h / 1e6:.0f} M), more than the "
-                        f"{MAX_PIXELS / 1e6:.0f} M read; downscale it")  # fmt: skip
+        raise UserError(
+            f"{path}: {what} declares {w}x{h} pixels ({w * h / 1e6:.0f} M), more than the "
+            f"{MAX_PIXELS / 1e6:.0f} M read; downscale it"
+        )
     if not whole:
         end = "an IEND chunk" if kind == "PNG" else "an end-of-image marker after its data"
         raise UserError(f"{path}: {what} file is truncated ({kind} without {end})")

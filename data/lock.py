@@ -109,17 +109,27 @@ def _open_lock(path: Path) -> int:
     except OSError as exc:
         if exc.errno in (errno.ELOOP, errno.EISDIR, errno.ENXIO):
             what = "a symbolic link" if exc.errno == errno.ELOOP else "not a regular file"
-            raise UserError(f"{path}: the lock file is {what}; expected a regular file (remove it if no nerfpipe "
-                            f"process writes {path.parent})") from None  # fmt: skip
+            raise UserError(
+                f"{path}: the lock file is {what}; expected a regular file (remove it if no nerfpipe "
+                f"process writes {path.parent})"
+            ) from None
         raise
     st = os.fstat(fd)
-    why = ("not a regular file" if not stat.S_ISREG(st.st_mode)
-           else f"owned by uid {st.st_uid}, not this user" if st.st_uid != os.geteuid()
-           else f"a hard link ({st.st_nlink} names)" if st.st_nlink > 1 else "")  # fmt: skip
+    why = (
+        "not a regular file"
+        if not stat.S_ISREG(st.st_mode)
+        else f"owned by uid {st.st_uid}, not this user"
+        if st.st_uid != os.geteuid()
+        else f"a hard link ({st.st_nlink} names)"
+        if st.st_nlink > 1
+        else ""
+    )
     if why:
         os.close(fd)
-        raise UserError(f"{path}: the lock file is {why}; expected a regular file of this user (remove it if no "
-                        f"nerfpipe process writes {path.parent})")  # fmt: skip
+        raise UserError(
+            f"{path}: the lock file is {why}; expected a regular file of this user (remove it if no "
+            f"nerfpipe process writes {path.parent})"
+        )
     return fd
 
 
@@ -132,8 +142,10 @@ def _acquire(path: Path) -> int:
             holder = os.read(fd, 200).decode(errors="replace").split()
             os.close(fd)
             pid = holder[0] if holder else "unknown"
-            raise FolderBusy(f"{path.parent} is being written by another nerfpipe process (pid {pid}); "
-                             f"wait for it to finish or stop it") from None  # fmt: skip
+            raise FolderBusy(
+                f"{path.parent} is being written by another nerfpipe process (pid {pid}); "
+                f"wait for it to finish or stop it"
+            ) from None
         try:
             same = os.fstat(fd).st_ino == os.stat(path, follow_symlinks=False).st_ino
         except FileNotFoundError:

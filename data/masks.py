@@ -35,9 +35,15 @@ from nerfpipe.data.errors import UserError
 from nerfpipe.data.images import read_image
 
 __all__ = [
-    "MASK_SUFFIXES", "KEEP", "mask_candidates", "match_masks", "read_mask", "write_binary_mask",
-    "load_masked_image", "apply_mask",
-]  # fmt: skip
+    "MASK_SUFFIXES",
+    "KEEP",
+    "mask_candidates",
+    "match_masks",
+    "read_mask",
+    "write_binary_mask",
+    "load_masked_image",
+    "apply_mask",
+]
 
 MASK_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 KEEP = 0.5

@@ -43,8 +43,16 @@ __all__ = [
     "refuse_output_inside",
 ]
 
-_PACKAGES = ("nerfpipe", "torch", "numpy", "pycolmap", "opencv-contrib-python-headless", "scikit-image", "trimesh",
-             "pymeshlab")  # fmt: skip
+_PACKAGES = (
+    "nerfpipe",
+    "torch",
+    "numpy",
+    "pycolmap",
+    "opencv-contrib-python-headless",
+    "scikit-image",
+    "trimesh",
+    "pymeshlab",
+)
 
 
 def sidecar(out: str | os.PathLike, what: str) -> Path:
@@ -183,8 +191,20 @@ class MetricsLog:
         return write_text(self.path, buf.getvalue())
 
 
-RUN_FILES = frozenset({"config.json", "checkpoint.pt", "metrics.csv", "manifest.json", "psnr_vs_time.png",
-                       "per_view.json", "per_view_worst.png", "transforms.json", "volume.npy", LOCK_NAME})  # fmt: skip
+RUN_FILES = frozenset(
+    {
+        "config.json",
+        "checkpoint.pt",
+        "metrics.csv",
+        "manifest.json",
+        "psnr_vs_time.png",
+        "per_view.json",
+        "per_view_worst.png",
+        "transforms.json",
+        "volume.npy",
+        LOCK_NAME,
+    }
+)
 """The names a run folder owns (what train and xray-train write there): a consumer's output may not take one."""
 
 
@@ -197,8 +217,10 @@ def refuse_output_inside(out: str | os.PathLike, run: str | os.PathLike, what: s
     if out_r == run_r:
         raise UserError(f"{out}: the {what} would be the run folder {run} itself; expected a path outside it")
     if out_r in run_r.parents:
-        raise UserError(f"{out}: the {what} folder holds the run {run} (writing it would set the run aside); "
-                        "expected a path beside the run")  # fmt: skip
+        raise UserError(
+            f"{out}: the {what} folder holds the run {run} (writing it would set the run aside); "
+            "expected a path beside the run"
+        )
     if out_r.parent == run_r and out_r.name in RUN_FILES:
         raise UserError(f"{out}: the run {run} owns {out_r.name}; expected another name for the {what}")
 
@@ -240,8 +262,9 @@ def _claimed(folder: Path, *, overwrite: bool, resume: bool, marks: Iterable[str
         if found and not resume:
             if not overwrite:
                 how = "resume=True to continue it or overwrite=True" if "checkpoint.pt" in found else "overwrite=True"
-                raise UserError(f"{folder} already holds an earlier output ({', '.join(found)}); "
-                                f"set {how} to replace it")  # fmt: skip
+                raise UserError(
+                    f"{folder} already holds an earlier output ({', '.join(found)}); set {how} to replace it"
+                )
             previous = previous_folder(folder)
             shutil.rmtree(previous, ignore_errors=True)
             previous.mkdir()

@@ -53,8 +53,13 @@ def write_sparse_depth(path: Path, points: np.ndarray, observed: dict[str, np.nd
     frame = np.concatenate([np.full(len(observed[n]), i, dtype=np.int32) for i, n in enumerate(names)] or [[]])
     point = np.concatenate([np.asarray(observed[n], dtype=np.int32) for n in names] or [[]])
     with atomic_path(path, suffix=".npz") as tmp:
-        np.savez_compressed(tmp, points=np.asarray(points, np.float32), names=np.array(names, dtype=str),
-                            frame=frame.astype(np.int32), point=point.astype(np.int32))  # fmt: skip
+        np.savez_compressed(
+            tmp,
+            points=np.asarray(points, np.float32),
+            names=np.array(names, dtype=str),
+            frame=frame.astype(np.int32),
+            point=point.astype(np.int32),
+        )
     return Path(path)
 
 

@@ -38,12 +38,28 @@ from nerfpipe.data.errors import UserError
 __all__ = ["SH_C0", "SplatData", "ply_properties", "write_ply", "read_ply", "splat_bytes", "write_splat", "SPLAT_DTYPE"]
 
 SH_C0 = 0.28209479177387814
-SPLAT_DTYPE = np.dtype([("position", "<f4", (3,)), ("scale", "<f4", (3,)), ("rgba", "u1", (4,)),
-                        ("rotation", "u1", (4,))])  # fmt: skip
+SPLAT_DTYPE = np.dtype(
+    [("position", "<f4", (3,)), ("scale", "<f4", (3,)), ("rgba", "u1", (4,)), ("rotation", "u1", (4,))]
+)
 """One `.splat` record, 32 bytes."""
-_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "<i2", "int16": "<i2", "ushort": "<u2",
-          "uint16": "<u2", "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4", "float": "<f4",
-          "float32": "<f4", "double": "<f8", "float64": "<f8"}  # fmt: skip
+_TYPES = {
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "<i2",
+    "int16": "<i2",
+    "ushort": "<u2",
+    "uint16": "<u2",
+    "int": "<i4",
+    "int32": "<i4",
+    "uint": "<u4",
+    "uint32": "<u4",
+    "float": "<f4",
+    "float32": "<f4",
+    "double": "<f8",
+    "float64": "<f8",
+}
 _MAX_HEADER = 1 << 16
 
 
@@ -84,15 +100,28 @@ def ply_properties(sh_degree: int) -> list[str]:
     if sh_degree not in (0, 1, 2, 3):
         raise ValueError(f"expected an SH degree 0..3, got {sh_degree}")
     rest = 3 * ((sh_degree + 1) ** 2 - 1)
-    return (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(rest)]
-            + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])  # fmt: skip
+    return (
+        ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(rest)]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
 
 
 def _columns(data: SplatData) -> np.ndarray:
     """[N, P] float32 in `ply_properties` order."""
     n = len(data)
-    return np.concatenate([data.means, np.zeros((n, 3), np.float32), data.f_dc, data.f_rest.reshape(n, -1),
-                           data.opacity[:, None], data.scales, data.quats], axis=1)  # fmt: skip
+    return np.concatenate(
+        [
+            data.means,
+            np.zeros((n, 3), np.float32),
+            data.f_dc,
+            data.f_rest.reshape(n, -1),
+            data.opacity[:, None],
+            data.scales,
+            data.quats,
+        ],
+        axis=1,
+    )
 
 
 def write_ply(path: str | os.PathLike, data: SplatData) -> Path:
@@ -125,8 +154,10 @@ def _header(path: Path, raw: bytes) -> tuple[list[tuple[str, int, list[tuple[str
         elif words[0] == "property" and elements and len(words) == 3 and words[1] in _TYPES:
             elements[-1][2].append((words[2], _TYPES[words[1]]))
         elif words[0] == "property" and elements:
-            raise UserError(f"{path}: unsupported PLY property {line.strip()!r}; expected scalar properties "
-                            "(splat files have no lists)")  # fmt: skip
+            raise UserError(
+                f"{path}: unsupported PLY property {line.strip()!r}; expected scalar properties "
+                "(splat files have no lists)"
+            )
         else:
             raise UserError(f"{path}: unreadable PLY header line {line.strip()!r}")
     if fmt != "binary_little_endian":
@@ -136,16 +167,33 @@ def _header(path: Path, raw: bytes) -> tuple[list[tuple[str, int, list[tuple[str
 
 def _check_names(path: Path, names: list[str]) -> None:
     """UserError unless the vertex properties hold INRIA's Gaussian attributes."""
-    need = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
-            "rot_0", "rot_1", "rot_2", "rot_3"]  # fmt: skip
+    need = [
+        "x",
+        "y",
+        "z",
+        "f_dc_0",
+        "f_dc_1",
+        "f_dc_2",
+        "opacity",
+        "scale_0",
+        "scale_1",
+        "scale_2",
+        "rot_0",
+        "rot_1",
+        "rot_2",
+        "rot_3",
+    ]
     missing = [k for k in need if k not in names]
     if missing:
-        raise UserError(f"{path}: not a Gaussian splat PLY: no {', '.join(missing)} property "
-                        "(expected INRIA's layout: x y z, f_dc_*, opacity, scale_*, rot_*)")  # fmt: skip
+        raise UserError(
+            f"{path}: not a Gaussian splat PLY: no {', '.join(missing)} property "
+            "(expected INRIA's layout: x y z, f_dc_*, opacity, scale_*, rot_*)"
+        )
     rest = sorted(int(k[7:]) for k in names if re.fullmatch(r"f_rest_\d+", k))
     if rest != list(range(len(rest))) or len(rest) not in (0, 9, 24, 45):
-        raise UserError(f"{path}: {len(rest)} f_rest_* properties; expected f_rest_0.. with 0, 9, 24 or 45 of them "
-                        "(SH degree 0..3)")  # fmt: skip
+        raise UserError(
+            f"{path}: {len(rest)} f_rest_* properties; expected f_rest_0.. with 0, 9, 24 or 45 of them (SH degree 0..3)"
+        )
     if len(set(names)) != len(names):
         raise UserError(f"{path}: a vertex property is declared twice")
 
@@ -159,14 +207,18 @@ def read_ply(path: str | os.PathLike) -> SplatData:
             size = os.fstat(f.fileno()).st_size
             elements, offset = _header(path, raw)
             if not elements or elements[0][0] != "vertex":
-                raise UserError(f"{path}: the first PLY element is {elements[0][0] if elements else 'missing'}; "
-                                "expected 'vertex' (the Gaussians)")  # fmt: skip
+                raise UserError(
+                    f"{path}: the first PLY element is {elements[0][0] if elements else 'missing'}; "
+                    "expected 'vertex' (the Gaussians)"
+                )
             _, n, props = elements[0]
             _check_names(path, [name for name, _ in props])
             dtype = np.dtype([(name, t) for name, t in props])
             if offset + n * dtype.itemsize > size:
-                raise UserError(f"{path}: the header declares {n} vertices of {dtype.itemsize} bytes, the file holds "
-                                f"{max(0, size - offset)} bytes of data (truncated?)")  # fmt: skip
+                raise UserError(
+                    f"{path}: the header declares {n} vertices of {dtype.itemsize} bytes, the file holds "
+                    f"{max(0, size - offset)} bytes of data (truncated?)"
+                )
             f.seek(offset)
             rows = np.fromfile(f, dtype=dtype, count=n)
     except OSError as exc:
@@ -178,10 +230,13 @@ def read_ply(path: str | os.PathLike) -> SplatData:
         return np.stack([rows[k].astype(np.float32) for k in keys], axis=-1) if keys else np.zeros((n, 0), np.float32)
 
     return SplatData(
-        means=cols(["x", "y", "z"]), f_dc=cols(["f_dc_0", "f_dc_1", "f_dc_2"]),
-        f_rest=cols([k for _, k in rest]).reshape(n, 3, len(rest) // 3), opacity=rows["opacity"].astype(np.float32),
-        scales=cols(["scale_0", "scale_1", "scale_2"]), quats=cols(["rot_0", "rot_1", "rot_2", "rot_3"]),
-    )  # fmt: skip
+        means=cols(["x", "y", "z"]),
+        f_dc=cols(["f_dc_0", "f_dc_1", "f_dc_2"]),
+        f_rest=cols([k for _, k in rest]).reshape(n, 3, len(rest) // 3),
+        opacity=rows["opacity"].astype(np.float32),
+        scales=cols(["scale_0", "scale_1", "scale_2"]),
+        quats=cols(["rot_0", "rot_1", "rot_2", "rot_3"]),
+    )
 
 
 def splat_bytes(data: SplatData) -> bytes:

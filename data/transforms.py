@@ -179,8 +179,10 @@ def camera_problem(intr: Intrinsics) -> str | None:
     lo, hi = (r * max(intr.w, intr.h) for r in FOCAL_RANGE)
     for key, f in (("fl_x", intr.fx), ("fl_y", intr.fy)):
         if not lo <= f <= hi:
-            return (f"{key}: {f:g} px is outside [{FOCAL_RANGE[0]:g}, {FOCAL_RANGE[1]:g}] x the larger image "
-                    f"side ({lo:g} to {hi:g} px)")  # fmt: skip
+            return (
+                f"{key}: {f:g} px is outside [{FOCAL_RANGE[0]:g}, {FOCAL_RANGE[1]:g}] x the larger image "
+                f"side ({lo:g} to {hi:g} px)"
+            )
     return None
 
 
@@ -241,9 +243,14 @@ class _Reader:
         cy = self.number(merged, "cy", where, required=False)
         dist = {k: self.number(merged, k, where, required=False) or 0.0 for k in _DISTORTION_KEYS}
         intr = Intrinsics(
-            w=vals["w"], h=vals["h"], fx=fx, fy=fy,
-            cx=vals["w"] / 2 if cx is None else cx, cy=vals["h"] / 2 if cy is None else cy, **dist,
-        )  # fmt: skip
+            w=vals["w"],
+            h=vals["h"],
+            fx=fx,
+            fy=fy,
+            cx=vals["w"] / 2 if cx is None else cx,
+            cy=vals["h"] / 2 if cy is None else cy,
+            **dist,
+        )
         problem = camera_problem(intr)
         if problem is not None:
             raise UserError(f"{self.path}: {where}{problem}")
@@ -305,7 +312,7 @@ def read_scene(path: str | os.PathLike) -> Scene:
                 intrinsics=intr,
                 mask_path=fr.get("mask_path"),
                 depth_file_path=fr.get("depth_file_path"),
-            )  # fmt: skip
+            )
         )
 
     for key in PATH_KEYS:
@@ -351,15 +358,34 @@ def read_scene(path: str | os.PathLike) -> Scene:
             splits[name] = tuple(by_path[n] for n in names)
 
     known = {
-        *_INTRINSIC_KEYS, *_DISTORTION_KEYS, "camera_model", "camera_angle_x", "camera_angle_y", "frames",
-        "applied_transform", "applied_scale", "aabb", "near", "far", "has_alpha", "aabb_scale",
+        *_INTRINSIC_KEYS,
+        *_DISTORTION_KEYS,
+        "camera_model",
+        "camera_angle_x",
+        "camera_angle_y",
+        "frames",
+        "applied_transform",
+        "applied_scale",
+        "aabb",
+        "near",
+        "far",
+        "has_alpha",
+        "aabb_scale",
         *(f"{s}_filenames" for s in SPLITS),
-    }  # fmt: skip
+    }
     return Scene(
-        root=root, frames=tuple(frames), intrinsics=shared, applied_transform=applied, applied_scale=scale,
-        aabb=aabb, near=near, far=far, splits=splits, has_alpha=bool(doc.get("has_alpha", False)),
+        root=root,
+        frames=tuple(frames),
+        intrinsics=shared,
+        applied_transform=applied,
+        applied_scale=scale,
+        aabb=aabb,
+        near=near,
+        far=far,
+        splits=splits,
+        has_alpha=bool(doc.get("has_alpha", False)),
         extra={k: v for k, v in doc.items() if k not in known},
-    )  # fmt: skip
+    )
 
 
 def _is_numeric(value: Any) -> bool:
@@ -378,11 +404,20 @@ def _default_aabb(doc: dict, frames: list[Frame]) -> np.ndarray:
 
 def _intrinsics_dict(intr: Intrinsics) -> dict[str, Any]:
     d: dict[str, Any] = {
-        "w": intr.w, "h": intr.h, "fl_x": intr.fx, "fl_y": intr.fy, "cx": intr.cx, "cy": intr.cy,
-        "k1": intr.k1, "k2": intr.k2, "k3": intr.k3, "p1": intr.p1, "p2": intr.p2,
+        "w": intr.w,
+        "h": intr.h,
+        "fl_x": intr.fx,
+        "fl_y": intr.fy,
+        "cx": intr.cx,
+        "cy": intr.cy,
+        "k1": intr.k1,
+        "k2": intr.k2,
+        "k3": intr.k3,
+        "p1": intr.p1,
+        "p2": intr.p2,
         "camera_angle_x": 2 * math.atan(0.5 * intr.w / intr.fx),
         "camera_angle_y": 2 * math.atan(0.5 * intr.h / intr.fy),
-    }  # fmt: skip
+    }
     return d
 
 

@@ -142,10 +142,16 @@ class VideoWriter:
             self.size = frame.shape[:2]
             h, w = pad_even(frame).shape[:2]
             self._gen = imageio_ffmpeg.write_frames(
-                str(self.tmp_path), (w, h), fps=self.fps, codec="libx264", pix_fmt_in="rgb24",
-                pix_fmt_out="yuv420p", macro_block_size=1, quality=None,
+                str(self.tmp_path),
+                (w, h),
+                fps=self.fps,
+                codec="libx264",
+                pix_fmt_in="rgb24",
+                pix_fmt_out="yuv420p",
+                macro_block_size=1,
+                quality=None,
                 output_params=["-crf", str(self.crf), "-movflags", "+faststart"],
-            )  # fmt: skip
+            )
             self._gen.send(None)  # start ffmpeg
         elif frame.shape[:2] != self.size:
             raise ValueError(f"frame {self.count}: size {frame.shape[:2]} differs from the first frame's {self.size}")

@@ -89,15 +89,18 @@ def apply_transform(ab: tuple[Tensor, Tensor], rgb: Tensor, acc: Tensor, backgro
 
 
 @torch.no_grad()
-def fit_code(appearance: Appearance, rgb: Tensor, acc: Tensor, background: Tensor, target: Tensor,
-             ridge: float = 1e-3) -> Tensor:  # fmt: skip
+def fit_code(
+    appearance: Appearance, rgb: Tensor, acc: Tensor, background: Tensor, target: Tensor, ridge: float = 1e-3
+) -> Tensor:
     """The code [dim] whose transform best maps the field's own composited colours rgb [N, 3] (rendered without
     appearance; opacity acc [N], on background [3]) to the photo's target [N, 3]: ridge least squares around the
     mean code (the prediction is affine in the code: the head is linear); ridge is relative to the mean squared
     Jacobian."""
     if rgb.shape != target.shape or rgb.ndim != 2 or rgb.shape[1] != 3 or acc.shape != rgb.shape[:1]:
-        raise ValueError(f"expected rgb, target [N, 3] and acc [N], got {tuple(rgb.shape)}, {tuple(target.shape)}, "
-                         f"{tuple(acc.shape)}")  # fmt: skip
+        raise ValueError(
+            f"expected rgb, target [N, 3] and acc [N], got {tuple(rgb.shape)}, {tuple(target.shape)}, "
+            f"{tuple(acc.shape)}"
+        )
     rgb, acc, target = rgb.double(), acc.double(), target.double()
     bg = background.to(rgb).reshape(3)
     fg = rgb - (1 - acc)[:, None] * bg

@@ -225,8 +225,7 @@ def correction_sizes(delta: Tensor, pivot: Tensor, distance: Tensor) -> tuple[Te
     return delta[:, :3].norm(dim=1), moved / distance.to(delta)
 
 
-def project_corrections(delta: Tensor, pivot: Tensor, distance: Tensor,
-                        region: TrustRegion) -> tuple[Tensor, Tensor]:  # fmt: skip
+def project_corrections(delta: Tensor, pivot: Tensor, distance: Tensor, region: TrustRegion) -> tuple[Tensor, Tensor]:
     """Corrections delta [V, 6] -> (the same projected onto `region`, mask [V] of those that moved). A rotation past
     its bound is scaled down about the same axis, keeping the camera centre where it was; a centre displacement past
     its bound is shortened along its direction, keeping the rotation."""
@@ -295,9 +294,15 @@ def _distances(world_from_cam: Tensor, pivot: Tensor) -> Tensor:
 class CameraOpt(nn.Module):
     """Corrections of V cameras; `forward(o, d, view)` moves a batch of their rays."""
 
-    def __init__(self, world_from_cam: Tensor | np.ndarray, *, focal: bool = False,
-                 schedule: CameraSchedule | None = None, pivot: np.ndarray | None = None,
-                 trust: TrustRegion | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        world_from_cam: Tensor | np.ndarray,
+        *,
+        focal: bool = False,
+        schedule: CameraSchedule | None = None,
+        pivot: np.ndarray | None = None,
+        trust: TrustRegion | None = None,
+    ) -> None:
         super().__init__()
         w = torch.as_tensor(np.asarray(world_from_cam), dtype=torch.float64)
         if w.ndim != 3 or w.shape[1:] != (4, 4):
@@ -341,16 +346,18 @@ class CameraOpt(nn.Module):
         if self.opt is None:
             groups = [{"params": [self.raw], "lr": self.schedule.lr, "base_lr": self.schedule.lr}]
             if self.focal:
-                groups.append({"params": [self.log_focal], "lr": self.schedule.focal_lr,
-                               "base_lr": self.schedule.focal_lr})  # fmt: skip
+                groups.append(
+                    {"params": [self.log_focal], "lr": self.schedule.focal_lr, "base_lr": self.schedule.focal_lr}
+                )
             self.opt = torch.optim.Adam(groups, betas=(0.9, 0.99))
         return self.opt
 
     def forward(self, o: Tensor, d: Tensor, view: Tensor) -> tuple[Tensor, Tensor]:
         """Rays o, d [B, 3] (unit d) of cameras view [B] -> refined o', d' [B, 3] (unit d', same dtype)."""
         if o.shape != d.shape or o.ndim != 2 or o.shape[-1] != 3 or view.shape != o.shape[:1]:
-            raise ValueError(f"expected o, d [B, 3] and view [B], got {tuple(o.shape)}, {tuple(d.shape)}, "
-                             f"{tuple(view.shape)}")  # fmt: skip
+            raise ValueError(
+                f"expected o, d [B, 3] and view [B], got {tuple(o.shape)}, {tuple(d.shape)}, {tuple(view.shape)}"
+            )
         view = view.to(o.device).long()
         rot = self.world_from_cam[:, :3, :3].to(o)[view]  # [B, 3, 3]
         corr = pivoted_exp(self.delta.to(o), self.pivot.to(o))[view]  # [B, 4, 4]
@@ -410,11 +417,13 @@ class CameraOpt(nn.Module):
         share = torch.maximum(rot_deg / self.trust.max_rotation_deg, moved / self.trust.max_translation)
         median = float(torch.quantile(share, 0.5))
         if median > self.trust.stop_median:
-            self.log.at_stop = {"median_share": round(median, 4),
-                                "median_rotation_deg": round(float(torch.quantile(rot_deg, 0.5)), 4),
-                                "max_rotation_deg": round(float(rot_deg.max()), 4),
-                                "median_translation": round(float(torch.quantile(moved, 0.5)), 5),
-                                "max_translation": round(float(moved.max()), 5)}  # fmt: skip
+            self.log.at_stop = {
+                "median_share": round(median, 4),
+                "median_rotation_deg": round(float(torch.quantile(rot_deg, 0.5)), 4),
+                "max_rotation_deg": round(float(rot_deg.max()), 4),
+                "median_translation": round(float(torch.quantile(moved, 0.5)), 5),
+                "max_translation": round(float(moved.max()), 5),
+            }
             self.stop(step)
             return
         projected, over = project_corrections(delta, self.pivot, self.distance, self.trust)
@@ -464,11 +473,16 @@ class CameraOpt(nn.Module):
 
     def to_dict(self) -> dict[str, Any]:
         """What checkpoint.pt stores (tensors and primitives only)."""
-        return {"world_from_cam": self.world_from_cam.cpu(), "delta": self.delta.detach().cpu(),
-                "pivot": self.pivot.cpu(),
-                "log_focal": self.log_focal.detach().cpu(), "focal": self.focal,
-                "optimizer": self.optimizer().state_dict(), "guard": self.log.to_dict(),
-                "steps": self.steps}  # fmt: skip
+        return {
+            "world_from_cam": self.world_from_cam.cpu(),
+            "delta": self.delta.detach().cpu(),
+            "pivot": self.pivot.cpu(),
+            "log_focal": self.log_focal.detach().cpu(),
+            "focal": self.focal,
+            "optimizer": self.optimizer().state_dict(),
+            "guard": self.log.to_dict(),
+            "steps": self.steps,
+        }
 
     def load_dict(self, doc: dict[str, Any]) -> None:
         with torch.no_grad():
@@ -487,8 +501,13 @@ def corrections_record(world_from_cam: np.ndarray, refined: np.ndarray, names: l
     for name, a, b in zip(names, world_from_cam, refined, strict=True):
         rel = np.linalg.inv(a) @ b
         cos = np.clip((np.trace(rel[:3, :3]) - 1) / 2, -1.0, 1.0)
-        out.append({"name": name, "rotation_deg": round(math.degrees(math.acos(cos)), 5),
-                    "translation": round(float(np.linalg.norm(b[:3, 3] - a[:3, 3])), 6)})  # fmt: skip
+        out.append(
+            {
+                "name": name,
+                "rotation_deg": round(math.degrees(math.acos(cos)), 5),
+                "translation": round(float(np.linalg.norm(b[:3, 3] - a[:3, 3])), 6),
+            }
+        )
     return out
 
 
@@ -504,8 +523,13 @@ def align_test_poses(train_in: np.ndarray, train_refined: np.ndarray, other: np.
     mapped = sim @ other
     mapped[:, :3, :3] /= s  # rotation part stays orthonormal; the centre carries the scale
     res = np.linalg.norm(s * train_in[:, :3, 3] @ rot.T + t - train_refined[:, :3, 3], axis=1)
-    record = {"method": "similarity", "scale": float(s), "rotation": rot.tolist(), "translation": t.tolist(),
-              "rms_centre_residual": float(np.sqrt((res**2).mean()))}  # fmt: skip
+    record = {
+        "method": "similarity",
+        "scale": float(s),
+        "rotation": rot.tolist(),
+        "translation": t.tolist(),
+        "rms_centre_residual": float(np.sqrt((res**2).mean())),
+    }
     return mapped, record
 
 
@@ -531,12 +555,14 @@ def refined_scene(scene: Scene, doc: dict[str, Any], train_idx: tuple[int, ...])
         mapped, record["test_poses"] = align_test_poses(
             train_in, refined, np.stack([scene.frames[i].world_from_cam for i in others])
         )
-        poses.update({i: m for i, m in zip(others, mapped, strict=True)})  # fmt: skip
+        poses.update({i: m for i, m in zip(others, mapped, strict=True)})
     scale = float(torch.exp(doc["log_focal"]).item()) if doc.get("focal") else 1.0
     record["focal_scale"] = scale
 
-    frames = tuple(dataclasses.replace(f, world_from_cam=poses[i], intrinsics=_focal_times(f.intrinsics, scale))
-                   for i, f in enumerate(scene.frames))  # fmt: skip
+    frames = tuple(
+        dataclasses.replace(f, world_from_cam=poses[i], intrinsics=_focal_times(f.intrinsics, scale))
+        for i, f in enumerate(scene.frames)
+    )
     return scene.replace(frames=frames, intrinsics=_focal_times(scene.intrinsics, scale)), record
 
 
@@ -559,39 +585,61 @@ def guard_record(cameras: CameraOpt, names: list[str]) -> dict[str, Any]:
     suspect = []
     if log.stopped_at is not None:
         at = log.at_stop or {}
-        suspect.append(f"refinement stopped at step {log.stopped_at}: the median correction reached "
-                       f"{at.get('median_share', float('nan')):.2f} of its bound (median "
-                       f"{at.get('median_rotation_deg', float('nan')):.2f} deg, "
-                       f"{100 * at.get('median_translation', float('nan')):.1f} % of the distance); the input "
-                       "cameras were kept" + (f" and the field went back to its state at step {log.rolled_back_to}, "
-                                              "before the cameras moved" if log.rolled_back_to is not None
-                                              else ""))  # fmt: skip
+        suspect.append(
+            f"refinement stopped at step {log.stopped_at}: the median correction reached "
+            f"{at.get('median_share', float('nan')):.2f} of its bound (median "
+            f"{at.get('median_rotation_deg', float('nan')):.2f} deg, "
+            f"{100 * at.get('median_translation', float('nan')):.1f} % of the distance); the input "
+            "cameras were kept"
+            + (
+                f" and the field went back to its state at step {log.rolled_back_to}, before the cameras moved"
+                if log.rolled_back_to is not None
+                else ""
+            )
+        )
     if log.cameras:
-        suspect.append(f"{len(log.cameras)} of {len(names)} cameras pulled back onto a bound ({log.pulled_back} "
-                       f"times, first at step {log.first_step})")  # fmt: skip
-    summary = "; ".join(suspect) if suspect else (f"within bounds: median correction {median:.2f} of its bound, "
-                                                  f"largest {float(share.max()):.2f}")  # fmt: skip
+        suspect.append(
+            f"{len(log.cameras)} of {len(names)} cameras pulled back onto a bound ({log.pulled_back} "
+            f"times, first at step {log.first_step})"
+        )
+    summary = (
+        "; ".join(suspect)
+        if suspect
+        else (f"within bounds: median correction {median:.2f} of its bound, largest {float(share.max()):.2f}")
+    )
     return {
-        "bounds": {"max_rotation_deg": trust.max_rotation_deg, "max_translation": trust.max_translation,
-                   "stop_median": trust.stop_median},
+        "bounds": {
+            "max_rotation_deg": trust.max_rotation_deg,
+            "max_translation": trust.max_translation,
+            "stop_median": trust.stop_median,
+        },
         "rule": GUARD_RULE,
-        "pulled_back": log.pulled_back, "cameras_pulled_back": [names[i] for i in log.cameras],
+        "pulled_back": log.pulled_back,
+        "cameras_pulled_back": [names[i] for i in log.cameras],
         "first_pulled_back_step": log.first_step,
-        "stopped": log.stopped_at is not None, "stopped_at_step": log.stopped_at, "at_stop": log.at_stop,
+        "stopped": log.stopped_at is not None,
+        "stopped_at_step": log.stopped_at,
+        "at_stop": log.at_stop,
         "field_rolled_back_to_step": log.rolled_back_to,
         "largest_rotation_deg": round(log.largest_rotation_deg, 4),
         "largest_translation": round(log.largest_translation, 5),
-        "median_share": round(median, 4), "max_share": round(float(share.max()), 4),
-        "suspect": suspect, "summary": summary,
-        "limit": (f"no correction past {trust.max_rotation_deg:g} deg or {100 * trust.max_translation:g} % of the "
-                  f"distance to the scene centre; median below {trust.stop_median:g} of that"),
-    }  # fmt: skip
+        "median_share": round(median, 4),
+        "max_share": round(float(share.max()), 4),
+        "suspect": suspect,
+        "summary": summary,
+        "limit": (
+            f"no correction past {trust.max_rotation_deg:g} deg or {100 * trust.max_translation:g} % of the "
+            f"distance to the scene centre; median below {trust.stop_median:g} of that"
+        ),
+    }
 
 
-GUARD_RULE = ("trust region: a correction past max_rotation_deg or max_translation (a fraction of the camera's "
-              "distance to the scene centre) is projected back onto the bound and its Adam moments zeroed; when "
-              "the median correction passes stop_median of its bound, refinement stops and every correction goes "
-              "back to zero (the input cameras)")  # fmt: skip
+GUARD_RULE = (
+    "trust region: a correction past max_rotation_deg or max_translation (a fraction of the camera's "
+    "distance to the scene centre) is projected back onto the bound and its Adam moments zeroed; when "
+    "the median correction passes stop_median of its bound, refinement stops and every correction goes "
+    "back to zero (the input cameras)"
+)
 
 
 def pose_report(cameras: CameraOpt, scene: Scene, train_idx: tuple[int, ...]) -> dict[str, Any]:
@@ -604,16 +652,23 @@ def pose_report(cameras: CameraOpt, scene: Scene, train_idx: tuple[int, ...]) ->
     rot = np.array([c["rotation_deg"] for c in per_camera])
     trans = np.array([c["translation"] for c in per_camera])
     return {
-        "cameras": len(per_camera), "focal_scale": cameras.focal_scale,
-        "median_rotation_deg": float(np.median(rot)), "max_rotation_deg": float(rot.max()),
-        "median_translation": float(np.median(trans)), "max_translation": float(trans.max()),
+        "cameras": len(per_camera),
+        "focal_scale": cameras.focal_scale,
+        "median_rotation_deg": float(np.median(rot)),
+        "max_rotation_deg": float(rot.max()),
+        "median_translation": float(np.median(trans)),
+        "max_translation": float(trans.max()),
         "schedule": dataclasses.asdict(cameras.schedule),
-        "test_poses": TEST_POSE_RULE, "guard": guard_record(cameras, names), "per_camera": per_camera,
-    }  # fmt: skip
+        "test_poses": TEST_POSE_RULE,
+        "guard": guard_record(cameras, names),
+        "per_camera": per_camera,
+    }
 
 
-TEST_POSE_RULE = ("mapped into the refined frame by the similarity (Umeyama, camera centres) from the input "
-                  "training cameras to the refined ones; not optimised against the test photos")  # fmt: skip
+TEST_POSE_RULE = (
+    "mapped into the refined frame by the similarity (Umeyama, camera centres) from the input "
+    "training cameras to the refined ones; not optimised against the test photos"
+)
 
 
 def write_refined_transforms(scene: Scene, doc: dict[str, Any], train_idx: tuple[int, ...], path: Path) -> Path:
@@ -626,8 +681,12 @@ def write_refined_transforms(scene: Scene, doc: dict[str, Any], train_idx: tuple
     def rel(p: str | None) -> str | None:
         return None if p is None else os.path.relpath((scene.root / p).resolve(), folder)
 
-    frames = tuple(dataclasses.replace(f, file_path=rel(f.file_path), mask_path=rel(f.mask_path),
-                                       depth_file_path=rel(f.depth_file_path)) for f in refined.frames)  # fmt: skip
+    frames = tuple(
+        dataclasses.replace(
+            f, file_path=rel(f.file_path), mask_path=rel(f.mask_path), depth_file_path=rel(f.depth_file_path)
+        )
+        for f in refined.frames
+    )
     return write_scene(refined.replace(root=folder, frames=frames), path)
 
 
@@ -637,19 +696,32 @@ def test_pose_placement(refinement: dict[str, Any] | None) -> Any:
     if refinement is None:
         return "as in transforms.json (no pose refinement)"
     if refinement.get("stopped_at_step") is not None:
-        return (f"as in transforms.json: the guard stopped pose refinement at step {refinement['stopped_at_step']} "
-                "and the run kept its input cameras")  # fmt: skip
+        return (
+            f"as in transforms.json: the guard stopped pose refinement at step {refinement['stopped_at_step']} "
+            "and the run kept its input cameras"
+        )
     return refinement.get("test_poses")
 
 
-TEST_POSE_OPT_RULE = ("as above, then each test camera's SE(3) optimised against its photo with the field frozen "
-                      "(NeRF--, nerfstudio: eval --test-pose-steps)")  # fmt: skip
+TEST_POSE_OPT_RULE = (
+    "as above, then each test camera's SE(3) optimised against its photo with the field frozen "
+    "(NeRF--, nerfstudio: eval --test-pose-steps)"
+)
 
 
-def optimise_test_pose(model: Any, background: Tensor, world_from_cam: np.ndarray, intr: Intrinsics,
-                       photo: np.ndarray, steps: int, *, lr: float = 2e-3, batch: int = 2048,
-                       seed: int = 0, centre: np.ndarray | None = None
-                       ) -> tuple[np.ndarray, dict[str, float]]:  # fmt: skip
+def optimise_test_pose(
+    model: Any,
+    background: Tensor,
+    world_from_cam: np.ndarray,
+    intr: Intrinsics,
+    photo: np.ndarray,
+    steps: int,
+    *,
+    lr: float = 2e-3,
+    batch: int = 2048,
+    seed: int = 0,
+    centre: np.ndarray | None = None,
+) -> tuple[np.ndarray, dict[str, float]]:
     """One test camera world_from_cam [4, 4] refined against its photo [H, W, 3] (composited on `background`
     [3]) by `steps` Adam steps on a correction of the camera (`CameraOpt`, pivoted at the depth of `centre` [3],
     the scene centre; None: about the camera centre), the field (`model`, a FieldModel) frozen; each step

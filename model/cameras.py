@@ -33,9 +33,17 @@ from nerfpipe.radiance.camera import Intrinsics, generate_rays
 from nerfpipe.radiance.space import Space
 
 __all__ = [
-    "PATHS", "OPAQUE", "Renderable", "CameraRenderable", "render_view", "training_intrinsics", "CameraPath",
-    "camera_path", "is_path_file", "path_from_file",
-]  # fmt: skip
+    "PATHS",
+    "OPAQUE",
+    "Renderable",
+    "CameraRenderable",
+    "render_view",
+    "training_intrinsics",
+    "CameraPath",
+    "camera_path",
+    "is_path_file",
+    "path_from_file",
+]
 
 PATHS = ("auto", "turntable", "arc", "trajectory", "spiral", "test", "train")
 MAX_TURNTABLE_GAP_DEG = 90.0
@@ -81,7 +89,7 @@ class CameraRenderable(Protocol):
 @torch.no_grad()
 def render_view(
     trained: Renderable, intr: Intrinsics, world_from_cam: np.ndarray, device: torch.device, *, depth: bool = True
-):  # fmt: skip
+):
     """Render one camera (scene frame, OpenGL axes). Returns numpy float32 arrays:
     rgb [H, W, 3], depth [H, W] (z-depth of the expected t, scene units), depth_median [H, W] (z-depth of the
     median t), acc [H, W]. Memory: `trained.render_rays` works through the rays in chunks.
@@ -182,16 +190,27 @@ def path_from_file(file: str | Path, downscale: float = 1.0) -> CameraPath:
         base = Intrinsics(w=doc.width, h=doc.height, fx=f, fy=f, cx=doc.width / 2, cy=doc.height / 2)
         intr.append(_scaled(base, downscale, keep_distortion=False))
     names = tuple(f"frame_{k:05d}" for k in range(len(intr)))
-    used = {"path": "file", "file": str(file), "format": doc.source, "fps_in_file": doc.fps,
-            "size_in_file_wh": [doc.width, doc.height]}  # fmt: skip
-    return CameraPath(world_from_cams=doc.world_from_cams, intrinsics=tuple(intr), names=names, frame_indices=None,
-                      used=used)  # fmt: skip
+    used = {
+        "path": "file",
+        "file": str(file),
+        "format": doc.source,
+        "fps_in_file": doc.fps,
+        "size_in_file_wh": [doc.width, doc.height],
+    }
+    return CameraPath(
+        world_from_cams=doc.world_from_cams, intrinsics=tuple(intr), names=names, frame_indices=None, used=used
+    )
 
 
 def camera_path(
-    scene: Scene, kind: str, *, frames: int = 120, downscale: float = 1.0, elevation: float | None = None,
+    scene: Scene,
+    kind: str,
+    *,
+    frames: int = 120,
+    downscale: float = 1.0,
+    elevation: float | None = None,
     radius: float | None = None,
-) -> CameraPath:  # fmt: skip
+) -> CameraPath:
     """Cameras of a path over a trained run's scene. radius in the user's units (scaled into the scene frame);
     radius and elevation shape the turntable and the arc (a trajectory keeps the cameras' own). A `kind` ending in
     .json is a camera-path file (`path_from_file`; frames, radius and elevation do not apply)."""
@@ -209,8 +228,13 @@ def camera_path(
         intr = tuple(_scaled(scene.frame_intrinsics(i), downscale, keep_distortion=True) for i in idx)
         names = tuple(Path(scene.frames[i].file_path).stem for i in idx)
         split = kind if scene.split(kind) else "val"
-        return CameraPath(world_from_cams=poses, intrinsics=intr, names=names, frame_indices=tuple(idx),
-                          used={"path": kind, "split": split})  # fmt: skip
+        return CameraPath(
+            world_from_cams=poses,
+            intrinsics=intr,
+            names=names,
+            frame_indices=tuple(idx),
+            used={"path": kind, "split": split},
+        )
     if frames < 1:
         raise UserError(f"frames: expected >= 1, got {frames}")
     if radius is not None and not radius > 0:
@@ -231,9 +255,11 @@ def camera_path(
         if cover is None:
             cover = paths.azimuth_coverage(train_poses, orbit)
         used["coverage"] = {
-            "covered_deg": round(cover.covered_deg, 1), "largest_gap_deg": round(cover.largest_gap_deg, 1),
-            "cameras": len(train_idx), "of": "training camera azimuths about the orbit axis through the centre",
-        }  # fmt: skip
+            "covered_deg": round(cover.covered_deg, 1),
+            "largest_gap_deg": round(cover.largest_gap_deg, 1),
+            "cameras": len(train_idx),
+            "of": "training camera azimuths about the orbit axis through the centre",
+        }
         used.update(centre_scene=orbit.centre.tolist(), up=orbit.up.tolist(), up_reason=paths.up_axis(train_poses)[1])
     if kind in ("turntable", "arc"):
         if radius is not None:
@@ -246,9 +272,11 @@ def camera_path(
         poses = paths.turntable(orbit, frames, sweep_deg=360.0 if kind == "turntable" else cover.covered_deg)
         defaults = [name for name, value in (("radius", radius), ("elevation", elevation)) if value is None]
         used.update(
-            radius_scene=orbit.radius, radius_user=orbit.radius / scene.applied_scale,
-            elevation_deg=orbit.elevation_deg, from_training_cameras=defaults,
-        )  # fmt: skip
+            radius_scene=orbit.radius,
+            radius_user=orbit.radius / scene.applied_scale,
+            elevation_deg=orbit.elevation_deg,
+            from_training_cameras=defaults,
+        )
     elif kind == "trajectory":
         order, why = _path_order(scene, train_idx, train_poses, cover)
         sigma = TRAJECTORY_SIGMA if len(order) > 2 else 0.0
@@ -257,11 +285,13 @@ def camera_path(
         except ValueError as exc:  # a path through the point it looks at
             raise UserError(f"path=trajectory: {exc}; use path=turntable") from None
         used.update(
-            order=why, keyframes=len(order), smoothing_sigma_keyframes=sigma,
+            order=why,
+            keyframes=len(order),
+            smoothing_sigma_keyframes=sigma,
             length_scene=round(paths.path_length(poses[:, :3, 3]), 4),
             orientation="looks at the centre, image up towards `up`",
             spline="centripetal Catmull-Rom through the smoothed keyframes, resampled at equal arc length",
-        )  # fmt: skip
+        )
         ignored = [name for name, value in (("radius", radius), ("elevation", elevation)) if value is not None]
         if ignored:
             used["ignored"] = {
@@ -274,5 +304,6 @@ def camera_path(
             raise UserError(f"path=spiral: {exc}; use path=turntable") from None
         used.update(focus_scene=paths.focus_point(train_poses).tolist(), rotations=2, radii_percentile=90)
     names = tuple(f"frame_{k:05d}" for k in range(len(poses)))
-    return CameraPath(world_from_cams=poses, intrinsics=(intr,) * len(poses), names=names, frame_indices=None,
-                      used=used)  # fmt: skip
+    return CameraPath(
+        world_from_cams=poses, intrinsics=(intr,) * len(poses), names=names, frame_indices=None, used=used
+    )

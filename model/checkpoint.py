@@ -94,10 +94,17 @@ def read_checkpoint(path: Path, device: torch.device | str) -> dict:
     run's manifest.json recorded."""
     expected = _manifest_sha256(path)
     if expected is not None and path.is_file() and (found := sha256_file(path)) != expected:
-        raise UserError(f"{path}: checkpoint does not match the sha256 recorded in manifest.json (expected "
-                        f"{expected[:12]}..., found {found[:12]}...): corrupt or replaced")  # fmt: skip
-    state = load_state(path, device, fmt=CHECKPOINT_FORMAT, missing="no checkpoint to resume from",
-                       kind=f"a nerfpipe train checkpoint (format {CHECKPOINT_FORMAT})")  # fmt: skip
+        raise UserError(
+            f"{path}: checkpoint does not match the sha256 recorded in manifest.json (expected "
+            f"{expected[:12]}..., found {found[:12]}...): corrupt or replaced"
+        )
+    state = load_state(
+        path,
+        device,
+        fmt=CHECKPOINT_FORMAT,
+        missing="no checkpoint to resume from",
+        kind=f"a nerfpipe train checkpoint (format {CHECKPOINT_FORMAT})",
+    )
     kind = state.get("field_config", {}).get("kind") if isinstance(state.get("field_config"), dict) else None
     if kind not in FIELD_KINDS:
         raise UserError(f"{path}: checkpoint holds a field of kind {kind!r}; expected one of {', '.join(FIELD_KINDS)}")
@@ -127,8 +134,9 @@ def load_state(path: Path, device: torch.device | str, *, fmt: object, missing: 
         found = state.get("format") if isinstance(state, dict) else None
         writer = state.get("nerfpipe_version") if isinstance(state, dict) else None
         by = f" written by nerfpipe {writer}" if writer else ""
-        raise UserError(f"{path}: not {kind}: found format {found!r}{by}, "
-                        f"this is nerfpipe {versions().get('nerfpipe', 'unknown')}")  # fmt: skip
+        raise UserError(
+            f"{path}: not {kind}: found format {found!r}{by}, this is nerfpipe {versions().get('nerfpipe', 'unknown')}"
+        )
     return state
 
 

@@ -98,9 +98,11 @@ def world_from_env(env: Mapping[str, str] | None = None) -> World:
         got = ", ".join(f"{k}={env.get(k)!r}" for k in _ENV)
         raise UserError(f"expected whole numbers in {', '.join(_ENV)} (set by torchrun), got {got}") from None
     if size < 1 or not 0 <= rank < size or not 0 <= local < max(local_size, 1):
-        raise UserError(f"expected 0 <= RANK < WORLD_SIZE and 0 <= LOCAL_RANK < LOCAL_WORLD_SIZE (set by "
-                        f"torchrun), got RANK={rank}, WORLD_SIZE={size}, LOCAL_RANK={local}, "
-                        f"LOCAL_WORLD_SIZE={local_size}")  # fmt: skip
+        raise UserError(
+            f"expected 0 <= RANK < WORLD_SIZE and 0 <= LOCAL_RANK < LOCAL_WORLD_SIZE (set by "
+            f"torchrun), got RANK={rank}, WORLD_SIZE={size}, LOCAL_RANK={local}, "
+            f"LOCAL_WORLD_SIZE={local_size}"
+        )
     return SINGLE if size == 1 else World(rank=rank, size=size, local_rank=local, local_size=local_size)
 
 
@@ -113,13 +115,17 @@ def rank_device(name: str, world: World) -> torch.device:
     if dev.type != "cuda":
         return dev
     if dev.index is not None and world.local_size > 1:
-        raise UserError(f"device: {name} would put the {world.local_size} ranks of this machine on one GPU; give "
-                        "device cuda or auto (rank r takes cuda:LOCAL_RANK)")  # fmt: skip
+        raise UserError(
+            f"device: {name} would put the {world.local_size} ranks of this machine on one GPU; give "
+            "device cuda or auto (rank r takes cuda:LOCAL_RANK)"
+        )
     index = world.local_rank if dev.index is None else dev.index
     if index >= torch.cuda.device_count():
-        raise UserError(f"device: rank {world.rank} needs cuda:{index} (LOCAL_RANK), torch sees "
-                        f"{torch.cuda.device_count()} CUDA devices; start at most that many processes a "
-                        "machine")  # fmt: skip
+        raise UserError(
+            f"device: rank {world.rank} needs cuda:{index} (LOCAL_RANK), torch sees "
+            f"{torch.cuda.device_count()} CUDA devices; start at most that many processes a "
+            "machine"
+        )
     return torch.device("cuda", index)
 
 
@@ -135,9 +141,13 @@ class DataParallel:
 
     def describe(self) -> dict:
         """The manifest's `used.data_parallel`."""
-        return {"world_size": self.world.size, "backend": self.backend, "rays": "each step's batch drawn whole "
-                "on every rank; rank r renders rays [r B // W, (r + 1) B // W); gradients summed over the ranks "
-                "and divided by W (the one-process gradient of the batch up to float summation order)"}  # fmt: skip
+        return {
+            "world_size": self.world.size,
+            "backend": self.backend,
+            "rays": "each step's batch drawn whole "
+            "on every rank; rank r renders rays [r B // W, (r + 1) B // W); gradients summed over the ranks "
+            "and divided by W (the one-process gradient of the batch up to float summation order)",
+        }
 
     def _all_reduce(self, t: Tensor, op: str = "sum") -> Tensor:
         import torch.distributed as dist
@@ -170,8 +180,10 @@ class DataParallel:
         if not params:
             return self._all_reduce(torch.tensor(extras, dtype=torch.float64, device=self.device)).tolist()
         like = params[0]
-        flat = [p.grad.reshape(-1) if p.grad is not None else torch.zeros(p.numel(), dtype=p.dtype, device=p.device)
-                for p in params]  # fmt: skip
+        flat = [
+            p.grad.reshape(-1) if p.grad is not None else torch.zeros(p.numel(), dtype=p.dtype, device=p.device)
+            for p in params
+        ]
         present = [1.0 if p.grad is not None else 0.0 for p in params]
         tail = torch.tensor(present + list(extras), dtype=torch.float64, device=like.device)
         buf = torch.cat([f.to(torch.float32) for f in flat])
@@ -210,13 +222,23 @@ class DataParallel:
         names = [k for k, v in named.items() if v is not None]
         if not names:
             return
-        fp = torch.stack([torch.stack([named[k].detach().double().sum(), named[k].detach().double().square().sum()])
-                          for k in names]).reshape(-1).to(self.device)  # fmt: skip
+        fp = (
+            torch.stack(
+                [
+                    torch.stack([named[k].detach().double().sum(), named[k].detach().double().square().sum()])
+                    for k in names
+                ]
+            )
+            .reshape(-1)
+            .to(self.device)
+        )
         hi, lo = self._all_reduce(fp.clone(), "max"), -self._all_reduce(-fp, "max")
         differ = [names[i // 2] for i in torch.nonzero(~((hi == lo) | (hi.isnan() & lo.isnan())))[:, 0].tolist()]
         if differ:
-            raise RuntimeError(f"data-parallel ranks diverged {where}: {', '.join(sorted(set(differ)))} differ between "
-                               "ranks (a nondeterministic operation on one rank?)")  # fmt: skip
+            raise RuntimeError(
+                f"data-parallel ranks diverged {where}: {', '.join(sorted(set(differ)))} differ between "
+                "ranks (a nondeterministic operation on one rank?)"
+            )
 
 
 @contextlib.contextmanager
@@ -235,14 +257,18 @@ def joined(world: World, device: torch.device) -> Iterator[DataParallel]:
     try:
         dist.init_process_group(backend, init_method="env://", rank=world.rank, world_size=world.size)
     except (ValueError, RuntimeError) as exc:
-        raise UserError(f"cannot join the other {world.size - 1} ranks ({backend}: {str(exc).splitlines()[0]}); start "
-                        "the command with torchrun") from None  # fmt: skip
+        raise UserError(
+            f"cannot join the other {world.size - 1} ranks ({backend}: {str(exc).splitlines()[0]}); start "
+            "the command with torchrun"
+        ) from None
     try:
         yield DataParallel(world, device, backend)
         try:
             dist.barrier(timeout=FINISH_WAIT)
         except RuntimeError as exc:  # another rank ended with an error after training: its own line says why
-            raise UserError(f"rank {world.rank}: another rank stopped before the end of the run (its message says "
-                            f"why; {backend}: {str(exc).splitlines()[0]})") from None  # fmt: skip
+            raise UserError(
+                f"rank {world.rank}: another rank stopped before the end of the run (its message says "
+                f"why; {backend}: {str(exc).splitlines()[0]})"
+            ) from None
     finally:
         dist.destroy_process_group()

@@ -85,13 +85,17 @@ class ModelSettings:
         try:
             fast = doc["fast"] if "fast" in doc else doc
             rank = fast.get("rank") or TENSORF_RANK
-            return cls(field=str(doc["field"]), resolution=(int(fast["resolution"][0]), int(fast["resolution"][1])),
-                       rank=tuple(int(r) for r in rank),
-                       step_ratio=float(fast["step_ratio"]), occupancy_resolution=int(fast["occupancy_resolution"]),
-                       render_step_factor=float(fast["render_step_factor"]),
-                       view_dependent=doc.get("view_dependent"),
-                       density_activation=str(fast.get("density_activation", DEFAULT_ACTIVATION)),
-                       mlp_width=int(fast.get("mlp_width", DEFAULT_HIDDEN)))  # fmt: skip
+            return cls(
+                field=str(doc["field"]),
+                resolution=(int(fast["resolution"][0]), int(fast["resolution"][1])),
+                rank=tuple(int(r) for r in rank),
+                step_ratio=float(fast["step_ratio"]),
+                occupancy_resolution=int(fast["occupancy_resolution"]),
+                render_step_factor=float(fast["render_step_factor"]),
+                view_dependent=doc.get("view_dependent"),
+                density_activation=str(fast.get("density_activation", DEFAULT_ACTIVATION)),
+                mlp_width=int(fast.get("mlp_width", DEFAULT_HIDDEN)),
+            )
         except (KeyError, TypeError, ValueError, IndexError) as exc:
             raise UserError(
                 f"{where}: config.json lacks a valid {exc} (written by another nerfpipe version?)"
@@ -133,17 +137,32 @@ def _render_fast(
     if infer is not None:
         marcher = dataclasses.replace(marcher, step_size=marcher.step_size * infer.step_scale)
         out = render_marched(
-            rays_o, rays_d, marcher=marcher, sigma_fn=field.density_inference, rgb_fn=_rgb_fn(field),
-            background=background, with_median=with_median, min_transmittance=_min_transmittance(infer, rays_o),
+            rays_o,
+            rays_d,
+            marcher=marcher,
+            sigma_fn=field.density_inference,
+            rgb_fn=_rgb_fn(field),
+            background=background,
+            with_median=with_median,
+            min_transmittance=_min_transmittance(infer, rays_o),
             colour=ColourRule(threshold=COLOR_THRESHOLD, per_ray=INFER_COLOR_PER_RAY, keep=infer.color_keep),
-        )  # fmt: skip
+        )
         return {**out, "samples": torch.tensor(float(out["samples"]))}
     if jitter:  # training
         colour = ColourRule(threshold=COLOR_THRESHOLD, min_per_ray=TRAIN_COLOR_MIN_PER_RAY)
     else:  # the differentiable march at the inference step (test-time optimisation): inference's colour rule
         colour = ColourRule(threshold=COLOR_THRESHOLD, per_ray=INFER_COLOR_PER_RAY)
-    out = render_marched(rays_o, rays_d, marcher=marcher, sigma_fn=field.density, rgb_fn=_rgb_fn(field),
-                         background=background, jitter=jitter, with_median=with_median, colour=colour)  # fmt: skip
+    out = render_marched(
+        rays_o,
+        rays_d,
+        marcher=marcher,
+        sigma_fn=field.density,
+        rgb_fn=_rgb_fn(field),
+        background=background,
+        jitter=jitter,
+        with_median=with_median,
+        colour=colour,
+    )
     return {**out, "samples": torch.tensor(float(out["ray_indices"].numel()))}
 
 
@@ -184,10 +203,16 @@ def _render_vanilla(
     them (radiance.render.render_rays_hierarchical)."""
     t_near, t_far = space.box_segment(rays_o, rays_d)
     out = render_rays_hierarchical(
-        rays_o, rays_d, near=t_near, far=t_far, n_fine=field.n_fine, background=background,
+        rays_o,
+        rays_d,
+        near=t_near,
+        far=t_far,
+        n_fine=field.n_fine,
+        background=background,
         coarse_sampler=StratifiedSampler(n_samples=field.n_coarse, jitter=jitter, generator=generator),
-        coarse_fn=_rgb_sigma(field.coarse, field.view_dependent), fine_fn=_rgb_sigma(field.fine, field.view_dependent),
-    )  # fmt: skip
+        coarse_fn=_rgb_sigma(field.coarse, field.view_dependent),
+        fine_fn=_rgb_sigma(field.fine, field.view_dependent),
+    )
     out["rgb_coarse"] = out["coarse"]["rgb"]
     out["samples"] = torch.tensor(float(out["coarse"]["t_starts"].numel() + out["t_starts"].numel()))
     return out
@@ -210,9 +235,17 @@ class FieldModel:
         return 8192 if self.kind == "fast" else 1024
 
     def render(
-        self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, gen=None, median=False, view=None,
+        self,
+        o: Tensor,
+        d: Tensor,
+        background: Tensor,
+        *,
+        train: bool,
+        gen=None,
+        median=False,
+        view=None,
         infer: Inference | None = Inference(),
-    ):  # fmt: skip
+    ):
         """World rays o, d [R, 3] (unit d) -> dict(rgb, depth, depth_median, acc, ...); depths are distances
         along the world rays whatever space the field lives in. With per-image appearance, `view` [R] gives
         each ray's training view (None: the evaluation rule, `model.appearance`). Not training, a fast field
@@ -243,8 +276,10 @@ class FieldModel:
         distance (`Space.normalized_distance`; contracted: the warped distance). Only where the space defines it:
         the fog it removes is what a short real capture grows near its cameras."""
         if self.kind != "fast" or not self.space.distortion_loss:
-            raise ValueError(f"distortion: expected a fast field in a space with a distortion loss, got {self.kind} "
-                             f"in {self.space.name}")  # fmt: skip
+            raise ValueError(
+                f"distortion: expected a fast field in a space with a distortion loss, got {self.kind} "
+                f"in {self.space.name}"
+            )
         idx = out["ray_indices"]
         s0 = self.space.normalized_distance(o, d, out["t_starts"], idx)
         s1 = self.space.normalized_distance(o, d, out["t_ends"], idx)
@@ -253,9 +288,16 @@ class FieldModel:
     def _render(self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, gen, median, infer):
         if self.kind == "fast":
             step = self.step_size if train else self.step_size * self.render_step_factor
-            return _render_fast(self.field, Marcher(space=self.space, grid=self.grid, step_size=step), o, d,
-                                background=background, jitter=train, with_median=median,
-                                infer=None if train else infer)  # fmt: skip
+            return _render_fast(
+                self.field,
+                Marcher(space=self.space, grid=self.grid, step_size=step),
+                o,
+                d,
+                background=background,
+                jitter=train,
+                with_median=median,
+                infer=None if train else infer,
+            )
         return _render_vanilla(self.field, o, d, space=self.space, background=background, jitter=train, generator=gen)
 
 
@@ -323,10 +365,15 @@ def build_model(
     if field_cfg is None:
         if settings.field == "fast":
             density_rank, app_rank = split_rank(settings.rank)
-            field_cfg = TensoRF(aabb=aabb, resolution=settings.resolution[0], density_rank=density_rank,
-                                app_rank=app_rank, view_dependent=view_dep,
-                                density_activation=settings.density_activation,
-                                hidden=settings.mlp_width).config()  # fmt: skip
+            field_cfg = TensoRF(
+                aabb=aabb,
+                resolution=settings.resolution[0],
+                density_rank=density_rank,
+                app_rank=app_rank,
+                view_dependent=view_dep,
+                density_activation=settings.density_activation,
+                hidden=settings.mlp_width,
+            ).config()
         else:
             field_cfg = VanillaNeRF(view_dependent=view_dep).config()
     field = make_field(field_cfg).to(device)
@@ -338,8 +385,15 @@ def build_model(
         # after the field had cleared them (tiny npz: 60 % of samples in "occupied" free space, 26.2 dB at 40 s).
         grid = OccupancyGrid(aabb, settings.occupancy_resolution, threshold=EMPTY_OPACITY / step).to(device)
     background = background if background is not None else Background("fixed")
-    return FieldModel(field, grid, field_cfg["kind"], space, step * space.step_unit(), settings.render_step_factor,
-                      background.to(device))  # fmt: skip
+    return FieldModel(
+        field,
+        grid,
+        field_cfg["kind"],
+        space,
+        step * space.step_unit(),
+        settings.render_step_factor,
+        background.to(device),
+    )
 
 
 def _step_size(aabb: Tensor, resolution: int, ratio: float) -> float:

@@ -185,8 +185,14 @@ class TrainingLoop:
     """Steps `stepper` until the budget is spent (see the module doc); `stop` is polled between steps; `agree`
     (data-parallel runs) makes every rank take the same decisions."""
 
-    def __init__(self, settings: LoopSettings, stepper: Stepper, clock: Clock, stop: StopRequest | None = None,
-                 agree: Agreement | None = None):  # fmt: skip
+    def __init__(
+        self,
+        settings: LoopSettings,
+        stepper: Stepper,
+        clock: Clock,
+        stop: StopRequest | None = None,
+        agree: Agreement | None = None,
+    ):
         self.settings, self.stepper, self.clock, self.stop = settings, stepper, clock, stop
         self.agree = agree
         self._agreed: tuple[int | None, float, bool] = (None, clock.before, False)
@@ -256,8 +262,11 @@ class TrainingLoop:
     def _interrupted(self, seconds: float) -> None:
         signum = self._signum()
         where = f" (checkpoint {self.settings.checkpoint_path})" if self.settings.checkpoint_path else ""
-        raise Interrupted(f"interrupted ({signal.Signals(signum).name}) at step {self.stepper.step} after "
-                          f"{seconds:.1f} s; continue with --resume{where}", signum)  # fmt: skip
+        raise Interrupted(
+            f"interrupted ({signal.Signals(signum).name}) at step {self.stepper.step} after "
+            f"{seconds:.1f} s; continue with --resume{where}",
+            signum,
+        )
 
     def _checkpoint_due(self) -> bool:
         every, every_s = self.settings.checkpoint_every, self.settings.checkpoint_seconds
@@ -285,10 +294,14 @@ class TrainingLoop:
                 kept = f" ({settings.name}; try a lower --lr)"
             else:
                 kept = f"; last checkpoint kept in {path}" if path.exists() else f"; no checkpoint written to {path}"
-            raise TrainingDiverged(f"loss is not finite at step {stepper.step} after {self.failures} restores with "
-                                   f"lower learning rates{kept}")  # fmt: skip
+            raise TrainingDiverged(
+                f"loss is not finite at step {stepper.step} after {self.failures} restores with "
+                f"lower learning rates{kept}"
+            )
         snapshot, stepper.step = good
         stepper.restore(snapshot)
         stepper.lr_factor *= 0.5
-        print(f"{settings.name}: non-finite loss; restored step {stepper.step}, learning rate x{stepper.lr_factor}",
-              file=sys.stderr)  # fmt: skip
+        print(
+            f"{settings.name}: non-finite loss; restored step {stepper.step}, learning rate x{stepper.lr_factor}",
+            file=sys.stderr,
+        )

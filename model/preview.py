@@ -32,8 +32,11 @@ on lego_400 at 256 px the coarse preview is 44.9 dB from the refined one with it
 @torch.no_grad()
 def preview_rays(trained: Renderable, rays_o: torch.Tensor, rays_d: torch.Tensor, *, coarse: bool = False) -> dict:
     """rays [R, 3] (unit d) -> dict(rgb [R, 3], depth [R] (expected t), acc [R]) on the run's device."""
-    infer = Inference(min_transmittance=MIN_TRANSMITTANCE, step_scale=COARSE_STEP if coarse else 1.0,
-                      color_keep=COARSE_COLOR_KEEP if coarse else None)  # fmt: skip
+    infer = Inference(
+        min_transmittance=MIN_TRANSMITTANCE,
+        step_scale=COARSE_STEP if coarse else 1.0,
+        color_keep=COARSE_COLOR_KEEP if coarse else None,
+    )
     return trained.render_rays(rays_o, rays_d, infer=infer, median=False)
 
 

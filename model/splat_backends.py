@@ -62,10 +62,21 @@ def _gsplat_render(splats: sp.Splats, world_from_cam: Tensor, intr: Intrinsics, 
     cam_from_world_cv = torch.linalg.inv(torch.as_tensor(world_from_cam).to(like) @ OPENGL_FROM_OPENCV.to(like))
     ks = torch.tensor([[intr.fx, 0, intr.cx], [0, intr.fy, intr.cy], [0, 0, 1]]).to(like)
     colors, _, meta = rasterization(
-        splats.means, splats.quats, torch.exp(splats.log_scales), torch.sigmoid(splats.opacity_logits), splats.sh,
-        cam_from_world_cv[None], ks[None], intr.w, intr.h, sh_degree=sp.sh_degree(splats.sh.shape[1]),
-        backgrounds=background.to(like)[None], near_plane=0.01, eps2d=sp.EPS2D, packed=False,
-    )  # fmt: skip
+        splats.means,
+        splats.quats,
+        torch.exp(splats.log_scales),
+        torch.sigmoid(splats.opacity_logits),
+        splats.sh,
+        cam_from_world_cv[None],
+        ks[None],
+        intr.w,
+        intr.h,
+        sh_degree=sp.sh_degree(splats.sh.shape[1]),
+        backgrounds=background.to(like)[None],
+        near_plane=0.01,
+        eps2d=sp.EPS2D,
+        packed=False,
+    )
     means2d, radii = meta["means2d"], meta["radii"]  # [1, N, 2]; radii [1, N] or [1, N, 2] by version
     if means2d.requires_grad:
         means2d.retain_grad()

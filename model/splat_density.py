@@ -21,8 +21,16 @@ from torch import Tensor
 
 from nerfpipe.radiance import splats as sp
 
-__all__ = ["GRAD_THRESHOLD", "PERCENT_DENSE", "MIN_OPACITY", "SPLIT_SHRINK", "GradStats", "refine", "swap_parameters",
-           "carry_adam"]  # fmt: skip
+__all__ = [
+    "GRAD_THRESHOLD",
+    "PERCENT_DENSE",
+    "MIN_OPACITY",
+    "SPLIT_SHRINK",
+    "GradStats",
+    "refine",
+    "swap_parameters",
+    "carry_adam",
+]
 
 GRAD_THRESHOLD = 2e-4
 """Mean view-space gradient norm (half-image units) above which a Gaussian is cloned or split (3DGS)."""
@@ -55,8 +63,9 @@ class GradStats:
         return self.total / self.count.clamp_min(1)
 
 
-def refine(splats: sp.Splats, stats: GradStats, *, extent: float, limit: int,
-           gen: torch.Generator) -> tuple[sp.Splats, Tensor, Tensor, dict]:  # fmt: skip
+def refine(
+    splats: sp.Splats, stats: GradStats, *, extent: float, limit: int, gen: torch.Generator
+) -> tuple[sp.Splats, Tensor, Tensor, dict]:
     """Clone, split and prune (module doc) -> (the new Gaussians, detached; `source` [M] the old row each new row
     comes from; `fresh` [M] bool, the rows that are new; counts for the report). At most `limit` Gaussians after."""
     with torch.no_grad():
@@ -84,8 +93,12 @@ def refine(splats: sp.Splats, stats: GradStats, *, extent: float, limit: int,
         params[0][s0:] = halves
         params[1][s0:] -= math.log(SPLIT_SHRINK)
         fresh = torch.arange(source.shape[0], device=source.device) >= idx_keep.shape[0]
-    counts = {"cloned": int(idx_clone.shape[0]), "split": int(idx_split.shape[0]), "pruned": int(prune.sum()),
-              "gaussians": int(source.shape[0])}  # fmt: skip
+    counts = {
+        "cloned": int(idx_clone.shape[0]),
+        "split": int(idx_split.shape[0]),
+        "pruned": int(prune.sum()),
+        "gaussians": int(source.shape[0]),
+    }
     return sp.Splats(*params), source, fresh, counts
 
 

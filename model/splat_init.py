@@ -31,8 +31,14 @@ from nerfpipe.model.cameras import OPAQUE
 from nerfpipe.radiance import splats as sp
 from nerfpipe.radiance.camera import Intrinsics, generate_rays
 
-__all__ = ["gaussians_from_field", "INIT_RAYS_PER_GAUSSIAN", "INIT_MAX_RAYS_PER_GAUSSIAN", "INIT_OPACITY",
-           "INIT_DEPTH_AGREEMENT", "INIT_KNN_FRACTION"]  # fmt: skip
+__all__ = [
+    "gaussians_from_field",
+    "INIT_RAYS_PER_GAUSSIAN",
+    "INIT_MAX_RAYS_PER_GAUSSIAN",
+    "INIT_OPACITY",
+    "INIT_DEPTH_AGREEMENT",
+    "INIT_KNN_FRACTION",
+]
 
 INIT_RAYS_PER_GAUSSIAN = 2
 """Rays sent a round, per Gaussian asked for; rounds go on until as many rays as Gaussians hit a surface."""
@@ -46,8 +52,9 @@ INIT_KNN_FRACTION = 0.3
 """A Gaussian's initial size: this fraction of the rms distance to its 3 nearest neighbours (at least the footprint)."""
 
 
-def gaussians_from_field(trained: Any, intrinsics: list[Intrinsics], world_from_cams: list[Tensor], count: int,
-                         gen: torch.Generator) -> tuple[sp.Splats, dict]:  # fmt: skip
+def gaussians_from_field(
+    trained: Any, intrinsics: list[Intrinsics], world_from_cams: list[Tensor], count: int, gen: torch.Generator
+) -> tuple[sp.Splats, dict]:
     """At most `count` Gaussians (scene frame, float32, CPU) from `trained` (a `model.Trained`) seen through the
     training cameras (`intrinsics`, OpenGL `world_from_cams` [4, 4]); and what was used, for the manifest (module
     doc). UserError when fewer than 4 rays end on a surface."""
@@ -75,22 +82,31 @@ def gaussians_from_field(trained: Any, intrinsics: list[Intrinsics], world_from_
             hits += int(hit.sum())
     means, colors, footprint = torch.cat(pts), torch.cat(cols), torch.cat(foot)
     if means.shape[0] < 4:
-        raise UserError(f"{trained.scene.root}: fewer than 4 of {n_rays} training rays end on one surface in the field "
-                        f"(opacity >= {OPAQUE}, expected depth within {INIT_DEPTH_AGREEMENT:g} of the median): nothing "
-                        "to put Gaussians on (an empty or untrained run?)")  # fmt: skip
+        raise UserError(
+            f"{trained.scene.root}: fewer than 4 of {n_rays} training rays end on one surface in the field "
+            f"(opacity >= {OPAQUE}, expected depth within {INIT_DEPTH_AGREEMENT:g} of the median): nothing "
+            "to put Gaussians on (an empty or untrained run?)"
+        )
     keep = torch.randperm(means.shape[0], generator=gen)[:count]
     means, colors, footprint = means[keep], colors[keep], footprint[keep]
     dist, _ = cKDTree(means.numpy()).query(means.numpy(), k=4)
     knn = torch.from_numpy(np.sqrt(np.mean(dist[:, 1:] ** 2, axis=1))).float()
     scale = torch.maximum(INIT_KNN_FRACTION * knn, footprint).clamp_min(1e-7)
     n = means.shape[0]
-    splats = sp.Splats(means=means, log_scales=torch.log(scale)[:, None].expand(n, 3).contiguous(),
-                       quats=torch.tensor([1.0, 0, 0, 0]).expand(n, 4).contiguous(),
-                       opacity_logits=torch.full((n,), math.log(INIT_OPACITY / (1 - INIT_OPACITY))),
-                       sh=sp.rgb_to_sh0(colors)[:, None, :])  # fmt: skip
-    used = {"rays": n_rays, "rays_hit": hits, "gaussians": n,
-            "rule": f"median depth of training rays with acc >= {OPAQUE} whose expected depth is within "
-                    f"{INIT_DEPTH_AGREEMENT:g} of it; colour (rgb - (1 - acc) bg) / acc; size "
-                    f"{INIT_KNN_FRACTION:g} x rms distance to 3 nearest neighbours, at least t / f; opacity "
-                    f"{INIT_OPACITY:g}; SH degree 0"}  # fmt: skip
+    splats = sp.Splats(
+        means=means,
+        log_scales=torch.log(scale)[:, None].expand(n, 3).contiguous(),
+        quats=torch.tensor([1.0, 0, 0, 0]).expand(n, 4).contiguous(),
+        opacity_logits=torch.full((n,), math.log(INIT_OPACITY / (1 - INIT_OPACITY))),
+        sh=sp.rgb_to_sh0(colors)[:, None, :],
+    )
+    used = {
+        "rays": n_rays,
+        "rays_hit": hits,
+        "gaussians": n,
+        "rule": f"median depth of training rays with acc >= {OPAQUE} whose expected depth is within "
+        f"{INIT_DEPTH_AGREEMENT:g} of it; colour (rgb - (1 - acc) bg) / acc; size "
+        f"{INIT_KNN_FRACTION:g} x rms distance to 3 nearest neighbours, at least t / f; opacity "
+        f"{INIT_OPACITY:g}; SH degree 0",
+    }
     return splats, used

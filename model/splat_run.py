@@ -94,12 +94,19 @@ class RenderInput:
         made_from = next((v for k, v in (self.report.get("inputs") or {}).items() if k.endswith("checkpoint.pt")), None)
         ckpt = self.run_dir / "checkpoint.pt"
         now = sha256_file(ckpt) if ckpt.is_file() else None
-        return {**out, "splat_file": str(self.splat_file), "splat_sha256": sha256_file(self.splat_file),
-                "splat_report": str(self.report_path), "gaussians": self.report.get("gaussians"),
-                "splat_frame": self.report.get("frame"), "scene_from_file": np.linalg.inv(self.out_from_scene).tolist(),
-                "run_checkpoint": "the one the splats were made from" if made_from is not None and made_from == now
-                else "changed since the splats were made (or not recorded)",
-                "camera_model": "pinhole (distortion coefficients are not applied to splats)"}  # fmt: skip
+        return {
+            **out,
+            "splat_file": str(self.splat_file),
+            "splat_sha256": sha256_file(self.splat_file),
+            "splat_report": str(self.report_path),
+            "gaussians": self.report.get("gaussians"),
+            "splat_frame": self.report.get("frame"),
+            "scene_from_file": np.linalg.inv(self.out_from_scene).tolist(),
+            "run_checkpoint": "the one the splats were made from"
+            if made_from is not None and made_from == now
+            else "changed since the splats were made (or not recorded)",
+            "camera_model": "pinhole (distortion coefficients are not applied to splats)",
+        }
 
     def refuse_output(self, out: str | Path, what: str) -> None:
         """UserError when a consumer's output `out` (with its OUT.metrics.csv and OUT.manifest.json) would damage what
@@ -111,8 +118,10 @@ class RenderInput:
         own = {p.resolve(): p for p in (self.splat_file, self.report_path, sidecar(self.splat_file, "metrics.csv"))}
         for path in (Path(out), sidecar(out, "metrics.csv"), sidecar(out, "manifest.json")):
             if path.resolve() in own:
-                raise UserError(f"{out}: the {what} would write {path.name} over {own[path.resolve()]}, written with "
-                                "the splats; expected another name")  # fmt: skip
+                raise UserError(
+                    f"{out}: the {what} would write {path.name} over {own[path.resolve()]}, written with "
+                    "the splats; expected another name"
+                )
 
     def read_splats(self) -> sp.Splats:
         """The splat file's Gaussians in the run's scene frame (float64, CPU); UserError when the file does not hold
@@ -121,8 +130,10 @@ class RenderInput:
             raise ValueError("expected a splat input, got a run")
         splats = splats_from_data(read_ply(self.splat_file), self.out_from_scene, self.splat_file)
         if self.report.get("gaussians") not in (None, len(splats)):
-            raise UserError(f"{self.splat_file}: holds {len(splats)} Gaussians, {self.report_path.name} says "
-                            f"{self.report['gaussians']}; expected the file the report was written with")  # fmt: skip
+            raise UserError(
+                f"{self.splat_file}: holds {len(splats)} Gaussians, {self.report_path.name} says "
+                f"{self.report['gaussians']}; expected the file the report was written with"
+            )
         return splats
 
     def load(self, device: torch.device, load_trained: Callable[[Path, Any], Any]) -> Renderable:
@@ -138,8 +149,10 @@ def _report(path: Path) -> dict:
     """The splat stage's report next to `path`, checked (UserError naming the report)."""
     report = sidecar(path, "report.json")
     if not report.is_file():
-        raise UserError(f"{path}: no {report.name} next to it; expected a splat file written by the splat stage (its "
-                        "report names the run the splats were made from and their frame)")  # fmt: skip
+        raise UserError(
+            f"{path}: no {report.name} next to it; expected a splat file written by the splat stage (its "
+            "report names the run the splats were made from and their frame)"
+        )
     doc = read_json(report)
     if not isinstance(doc, dict) or doc.get("stage") != "splat":
         raise UserError(f'{report}: not a splat stage report (expected "stage": "splat")')
@@ -163,8 +176,10 @@ def _run_of(path: Path, doc: dict) -> Path:
     tried.append(Path(doc["config"]["run_dir"]))
     found = next((p for p in tried if p.is_dir()), None)
     if found is None:
-        raise UserError(f"{sidecar(path, 'report.json')}: the run the splats were made from is not found (looked in "
-                        f"{', '.join(map(str, tried))}); expected the run folder the splat stage read")  # fmt: skip
+        raise UserError(
+            f"{sidecar(path, 'report.json')}: the run the splats were made from is not found (looked in "
+            f"{', '.join(map(str, tried))}); expected the run folder the splat stage read"
+        )
     return found
 
 
@@ -176,8 +191,10 @@ def open_input(path: str | Path) -> RenderInput:
     if not path.is_file():
         raise UserError(f"{path}: splat file not found (expected a run directory or a .ply from the splat stage)")
     if path.suffix.lower() == ".splat":
-        raise UserError(f"{path}: a .splat file (a web viewers' layout, colours in 8 bits); expected the .ply the "
-                        "splat stage writes (INRIA's layout) to render or evaluate splats")  # fmt: skip
+        raise UserError(
+            f"{path}: a .splat file (a web viewers' layout, colours in 8 bits); expected the .ply the "
+            "splat stage writes (INRIA's layout) to render or evaluate splats"
+        )
     doc = _report(path)
     return RenderInput(run_dir=_run_of(path, doc), splat_file=path, report=doc)
 
@@ -188,8 +205,12 @@ def splats_from_data(data: SplatData, out_from_scene: np.ndarray, path: Path | s
     if len(data) == 0:
         raise UserError(f"{path}: holds no Gaussians")
     sh = np.concatenate([data.f_dc[:, None, :], np.transpose(data.f_rest, (0, 2, 1))], axis=1)
-    splats = sp.Splats(*(torch.from_numpy(np.asarray(a, dtype=np.float64)) for a in (data.means, data.scales,
-                       data.quats, data.opacity, sh)))  # fmt: skip
+    splats = sp.Splats(
+        *(
+            torch.from_numpy(np.asarray(a, dtype=np.float64))
+            for a in (data.means, data.scales, data.quats, data.opacity, sh)
+        )
+    )
     scene_from_out = np.linalg.inv(np.asarray(out_from_scene, dtype=np.float64))
     if np.allclose(scene_from_out, np.eye(4)):
         return splats

@@ -42,8 +42,9 @@ def load_training_photos(
         intr = scene.frame_intrinsics(i)
         img = load_masked_image(scene, i)
         if img.shape[:2] != (intr.h, intr.w):
-            raise UserError(f"{scene.image_path(i)}: image is {img.shape[1]}x{img.shape[0]}, transforms.json says "
-                            f"{intr.w}x{intr.h}")  # fmt: skip
+            raise UserError(
+                f"{scene.image_path(i)}: image is {img.shape[1]}x{img.shape[0]}, transforms.json says {intr.w}x{intr.h}"
+            )
         if downscale != 1.0:
             intr = intr.scaled(1.0 / downscale)
             img = cv2.resize(img, (intr.w, intr.h), interpolation=cv2.INTER_AREA)

@@ -132,10 +132,17 @@ def _points_of(
 
 
 def gather_points(
-    trained: Any, cams: CameraPath, *, target: int, acc_threshold: float,
-    keep: Callable[[np.ndarray], np.ndarray] | None = None, seed: int = 0, batch: int = 1 << 18,
-    progress: Progress | None = None, depth: Literal["expected", "median"] = "expected",
-) -> Gathered:  # fmt: skip
+    trained: Any,
+    cams: CameraPath,
+    *,
+    target: int,
+    acc_threshold: float,
+    keep: Callable[[np.ndarray], np.ndarray] | None = None,
+    seed: int = 0,
+    batch: int = 1 << 18,
+    progress: Progress | None = None,
+    depth: Literal["expected", "median"] = "expected",
+) -> Gathered:
     """Render passes of the cameras' rays (module doc) until at least `target` points are kept or every pixel is
     rendered. `keep(points_scene [K, 3]) -> mask [K]` drops points (a box); `depth` where a ray's point lies."""
     if depth not in ("expected", "median"):
@@ -155,8 +162,9 @@ def gather_points(
                 break
             if k != done_pass:
                 passes, done_pass = passes + 1, k
-            out = trained.render_rays(o.to(trained.device, torch.float32), d.to(trained.device, torch.float32),
-                                      median=depth == "median")  # fmt: skip
+            out = trained.render_rays(
+                o.to(trained.device, torch.float32), d.to(trained.device, torch.float32), median=depth == "median"
+            )
             n_opaque, n_bad, points, rgb, dirs = _points_of(trained, out, o, d, acc_threshold, key)
             rays, opaque, non_finite = rays + o.shape[0], opaque + n_opaque, non_finite + n_bad
             if keep is not None:
@@ -168,9 +176,18 @@ def gather_points(
             progress.advance(task, min(len(points), max(0, target - kept)))
             kept += len(points)
     joined = {name: np.concatenate(v) if v else np.zeros((0, 3)) for name, v in parts.items()}
-    return Gathered(points=joined["points"].astype(np.float64), rgb=joined["rgb"].astype(np.float32),
-                    dirs=joined["dirs"].astype(np.float32), pixels=pixels, stride=stride, passes=passes, rays=rays,
-                    opaque=opaque, non_finite=non_finite, outside=outside)  # fmt: skip
+    return Gathered(
+        points=joined["points"].astype(np.float64),
+        rgb=joined["rgb"].astype(np.float32),
+        dirs=joined["dirs"].astype(np.float32),
+        pixels=pixels,
+        stride=stride,
+        passes=passes,
+        rays=rays,
+        opaque=opaque,
+        non_finite=non_finite,
+        outside=outside,
+    )
 
 
 def density_normals(

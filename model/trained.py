@@ -171,8 +171,17 @@ def load_trained(run_dir: str | Path, device: str | torch.device = "auto") -> Tr
         occupancy, aabb = model.grid, space.field_box.to(dev)
     else:  # the grid and box are in the field's space; consumers (mesh) work in the scene frame
         occupancy, aabb = None, torch.as_tensor(scene.aabb, dtype=torch.float32, device=dev).reshape(2, 3)
-    return Trained(scene=scene, field=model.field, occupancy=occupancy, aabb=aabb, background=background,
-                   device=dev, model=model, run_config=doc, pose_refinement=refinement)  # fmt: skip
+    return Trained(
+        scene=scene,
+        field=model.field,
+        occupancy=occupancy,
+        aabb=aabb,
+        background=background,
+        device=dev,
+        model=model,
+        run_config=doc,
+        pose_refinement=refinement,
+    )
 
 
 def _read_run_scene(run_dir: Path, doc: dict) -> Scene:

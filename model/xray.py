@@ -176,8 +176,13 @@ def save_xray_checkpoint(path: Path, field: Field, opt: torch.optim.Optimizer | 
 
 
 def read_xray_checkpoint(path: Path, device: torch.device | str) -> dict:
-    return load_state(path, device, fmt=XRAY_CHECKPOINT_FORMAT, missing="no checkpoint",
-                      kind=f"an X-ray run checkpoint ({XRAY_CHECKPOINT_FORMAT})")  # fmt: skip
+    return load_state(
+        path,
+        device,
+        fmt=XRAY_CHECKPOINT_FORMAT,
+        missing="no checkpoint",
+        kind=f"an X-ray run checkpoint ({XRAY_CHECKPOINT_FORMAT})",
+    )
 
 
 def load_field(state: dict, device: torch.device) -> Field:

@@ -225,8 +225,13 @@ def _will_run(stage: str, make: str, makefile: str, goals: str) -> list[str]:
     env = dict(os.environ)
     env["MAKEFLAGS"] = re.sub(r"--jobserver-(auth|fds)=\S+|(?<!\S)-j\d*", "", env.get("MAKEFLAGS", ""))
     try:
-        res = subprocess.run([make, "-n", "--no-print-directory", "-f", makefile, *goals.split()], env=env,
-                             capture_output=True, text=True, timeout=60)  # fmt: skip
+        res = subprocess.run(
+            [make, "-n", "--no-print-directory", "-f", makefile, *goals.split()],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
         found = [m.group(1) for m in re.finditer(r"(?:^|/)nerfpipe (\w+)", res.stdout, flags=re.M)]
     except (OSError, subprocess.SubprocessError):
         found = []
@@ -262,10 +267,16 @@ def show(a: argparse.Namespace) -> None:
         fh.seek(0)
         if fh.readline().strip() == f"# make {a.token}":
             return
-        args = {"poses": a.poses_args, "train": a.train_args, "render": a.render_args, "depth": a.depth_args,
-                "mesh": a.mesh_args}  # fmt: skip
-        text = plan_text(_will_run(a.stage, a.make, a.makefile, a.goals), facts(out, a.photos, a.posed, a.poses_args),
-                         args, a.out)  # fmt: skip
+        args = {
+            "poses": a.poses_args,
+            "train": a.train_args,
+            "render": a.render_args,
+            "depth": a.depth_args,
+            "mesh": a.mesh_args,
+        }
+        text = plan_text(
+            _will_run(a.stage, a.make, a.makefile, a.goals), facts(out, a.photos, a.posed, a.poses_args), args, a.out
+        )
         print(text, flush=True)
         fh.seek(0)
         fh.truncate()

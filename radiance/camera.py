@@ -78,9 +78,18 @@ class Intrinsics:
         w, h = max(1, round(self.w * factor)), max(1, round(self.h * factor))
         sx, sy = w / self.w, h / self.h
         return Intrinsics(
-            w=w, h=h, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy,
-            k1=self.k1, k2=self.k2, k3=self.k3, p1=self.p1, p2=self.p2,
-        )  # fmt: skip
+            w=w,
+            h=h,
+            fx=self.fx * sx,
+            fy=self.fy * sy,
+            cx=self.cx * sx,
+            cy=self.cy * sy,
+            k1=self.k1,
+            k2=self.k2,
+            k3=self.k3,
+            p1=self.p1,
+            p2=self.p2,
+        )
 
 
 def distort(xy: Tensor, intr: Intrinsics) -> Tensor:

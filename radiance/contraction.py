@@ -115,9 +115,14 @@ def _switch_distance(c: Contraction, rays_o: Tensor, rays_d: Tensor, near: Tenso
 
 
 def warped_range(
-    c: Contraction, rays_o: Tensor, rays_d: Tensor, *, near: float | Tensor, step_size: float,
+    c: Contraction,
+    rays_o: Tensor,
+    rays_d: Tensor,
+    *,
+    near: float | Tensor,
+    step_size: float,
     jitter: Tensor | None = None,
-) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
+) -> tuple[Tensor, Tensor, Tensor]:
     """Each ray's warped marching range: (switch distance t_s [R], first step's s [R], s_end [R]); steps are
     s = s0 + k step_size while s < s_end, the last one ending at s_end (module doc)."""
     near_t = torch.as_tensor(near, dtype=rays_o.dtype, device=rays_o.device).expand(rays_o.shape[0])

@@ -79,8 +79,9 @@ class NDC:
 
     @classmethod
     def from_dict(cls, d: dict) -> NDC:
-        return cls(world_from_ref=np.asarray(d["world_from_ref"]), a=float(d["a"]), b=float(d["b"]),
-                   near=float(d["near"]))  # fmt: skip
+        return cls(
+            world_from_ref=np.asarray(d["world_from_ref"]), a=float(d["a"]), b=float(d["b"]), near=float(d["near"])
+        )
 
     # ---------------------------------------------------------------- frames
 
@@ -140,11 +141,14 @@ class NDC:
         o = o + shift[:, None] * d
         oz = -self.near  # every valid origin now lies on z = -n
         o_n = torch.stack([self.a * o[:, 0] / oz, self.b * o[:, 1] / oz, torch.full_like(o[:, 0], -1.0)], -1)
-        d_n = torch.stack([
-            self.a * (d[:, 0] / dz - o[:, 0] / oz),
-            self.b * (d[:, 1] / dz - o[:, 1] / oz),
-            torch.full_like(o[:, 0], -2.0 * self.near / oz),
-        ], -1)  # fmt: skip
+        d_n = torch.stack(
+            [
+                self.a * (d[:, 0] / dz - o[:, 0] / oz),
+                self.b * (d[:, 1] / dz - o[:, 1] / oz),
+                torch.full_like(o[:, 0], -2.0 * self.near / oz),
+            ],
+            -1,
+        )
         d_n = d_n / torch.linalg.vector_norm(d_n, dim=-1, keepdim=True)
         dummy_o = torch.tensor([10.0, 0.0, 0.0], dtype=o_n.dtype, device=o_n.device)
         dummy_d = torch.tensor([0.0, 0.0, 1.0], dtype=o_n.dtype, device=o_n.device)
@@ -168,11 +172,14 @@ class NDC:
     def _jacobian_times(self, q: Tensor, v: Tensor) -> Tensor:
         """J(q) v for reference-frame points q [..., 3] and vectors v [..., 3] (J = d ndc / d q)."""
         inv_z = 1.0 / q[..., 2]
-        return torch.stack([
-            self.a * (v[..., 0] - q[..., 0] * inv_z * v[..., 2]) * inv_z,
-            self.b * (v[..., 1] - q[..., 1] * inv_z * v[..., 2]) * inv_z,
-            -2.0 * self.near * v[..., 2] * inv_z * inv_z,
-        ], -1)  # fmt: skip
+        return torch.stack(
+            [
+                self.a * (v[..., 0] - q[..., 0] * inv_z * v[..., 2]) * inv_z,
+                self.b * (v[..., 1] - q[..., 1] * inv_z * v[..., 2]) * inv_z,
+                -2.0 * self.near * v[..., 2] * inv_z * inv_z,
+            ],
+            -1,
+        )
 
     def directions_to_ndc(self, x: Tensor, d: Tensor) -> Tensor:
         """World directions d [..., 3] at world points x [..., 3] -> unit NDC directions [..., 3]."""
@@ -223,5 +230,6 @@ def fit_ndc(world_from_cam: np.ndarray, intr: Intrinsics, near: float) -> NDC:
     """NDC of the mean training pose, with the first camera's focal lengths and size and the scene's near."""
     if not (near > 0 and math.isfinite(near)):
         raise ValueError(f"NDC needs a finite near bound > 0, got {near}")
-    return NDC(world_from_ref=mean_pose(world_from_cam), a=-2.0 * intr.fx / intr.w, b=-2.0 * intr.fy / intr.h,
-               near=float(near))  # fmt: skip
+    return NDC(
+        world_from_ref=mean_pose(world_from_cam), a=-2.0 * intr.fx / intr.w, b=-2.0 * intr.fy / intr.h, near=float(near)
+    )

@@ -192,9 +192,14 @@ def normalize(
     cam_scene = (centres - centre) * scale
     near, far = _near_far(c2w, rot, cam_scene, intrinsics, aabb, pts, centre, scale, depth_bounds)
     return Normalization(
-        applied_transform=applied, applied_scale=scale, aabb=aabb, near=near, far=far,
-        up_method=up_method, roi_method=roi_method,
-    )  # fmt: skip
+        applied_transform=applied,
+        applied_scale=scale,
+        aabb=aabb,
+        near=near,
+        far=far,
+        up_method=up_method,
+        roi_method=roi_method,
+    )
 
 
 def _near_far(c2w, rot, cam_scene, intrinsics, aabb, pts, centre, scale, depth_bounds) -> tuple[float, float]:

@@ -219,8 +219,10 @@ def occupied_span(
     Costs about (t1 - t0) / h queries a ray, `factor` x fewer than marching at half a fine cell. With several
     `factors` (coarse to fine) each pass samples only the span the last one found, a conservative span itself."""
     if rays_o.ndim != 2 or rays_o.shape != rays_d.shape or t0.shape != rays_o.shape[:1] or t1.shape != t0.shape:
-        raise ValueError(f"expected rays [R, 3] and t0, t1 [R], got {tuple(rays_o.shape)}, {tuple(rays_d.shape)}, "
-                         f"{tuple(t0.shape)}, {tuple(t1.shape)}")  # fmt: skip
+        raise ValueError(
+            f"expected rays [R, 3] and t0, t1 [R], got {tuple(rays_o.shape)}, {tuple(rays_d.shape)}, "
+            f"{tuple(t0.shape)}, {tuple(t1.shape)}"
+        )
     if not factors or min(factors) < 1:
         raise ValueError(f"expected factors >= 1, got {factors}")
     first, last = t0, t1

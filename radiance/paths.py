@@ -167,9 +167,12 @@ def orbit_from_cameras(world_from_cams: np.ndarray) -> Orbit:
     elev = np.degrees(np.arcsin(np.clip((rel @ up) / np.maximum(dist, 1e-300), -1.0, 1.0)))
     azim = np.degrees(np.arctan2(rel[0] @ e2, rel[0] @ e1))
     return Orbit(
-        centre=centre, up=up, radius=float(np.median(dist)), elevation_deg=float(np.median(elev)),
+        centre=centre,
+        up=up,
+        radius=float(np.median(dist)),
+        elevation_deg=float(np.median(elev)),
         start_azimuth_deg=float(azim),
-    )  # fmt: skip
+    )
 
 
 def turntable(orbit: Orbit, n_frames: int, *, sweep_deg: float = 360.0) -> np.ndarray:
@@ -305,8 +308,13 @@ def interpolate_polyline(points: np.ndarray, n: int, *, sigma: float = 0.0) -> n
 
 
 def trajectory(
-    world_from_cams: np.ndarray, n_frames: int, *, centre: np.ndarray, up: np.ndarray, sigma: float = 2.0,
-) -> np.ndarray:  # fmt: skip
+    world_from_cams: np.ndarray,
+    n_frames: int,
+    *,
+    centre: np.ndarray,
+    up: np.ndarray,
+    sigma: float = 2.0,
+) -> np.ndarray:
     """Poses [n_frames, 4, 4] along the cameras' path, given in path order: their centres, unrolled about the axis
     `up` through `centre`, smoothed (`sigma` in keyframes), splined, rolled back up and resampled at equal arc
     length; each frame looks at `centre` with its image up towards `up`."""
@@ -340,9 +348,14 @@ def mean_pose(world_from_cams: np.ndarray) -> np.ndarray:
 
 
 def spiral(
-    world_from_cams: np.ndarray, n_frames: int, *, focus_distance: float | None = None, rotations: float = 2.0,
-    percentile: float = 90.0, z_rate: float = 0.5,
-) -> np.ndarray:  # fmt: skip
+    world_from_cams: np.ndarray,
+    n_frames: int,
+    *,
+    focus_distance: float | None = None,
+    rotations: float = 2.0,
+    percentile: float = 90.0,
+    z_rate: float = 0.5,
+) -> np.ndarray:
     """LLFF-style spiral around the mean pose -> [N, 4, 4].
 
     Radii along the mean pose's right/up/back axes are the `percentile` of the cameras' absolute offsets from

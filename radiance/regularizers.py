@@ -69,8 +69,10 @@ def depth_nll_loss(
     a surface that sparse structure-from-motion points vouch for. Samples far from the depth carry no loss; a ray
     with no sample near its depth (skipped as empty) contributes 0."""
     if not (weights.shape == t_starts.shape == t_ends.shape == ray_indices.shape) or weights.ndim != 1:
-        raise ValueError(f"expected weights, t_starts, t_ends, ray_indices [N], got "
-                         f"{[tuple(t.shape) for t in (weights, t_starts, t_ends, ray_indices)]}")  # fmt: skip
+        raise ValueError(
+            f"expected weights, t_starts, t_ends, ray_indices [N], got "
+            f"{[tuple(t.shape) for t in (weights, t_starts, t_ends, ray_indices)]}"
+        )
     if depth.ndim != 1 or depth.shape != sigma.shape or depth.numel() < 1:
         raise ValueError(f"expected depth, sigma [R] with R >= 1, got {tuple(depth.shape)}, {tuple(sigma.shape)}")
     if weights.numel() == 0:

@@ -155,8 +155,13 @@ def _composite_samples(rays_o, rays_d, samples: Samples, rgb_sigma_fn: RgbSigmaF
     out = composite(
         sigmas, rgbs, samples.t_starts, samples.t_ends, samples.ray_indices, samples.n_rays, background=background
     )
-    return {**out, "sigmas": sigmas, "t_starts": samples.t_starts, "t_ends": samples.t_ends,
-            "ray_indices": samples.ray_indices}  # fmt: skip
+    return {
+        **out,
+        "sigmas": sigmas,
+        "t_starts": samples.t_starts,
+        "t_ends": samples.t_ends,
+        "ray_indices": samples.ray_indices,
+    }
 
 
 def render_rays(
@@ -193,9 +198,13 @@ def render_rays_hierarchical(
     samples = _sample(rays_o, rays_d, near, far, coarse_sampler)
     coarse = _composite_samples(rays_o, rays_d, samples, coarse_fn, background)
     t_starts, t_ends = resample_intervals(
-        samples.t_starts, samples.t_ends, coarse["weights"].detach(), n_fine, jitter=coarse_sampler.jitter,
+        samples.t_starts,
+        samples.t_ends,
+        coarse["weights"].detach(),
+        n_fine,
+        jitter=coarse_sampler.jitter,
         generator=coarse_sampler.generator,
-    )  # fmt: skip
+    )
     fine = _composite_samples(rays_o, rays_d, Samples(t_starts, t_ends, None, samples.n_rays), fine_fn, background)
     return {**fine, "coarse": coarse}
 
@@ -259,9 +268,11 @@ class Marcher:
             lo = (near if near is not None else -inf).index_select(0, p.ray_indices)  # [N]
             hi = (far if far is not None else inf).index_select(0, p.ray_indices)
             if bool(((p.t_starts < lo) | (p.t_ends > hi)).any()):
-                raise ValueError(f"expected near, far around the {self.space.name} space's march (near "
-                                 f"{self.space.near}, far {self.space.far} within the grid's box), got samples "
-                                 "outside them: narrow the space's near, far instead")  # fmt: skip
+                raise ValueError(
+                    f"expected near, far around the {self.space.name} space's march (near "
+                    f"{self.space.near}, far {self.space.far} within the grid's box), got samples "
+                    "outside them: narrow the space's near, far instead"
+                )
         return Samples(p.t_starts, p.t_ends, p.ray_indices, rays_o.shape[0], p.points, p.density_scale)
 
 
@@ -300,23 +311,52 @@ def render_marched(
     if min_transmittance is not None:
         with torch.no_grad():
             steps = marcher.space.steps(marcher.grid, rays_o, rays_d, marcher.step_size)
-            return _march_terminating(rays_o, rays_d, steps, marcher, sigma_fn, rgb_fn, background=background,
-                                      colour=colour, min_transmittance=min_transmittance,
-                                      with_median=with_median)  # fmt: skip
+            return _march_terminating(
+                rays_o,
+                rays_d,
+                steps,
+                marcher,
+                sigma_fn,
+                rgb_fn,
+                background=background,
+                colour=colour,
+                min_transmittance=min_transmittance,
+                with_median=with_median,
+            )
     if colour.keep is not None:
         raise ValueError("expected ColourRule.keep None when training (it is an inference preview rule)")
     s = marcher(rays_o, rays_d, jitter=jitter)  # the sampler call
     sigma = sigma_fn(s.points)  # [N]
     if s.density_scale is not None:
         sigma = sigma * s.density_scale  # [N] per ray length
-    return _shade_packed(rays_o, rays_d, s.ray_indices, s.t_starts, s.t_ends, s.points, sigma, rgb_fn=rgb_fn,
-                         background=background, colour=colour, with_median=with_median)  # fmt: skip
+    return _shade_packed(
+        rays_o,
+        rays_d,
+        s.ray_indices,
+        s.t_starts,
+        s.t_ends,
+        s.points,
+        sigma,
+        rgb_fn=rgb_fn,
+        background=background,
+        colour=colour,
+        with_median=with_median,
+    )
 
 
 def _march_terminating(
-    rays_o, rays_d, steps: Steps, marcher: Marcher, sigma_fn, rgb_fn, *, background, colour: ColourRule,
-    min_transmittance: float, with_median: bool,
-) -> dict:  # fmt: skip
+    rays_o,
+    rays_d,
+    steps: Steps,
+    marcher: Marcher,
+    sigma_fn,
+    rgb_fn,
+    *,
+    background,
+    colour: ColourRule,
+    min_transmittance: float,
+    with_median: bool,
+) -> dict:
     """Front-to-back marching in slabs of `segment` steps over the rays still alive (transmittance before the
     slab >= min_transmittance, steps left): occupancy, density on occupied steps, then the slab's weights from
     the optical depth carried over; acc, depth and the median accumulate per ray, colour candidates are kept.
@@ -418,7 +458,7 @@ def _in_batches(fn: RgbFn, x: Tensor, d: Tensor) -> Tensor:
 
 def _shade_packed(
     rays_o, rays_d, ray_idx, t0, t1, x, sigma, *, rgb_fn, background, colour: ColourRule, with_median: bool
-) -> dict:  # fmt: skip
+) -> dict:
     """Weights from packed densities; colour only where the weight counts (see render_marched)."""
     n = rays_o.shape[0]
     t_mid = 0.5 * (t0 + t1)

@@ -193,10 +193,17 @@ def resample_intervals(
     if bool(infinite.any()):
         if not bool(infinite.all()) or t_starts.shape[1] < 2:
             raise ValueError("expected an infinite last interval on every ray (or none) and S >= 2")
-        fine = sample_pdf(bins[:, :-1], weights[:, :-1], n_samples + (0 if include_coarse else 1),
-                          jitter=jitter, generator=generator, padding=padding)  # fmt: skip
+        fine = sample_pdf(
+            bins[:, :-1],
+            weights[:, :-1],
+            n_samples + (0 if include_coarse else 1),
+            jitter=jitter,
+            generator=generator,
+            padding=padding,
+        )
     else:
-        fine = sample_pdf(bins, weights, n_samples + (0 if include_coarse else 1),
-                          jitter=jitter, generator=generator, padding=padding)  # fmt: skip
+        fine = sample_pdf(
+            bins, weights, n_samples + (0 if include_coarse else 1), jitter=jitter, generator=generator, padding=padding
+        )
     edges = torch.sort(torch.cat([bins, fine], dim=-1), dim=-1).values if include_coarse else fine
     return edges[:, :-1].contiguous(), edges[:, 1:].contiguous()

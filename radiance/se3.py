@@ -119,8 +119,11 @@ def se3_log(m: Tensor) -> Tensor:
     a, b, _ = _coefficients(theta2)
     small = theta2 < _SMALL.get(m.dtype, 1e-3)
     # V^-1 = I - w^/2 + D w^2, D = (1 - A / (2 B)) / theta^2 = 1/12 + theta^2/720 + theta^4/30240 + ...
-    d = torch.where(small, 1 / 12 + theta2 / 720 + theta2**2 / 30240,
-                    (1 - a / (2 * b)) / torch.where(small, torch.ones_like(theta2), theta2))  # fmt: skip
+    d = torch.where(
+        small,
+        1 / 12 + theta2 / 720 + theta2**2 / 30240,
+        (1 - a / (2 * b)) / torch.where(small, torch.ones_like(theta2), theta2),
+    )
     k = hat(w)
     eye = torch.eye(3, dtype=m.dtype, device=m.device)
     v_inv = eye - 0.5 * k + d[..., None, None] * (k @ k)

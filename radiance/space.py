@@ -222,8 +222,11 @@ class Box(Space):
         return {"kind": self.name, "aabb": [list(r) for r in self.aabb], "near": self.near, "far": self.far}
 
     def left_out(self, forward_facing):
-        ndc = ("forward-facing scene trained in its box because that was asked for" if forward_facing
-               else "360-degree scene: NDC only applies to forward-facing captures")  # fmt: skip
+        ndc = (
+            "forward-facing scene trained in its box because that was asked for"
+            if forward_facing
+            else "360-degree scene: NDC only applies to forward-facing captures"
+        )
         return {
             "ndc": ndc,
             "contraction": "the scene's box holds everything the photos show (alpha or a plain background)",
@@ -303,8 +306,9 @@ class Contracted(Space):
         return float(self.contraction.half.mean())
 
     def march(self, grid, rays_o, rays_d, step, jitter):
-        ray_idx, t0, t1 = march_contracted(grid, self.contraction, rays_o, rays_d, near=self.near, step_size=step,
-                                           jitter=jitter)  # fmt: skip
+        ray_idx, t0, t1 = march_contracted(
+            grid, self.contraction, rays_o, rays_d, near=self.near, step_size=step, jitter=jitter
+        )
         x = self.contraction.contract(rays_o[ray_idx] + rays_d[ray_idx] * (0.5 * (t0 + t1))[:, None])  # [N, 3]
         scale = contraction_chord_scale(self.contraction, rays_o[ray_idx], rays_d[ray_idx], t0, t1)  # [N]
         return Packed(ray_idx, t0, t1, x, scale)
@@ -336,13 +340,18 @@ class Contracted(Space):
         return {"kind": self.name, "contraction": self.contraction.to_dict(), "near": self.near}
 
     def describe(self):
-        note = ("field and occupancy grid live in contracted space; the scene's box maps to [-1, 1]^3 and "
-                "everything beyond it into the shell up to 2")  # fmt: skip
+        note = (
+            "field and occupancy grid live in contracted space; the scene's box maps to [-1, 1]^3 and "
+            "everything beyond it into the shell up to 2"
+        )
         return {**super().describe(), "note": note}
 
     def left_out(self, forward_facing):
-        ndc = ("forward-facing scene contracted because that was asked for" if forward_facing
-               else "360-degree scene: NDC only applies to forward-facing captures")  # fmt: skip
+        ndc = (
+            "forward-facing scene contracted because that was asked for"
+            if forward_facing
+            else "360-degree scene: NDC only applies to forward-facing captures"
+        )
         return {"ndc": ndc}
 
 

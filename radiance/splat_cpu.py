@@ -167,8 +167,21 @@ class _Composite(torch.autograd.Function):
         dtype = pairs.dtype
         g_color = torch.zeros(h, w, 3, dtype=dtype) if g_color is None else g_color.to(dtype)
         g_alpha = torch.zeros(h, w, dtype=dtype) if g_trans is None else -g_trans.to(dtype)  # alpha = 1 - trans
-        d_pairs, d_bg = _backward(_np(pairs), _np(qmax), _np(starts), _np(bg), w, h, tile, nx, amax, _np(trans),
-                                  _np(last), _np(g_color), _np(g_alpha))  # fmt: skip
+        d_pairs, d_bg = _backward(
+            _np(pairs),
+            _np(qmax),
+            _np(starts),
+            _np(bg),
+            w,
+            h,
+            tile,
+            nx,
+            amax,
+            _np(trans),
+            _np(last),
+            _np(g_color),
+            _np(g_alpha),
+        )
         return torch.from_numpy(d_pairs), torch.from_numpy(d_bg), None, None, None, None, None, None, None
 
 
@@ -186,8 +199,18 @@ class Tiles:
     nx: int
 
 
-def composite(means2d: Tensor, conics: Tensor, opacities: Tensor, rgb: Tensor, background: Tensor, tiles: Tiles, *,
-              alpha_min: float, alpha_max: float, t_min: float) -> tuple[Tensor, Tensor]:  # fmt: skip
+def composite(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    rgb: Tensor,
+    background: Tensor,
+    tiles: Tiles,
+    *,
+    alpha_min: float,
+    alpha_max: float,
+    t_min: float,
+) -> tuple[Tensor, Tensor]:
     """Per-Gaussian `means2d` [N, 2] px, `conics` [N, 3] (a, b, c), `opacities` [N] (each >= alpha_min), `rgb`
     [N, 3], `background` [3] (one floating dtype, CPU), binned in `tiles` -> (rgb [H, W, 3] over the background,
     transmittance [H, W]); differentiable in the five float inputs (module doc). The kernels read one row per
@@ -206,5 +229,6 @@ def composite(means2d: Tensor, conics: Tensor, opacities: Tensor, rgb: Tensor, b
     pairs = torch.cat([means2d, conics, opacities[:, None], rgb], dim=-1)[gauss]  # [M, 9]
     with torch.no_grad():  # alpha < alpha_min exactly where q > 2 log(o / alpha_min)
         qmax = 2 * torch.log(opacities.detach()[gauss] / alpha_min)
-    return _Composite.apply(pairs, background, qmax, starts.long(), int(w), int(h), int(tile), int(nx),
-                            (float(alpha_max), float(t_min)))  # fmt: skip
+    return _Composite.apply(
+        pairs, background, qmax, starts.long(), int(w), int(h), int(tile), int(nx), (float(alpha_max), float(t_min))
+    )

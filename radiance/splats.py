@@ -80,8 +80,15 @@ FOV_CLAMP = 1.3
 SH_C0 = 0.28209479177387814
 _SH_C1 = 0.4886025119029199
 _SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
-_SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
-          1.445305721320277, -0.5900435899266435)  # fmt: skip
+_SH_C3 = (
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+)
 
 
 @dataclass
@@ -132,11 +139,20 @@ class Projected:
 def quat_to_rotmat(quats: Tensor) -> Tensor:
     """[N, 4] wxyz (any length > 0) -> [N, 3, 3] rotation matrices."""
     w, x, y, z = (quats / torch.linalg.norm(quats, dim=-1, keepdim=True)).unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(*quats.shape[:-1], 3, 3)  # fmt: skip
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(*quats.shape[:-1], 3, 3)
 
 
 def rotmat_to_quat(rot: Tensor) -> Tensor:
@@ -150,12 +166,15 @@ def rotmat_to_quat(rot: Tensor) -> Tensor:
     d10, d01 = m[:, 1, 0], m[:, 0, 1]
     d20, d02 = m[:, 2, 0], m[:, 0, 2]
     d21, d12 = m[:, 2, 1], m[:, 1, 2]
-    cands = torch.stack([
-        torch.stack([s / 4, (d21 - d12) / s, (d02 - d20) / s, (d10 - d01) / s], dim=-1),
-        torch.stack([(d21 - d12) / s, s / 4, (d01 + d10) / s, (d02 + d20) / s], dim=-1),
-        torch.stack([(d02 - d20) / s, (d01 + d10) / s, s / 4, (d12 + d21) / s], dim=-1),
-        torch.stack([(d10 - d01) / s, (d02 + d20) / s, (d12 + d21) / s, s / 4], dim=-1),
-    ], dim=1)  # [N, 4 cases, 4]  # fmt: skip
+    cands = torch.stack(
+        [
+            torch.stack([s / 4, (d21 - d12) / s, (d02 - d20) / s, (d10 - d01) / s], dim=-1),
+            torch.stack([(d21 - d12) / s, s / 4, (d01 + d10) / s, (d02 + d20) / s], dim=-1),
+            torch.stack([(d02 - d20) / s, (d01 + d10) / s, s / 4, (d12 + d21) / s], dim=-1),
+            torch.stack([(d10 - d01) / s, (d02 + d20) / s, (d12 + d21) / s, s / 4], dim=-1),
+        ],
+        dim=1,
+    )  # [N, 4 cases, 4]
     q = cands[torch.arange(m.shape[0], device=m.device), k]
     q = q / torch.linalg.norm(q, dim=-1, keepdim=True)
     return torch.where(q[:, :1] < 0, -q, q)
@@ -177,8 +196,13 @@ def transformed(splats: Splats, out_from_scene: Tensor) -> Splats:
     sh = splats.sh
     if sh.shape[1] > 1:
         sh = torch.einsum("jk,nkc->njc", sh_rotation(rot.detach().cpu(), sh_degree(sh.shape[1])).to(sh), sh)
-    return Splats(means=splats.means @ a.T + t, log_scales=splats.log_scales + torch.log(s),
-                  quats=rotmat_to_quat(r_g), opacity_logits=splats.opacity_logits, sh=sh)  # fmt: skip
+    return Splats(
+        means=splats.means @ a.T + t,
+        log_scales=splats.log_scales + torch.log(s),
+        quats=rotmat_to_quat(r_g),
+        opacity_logits=splats.opacity_logits,
+        sh=sh,
+    )
 
 
 def covariance(log_scales: Tensor, quats: Tensor) -> Tensor:
@@ -214,9 +238,15 @@ def sh_basis(dirs: Tensor, degree: int) -> Tensor:
         out += [c[0] * xy, c[1] * yz, c[2] * (2 * zz - xx - yy), c[3] * xz, c[4] * (xx - yy)]
         if degree > 2:
             c = _SH_C3
-            out += [c[0] * y * (3 * xx - yy), c[1] * xy * z, c[2] * y * (4 * zz - xx - yy),
-                    c[3] * z * (2 * zz - 3 * xx - 3 * yy), c[4] * x * (4 * zz - xx - yy), c[5] * z * (xx - yy),
-                    c[6] * x * (xx - 3 * yy)]  # fmt: skip
+            out += [
+                c[0] * y * (3 * xx - yy),
+                c[1] * xy * z,
+                c[2] * y * (4 * zz - xx - yy),
+                c[3] * z * (2 * zz - 3 * xx - 3 * yy),
+                c[4] * x * (4 * zz - xx - yy),
+                c[5] * z * (xx - yy),
+                c[6] * x * (xx - 3 * yy),
+            ]
     return torch.stack(out, dim=-1)
 
 
@@ -262,8 +292,9 @@ def _cam_from_world_cv(world_from_cam: Tensor, like: Tensor) -> tuple[Tensor, Te
     return rot, -rot @ centre, centre
 
 
-def project(splats: Splats, world_from_cam: Tensor, intr: Intrinsics, *, near: float = 0.01,
-            eps2d: float = EPS2D) -> Projected:  # fmt: skip
+def project(
+    splats: Splats, world_from_cam: Tensor, intr: Intrinsics, *, near: float = 0.01, eps2d: float = EPS2D
+) -> Projected:
     """Project every Gaussian (module doc). A Gaussian is visible when its mean is more than `near` in front of the
     camera, its opacity is at least 1/255 and its alpha >= 1/255 box meets the image."""
     means = splats.means
@@ -276,10 +307,13 @@ def project(splats: Splats, world_from_cam: Tensor, intr: Intrinsics, *, near: f
     tx = (p[:, 0] / zs).clamp(-lim_x, lim_x) * zs
     ty = (p[:, 1] / zs).clamp(-lim_y, lim_y) * zs
     zero = torch.zeros_like(zs)
-    jac = torch.stack([
-        torch.stack([intr.fx / zs, zero, -intr.fx * tx / (zs * zs)], dim=-1),
-        torch.stack([zero, intr.fy / zs, -intr.fy * ty / (zs * zs)], dim=-1),
-    ], dim=-2)  # [N, 2, 3]  # fmt: skip
+    jac = torch.stack(
+        [
+            torch.stack([intr.fx / zs, zero, -intr.fx * tx / (zs * zs)], dim=-1),
+            torch.stack([zero, intr.fy / zs, -intr.fy * ty / (zs * zs)], dim=-1),
+        ],
+        dim=-2,
+    )  # [N, 2, 3]
     m = jac @ rot  # [N, 2, 3]: J W
     cov2d = m @ covariance(splats.log_scales, splats.quats) @ m.transpose(-1, -2)
     a, b, c = cov2d[:, 0, 0] + eps2d, cov2d[:, 0, 1], cov2d[:, 1, 1] + eps2d
@@ -299,8 +333,9 @@ def project(splats: Splats, world_from_cam: Tensor, intr: Intrinsics, *, near: f
     dirs = means - centre
     dirs = dirs / torch.linalg.norm(dirs, dim=-1, keepdim=True).clamp_min(torch.finfo(dirs.dtype).tiny)
     rgb = sh_to_rgb(splats.sh, dirs)
-    return Projected(means2d=means2d, conics=conics, depths=z, extents=extents, opacities=opacities, rgb=rgb,
-                     visible=visible)  # fmt: skip
+    return Projected(
+        means2d=means2d, conics=conics, depths=z, extents=extents, opacities=opacities, rgb=rgb, visible=visible
+    )
 
 
 def _tile_pairs(proj: Projected, order: Tensor, w: int, h: int, tile: int) -> tuple[Tensor, Tensor, int, int]:
@@ -335,8 +370,17 @@ def _pair_coefficients(proj: Projected, tile_id: Tensor, gauss: Tensor, nx: int,
     mx, my = (proj.means2d[gauss] - middle).unbind(-1)
     a, b, c = proj.conics[gauss].unbind(-1)
     quad = a * mx * mx + c * my * my
-    return torch.stack([-0.5 * a, -0.5 * c, -b, a * mx + b * my, c * my + b * mx,
-                        torch.log(proj.opacities[gauss]) - 0.5 * quad - b * mx * my], dim=-1)  # fmt: skip
+    return torch.stack(
+        [
+            -0.5 * a,
+            -0.5 * c,
+            -b,
+            a * mx + b * my,
+            c * my + b * mx,
+            torch.log(proj.opacities[gauss]) - 0.5 * quad - b * mx * my,
+        ],
+        dim=-1,
+    )
 
 
 def _composite_tile(basis: Tensor, coeffs: Tensor, rgb: Tensor, chunk: int) -> tuple[Tensor, Tensor]:
@@ -377,8 +421,16 @@ def resolve_kernel(kernel: str, device: torch.device | str) -> str:
     return "numba" if torch.device(device).type == "cpu" and splat_cpu.available() else "torch"
 
 
-def rasterize(proj: Projected, w: int, h: int, background: Tensor, *, tile: int | None = None, chunk: int = 256,
-              kernel: str = "auto") -> dict[str, Tensor]:  # fmt: skip
+def rasterize(
+    proj: Projected,
+    w: int,
+    h: int,
+    background: Tensor,
+    *,
+    tile: int | None = None,
+    chunk: int = 256,
+    kernel: str = "auto",
+) -> dict[str, Tensor]:
     """Composite the visible Gaussians over `background` [3] -> dict(rgb [H, W, 3], alpha [H, W] = 1 - T_final).
 
     Tiles of `tile` x `tile` pixels each composite the Gaussians binned to them (module doc: the result does not
@@ -396,17 +448,36 @@ def rasterize(proj: Projected, w: int, h: int, background: Tensor, *, tile: int 
     starts = torch.searchsorted(tile_id, torch.arange(nx * ny + 1, device=tile_id.device))
     if fast:
         tiles = splat_cpu.Tiles(gauss=gauss, starts=starts, w=w, h=h, tile=tile, nx=nx)
-        rgb, trans = splat_cpu.composite(proj.means2d, proj.conics, proj.opacities, proj.rgb, background, tiles,
-                                         alpha_min=ALPHA_MIN, alpha_max=ALPHA_MAX, t_min=T_MIN)  # fmt: skip
+        rgb, trans = splat_cpu.composite(
+            proj.means2d,
+            proj.conics,
+            proj.opacities,
+            proj.rgb,
+            background,
+            tiles,
+            alpha_min=ALPHA_MIN,
+            alpha_max=ALPHA_MAX,
+            t_min=T_MIN,
+        )
         return {"rgb": rgb, "alpha": 1 - trans}
     coeffs, rgb_pairs = _pair_coefficients(proj, tile_id, gauss, nx, tile), proj.rgb[gauss]
     starts = starts.tolist()
-    ys, xs = torch.meshgrid(torch.arange(tile, device=like.device), torch.arange(tile, device=like.device),
-                            indexing="ij")  # fmt: skip
+    ys, xs = torch.meshgrid(
+        torch.arange(tile, device=like.device), torch.arange(tile, device=like.device), indexing="ij"
+    )
     offsets = torch.stack([xs.reshape(-1), ys.reshape(-1)], dim=-1)  # [tile^2, 2] (col, row)
     local = offsets.to(like.dtype) + 0.5 - 0.5 * tile  # pixel centres about the tile's middle
-    full_basis = torch.stack([local[:, 0] ** 2, local[:, 1] ** 2, local[:, 0] * local[:, 1], local[:, 0],
-                              local[:, 1], torch.ones_like(local[:, 0])], dim=-1)  # [tile^2, 6]  # fmt: skip
+    full_basis = torch.stack(
+        [
+            local[:, 0] ** 2,
+            local[:, 1] ** 2,
+            local[:, 0] * local[:, 1],
+            local[:, 0],
+            local[:, 1],
+            torch.ones_like(local[:, 0]),
+        ],
+        dim=-1,
+    )  # [tile^2, 6]
     tiles_rgb, tiles_t, where = [], [], []
     for t in range(nx * ny):
         s0, s1 = starts[t], starts[t + 1]
@@ -430,8 +501,16 @@ def rasterize(proj: Projected, w: int, h: int, background: Tensor, *, tile: int 
     return {"rgb": rgb.reshape(h, w, 3), "alpha": (1 - trans).reshape(h, w)}
 
 
-def render(splats: Splats, world_from_cam: Tensor, intr: Intrinsics, background: Tensor, *, tile: int | None = None,
-           near: float = 0.01, kernel: str = "auto") -> dict[str, Tensor]:  # fmt: skip
+def render(
+    splats: Splats,
+    world_from_cam: Tensor,
+    intr: Intrinsics,
+    background: Tensor,
+    *,
+    tile: int | None = None,
+    near: float = 0.01,
+    kernel: str = "auto",
+) -> dict[str, Tensor]:
     """Project and rasterise: dict(rgb [H, W, 3], alpha [H, W]) for one camera (module doc; `kernel` as
     `rasterize`)."""
     proj = project(splats, world_from_cam, intr, near=near)
@@ -442,8 +521,14 @@ def render(splats: Splats, world_from_cam: Tensor, intr: Intrinsics, background:
 def _hamilton(p: Tensor, q: Tensor) -> Tensor:
     pw, px, py, pz = p.unbind(-1)
     qw, qx, qy, qz = q.unbind(-1)
-    return torch.stack([pw * qw - px * qx - py * qy - pz * qz, pw * qx + px * qw + py * qz - pz * qy,
-                        pw * qy - px * qz + py * qw + pz * qx, pw * qz + px * qy - py * qx + pz * qw])  # fmt: skip
+    return torch.stack(
+        [
+            pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+        ]
+    )
 
 
 def _twin_covariance(log_scale: Tensor, quat: Tensor) -> Tensor:
@@ -455,8 +540,9 @@ def _twin_covariance(log_scale: Tensor, quat: Tensor) -> Tensor:
     return rs @ rs.T
 
 
-def render_reference(splats: Splats, world_from_cam: Tensor, intr: Intrinsics, background: Tensor, *,
-                     near: float = 0.01) -> dict[str, Tensor]:  # fmt: skip
+def render_reference(
+    splats: Splats, world_from_cam: Tensor, intr: Intrinsics, background: Tensor, *, near: float = 0.01
+) -> dict[str, Tensor]:
     """`render`'s plain twin for tests (tiny images, a few Gaussians; CPU): J by autograd of the pinhole projection,
     R by quaternion products, and 3DGS's per-pixel loop over every Gaussian in depth order (no tiles, no extents)."""
     dt = splats.means.dtype
@@ -473,8 +559,9 @@ def render_reference(splats: Splats, world_from_cam: Tensor, intr: Intrinsics, b
         pc = rot @ (splats.means[i] - centre)
         if not float(pc[2].detach()) > near:
             continue
-        clamped = torch.stack([(pc[0] / pc[2]).clamp(-lim[0], lim[0]) * pc[2],
-                               (pc[1] / pc[2]).clamp(-lim[1], lim[1]) * pc[2], pc[2]])  # fmt: skip
+        clamped = torch.stack(
+            [(pc[0] / pc[2]).clamp(-lim[0], lim[0]) * pc[2], (pc[1] / pc[2]).clamp(-lim[1], lim[1]) * pc[2], pc[2]]
+        )
         jac = torch.autograd.functional.jacobian(pixel, clamped, create_graph=True)  # [2, 3]
         cov = jac @ rot @ _twin_covariance(splats.log_scales[i], splats.quats[i]) @ rot.T @ jac.T
         cov = cov + EPS2D * torch.eye(2, dtype=dt)

@@ -60,16 +60,16 @@ def sweep_inputs(dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor]:
     t0 = torch.tensor([0.0, 1.0, 1.0, 2.0], dtype=torch.float64).expand(2 * n, 4)
     t1 = torch.tensor([[1.0, 1.0, 2.0, math.inf]] * n + [[1.0, 1.0, 2.0, 3.0]] * n, dtype=torch.float64)
     sigmas = torch.stack([taus, taus * 10, taus, taus * 0.5], dim=-1).repeat(2, 1)  # [2n, 4]
-    sigmas = torch.cat([sigmas, torch.tensor([[0.0, 0.0, 0.0, 0.0], [math.inf, 1.0, 0.0, 0.0]],
-                                             dtype=torch.float64)])  # fmt: skip
+    sigmas = torch.cat([sigmas, torch.tensor([[0.0, 0.0, 0.0, 0.0], [math.inf, 1.0, 0.0, 0.0]], dtype=torch.float64)])
     t0, t1 = torch.cat([t0, t0[:2]]), torch.cat([t1, t1[:2]])
     return sigmas.to(dtype), t0.to(dtype), t1.to(dtype)
 
 
 def ray_labels() -> list[str]:
     """One label per row of `sweep_inputs`: "tau=1e-12, far=inf", ..., "sigma=0", "sigma=inf first"."""
-    return ([f"tau={t:.0e}, far=inf" for t in TAUS] + [f"tau={t:.0e}, far=3" for t in TAUS]
-            + ["sigma=0", "sigma=inf first"])  # fmt: skip
+    return (
+        [f"tau={t:.0e}, far=inf" for t in TAUS] + [f"tau={t:.0e}, far=3" for t in TAUS] + ["sigma=0", "sigma=inf first"]
+    )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -97,9 +97,18 @@ def run_sweep(dtype: torch.dtype) -> Sweep:
     out = composite(sigmas, rgbs, t0, t1, background=background)
     (out["rgb"].sum() + out["depth"].sum() + out["acc"].sum()).backward()
     trans = beer_lambert(sigmas.detach(), t0, t1)["transmittance"]
-    return Sweep(dtype=dtype, sigmas=sigmas.detach(), t_starts=t0, t_ends=t1, rgbs=rgbs.detach(),
-                 background=background, outputs={k: v.detach() for k, v in out.items()}, sigma_grad=sigmas.grad,
-                 rgb_grad=rgbs.grad, transmittance=trans)  # fmt: skip
+    return Sweep(
+        dtype=dtype,
+        sigmas=sigmas.detach(),
+        t_starts=t0,
+        t_ends=t1,
+        rgbs=rgbs.detach(),
+        background=background,
+        outputs={k: v.detach() for k, v in out.items()},
+        sigma_grad=sigmas.grad,
+        rgb_grad=rgbs.grad,
+        transmittance=trans,
+    )
 
 
 def _tau(sigma: Decimal, delta: Decimal) -> Decimal:
@@ -154,8 +163,9 @@ def relative_error(x: Tensor, ref: Tensor, dtype: torch.dtype) -> Tensor:
 def summarize(sweep: Sweep) -> dict:
     """Worst relative error per quantity (and its ray's label), finiteness of values and gradients, sum w <= 1."""
     dtype = sweep.dtype
-    ref = closed_form(sweep.sigmas, sweep.t_starts, sweep.t_ends, sweep.rgbs, sweep.background,
-                      eps(sweep.outputs["acc"].dtype))  # fmt: skip
+    ref = closed_form(
+        sweep.sigmas, sweep.t_starts, sweep.t_ends, sweep.rgbs, sweep.background, eps(sweep.outputs["acc"].dtype)
+    )
     got = {**{k: sweep.outputs[k] for k in ("weights", "acc", "rgb", "depth")}, "transmittance": sweep.transmittance}
     labels = ray_labels()
     worst, where = {}, {}

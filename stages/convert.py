@@ -278,11 +278,16 @@ def _run(config: Config, scene_dir: Path) -> Outputs:
         box, roi_from = None, "the data: sparse points, stated depth bounds or the cameras (radiance.normalize)"
     up = config.up if config.up != "auto" else source.up
     norm = normalize(
-        np.stack([f.world_from_cam for f in frames]), [f.intrinsics for f in frames],
-        up=up, points=source.points, box=box,  # type: ignore[arg-type]
+        np.stack([f.world_from_cam for f in frames]),
+        [f.intrinsics for f in frames],
+        up=up,
+        points=source.points,
+        box=box,  # type: ignore[arg-type]
         depth_bounds=source.depth_bounds[keep] if source.depth_bounds is not None else None,
-        percentile=config.roi_percentile, margin=config.roi_margin, rescale=config.normalize,
-    )  # fmt: skip
+        percentile=config.roi_percentile,
+        margin=config.roi_margin,
+        rescale=config.normalize,
+    )
     scene_from_source = norm.scene_from_source()
     applied, scale = _compose(norm, source.source_from_original)
 
@@ -319,7 +324,7 @@ def _run(config: Config, scene_dir: Path) -> Outputs:
                 intrinsics=None if shared is not None else f.intrinsics,
                 mask_path=f"masks/{mask_name}" if mask_name is not None else None,
                 depth_file_path=_copy_aux(f.depth, scene_dir / "depths", f.name),
-            )  # fmt: skip
+            )
         )
 
     extra = dict(source.extra)
@@ -330,18 +335,27 @@ def _run(config: Config, scene_dir: Path) -> Outputs:
         _write_ply(scene_dir / "sparse_points.ply", pts, source.colors)
         extra["sparse_points_path"] = "sparse_points.ply"
         outputs.append(scene_dir / "sparse_points.ply")
-        observed = {fr.file_path: f.point_ids for f, fr in zip(frames, out_frames, strict=True)
-                    if f.point_ids is not None}  # fmt: skip
+        observed = {
+            fr.file_path: f.point_ids for f, fr in zip(frames, out_frames, strict=True) if f.point_ids is not None
+        }
         if observed:
             write_sparse_depth(scene_dir / SPARSE_FILE, pts, observed)
             extra[SPARSE_KEY] = SPARSE_FILE
             outputs.append(scene_dir / SPARSE_FILE)
 
     scene = Scene(
-        root=scene_dir, frames=tuple(out_frames), intrinsics=shared, applied_transform=applied,
-        applied_scale=scale, aabb=norm.aabb, near=norm.near, far=norm.far, splits=splits,
-        has_alpha=source.has_alpha, extra=extra,
-    )  # fmt: skip
+        root=scene_dir,
+        frames=tuple(out_frames),
+        intrinsics=shared,
+        applied_transform=applied,
+        applied_scale=scale,
+        aabb=norm.aabb,
+        near=norm.near,
+        far=norm.far,
+        splits=splits,
+        has_alpha=source.has_alpha,
+        extra=extra,
+    )
     transforms = write_scene(scene, scene_dir / "transforms.json")
     read_scene(transforms)  # what we wrote must parse
     outputs.insert(0, transforms)
@@ -355,18 +369,38 @@ def _run(config: Config, scene_dir: Path) -> Outputs:
     if skipped:
         left_out[f"images_{skipped}"] = f"short image side {short} px / F < {config.min_downscaled_size} px"
     manifest = write_manifest(
-        scene_dir, name="convert_manifest.json", stage="convert", started=started, inputs=source.inputs,
+        scene_dir,
+        name="convert_manifest.json",
+        stage="convert",
+        started=started,
+        inputs=source.inputs,
         outputs=outputs,
-        used={**source.used, "kind": source.kind, "up": norm.up_method, "roi": norm.roi_method,
-              "roi_from": roi_from, "aabb_source_frame": _source_box(norm, scene_from_source),
-              "scene_type": extra["scene_type"], "frames": len(frames), "downscales": factors,
-              "masks": f"{masked} of {len(frames)} frames: masks/ (white = keep; masked-out pixels train as "
-                       "transparent, data.masks)" if masked else None},
-        left_out=left_out, config=config_to_json(config),
-    )  # fmt: skip
+        used={
+            **source.used,
+            "kind": source.kind,
+            "up": norm.up_method,
+            "roi": norm.roi_method,
+            "roi_from": roi_from,
+            "aabb_source_frame": _source_box(norm, scene_from_source),
+            "scene_type": extra["scene_type"],
+            "frames": len(frames),
+            "downscales": factors,
+            "masks": f"{masked} of {len(frames)} frames: masks/ (white = keep; masked-out pixels train as "
+            "transparent, data.masks)"
+            if masked
+            else None,
+        },
+        left_out=left_out,
+        config=config_to_json(config),
+    )
     log.info("convert: %d frames from %s (%s) -> %s", len(frames), config.source, source.kind, transforms)
     return Outputs(
-        transforms=transforms, manifest=manifest, kind=source.kind, num_frames=len(frames),
-        splits={s: len(i) for s, i in splits.items()}, downscales=tuple(factors),
-        applied_transform=applied, applied_scale=scale,
-    )  # fmt: skip
+        transforms=transforms,
+        manifest=manifest,
+        kind=source.kind,
+        num_frames=len(frames),
+        splits={s: len(i) for s, i in splits.items()},
+        downscales=tuple(factors),
+        applied_transform=applied,
+        applied_scale=scale,
+    )

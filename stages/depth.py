@@ -162,8 +162,15 @@ class _DepthWatch:
         self.coverage: list[float] = []  # per view: share of pixels with depth
         self.valid = self.beyond = self.non_finite = 0
 
-    def add(self, view: dict[str, np.ndarray], z: np.ndarray, valid: np.ndarray, opaque: np.ndarray,
-            intr: Intrinsics, world_from_cam: np.ndarray) -> None:  # fmt: skip
+    def add(
+        self,
+        view: dict[str, np.ndarray],
+        z: np.ndarray,
+        valid: np.ndarray,
+        opaque: np.ndarray,
+        intr: Intrinsics,
+        world_from_cam: np.ndarray,
+    ) -> None:
         """z: the exported kind's z-depth [H, W] (scene units); valid: pixels with depth; opaque: acc >= threshold."""
         self.non_finite += int((~np.isfinite(view["acc"]) | (opaque & ~np.isfinite(z))).sum())
         self.coverage.append(float(valid.mean()))
@@ -173,23 +180,37 @@ class _DepthWatch:
 
     def checks(self) -> tuple[list[Check], dict[str, str]]:
         """(checks, left_out: the checks that do not apply and why)."""
-        out = [Check.lower(
-            "depth_coverage", float(np.median(self.coverage)) if self.coverage else math.nan, MIN_COVERAGE,
-            "the median view has (almost) no depth: the views miss the object, or the field is empty",
-        )]  # fmt: skip
+        out = [
+            Check.lower(
+                "depth_coverage",
+                float(np.median(self.coverage)) if self.coverage else math.nan,
+                MIN_COVERAGE,
+                "the median view has (almost) no depth: the views miss the object, or the field is empty",
+            )
+        ]
         left_out = {}
         if self.far is None:
             left_out["check depth_beyond_far"] = "the run's rays stop at the scene's far bound (box run) or it has none"
         elif not self.valid:
             left_out["check depth_beyond_far"] = "no pixel has depth"
         else:
-            out.append(Check.upper(
-                "depth_beyond_far", self.beyond / self.valid, MAX_BEYOND_FAR,
-                "most of the depth lies beyond the scene's far bound, where the capture saw nothing: background or "
-                "fog at infinity, not the scene",
-            ))  # fmt: skip
-        out.append(Check.upper("non_finite", self.non_finite, 0, "NaN or inf opacity or depth: the field's output is "
-                               "broken there (written as 0 = no depth)"))  # fmt: skip
+            out.append(
+                Check.upper(
+                    "depth_beyond_far",
+                    self.beyond / self.valid,
+                    MAX_BEYOND_FAR,
+                    "most of the depth lies beyond the scene's far bound, where the capture saw nothing: background or "
+                    "fog at infinity, not the scene",
+                )
+            )
+        out.append(
+            Check.upper(
+                "non_finite",
+                self.non_finite,
+                0,
+                "NaN or inf opacity or depth: the field's output is broken there (written as 0 = no depth)",
+            )
+        )
         return out, left_out
 
 
@@ -240,11 +261,24 @@ def _run(config: Config, progress: Progress | None = None) -> Outputs:
         files["accumulation"].append(write_png(out_dir / "accumulation" / f"{name}.png", to_uint8(view["acc"])))
         cameras_doc[name] = {
             "world_from_cam": scene.source_world_from_cam(pose).tolist(),
-            "w": intr.w, "h": intr.h, "fl_x": intr.fx, "fl_y": intr.fy, "cx": intr.cx, "cy": intr.cy,
-            "k1": intr.k1, "k2": intr.k2, "k3": intr.k3, "p1": intr.p1, "p2": intr.p2,
-        }  # fmt: skip
-        metrics.append(step=k, seconds=round(clock(), 4), rays_per_s=round(intr.w * intr.h / max(seconds, 1e-9)),
-                       background_fraction=round(float(1 - valid.mean()), 6))  # fmt: skip
+            "w": intr.w,
+            "h": intr.h,
+            "fl_x": intr.fx,
+            "fl_y": intr.fy,
+            "cx": intr.cx,
+            "cy": intr.cy,
+            "k1": intr.k1,
+            "k2": intr.k2,
+            "k3": intr.k3,
+            "p1": intr.p1,
+            "p2": intr.p2,
+        }
+        metrics.append(
+            step=k,
+            seconds=round(clock(), 4),
+            rays_per_s=round(intr.w * intr.h / max(seconds, 1e-9)),
+            background_fraction=round(float(1 - valid.mean()), 6),
+        )
         progress.advance(task)
 
     lo, hi = _global_range(files["depth"])
@@ -261,30 +295,59 @@ def _run(config: Config, progress: Progress | None = None) -> Outputs:
                 video.write(to_uint8(rgb))
             progress.advance(task)
 
-    cameras_path = write_json(out_dir / "cameras.json", {
-        "convention": "world_from_cam 4x4 in the source (user) frame, OpenGL camera axes (x right, y up, looking "
-                      "down -z); depth/NAME.npy is z-depth along -z in the same units; intrinsics in pixels",
-        "frames": cameras_doc,
-    })  # fmt: skip
+    cameras_path = write_json(
+        out_dir / "cameras.json",
+        {
+            "convention": "world_from_cam 4x4 in the source (user) frame, OpenGL camera axes (x right, y up, looking "
+            "down -z); depth/NAME.npy is z-depth along -z in the same units; intrinsics in pixels",
+            "frames": cameras_doc,
+        },
+    )
     metrics.save()
     checks, left_out = watch.checks()
     manifest = write_manifest(
-        out_dir, stage="depth", started=started, left_out=left_out,
+        out_dir,
+        stage="depth",
+        started=started,
+        left_out=left_out,
         inputs=[Path(config.run_dir) / "checkpoint.pt", Path(config.run_dir) / "config.json"],
-        outputs=[*files["depth"], *files["depth_mm"], *color_paths, *files["accumulation"], cameras_path,
-                 metrics.path, *([video_path] if video_path else [])],
-        used={**cams.used, "kind": config.kind, "downscale": downscale, "device": str(device), "views": len(cams.names),
-              "units": "user (source) units: scene depth / applied_scale", "applied_scale": scale,
-              "background": f"accumulation < {config.acc_threshold} -> depth 0",
-              "depth_mm": "round(depth * 1000), clipped to 65535 (assumes the user's units are metres)",
-              "color_range_user_units": [lo, hi], "colormap": "turbo"},
-        config=config_to_json(config), **verdict(checks),
-    )  # fmt: skip
+        outputs=[
+            *files["depth"],
+            *files["depth_mm"],
+            *color_paths,
+            *files["accumulation"],
+            cameras_path,
+            metrics.path,
+            *([video_path] if video_path else []),
+        ],
+        used={
+            **cams.used,
+            "kind": config.kind,
+            "downscale": downscale,
+            "device": str(device),
+            "views": len(cams.names),
+            "units": "user (source) units: scene depth / applied_scale",
+            "applied_scale": scale,
+            "background": f"accumulation < {config.acc_threshold} -> depth 0",
+            "depth_mm": "round(depth * 1000), clipped to 65535 (assumes the user's units are metres)",
+            "color_range_user_units": [lo, hi],
+            "colormap": "turbo",
+        },
+        config=config_to_json(config),
+        **verdict(checks),
+    )
     return Outputs(
-        out_dir=out_dir, names=cams.names, depth=tuple(files["depth"]), depth_mm=tuple(files["depth_mm"]),
-        depth_color=tuple(color_paths), accumulation=tuple(files["accumulation"]), cameras=cameras_path,
-        video=video_path, depth_range=(lo, hi), manifest=manifest,
-    )  # fmt: skip
+        out_dir=out_dir,
+        names=cams.names,
+        depth=tuple(files["depth"]),
+        depth_mm=tuple(files["depth_mm"]),
+        depth_color=tuple(color_paths),
+        accumulation=tuple(files["accumulation"]),
+        cameras=cameras_path,
+        video=video_path,
+        depth_range=(lo, hi),
+        manifest=manifest,
+    )
 
 
 def _maybe_video(path: Path | None, fps: float):

@@ -69,9 +69,17 @@ from nerfpipe.radiance.compositing import over_background
 from nerfpipe.radiance.metrics import psnr
 
 __all__ = [
-    "Config", "Outputs", "run", "ssim", "lpips_status", "GroundTruth", "read_ground_truth", "align_to", "train_psnr",
+    "Config",
+    "Outputs",
+    "run",
+    "ssim",
+    "lpips_status",
+    "GroundTruth",
+    "read_ground_truth",
+    "align_to",
+    "train_psnr",
     "self_checks",
-]  # fmt: skip
+]
 
 ALEXNET_WEIGHTS = "alexnet-owt-7be5be79.pth"
 """torchvision's AlexNet checkpoint file name, which lpips loads from the torch hub cache."""
@@ -173,8 +181,13 @@ def align_to(scene: Scene, gt: GroundTruth) -> dict[str, Any]:
     extent = float(np.linalg.norm(dst_a.max(0) - dst_a.min(0))) or 1.0
     err = np.linalg.norm(src_a - dst_a, axis=1)
     if err.max() <= SAME_FRAME_TOL * extent:
-        return {"method": "none", "reason": "the run's cameras (source frame) coincide with the ground truth",
-                "scale": 1.0, "matched": len(src), "rms_centre_error": float(np.sqrt((err**2).mean()))}  # fmt: skip
+        return {
+            "method": "none",
+            "reason": "the run's cameras (source frame) coincide with the ground truth",
+            "scale": 1.0,
+            "matched": len(src),
+            "rms_centre_error": float(np.sqrt((err**2).mean())),
+        }
     if len(src) < 3:
         raise UserError(f"--ground-truth: frames differ and only {len(src)} camera(s) match by name (need 3)")
     s, rot, t = umeyama(src_a, dst_a)
@@ -182,9 +195,12 @@ def align_to(scene: Scene, gt: GroundTruth) -> dict[str, Any]:
     return {
         "method": "similarity",
         "reason": "the run's source frame is not the ground-truth frame: Umeyama fit of camera centres by name",
-        "scale": float(s), "rotation": rot.tolist(), "translation": t.tolist(), "matched": len(src),
+        "scale": float(s),
+        "rotation": rot.tolist(),
+        "translation": t.tolist(),
+        "matched": len(src),
         "rms_centre_error": float(np.sqrt((res**2).mean())),
-    }  # fmt: skip
+    }
 
 
 def _mean(values: list[float | None]) -> float | None:
@@ -265,9 +281,12 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         rendered_px += w * h
         pred = np.clip(view["rgb"], 0.0, 1.0)
         p_s, g_s = (pred[:, w // 2 :], photo[:, w // 2 :]) if half else (pred, photo)
-        row: dict[str, Any] = {"name": Path(scene.frames[i].file_path).name,
-                               "psnr": psnr(p_s, g_s), "ssim": ssim(p_s, g_s),
-                               "lpips": lpips_fn(p_s, g_s) if lpips_fn else None}  # fmt: skip
+        row: dict[str, Any] = {
+            "name": Path(scene.frames[i].file_path).name,
+            "psnr": psnr(p_s, g_s),
+            "ssim": ssim(p_s, g_s),
+            "lpips": lpips_fn(p_s, g_s) if lpips_fn else None,
+        }
         if gt is not None:
             err, n_cov, n_gt = _depth_errors(trained, view, intr, pose, row["name"], gt, alignment, scale, device)
             if err is not None:
@@ -275,24 +294,41 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
                 covered, gt_pixels = covered + n_cov, gt_pixels + n_gt
                 row["depth_mae"] = float(err.mean()) if err.size else None
         views.append(row)
-        metrics.append(step=k, seconds=round(clock(), 4), psnr=round(row["psnr"], 4), ssim=round(row["ssim"], 5),
-                       depth_mae="" if row.get("depth_mae") is None else round(row["depth_mae"], 6))  # fmt: skip
+        metrics.append(
+            step=k,
+            seconds=round(clock(), 4),
+            psnr=round(row["psnr"], 4),
+            ssim=round(row["ssim"], 5),
+            depth_mae="" if row.get("depth_mae") is None else round(row["depth_mae"], 6),
+        )
         progress.advance(task)
 
     result: dict[str, Any] = {
-        "run_dir": str(source.run_dir), "input": source.record(), "split": split, "n_views": len(views),
-        "psnr": _mean([v["psnr"] for v in views]), "ssim": _mean([v["ssim"] for v in views]),
-        "lpips": _mean([v["lpips"] for v in views]) if lpips_fn else None, "lpips_unavailable": lpips_reason,
-        "rays_per_second": rendered_px / max(render_seconds, 1e-9), "render_seconds": render_seconds,
-        "device": str(device), "downscale": downscale, "views": views,
+        "run_dir": str(source.run_dir),
+        "input": source.record(),
+        "split": split,
+        "n_views": len(views),
+        "psnr": _mean([v["psnr"] for v in views]),
+        "ssim": _mean([v["ssim"] for v in views]),
+        "lpips": _mean([v["lpips"] for v in views]) if lpips_fn else None,
+        "lpips_unavailable": lpips_reason,
+        "rays_per_second": rendered_px / max(render_seconds, 1e-9),
+        "render_seconds": render_seconds,
+        "device": str(device),
+        "downscale": downscale,
+        "views": views,
         "test_poses": TEST_POSE_OPT_RULE if pose_steps else test_pose_placement(refinement),
-        "test_pose_optimisation": {"steps": pose_steps, "median_rotation_deg": float(np.median(
-            [m["rotation_deg"] for m in test_pose_moves])), "median_translation": float(np.median(
-            [m["translation"] for m in test_pose_moves]))} if test_pose_moves else None,
+        "test_pose_optimisation": {
+            "steps": pose_steps,
+            "median_rotation_deg": float(np.median([m["rotation_deg"] for m in test_pose_moves])),
+            "median_translation": float(np.median([m["translation"] for m in test_pose_moves])),
+        }
+        if test_pose_moves
+        else None,
         "appearance": APPEARANCE_RULES[config.appearance_rule] if has_appearance else None,
         "appearance_rule": config.appearance_rule,
         "scored_pixels": "right half of each test view (--appearance-rule half)" if half else "whole views",
-    }  # fmt: skip
+    }
     result.update(_depth_summary(gt, alignment, abs_errors, covered, gt_pixels))
     train = train_psnr(source.run_dir) if source.splat_file is None else source.train_psnr
     result["train_psnr"], result["train_psnr_from"] = train if train is not None else (None, "no metrics.csv value")
@@ -300,16 +336,29 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     result.update(checked)
     metrics.save()
     manifest = write_manifest(
-        out.parent, stage="eval", started=started, name=sidecar(out, "manifest.json").name,
+        out.parent,
+        stage="eval",
+        started=started,
+        name=sidecar(out, "manifest.json").name,
         inputs=[*source.inputs, *([gt.folder / "cameras.json"] if gt else [])],
-        outputs=[out, metrics.path], used={"input": result["input"], "split": split, "views": len(views),
-                                           "device": str(device), "appearance_rule": config.appearance_rule,
-                                           "ssim": "skimage structural_similarity, 7x7, data_range 1",
-                                           "test_poses": result["test_poses"], "appearance": result["appearance"]},
-        left_out={**({"lpips": lpips_reason} if lpips_reason else {}),
-                  **({} if gt else {"depth": "no --ground-truth given"})},
-        config=config_to_json(config), **checked,
-    )  # fmt: skip
+        outputs=[out, metrics.path],
+        used={
+            "input": result["input"],
+            "split": split,
+            "views": len(views),
+            "device": str(device),
+            "appearance_rule": config.appearance_rule,
+            "ssim": "skimage structural_similarity, 7x7, data_range 1",
+            "test_poses": result["test_poses"],
+            "appearance": result["appearance"],
+        },
+        left_out={
+            **({"lpips": lpips_reason} if lpips_reason else {}),
+            **({} if gt else {"depth": "no --ground-truth given"}),
+        },
+        config=config_to_json(config),
+        **checked,
+    )
     write_json(out, result)  # last: OUT (make's target) appears only after its manifest, so a failure leaves none
     return Outputs(out=out, metrics=metrics.path, manifest=manifest, result=result)
 
@@ -332,21 +381,33 @@ def train_psnr(run_dir: Path) -> tuple[float, str] | None:
 def self_checks(psnr_value: float | None, train: tuple[float, str] | None) -> list[Check]:
     """The held-out PSNR against its floor and (when the run has one) against the train PSNR (module doc)."""
     held_out = math.nan if psnr_value is None else float(psnr_value)
-    checks = [Check.lower("holdout_psnr", held_out, MIN_PSNR, "the renders of the held-out views hardly resemble "
-                          "the photos: too little training, bad poses or a test split the cameras never saw",
-                          unit=" dB")]  # fmt: skip
-    if train is not None:
-        checks.append(Check.upper(
-            "holdout_gap", train[0] - held_out, MAX_GAP_DB,
-            f"the held-out views score far under the training views ({train[0]:.1f} dB, {train[1]}): the field "
-            "overfitted its photos, or the held-out cameras disagree with the training ones (poses, test split)",
+    checks = [
+        Check.lower(
+            "holdout_psnr",
+            held_out,
+            MIN_PSNR,
+            "the renders of the held-out views hardly resemble "
+            "the photos: too little training, bad poses or a test split the cameras never saw",
             unit=" dB",
-        ))  # fmt: skip
+        )
+    ]
+    if train is not None:
+        checks.append(
+            Check.upper(
+                "holdout_gap",
+                train[0] - held_out,
+                MAX_GAP_DB,
+                f"the held-out views score far under the training views ({train[0]:.1f} dB, {train[1]}): the field "
+                "overfitted its photos, or the held-out cameras disagree with the training ones (poses, test split)",
+                unit=" dB",
+            )
+        )
     return checks
 
 
-def _render_scored(trained, intr, pose, device, photo: np.ndarray, half: bool, background: np.ndarray,
-                   depth: bool = True) -> dict:  # fmt: skip
+def _render_scored(
+    trained, intr, pose, device, photo: np.ndarray, half: bool, background: np.ndarray, depth: bool = True
+) -> dict:
     """render_view; with the half rule and appearance codes, the view rendered without appearance, its code
     fitted on the left half of `photo` [H, W, 3] (`model.appearance.fit_code`) and its transform applied."""
     app = trained.appearance
@@ -385,8 +446,14 @@ def _depth_errors(trained, view, intr, pose, name, gt, alignment, scale, device)
 
 def _depth_summary(gt, alignment, abs_errors, covered, gt_pixels) -> dict[str, Any]:
     if gt is None:
-        return {"depth_mae": None, "depth_median_abs_error": None, "depth_coverage": None, "depth_alignment": None,
-                "depth_unavailable": "no --ground-truth given", "ground_truth": None}  # fmt: skip
+        return {
+            "depth_mae": None,
+            "depth_median_abs_error": None,
+            "depth_coverage": None,
+            "depth_alignment": None,
+            "depth_unavailable": "no --ground-truth given",
+            "ground_truth": None,
+        }
     err = np.concatenate(abs_errors) if abs_errors else np.zeros(0)
     return {
         "depth_mae": float(err.mean()) if err.size else None,

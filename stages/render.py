@@ -197,8 +197,14 @@ def _rays_per_second(trained: Renderable, cams: CameraPath, device: torch.device
 
 
 def fit_budget(
-    *, seconds: float, rays_per_s: float, rays_per_frame: float, frames: int, short_side: int, drop_frames: bool,
-) -> tuple[float, int, str]:  # fmt: skip
+    *,
+    seconds: float,
+    rays_per_s: float,
+    rays_per_frame: float,
+    frames: int,
+    short_side: int,
+    drop_frames: bool,
+) -> tuple[float, int, str]:
     """What fits in `seconds` at `rays_per_s`: (linear image scale <= 1, frames, reason).
 
     The image shrinks first, to the scale that fits but not below `MIN_SHORT_SIDE` pixels on its short side;
@@ -249,23 +255,47 @@ def _within_budget(trained: Renderable, cams: CameraPath, config: Config, device
     per_frame = sum(i.w * i.h for i in cams.intrinsics) / len(cams.intrinsics)
     replay = cams.frame_indices is not None or is_path_file(config.path)  # every camera kept
     scale, frames, reason = fit_budget(
-        seconds=max(left, 1e-3), rays_per_s=rate, rays_per_frame=per_frame, frames=len(cams.names),
-        short_side=min(min(i.w, i.h) for i in cams.intrinsics), drop_frames=not replay,
-    )  # fmt: skip
-    asked = {"frames": len(cams.names), "size_hw": [cams.intrinsics[0].h, cams.intrinsics[0].w],
-             "downscale": config.downscale}  # fmt: skip
+        seconds=max(left, 1e-3),
+        rays_per_s=rate,
+        rays_per_frame=per_frame,
+        frames=len(cams.names),
+        short_side=min(min(i.w, i.h) for i in cams.intrinsics),
+        drop_frames=not replay,
+    )
+    asked = {
+        "frames": len(cams.names),
+        "size_hw": [cams.intrinsics[0].h, cams.intrinsics[0].w],
+        "downscale": config.downscale,
+    }
     if scale < 1 or frames < len(cams.names):
-        cams = camera_path(trained.scene, config.path, frames=frames, downscale=config.downscale / scale,
-                           elevation=config.elevation, radius=config.radius)  # fmt: skip
-    chosen = {"frames": len(cams.names), "size_hw": [cams.intrinsics[0].h, cams.intrinsics[0].w],
-              "downscale": round(config.downscale / scale, 4)}  # fmt: skip
+        cams = camera_path(
+            trained.scene,
+            config.path,
+            frames=frames,
+            downscale=config.downscale / scale,
+            elevation=config.elevation,
+            radius=config.radius,
+        )
+    chosen = {
+        "frames": len(cams.names),
+        "size_hw": [cams.intrinsics[0].h, cams.intrinsics[0].w],
+        "downscale": round(config.downscale / scale, 4),
+    }
     estimate = sum(i.w * i.h for i in cams.intrinsics) / rate
     return cams, {
-        "max_seconds": config.max_seconds, "seconds_left_after_preview": round(left, 2),
-        "preview": {"rays_per_s": round(rate), "rays": rays, "seconds": round(seconds, 3),
-                    "views": min(PREVIEW_VIEWS, asked["frames"])},
-        "asked": asked, "chosen": chosen, "estimated_render_seconds": round(estimate, 1), "reason": reason,
-    }  # fmt: skip
+        "max_seconds": config.max_seconds,
+        "seconds_left_after_preview": round(left, 2),
+        "preview": {
+            "rays_per_s": round(rate),
+            "rays": rays,
+            "seconds": round(seconds, 3),
+            "views": min(PREVIEW_VIEWS, asked["frames"]),
+        },
+        "asked": asked,
+        "chosen": chosen,
+        "estimated_render_seconds": round(estimate, 1),
+        "reason": reason,
+    }
 
 
 class _FrameWatch:
@@ -291,19 +321,35 @@ class _FrameWatch:
         self._last = rgb
 
     def checks(self) -> list[Check]:
-        out = [Check.upper(
-            "empty_frames", float(np.median(self.empty)) if self.empty else math.nan, MAX_EMPTY,
-            f"the median frame shows almost nothing (accumulation < {EMPTY_ACC:g}): the camera path misses the "
-            "object, or the field is empty",
-        )]  # fmt: skip
+        out = [
+            Check.upper(
+                "empty_frames",
+                float(np.median(self.empty)) if self.empty else math.nan,
+                MAX_EMPTY,
+                f"the median frame shows almost nothing (accumulation < {EMPTY_ACC:g}): the camera path misses the "
+                "object, or the field is empty",
+            )
+        ]
         if self.pairs:
-            out.append(Check.upper(
-                "still_frames", self.still / self.pairs, MAX_STILL,
-                "nearly every frame repeats the one before: the camera path does not move, or there is nothing to see",
-            ))  # fmt: skip
-        out.append(Check.upper("non_finite", self.non_finite, 0, "NaN or inf in the rendered colour, opacity or "
-                               "depth (the video shows them as black or white): the field's output is broken "
-                               "there"))  # fmt: skip
+            out.append(
+                Check.upper(
+                    "still_frames",
+                    self.still / self.pairs,
+                    MAX_STILL,
+                    "nearly every frame repeats the one before: the camera path does not move, "
+                    "or there is nothing to see",
+                )
+            )
+        out.append(
+            Check.upper(
+                "non_finite",
+                self.non_finite,
+                0,
+                "NaN or inf in the rendered colour, opacity or "
+                "depth (the video shows them as black or white): the field's output is broken "
+                "there",
+            )
+        )
         return out
 
 
@@ -319,8 +365,11 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         raise UserError(f"--fps: expected > 0, got {config.fps}")
     if config.max_seconds is not None and not config.max_seconds > 0:
         raise UserError(f"--max-seconds: expected > 0, got {config.max_seconds}")
-    for path, what in ((out, "video"), (sidecar(out, "metrics.csv"), "metrics log"), (sidecar(out, "manifest.json"),
-                       "manifest")):  # fmt: skip
+    for path, what in (
+        (out, "video"),
+        (sidecar(out, "metrics.csv"), "metrics log"),
+        (sidecar(out, "manifest.json"), "manifest"),
+    ):
         check_output(path, what)
     if config.frames_dir is not None:
         check_output(config.frames_dir, "PNG frames", folder=True)
@@ -329,13 +378,21 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     source.refuse_output(out, "video")
     trained = source.load(device, load_trained)
     scene = trained.scene
-    cams = camera_path(scene, config.path, frames=config.frames, downscale=config.downscale,
-                       elevation=config.elevation, radius=config.radius)  # fmt: skip
+    cams = camera_path(
+        scene,
+        config.path,
+        frames=config.frames,
+        downscale=config.downscale,
+        elevation=config.elevation,
+        radius=config.radius,
+    )
     w, h = max(i.w for i in cams.intrinsics) * len(outputs), max(i.h for i in cams.intrinsics)
     if max(w, h) > MAX_SIDE or w * h > MAX_PIXELS:
-        raise UserError(f"downscale: {config.downscale:g} makes frames of {w}x{h} px ({'|'.join(outputs)}): more "
-                        f"than the {MAX_SIDE} px a side or {MAX_PIXELS} pixels nerfpipe renders; expected a larger "
-                        "downscale")  # fmt: skip
+        raise UserError(
+            f"downscale: {config.downscale:g} makes frames of {w}x{h} px ({'|'.join(outputs)}): more "
+            f"than the {MAX_SIDE} px a side or {MAX_PIXELS} pixels nerfpipe renders; expected a larger "
+            "downscale"
+        )
     budget: dict = {"max_seconds": config.max_seconds}
     if config.max_seconds is not None:
         cams, budget = _within_budget(trained, cams, config, device, started)
@@ -350,9 +407,12 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     asked_frames = budget.get("asked", {}).get("frames")
     if asked_frames and len(cams.names) < asked_frames:
         fps = max(min(config.fps, MIN_FPS), config.fps * len(cams.names) / asked_frames)
-        budget["fps"] = {"asked": config.fps, "chosen": round(fps, 3),
-                         "reason": f"{len(cams.names)} of {asked_frames} frames: slower, to keep the length asked for "
-                                   f"(at least {min(config.fps, MIN_FPS):g} fps)"}  # fmt: skip
+        budget["fps"] = {
+            "asked": config.fps,
+            "chosen": round(fps, 3),
+            "reason": f"{len(cams.names)} of {asked_frames} frames: slower, to keep the length asked for "
+            f"(at least {min(config.fps, MIN_FPS):g} fps)",
+        }
     watch = _FrameWatch(shows_depth="depth" in outputs)
     # the mp4 is renamed into place when this block ends, after the manifest; on failure the block's files go
     with removed_on_failure(out.parent, config.frames_dir) as written, video_writer(out, fps=fps) as video:
@@ -379,21 +439,48 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
                 photo = _photo(scene, cams.frame_indices[k], background, view["rgb"].shape[:2])
                 err = "" if photo is None else round(psnr(view["rgb"], photo), 4)
             rays = cams.intrinsics[k].w * cams.intrinsics[k].h
-            metrics.append(step=k, seconds=round(clock(), 4), rays_per_s=round(rays / max(seconds, 1e-9)),
-                           psnr=err)  # fmt: skip
+            metrics.append(step=k, seconds=round(clock(), 4), rays_per_s=round(rays / max(seconds, 1e-9)), psnr=err)
             progress.advance(task)
         frame_paths = tuple(written)
         video.finish()
         written.append(metrics.save())
-        written.append(write_manifest(
-            out.parent, stage="render", started=started, name=sidecar(out, "manifest.json").name,
-            inputs=source.inputs, outputs=[out, metrics.path, *frame_paths],
-            used={**cams.used, "input": source.record(), "budget": budget, "outputs": list(outputs),
-                  "device": str(device), "frames": len(cams.names), "fps": fps, "size_hw": list(size),
-                  "codec": "h264 yuv420p crf 18 (odd sizes padded by edge)",
-                  **({"depth_range_user_units": [lo, hi], "depth_colormap": "turbo", "depth_background":
-                      f"black where accumulation < {OPAQUE}"} if "depth" in outputs else {})},
-            config=config_to_json(config), **verdict(watch.checks()),
-        ))  # fmt: skip
-    return Outputs(video=out, frames=frame_paths, metrics=metrics.path, manifest=written[-1],
-                   n_frames=len(cams.names), size=(int(size[0]), int(size[1])))  # fmt: skip
+        written.append(
+            write_manifest(
+                out.parent,
+                stage="render",
+                started=started,
+                name=sidecar(out, "manifest.json").name,
+                inputs=source.inputs,
+                outputs=[out, metrics.path, *frame_paths],
+                used={
+                    **cams.used,
+                    "input": source.record(),
+                    "budget": budget,
+                    "outputs": list(outputs),
+                    "device": str(device),
+                    "frames": len(cams.names),
+                    "fps": fps,
+                    "size_hw": list(size),
+                    "codec": "h264 yuv420p crf 18 (odd sizes padded by edge)",
+                    **(
+                        {
+                            "depth_range_user_units": [lo, hi],
+                            "depth_colormap": "turbo",
+                            "depth_background": f"black where accumulation < {OPAQUE}",
+                        }
+                        if "depth" in outputs
+                        else {}
+                    ),
+                },
+                config=config_to_json(config),
+                **verdict(watch.checks()),
+            )
+        )
+    return Outputs(
+        video=out,
+        frames=frame_paths,
+        metrics=metrics.path,
+        manifest=written[-1],
+        n_frames=len(cams.names),
+        size=(int(size[0]), int(size[1])),
+    )

@@ -95,8 +95,11 @@ def read_run(run_dir: Path, label: str, levels: tuple[float, ...]) -> RunSummary
     missing = [c for c in ("step", "seconds", "test_psnr") if c not in columns]
     if missing:
         raise UserError(f"{metrics}: missing column(s) {', '.join(missing)} (have {', '.join(columns) or 'none'})")
-    points = [(s, p) for s, p in ((_float(r["seconds"]), _float(r["test_psnr"])) for r in rows)
-              if s is not None and p is not None]  # fmt: skip
+    points = [
+        (s, p)
+        for s, p in ((_float(r["seconds"]), _float(r["test_psnr"])) for r in rows)
+        if s is not None and p is not None
+    ]
     steps = [v for v in (_float(r["step"]) for r in rows) if v is not None]
     secs = [v for v in (_float(r["seconds"]) for r in rows) if v is not None]
     used: dict[str, Any] = {}
@@ -109,11 +112,17 @@ def read_run(run_dir: Path, label: str, levels: tuple[float, ...]) -> RunSummary
             raise UserError(f"{manifest}: not valid JSON") from None
     time_to = {lvl: next((s for s, p in points if p >= lvl), None) for lvl in levels}
     return RunSummary(
-        label=label, run_dir=run_dir, seconds=tuple(s for s, _ in points), psnr=tuple(p for _, p in points),
-        final_psnr=points[-1][1] if points else None, steps=int(max(steps)) if steps else None,
-        total_seconds=max(secs) if secs else None, time_to=time_to,
-        peak_cuda_mb=_float(used.get("peak_cuda_mb")), peak_rss_mb=_float(used.get("peak_rss_mb")),
-    )  # fmt: skip
+        label=label,
+        run_dir=run_dir,
+        seconds=tuple(s for s, _ in points),
+        psnr=tuple(p for _, p in points),
+        final_psnr=points[-1][1] if points else None,
+        steps=int(max(steps)) if steps else None,
+        total_seconds=max(secs) if secs else None,
+        time_to=time_to,
+        peak_cuda_mb=_float(used.get("peak_cuda_mb")),
+        peak_rss_mb=_float(used.get("peak_rss_mb")),
+    )
 
 
 def _labels(runs: tuple[Path, ...], labels: tuple[str, ...] | None) -> list[str]:
@@ -134,14 +143,30 @@ def _fmt(v: float | None, digits: int, dash: str) -> str:
 
 
 def _table(runs: list[RunSummary], levels: tuple[float, ...], dash: str) -> tuple[list[str], list[list[str]]]:
-    header = ["run", "final test PSNR (dB)", "steps", "seconds",
-              *(f"time to {lvl:g} dB (s)" for lvl in levels), "peak CUDA (MB)", "peak RSS (MB)"]  # fmt: skip
+    header = [
+        "run",
+        "final test PSNR (dB)",
+        "steps",
+        "seconds",
+        *(f"time to {lvl:g} dB (s)" for lvl in levels),
+        "peak CUDA (MB)",
+        "peak RSS (MB)",
+    ]
     body = []
     for r in runs:
         steps = dash if r.steps is None else str(r.steps)
         times = [_fmt(r.time_to[lvl], 1, dash) for lvl in levels]
-        body.append([r.label, _fmt(r.final_psnr, 2, dash), steps, _fmt(r.total_seconds, 1, dash), *times,
-                     _fmt(r.peak_cuda_mb, 1, dash), _fmt(r.peak_rss_mb, 1, dash)])  # fmt: skip
+        body.append(
+            [
+                r.label,
+                _fmt(r.final_psnr, 2, dash),
+                steps,
+                _fmt(r.total_seconds, 1, dash),
+                *times,
+                _fmt(r.peak_cuda_mb, 1, dash),
+                _fmt(r.peak_rss_mb, 1, dash),
+            ]
+        )
     return header, body
 
 
@@ -194,8 +219,10 @@ def _run(config: Config, progress: Any | None = None) -> Outputs:
     header, body = _table(runs, levels, DASH)
     md = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     md += ["| " + " | ".join(row) + " |" for row in body]
-    notes = ("Time to reach a level: seconds of the first logged test evaluation at or above it; "
-             f"{DASH} = never reached (or not logged).")  # fmt: skip
+    notes = (
+        "Time to reach a level: seconds of the first logged test evaluation at or above it; "
+        f"{DASH} = never reached (or not logged)."
+    )
     markdown = write_text(out_dir / "summary.md", "\n".join(md) + "\n\n" + notes + "\n")
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
@@ -205,9 +232,13 @@ def _run(config: Config, progress: Any | None = None) -> Outputs:
 
     left_out = {r.label: "no test_psnr values in metrics.csv" for r in runs if not r.psnr}
     manifest = write_manifest(
-        out_dir, stage="report", started=started,
+        out_dir,
+        stage="report",
+        started=started,
         inputs=[p for r in runs_in for p in (r / "metrics.csv", r / "manifest.json") if p.is_file()],
-        outputs=[plot, markdown, csv_path], used={"levels_db": list(levels), "labels": labels},
-        left_out=left_out, config=config_to_json(config),
-    )  # fmt: skip
+        outputs=[plot, markdown, csv_path],
+        used={"levels_db": list(levels), "labels": labels},
+        left_out=left_out,
+        config=config_to_json(config),
+    )
     return Outputs(plot=plot, markdown=markdown, csv=csv_path, manifest=manifest, runs=tuple(runs))

@@ -176,12 +176,18 @@ class _Steps:
         """Densification (`model.splat_density.refine`) every DENSIFY_EVERY steps while the run's fraction is in
         DENSIFY_SPAN; True when the Gaussians were replaced. The SH degree in use follows the run's fraction (SH_AT)."""
         self.degree = min(self.sh_degree, sum(fraction >= f for f in SH_AT))
-        if not (self.densify and self.step > 0 and self.step % DENSIFY_EVERY == 0 and self.step != self.refined_at
-                and DENSIFY_SPAN[0] <= fraction < DENSIFY_SPAN[1]):  # fmt: skip
+        if not (
+            self.densify
+            and self.step > 0
+            and self.step % DENSIFY_EVERY == 0
+            and self.step != self.refined_at
+            and DENSIFY_SPAN[0] <= fraction < DENSIFY_SPAN[1]
+        ):
             return False
         self.refined_at = self.step
-        new, source, fresh, counts = splat_density.refine(self.splats, self.stats, extent=self.extent,
-                                                          limit=self.limit, gen=self.gen)  # fmt: skip
+        new, source, fresh, counts = splat_density.refine(
+            self.splats, self.stats, extent=self.extent, limit=self.limit, gen=self.gen
+        )
         self._replace([p.requires_grad_(True) for p in new.parameters()], source, fresh)
         self.refinements.append({"step": self.step, **counts})
         return True
@@ -217,8 +223,12 @@ class _Steps:
         return True
 
     def log(self, lr: float) -> None:
-        self.metrics.append(step=self.step, seconds=round(self.clock(), 4), loss=round(self.last["loss"], 6),
-                            psnr=round(self.last["psnr"], 4))  # fmt: skip
+        self.metrics.append(
+            step=self.step,
+            seconds=round(self.clock(), 4),
+            loss=round(self.last["loss"], 6),
+            psnr=round(self.last["psnr"], 4),
+        )
         self.progress.advance(self.task)
 
     def snapshot(self) -> tuple[list[Tensor], dict]:
@@ -258,8 +268,17 @@ def _colour_left_out(sh_degree: int, fmt: str) -> dict[str, str]:
 def _score(splats: sp.Splats, views: TrainingPhotos, backend: Backend, background: Tensor, picks: list[int]) -> float:
     device = splats.means.device
     shown = _shown(splats)
-    return float(np.mean([_psnr(backend.render(shown, views.world_from_cams[k], views.intrinsics[k], background)[0],
-                                views.target(k, device)) for k in picks]))  # fmt: skip
+    return float(
+        np.mean(
+            [
+                _psnr(
+                    backend.render(shown, views.world_from_cams[k], views.intrinsics[k], background)[0],
+                    views.target(k, device),
+                )
+                for k in picks
+            ]
+        )
+    )
 
 
 def _extent(views: TrainingPhotos) -> float:
@@ -296,10 +315,13 @@ def _densification(steps: _Steps, config: Config) -> dict | str:
     if not config.densify:
         return "off (--densify turns it on)"
     d = splat_density
-    return {"rule": f"every {DENSIFY_EVERY} steps while the run's progress is in {list(DENSIFY_SPAN)}: clone "
-                    f"(small) or split (largest scale > {d.PERCENT_DENSE} x extent) where the mean view-space "
-                    f"gradient > {d.GRAD_THRESHOLD}, prune opacity < {d.MIN_OPACITY}",
-            "limit": steps.limit, "refinements": steps.refinements}  # fmt: skip
+    return {
+        "rule": f"every {DENSIFY_EVERY} steps while the run's progress is in {list(DENSIFY_SPAN)}: clone "
+        f"(small) or split (largest scale > {d.PERCENT_DENSE} x extent) where the mean view-space "
+        f"gradient > {d.GRAD_THRESHOLD}, prune opacity < {d.MIN_OPACITY}",
+        "limit": steps.limit,
+        "refinements": steps.refinements,
+    }
 
 
 def _to_file(splats: sp.Splats, out_from_scene: np.ndarray) -> tuple[SplatData, int]:
@@ -307,9 +329,14 @@ def _to_file(splats: sp.Splats, out_from_scene: np.ndarray) -> tuple[SplatData, 
     keep = torch.sigmoid(splats.opacity_logits) >= sp.ALPHA_MIN
     moved = sp.transformed(splats.subset(keep), torch.as_tensor(out_from_scene, dtype=torch.float64))
     f_rest = np.transpose(moved.sh[:, 1:].numpy(), (0, 2, 1))  # [N, 3, K - 1], channel-major (INRIA)
-    data = SplatData(means=moved.means.numpy(), f_dc=moved.sh[:, 0].numpy(), f_rest=f_rest,
-                     opacity=moved.opacity_logits.numpy(), scales=moved.log_scales.numpy(),
-                     quats=moved.quats.numpy())  # fmt: skip
+    data = SplatData(
+        means=moved.means.numpy(),
+        f_dc=moved.sh[:, 0].numpy(),
+        f_rest=f_rest,
+        opacity=moved.opacity_logits.numpy(),
+        scales=moved.log_scales.numpy(),
+        quats=moved.quats.numpy(),
+    )
     return data, int((~keep).sum())
 
 
@@ -337,17 +364,38 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
 
     extent = _extent(views)
     scales = {**LRS, "means": LRS["means"] * extent}
-    opt = torch.optim.Adam([{"params": [p], "lr": scales[name], "lr_scale": scales[name]}
-                            for name, p in zip(LRS, splats.parameters(), strict=True)], eps=1e-15)  # fmt: skip
+    opt = torch.optim.Adam(
+        [
+            {"params": [p], "lr": scales[name], "lr_scale": scales[name]}
+            for name, p in zip(LRS, splats.parameters(), strict=True)
+        ],
+        eps=1e-15,
+    )
     metrics = MetricsLog(sidecar(out, "metrics.csv"), ["step", "seconds", "loss", "psnr"])
     progress = progress or NO_PROGRESS
     clock, task = Clock(), progress.add_task("splat", total=config.max_steps)
     limit = int(DENSIFY_LIMIT * len(splats))
-    steps = _Steps(splats=splats, opt=opt, views=views, backend=backend, background=bg, gen=gen, clock=clock,
-                   metrics=metrics, progress=progress, task=task, extent=extent, limit=limit,
-                   densify=config.densify, sh_degree=config.sh_degree)  # fmt: skip
-    settings = LoopSettings(name="splat", budget=Budget(max_steps=config.max_steps, max_seconds=config.max_seconds),
-                            schedule=Schedule(lr=1.0, decay=LR_DECAY))  # fmt: skip
+    steps = _Steps(
+        splats=splats,
+        opt=opt,
+        views=views,
+        backend=backend,
+        background=bg,
+        gen=gen,
+        clock=clock,
+        metrics=metrics,
+        progress=progress,
+        task=task,
+        extent=extent,
+        limit=limit,
+        densify=config.densify,
+        sh_degree=config.sh_degree,
+    )
+    settings = LoopSettings(
+        name="splat",
+        budget=Budget(max_steps=config.max_steps, max_seconds=config.max_seconds),
+        schedule=Schedule(lr=1.0, decay=LR_DECAY),
+    )
     seconds = TrainingLoop(settings, steps, clock).run() if config.max_steps > 0 else 0.0
     splats = steps.splats
     psnr_final = _score(splats, views, backend, bg, picks)
@@ -357,34 +405,76 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     out_from_scene = scene.source_from_scene() if config.frame == "user" else np.eye(4)
     data, dropped = _to_file(final, out_from_scene)
     checks = [
-        Check.lower("psnr_gain", psnr_final - psnr_init, 0.0, "the optimisation made the splats worse than their "
-                    "initialisation on the training views: a learning rate too high, or the wrong photos", "dB"),
+        Check.lower(
+            "psnr_gain",
+            psnr_final - psnr_init,
+            0.0,
+            "the optimisation made the splats worse than their "
+            "initialisation on the training views: a learning rate too high, or the wrong photos",
+            "dB",
+        ),
         Check.upper("non_finite", non_finite, 0, "NaN or inf in the Gaussians' parameters: the optimisation diverged"),
-    ]  # fmt: skip
+    ]
     # OUT takes its name only after its report is written: a failure in between leaves no OUT that looks done
     with atomic_path(out) as tmp:
         (write_ply if fmt == "ply" else write_splat)(tmp, data)
         metrics.save()
         report = write_manifest(
-            out.parent, name=sidecar(out, "report.json").name, stage="splat", started=started, version=VERSION,
+            out.parent,
+            name=sidecar(out, "report.json").name,
+            stage="splat",
+            started=started,
+            version=VERSION,
             inputs=[Path(config.run_dir) / "checkpoint.pt", Path(config.run_dir) / "config.json"],
             outputs=[out, metrics.path],
-            used={"backend": backend.name, "backend_why": backend.why, "kernel": kernel_name(backend, device),
-                  "device": str(device), "format": fmt,
-                  "init": init, "densification": _densification(steps, config),
-                  "views": len(train_idx), "downscale": downscale, "scored_views": picks,
-                  "loss": "L1 on one whole training view per step",
-                  "sh": {"degree": config.sh_degree, "raised_at": list(SH_AT[: config.sh_degree]),
-                         "rest_lr": f"{SH_REST_LR:g} x the colour's"}, "learning_rates": scales, "lr_decay": LR_DECAY,
-                  "scene_extent": extent, "background": background.tolist(), "dropped_invisible": dropped,
-                  "camera_model": "pinhole (distortion coefficients are not applied)"},
-            left_out={**({} if config.densify else {"densification": DENSIFY_OFF}),
-                      **_colour_left_out(config.sh_degree, fmt),
-                      "ssim_loss": "L1 only (3DGS adds 0.2 D-SSIM)",
-                      "held_out_score": "test views are not scored here (nerfpipe eval OUT.ply scores them)"},
-            frame=config.frame, out_from_scene=out_from_scene.tolist(), gaussians=len(data), steps=steps.step,
-            seconds=round(seconds, 3), psnr_train_init=round(psnr_init, 4), psnr_train_final=round(psnr_final, 4),
-            config=config_to_json(config), **verdict(checks),
-        )  # fmt: skip
-    return Outputs(out=out, report=report, metrics=metrics.path, gaussians=len(data), steps=steps.step,
-                   seconds=seconds, psnr_init=psnr_init, psnr_final=psnr_final, backend=backend.name)  # fmt: skip
+            used={
+                "backend": backend.name,
+                "backend_why": backend.why,
+                "kernel": kernel_name(backend, device),
+                "device": str(device),
+                "format": fmt,
+                "init": init,
+                "densification": _densification(steps, config),
+                "views": len(train_idx),
+                "downscale": downscale,
+                "scored_views": picks,
+                "loss": "L1 on one whole training view per step",
+                "sh": {
+                    "degree": config.sh_degree,
+                    "raised_at": list(SH_AT[: config.sh_degree]),
+                    "rest_lr": f"{SH_REST_LR:g} x the colour's",
+                },
+                "learning_rates": scales,
+                "lr_decay": LR_DECAY,
+                "scene_extent": extent,
+                "background": background.tolist(),
+                "dropped_invisible": dropped,
+                "camera_model": "pinhole (distortion coefficients are not applied)",
+            },
+            left_out={
+                **({} if config.densify else {"densification": DENSIFY_OFF}),
+                **_colour_left_out(config.sh_degree, fmt),
+                "ssim_loss": "L1 only (3DGS adds 0.2 D-SSIM)",
+                "held_out_score": "test views are not scored here (nerfpipe eval OUT.ply scores them)",
+            },
+            frame=config.frame,
+            out_from_scene=out_from_scene.tolist(),
+            gaussians=len(data),
+            steps=steps.step,
+            seconds=round(seconds, 3),
+            psnr_train_init=round(psnr_init, 4),
+            psnr_train_final=round(psnr_final, 4),
+            config=config_to_json(config),
+            **verdict(checks),
+        )
+    return Outputs(
+        out=out,
+        report=report,
+        metrics=metrics.path,
+        gaussians=len(data),
+        steps=steps.step,
+        seconds=seconds,
+        psnr_init=psnr_init,
+        psnr_final=psnr_final,
+        backend=backend.name,
+    )

@@ -106,9 +106,16 @@ def make_npz(path: Path, n: int, size: int = 8, alpha: bool = False) -> dict[str
 
 
 def make_colmap(
-    model_dir: Path, image_dir: Path | None, n_images: int, n_points: int = 60, *, text: bool = False,
-    model: str = "OPENCV", seed: int = 5, size=(36, 48),
-) -> dict[str, np.ndarray]:  # fmt: skip
+    model_dir: Path,
+    image_dir: Path | None,
+    n_images: int,
+    n_points: int = 60,
+    *,
+    text: bool = False,
+    model: str = "OPENCV",
+    seed: int = 5,
+    size=(36, 48),
+) -> dict[str, np.ndarray]:
     """A COLMAP model whose world is a rotated, shifted, scaled z-up orbit; points uniform in the object box."""
     import pycolmap
 

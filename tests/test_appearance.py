@@ -94,7 +94,8 @@ def test_codes_learn_the_gains_and_eval_uses_the_mean(scenes, tmp_path):
     res = eval_stage.run(eval_stage.Config(run_dir=run, out=tmp_path / "eval.json", device="cpu")).result
     assert res["appearance"] == EVAL_RULE and res["appearance_rule"] == "mean"
     assert res["scored_pixels"] == "whole views"
-    half = eval_stage.run(eval_stage.Config(run_dir=run, out=tmp_path / "half.json", device="cpu",
-                                            appearance_rule="half")).result  # fmt: skip
+    half = eval_stage.run(
+        eval_stage.Config(run_dir=run, out=tmp_path / "half.json", device="cpu", appearance_rule="half")
+    ).result
     assert half["appearance"] == EVAL_RULES["half"] and half["scored_pixels"].startswith("right half")
     assert np.isfinite(half["psnr"])

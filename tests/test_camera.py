@@ -44,9 +44,13 @@ def test_projected_point_lies_on_its_pixel_ray(intr):
     g = torch.Generator().manual_seed(2)
     # points in front of the camera (OpenGL: -z), spread over the field of view
     p_cam = torch.stack(
-        [torch.rand(50, generator=g, dtype=torch.float64) - 0.5, torch.rand(50, generator=g, dtype=torch.float64)
-         - 0.5, -(1 + 3 * torch.rand(50, generator=g, dtype=torch.float64))], dim=-1,
-    )  # fmt: skip
+        [
+            torch.rand(50, generator=g, dtype=torch.float64) - 0.5,
+            torch.rand(50, generator=g, dtype=torch.float64) - 0.5,
+            -(1 + 3 * torch.rand(50, generator=g, dtype=torch.float64)),
+        ],
+        dim=-1,
+    )
     p_world = p_cam @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
     uv, z = project(p_world, world_from_cam, intr)
     assert (z > 0).all()

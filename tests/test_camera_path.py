@@ -24,8 +24,9 @@ except ImportError:  # tests/ imported as a package
 
 
 def _orbit(n: int, radius: float = 3.0) -> np.ndarray:
-    orbit = paths.Orbit(centre=np.zeros(3), up=np.array([0.0, 0, 1]), radius=radius, elevation_deg=20.0,
-                        start_azimuth_deg=0.0)  # fmt: skip
+    orbit = paths.Orbit(
+        centre=np.zeros(3), up=np.array([0.0, 0, 1]), radius=radius, elevation_deg=20.0, start_azimuth_deg=0.0
+    )
     return paths.turntable(orbit, n, sweep_deg=270.0)
 
 
@@ -60,8 +61,15 @@ def test_interpolation_passes_through_keyframes_at_their_times():
 
 def test_written_path_reads_back(tmp_path):
     keys = _orbit(3)
-    out = write_camera_path(tmp_path / "p.json", keyframes=keys, fovs_deg=np.full(3, 50.0),
-                            times=np.array([0.0, 0.5, 1.0]), width=40, height=30, fps=8)  # fmt: skip
+    out = write_camera_path(
+        tmp_path / "p.json",
+        keyframes=keys,
+        fovs_deg=np.full(3, 50.0),
+        times=np.array([0.0, 0.5, 1.0]),
+        width=40,
+        height=30,
+        fps=8,
+    )
     doc = json.loads(out.read_text())
     assert doc["format"] == "nerfpipe-camera-path" and len(doc["keyframes"]) == 3
     got = read_camera_path(out)
@@ -86,7 +94,7 @@ def nerfstudio_camera_path(path, poses: np.ndarray, *, w: int = 33, h: int = 25,
                 "properties": json.dumps([["FOV", fov], ["NAME", f"Camera {i}"], ["TIME", i / 24]]),
             }
             for i, p in enumerate(poses)
-        ],  # fmt: skip
+        ],
         "camera_type": "perspective",
         "render_height": h,
         "render_width": w,
@@ -113,10 +121,20 @@ def test_render_plays_a_nerfstudio_camera_path(sphere_run, tmp_path):
 
 def test_render_plays_a_recorded_path_with_the_sphere_in_view(sphere_run, tmp_path):
     run_dir, _ = sphere_run
-    f = write_camera_path(tmp_path / "rec.json", keyframes=_orbit(2), fovs_deg=np.array([40.0, 40.0]),
-                          times=np.array([0.0, 1.0]), width=32, height=24, fps=4)  # fmt: skip
-    res = render_stage.run(render_stage.Config(run_dir=run_dir, out=tmp_path / "rec.mp4", path=str(f),
-                                               frames_dir=tmp_path / "frames", max_seconds=30.0))  # fmt: skip
+    f = write_camera_path(
+        tmp_path / "rec.json",
+        keyframes=_orbit(2),
+        fovs_deg=np.array([40.0, 40.0]),
+        times=np.array([0.0, 1.0]),
+        width=32,
+        height=24,
+        fps=4,
+    )
+    res = render_stage.run(
+        render_stage.Config(
+            run_dir=run_dir, out=tmp_path / "rec.mp4", path=str(f), frames_dir=tmp_path / "frames", max_seconds=30.0
+        )
+    )
     assert res.n_frames == 5 and res.size == (24, 32)
     frame = iio.imread(res.frames[2]).astype(float) / 255
     centre = frame[8:16, 12:20]
@@ -125,12 +143,29 @@ def test_render_plays_a_recorded_path_with_the_sphere_in_view(sphere_run, tmp_pa
 
 def test_bad_path_files_are_one_line_errors(tmp_path, sphere_run):
     f = tmp_path / "bad.json"
-    f.write_text(json.dumps({"camera_path": [{"camera_to_world": [1, 0, 0], "fov": 50}], "render_width": 4,
-                             "render_height": 4, "fps": 1}))  # fmt: skip
+    f.write_text(
+        json.dumps(
+            {
+                "camera_path": [{"camera_to_world": [1, 0, 0], "fov": 50}],
+                "render_width": 4,
+                "render_height": 4,
+                "fps": 1,
+            }
+        )
+    )
     with pytest.raises(UserError, match=r"camera_path\[0\].camera_to_world"):
         read_camera_path(f)
-    f.write_text(json.dumps({"camera_path": [{"camera_to_world": np.eye(4).tolist(), "fov": 50}],
-                             "render_width": 4, "render_height": 4, "fps": 1, "camera_type": "fisheye"}))  # fmt: skip
+    f.write_text(
+        json.dumps(
+            {
+                "camera_path": [{"camera_to_world": np.eye(4).tolist(), "fov": 50}],
+                "render_width": 4,
+                "render_height": 4,
+                "fps": 1,
+                "camera_type": "fisheye",
+            }
+        )
+    )
     with pytest.raises(UserError, match="camera_type"):
         read_camera_path(f)
     with pytest.raises(UserError, match="not found"):

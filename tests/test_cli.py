@@ -19,9 +19,19 @@ from nerfpipe.data.errors import UserError
 
 ROOT = Path(__file__).resolve().parents[1]
 COMMANDS = [
-    "scene", "poses", "convert", "train", "render", "depth", "eval", "report", "mesh", "fit-image", "export-points",
+    "scene",
+    "poses",
+    "convert",
+    "train",
+    "render",
+    "depth",
+    "eval",
+    "report",
+    "mesh",
+    "fit-image",
+    "export-points",
     "splat",
-]  # fmt: skip
+]
 # Positional arguments that make each command parse (nothing is run by config_from_args).
 ARGS = {
     "scene": ["s"],
@@ -190,9 +200,14 @@ def test_mesh_special_fields():
 
 @pytest.mark.parametrize(
     "name, option, good",
-    [("train", "--field", "vanilla"), ("convert", "--kind", "llff"), ("render", "--path", "spiral"),
-     ("depth", "--views", "turntable"), ("poses", "--camera-model", "OPENCV")],
-)  # fmt: skip
+    [
+        ("train", "--field", "vanilla"),
+        ("convert", "--kind", "llff"),
+        ("render", "--path", "spiral"),
+        ("depth", "--views", "turntable"),
+        ("poses", "--camera-model", "OPENCV"),
+    ],
+)
 def test_choices_are_enforced(capsys, monkeypatch, name, option, good):
     module = importlib.import_module(cli.STAGES[name].module)
     monkeypatch.setattr(module, "run", lambda *a, **k: pytest.fail("a bad choice must not run the stage"))
@@ -207,9 +222,13 @@ def test_choices_are_enforced(capsys, monkeypatch, name, option, good):
 
 @pytest.mark.parametrize(
     "name, option, bad",
-    [("convert", "--downscales", "2,x"), ("train", "--resolution", "1,2,3"), ("train", "--upsample-at", "0.1,a"),
-     ("report", "--levels", "20,high")],
-)  # fmt: skip
+    [
+        ("convert", "--downscales", "2,x"),
+        ("train", "--resolution", "1,2,3"),
+        ("train", "--upsample-at", "0.1,a"),
+        ("report", "--levels", "20,high"),
+    ],
+)
 def test_tuple_option_parse_error_is_one_line(capsys, name, option, bad):
     code, _, err = _run(capsys, name, *ARGS[name], option, bad)
     assert code == 2

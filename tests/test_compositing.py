@@ -130,8 +130,9 @@ def test_gradcheck_float64_padded_and_packed():
         out = composite(s, c, t0.reshape(-1), t1.detach().reshape(-1), ri, 3)
         return out["rgb"], out["depth"], out["acc"]
 
-    torch.autograd.gradcheck(packed, (sigmas.reshape(-1).detach().requires_grad_(True),
-                                      rgbs.reshape(-1, 3).detach().requires_grad_(True)))  # fmt: skip
+    torch.autograd.gradcheck(
+        packed, (sigmas.reshape(-1).detach().requires_grad_(True), rgbs.reshape(-1, 3).detach().requires_grad_(True))
+    )
     torch.autograd.gradcheck(lambda s: beer_lambert(s, t0, t1.detach())["intensity"], (sigmas,))
 
 

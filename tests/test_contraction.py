@@ -52,9 +52,19 @@ def test_contract_xyz_and_chord_scale_xyz_equal_their_row_twins(dtype):
     c = Contraction(BOX)
     g = torch.Generator().manual_seed(3)
     x = torch.randn(4000, 3, generator=g, dtype=dtype) * torch.logspace(-1, 6, 4000, dtype=dtype)[:, None]
-    x[:8] = torch.tensor([[1.0, 1.5, 0.0], [-1.0, -0.5, -2.0], [0.0, 0.5, -1.0], [1e30, 0.0, 0.0],
-                          [0.0, -1e30, 5.0], [float("inf"), 0.0, 0.0], [float("nan"), 0.0, 0.0], [1.0, 0.2, -0.3]],
-                         dtype=dtype)  # fmt: skip
+    x[:8] = torch.tensor(
+        [
+            [1.0, 1.5, 0.0],
+            [-1.0, -0.5, -2.0],
+            [0.0, 0.5, -1.0],
+            [1e30, 0.0, 0.0],
+            [0.0, -1e30, 5.0],
+            [float("inf"), 0.0, 0.0],
+            [float("nan"), 0.0, 0.0],
+            [1.0, 0.2, -0.3],
+        ],
+        dtype=dtype,
+    )
     got = torch.stack(c.contract_xyz(tuple(x.T.contiguous())), dim=-1)
     torch.testing.assert_close(got, c.contract(x), rtol=0, atol=0, equal_nan=True)
     o = torch.randn(50, 3, generator=g, dtype=dtype) * 3
@@ -99,11 +109,17 @@ def test_contracted_rendering_matches_the_box_where_density_is_inside():
 
     o, d = _rays(64)
     box_space = Box(aabb=tuple(tuple(r) for r in c.inner_aabb.tolist()), near=0.1, far=1e10)
-    box = render_marched(o, d, marcher=Marcher(space=box_space, grid=OccupancyGrid(c.inner_aabb, 16), step_size=0.005),
-                         sigma_fn=sigma_world, rgb_fn=None)  # fmt: skip
+    box = render_marched(
+        o,
+        d,
+        marcher=Marcher(space=box_space, grid=OccupancyGrid(c.inner_aabb, 16), step_size=0.005),
+        sigma_fn=sigma_world,
+        rgb_fn=None,
+    )
     # in contracted space the field's density is per contracted length: sigma' = sigma * h (h = 1 here)
-    marcher = Marcher(space=Contracted(contraction=c, near=0.1), grid=OccupancyGrid(CONTRACTED_BOX, 16),
-                      step_size=0.005)  # fmt: skip
+    marcher = Marcher(
+        space=Contracted(contraction=c, near=0.1), grid=OccupancyGrid(CONTRACTED_BOX, 16), step_size=0.005
+    )
     con = render_marched(o, d, marcher=marcher, sigma_fn=lambda y: sigma_world(c.uncontract(y)), rgb_fn=None)
     assert float(box["acc"].max()) > 0.99 and float(box["acc"].min()) < 0.01  # hits and misses both present
     assert torch.allclose(box["acc"], con["acc"], atol=2e-3)
@@ -123,8 +139,9 @@ def test_far_background_is_rendered_at_world_distance():
 
     o = torch.tensor([[0.0, -3.0, 0.1]]).repeat(32, 1)
     d = torch.nn.functional.normalize(torch.randn(32, 3, generator=torch.Generator().manual_seed(2)), dim=-1)
-    marcher = Marcher(space=Contracted(contraction=c, near=0.05), grid=OccupancyGrid(CONTRACTED_BOX, 32),
-                      step_size=0.02)  # fmt: skip
+    marcher = Marcher(
+        space=Contracted(contraction=c, near=0.05), grid=OccupancyGrid(CONTRACTED_BOX, 32), step_size=0.02
+    )
     out = render_marched(o, d, marcher=marcher, sigma_fn=sigma_contracted, rgb_fn=None)
     assert float(out["acc"].min()) > 0.99
     hit_r = (o + d * out["depth"][:, None]).norm(dim=-1)  # where the rays stop, as a radius

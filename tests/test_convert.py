@@ -328,5 +328,9 @@ def test_llff_image_folder_found_in_the_dataset(tmp_path):
     used = json.loads((scene / "convert_manifest.json").read_text())["used"]
     assert used["images"] == str(tmp_path / "src" / "images_8")
     run(Config(source=tmp_path / "src", scene_dir=tmp_path / "scene2", downscales=()))
-    _fails("no_such_folder: image folder not found", source=tmp_path / "src", scene_dir=tmp_path / "s3",
-           images=Path("no_such_folder"))  # fmt: skip
+    _fails(
+        "no_such_folder: image folder not found",
+        source=tmp_path / "src",
+        scene_dir=tmp_path / "s3",
+        images=Path("no_such_folder"),
+    )

@@ -37,8 +37,14 @@ def test_config_and_manifest(tmp_path):
     write_config(tmp_path, Cfg(path=tmp_path / "a b"))
     assert json.loads((tmp_path / "config.json").read_text()) == {"path": str(tmp_path / "a b"), "far": "inf"}
     (tmp_path / "in.txt").write_text("x")
-    write_manifest(tmp_path, stage="test", started=time.time() - 1, inputs=[tmp_path / "in.txt"],
-                   used={"field": "fast"}, left_out={"ndc": "360-degree scene"})  # fmt: skip
+    write_manifest(
+        tmp_path,
+        stage="test",
+        started=time.time() - 1,
+        inputs=[tmp_path / "in.txt"],
+        used={"field": "fast"},
+        left_out={"ndc": "360-degree scene"},
+    )
     m = json.loads((tmp_path / "manifest.json").read_text())
     assert m["stage"] == "test" and m["wall_seconds"] >= 1 and "torch" in m["versions"]
     assert len(m["inputs"][str(tmp_path / "in.txt")]) == 64 and m["left_out"] == {"ndc": "360-degree scene"}
@@ -51,8 +57,10 @@ def test_metrics_log_round_trip(tmp_path):
     log.save()
     again = MetricsLog(tmp_path / "metrics.csv", log.columns)
     again.load()
-    assert again.rows == [{"step": "1", "seconds": "0.5", "loss": "0.1"},
-                          {"step": "2", "seconds": "1.0", "loss": "0.05", "test_psnr": "21.0"}]  # fmt: skip
+    assert again.rows == [
+        {"step": "1", "seconds": "0.5", "loss": "0.1"},
+        {"step": "2", "seconds": "1.0", "loss": "0.05", "test_psnr": "21.0"},
+    ]
     with pytest.raises(ValueError, match="unknown metrics columns"):
         log.append(step=3, seconds=2, bogus=1)
     with pytest.raises(ValueError, match="start with step, seconds"):

@@ -58,8 +58,11 @@ def test_depth_maps_in_user_units_and_consistent_pngs(sphere_run, tmp_path):
 
 def test_turntable_median_depth_with_video(sphere_run, tmp_path):
     run_dir, _ = sphere_run
-    out = depth_stage.run(depth_stage.Config(run_dir=run_dir, out_dir=tmp_path / "d", views="turntable",
-                                             kind="median", frames=3, video=True, downscale=2))  # fmt: skip
+    out = depth_stage.run(
+        depth_stage.Config(
+            run_dir=run_dir, out_dir=tmp_path / "d", views="turntable", kind="median", frames=3, video=True, downscale=2
+        )
+    )
     assert out.names == ("frame_00000", "frame_00001", "frame_00002")
     assert np.load(out.depth[0]).shape == (12, 16)
     reader = iio.get_reader(str(out.video), format="ffmpeg")

@@ -22,8 +22,18 @@ from nerfpipe.stages import train
 from tests.ports import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
-OPTIONS = ["--device", "cpu", "--resolution", "16,24", "--occupancy-resolution", "16", "--eval-every", "0",
-           "--final-eval-views", "1"]  # fmt: skip
+OPTIONS = [
+    "--device",
+    "cpu",
+    "--resolution",
+    "16,24",
+    "--occupancy-resolution",
+    "16",
+    "--eval-every",
+    "0",
+    "--final-eval-views",
+    "1",
+]
 
 
 @pytest.fixture(scope="module")
@@ -35,8 +45,17 @@ def scene_dir(tmp_path_factory) -> Path:
 
 def _torchrun(*args: str, **kw) -> subprocess.Popen:
     """`torchrun --standalone --nproc-per-node 2 -m nerfpipe.cli ARGS` (a free port; OMP_NUM_THREADS=1)."""
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", "-m",
-           "nerfpipe.cli", *map(str, args)]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc-per-node",
+        "2",
+        "-m",
+        "nerfpipe.cli",
+        *map(str, args),
+    ]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     return subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
 
@@ -96,11 +115,31 @@ def test_two_ranks_give_the_parameters_of_one_process(scene_dir, tmp_path):
     lr <= 0.03 the parameters agree to ~1e-6 (measured: 9e-5 at most, the density lines); 5e-4 is a sixtieth of
     one Adam step, while a rank that took other rays or other jitter is off by ~0.1 (measured 0.16)."""
     fast = train.FastOptions(resolution=(16, 24), occupancy_resolution=16, occupancy_every=4)
-    common = dict(batch_rays=255, max_steps=70, fast=fast, refine=train.RefineOptions(), appearance=True,
-                  eval_every=0, final_eval_views=1, device="cpu")  # fmt: skip
+    common = dict(
+        batch_rays=255,
+        max_steps=70,
+        fast=fast,
+        refine=train.RefineOptions(),
+        appearance=True,
+        eval_every=0,
+        final_eval_views=1,
+        device="cpu",
+    )
     one = train.run(train.Config(scene_dir=scene_dir, run_dir=tmp_path / "one", threads=1, **common))
-    proc = _torchrun("train", scene_dir, tmp_path / "two", *OPTIONS, "--batch-rays", "255", "--max-steps", "70",
-                     "--occupancy-every", "4", "--refine-poses", "--appearance")  # fmt: skip
+    proc = _torchrun(
+        "train",
+        scene_dir,
+        tmp_path / "two",
+        *OPTIONS,
+        "--batch-rays",
+        "255",
+        "--max-steps",
+        "70",
+        "--occupancy-every",
+        "4",
+        "--refine-poses",
+        "--appearance",
+    )
     out, err = proc.communicate(timeout=300)
     assert proc.returncode == 0, err
     assert out.count("70 steps in") == 1  # rank 0 reports (cli prints only RANK 0's summary); rc 0: both finished
@@ -128,8 +167,21 @@ def test_ctrl_c_to_torchrun_checkpoints_every_rank_at_one_step_and_resume_contin
     agree on the step, rank 0 writes the checkpoint and each says so in one line; --resume under torchrun
     continues the run to its end."""
     run_dir = tmp_path / "run"
-    proc = _torchrun("train", scene_dir, run_dir, *OPTIONS, "--batch-rays", "256", "--max-steps", "100000",
-                     "--max-seconds", "600", "--checkpoint-seconds", "0.3", start_new_session=True)  # fmt: skip
+    proc = _torchrun(
+        "train",
+        scene_dir,
+        run_dir,
+        *OPTIONS,
+        "--batch-rays",
+        "256",
+        "--max-steps",
+        "100000",
+        "--max-seconds",
+        "600",
+        "--checkpoint-seconds",
+        "0.3",
+        start_new_session=True,
+    )
     t0 = time.monotonic()
     while not (run_dir / "checkpoint.pt").exists():  # written by the time budget: the loop is running
         assert proc.poll() is None, proc.communicate()[1]
@@ -143,8 +195,19 @@ def test_ctrl_c_to_torchrun_checkpoints_every_rank_at_one_step_and_resume_contin
     assert len(lines) == 2 and len(set(lines)) == 1, err  # one line a rank, the same step on both
     assert lines[0].startswith(f"error: interrupted (SIGINT) at step {state['step']} ") and "--resume" in lines[0]
     assert not (run_dir / "manifest.json").exists() and not list(run_dir.glob(".checkpoint.pt.*"))
-    proc = _torchrun("train", scene_dir, run_dir, *OPTIONS, "--batch-rays", "256", "--max-steps", state["step"] + 3,
-                     "--max-seconds", "600", "--resume")  # fmt: skip
+    proc = _torchrun(
+        "train",
+        scene_dir,
+        run_dir,
+        *OPTIONS,
+        "--batch-rays",
+        "256",
+        "--max-steps",
+        state["step"] + 3,
+        "--max-seconds",
+        "600",
+        "--resume",
+    )
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == 0, err
     manifest = json.loads((run_dir / "manifest.json").read_text())
@@ -177,11 +240,24 @@ print("left; rank 0 had written:", (out / "written").exists(), flush=True)
 def _two_ranks(tmp_path: Path, mode: str) -> list[tuple[int, str]]:
     """The script above as ranks 0 and 1 of a gloo group on a free local port -> (exit code, stdout) of each."""
     (tmp_path / "rank.py").write_text(_RANK_SCRIPT)
-    env = {**os.environ, "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(free_port()), "WORLD_SIZE": "2",
-           "OMP_NUM_THREADS": "1"}  # fmt: skip
-    procs = [subprocess.Popen([sys.executable, str(tmp_path / "rank.py"), str(tmp_path), mode], cwd=ROOT,
-                              env={**env, "RANK": str(r), "LOCAL_RANK": str(r)}, stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True) for r in range(2)]  # fmt: skip
+    env = {
+        **os.environ,
+        "MASTER_ADDR": "127.0.0.1",
+        "MASTER_PORT": str(free_port()),
+        "WORLD_SIZE": "2",
+        "OMP_NUM_THREADS": "1",
+    }
+    procs = [
+        subprocess.Popen(
+            [sys.executable, str(tmp_path / "rank.py"), str(tmp_path), mode],
+            cwd=ROOT,
+            env={**env, "RANK": str(r), "LOCAL_RANK": str(r)},
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for r in range(2)
+    ]
     results = []
     for p in procs:
         out, _ = p.communicate(timeout=120)

@@ -23,10 +23,24 @@ except ImportError:  # tests/ imported as a package
     from tests.test_render_stage import SphereRun, sphere_run  # noqa: F401
 
 KEYS = {
-    "run_dir", "split", "n_views", "psnr", "ssim", "lpips", "lpips_unavailable", "rays_per_second", "render_seconds",
-    "device", "views", "depth_mae", "depth_median_abs_error", "depth_coverage", "depth_alignment",
-    "depth_unavailable", "ground_truth",
-}  # fmt: skip
+    "run_dir",
+    "split",
+    "n_views",
+    "psnr",
+    "ssim",
+    "lpips",
+    "lpips_unavailable",
+    "rays_per_second",
+    "render_seconds",
+    "device",
+    "views",
+    "depth_mae",
+    "depth_median_abs_error",
+    "depth_coverage",
+    "depth_alignment",
+    "depth_unavailable",
+    "ground_truth",
+}
 
 
 def _rotation(axis, deg):
@@ -75,8 +89,9 @@ def test_depth_error_is_zero_for_exact_depth_in_either_frame(sphere_run, tmp_pat
         (1.7, _rotation([1, 2, 3], 40), np.array([0.3, -2.0, 5.0])) if moved else (1.0, np.eye(3), 0 * np.ones(3))
     )
     _write_ground_truth(tmp_path / "scene_gt" / "ground_truth", fake, gt_from_src)
-    out = eval_stage.run(eval_stage.Config(run_dir=run_dir, out=tmp_path / "eval.json",
-                                           ground_truth=tmp_path / "scene_gt"))  # fmt: skip
+    out = eval_stage.run(
+        eval_stage.Config(run_dir=run_dir, out=tmp_path / "eval.json", ground_truth=tmp_path / "scene_gt")
+    )
     doc = out.result
     align = doc["depth_alignment"]
     assert align["method"] == ("similarity" if moved else "none")
@@ -177,11 +192,23 @@ def test_short_training_gives_depth_near_ground_truth(tmp_path):
 
     scene_dir = tmp_path / "posed"
     scene_stage.run(scene_stage.Config(out_dir=scene_dir, kind="posed", size=32, views=16, seed=1))
-    train.run(train.Config(scene_dir=scene_dir, run_dir=tmp_path / "run", max_steps=STEPS, max_seconds=600.0,
-                           batch_rays=512, fast=train.FastOptions(resolution=(24, 48), occupancy_resolution=32),
-                           log_every=50, eval_every=0, eval_pixels=256, device="cpu"))  # fmt: skip
-    doc = eval_stage.run(eval_stage.Config(run_dir=tmp_path / "run", out=tmp_path / "eval.json",
-                                           ground_truth=scene_dir, device="cpu")).result  # fmt: skip
+    train.run(
+        train.Config(
+            scene_dir=scene_dir,
+            run_dir=tmp_path / "run",
+            max_steps=STEPS,
+            max_seconds=600.0,
+            batch_rays=512,
+            fast=train.FastOptions(resolution=(24, 48), occupancy_resolution=32),
+            log_every=50,
+            eval_every=0,
+            eval_pixels=256,
+            device="cpu",
+        )
+    )
+    doc = eval_stage.run(
+        eval_stage.Config(run_dir=tmp_path / "run", out=tmp_path / "eval.json", ground_truth=scene_dir, device="cpu")
+    ).result
     assert KEYS <= set(doc)
     assert doc["psnr"] > PSNR_FLOOR, doc["psnr"]
     assert doc["depth_alignment"]["method"] == "none"

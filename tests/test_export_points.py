@@ -47,14 +47,24 @@ class Rendered(StandIn):
         def rgb_sigma(x, _d):
             return self.color(x, None), self.density(x)
 
-        out = render_rays(o, d, near=2.0, far=4.0, sampler=StratifiedSampler(n_samples=400), rgb_sigma_fn=rgb_sigma,
-                          background=self.background.double())  # fmt: skip
+        out = render_rays(
+            o,
+            d,
+            near=2.0,
+            far=4.0,
+            sampler=StratifiedSampler(n_samples=400),
+            rgb_sigma_fn=rgb_sigma,
+            background=self.background.double(),
+        )
         depth = out["depth"].clone()
         if self.fly:
             k = torch.arange(self.rays_seen, self.rays_seen + len(depth))
             hit = k % self.fly == 0
-            depth[hit] *= 1 - 0.05 - 0.25 * torch.rand(int(hit.sum()), generator=torch.Generator().manual_seed(1),
-                                                        dtype=depth.dtype)  # fmt: skip
+            depth[hit] *= (
+                1
+                - 0.05
+                - 0.25 * torch.rand(int(hit.sum()), generator=torch.Generator().manual_seed(1), dtype=depth.dtype)
+            )
         self.rays_seen += len(depth)
         return {"rgb": out["rgb"].float(), "depth": depth.float(), "acc": out["acc"].float()}
 
@@ -118,8 +128,12 @@ def test_points_lie_on_the_surface_with_outward_normals_in_the_user_frame(tmp_pa
         report["normals"]["facing_camera_before_reorienting"] > 0.95 and report["normals"]["from_view_direction"] == 0
     )
     assert report["check"] == "ok", report["checks"]
-    assert {c["name"] for c in report["checks"]} == {"ray_hit_fraction", "outlier_fraction", "normals_facing_camera",
-                                                      "non_finite"}  # fmt: skip
+    assert {c["name"] for c in report["checks"]} == {
+        "ray_hit_fraction",
+        "outlier_fraction",
+        "normals_facing_camera",
+        "non_finite",
+    }
     removed = {r["what"]: r["count"] for r in report["removed"]}
     assert report["rays"]["gave_points"] - removed["over num_points"] - removed["statistical outliers"] == out.points
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary left
@@ -220,10 +234,15 @@ def test_an_empty_field_is_a_one_line_user_error_and_leaves_no_file(tmp_path):
 
 @pytest.mark.parametrize(
     "changes, match",
-    [({"out": Path("x.obj")}, "expected a .ply"), ({"acc_threshold": 0.0}, "acc_threshold"),
-     ({"num_points": 0}, "num_points"), ({"bbox": (0, 0, 0, 1, -1, 1)}, "bbox"),
-     ({"outlier_std_ratio": 0.0}, "outlier_std_ratio"), ({"normal_step": 2.0}, "normal_step")],
-)  # fmt: skip
+    [
+        ({"out": Path("x.obj")}, "expected a .ply"),
+        ({"acc_threshold": 0.0}, "acc_threshold"),
+        ({"num_points": 0}, "num_points"),
+        ({"bbox": (0, 0, 0, 1, -1, 1)}, "bbox"),
+        ({"outlier_std_ratio": 0.0}, "outlier_std_ratio"),
+        ({"normal_step": 2.0}, "normal_step"),
+    ],
+)
 def test_bad_settings_are_one_line_user_errors(tmp_path, changes, match):
     config = ep.Config(**{"run_dir": tmp_path, "out": tmp_path / "c.ply", **changes})
     with pytest.raises(UserError, match=match):
@@ -278,8 +297,18 @@ def test_help_lists_the_options(capsys):
         cli.main(["export-points", "--help"])
     out = capsys.readouterr().out
     assert e.value.code == 0
-    options = ("--num-points", "--acc-threshold", "--frame", "--bbox", "--outlier-neighbors", "--outlier-std-ratio",
-               "--normal-step", "--no-reorient-normals", "--downscale", "--seed")  # fmt: skip
+    options = (
+        "--num-points",
+        "--acc-threshold",
+        "--frame",
+        "--bbox",
+        "--outlier-neighbors",
+        "--outlier-std-ratio",
+        "--normal-step",
+        "--no-reorient-normals",
+        "--downscale",
+        "--seed",
+    )
     for option in options:
         assert option in out, option
     assert cli.config_from_args("export-points", ["r", "c.ply", "--bbox", "0,0,0,1,1,2"]).bbox == (0, 0, 0, 1, 1, 2)
@@ -292,12 +321,22 @@ def test_a_real_training_run_through_the_command_line(tmp_path, capsys):
 
     scene_stage.run(scene_stage.Config(out_dir=tmp_path / "scene", kind="posed", size=24, views=10, seed=0))
     run_dir = tmp_path / "run"  # 50 steps: some rays become opaque (2 steps leave every opacity below 0.01)
-    train.run(train.Config(scene_dir=tmp_path / "scene", run_dir=run_dir, max_steps=50, max_seconds=120.0,
-                           batch_rays=256, fast=train.FastOptions(resolution=(16, 24), occupancy_resolution=16),
-                           eval_every=0, final_eval_views=1, device="cpu"))  # fmt: skip
+    train.run(
+        train.Config(
+            scene_dir=tmp_path / "scene",
+            run_dir=run_dir,
+            max_steps=50,
+            max_seconds=120.0,
+            batch_rays=256,
+            fast=train.FastOptions(resolution=(16, 24), occupancy_resolution=16),
+            eval_every=0,
+            final_eval_views=1,
+            device="cpu",
+        )
+    )
     out = tmp_path / "pts" / "cloud.ply"
     with pytest.raises(SystemExit) as e:
-        cli.main(["export-points", str(run_dir), str(out), "--num-points", "3000", "--device", "cpu"])  # fmt: skip
+        cli.main(["export-points", str(run_dir), str(out), "--num-points", "3000", "--device", "cpu"])
     captured = capsys.readouterr()
     assert e.value.code == 0, captured.err
     report = json.loads((tmp_path / "pts" / "cloud.report.json").read_text())

@@ -91,8 +91,9 @@ def test_relu_density_is_the_scaled_factor_sum_clipped_at_zero_with_its_gradient
         for p in field.density_planes:
             p.fill_(-1.0)
         assert (field.density(x) == 0).all()
-    old = {k: v for k, v in TensoRF(aabb=AABB, resolution=8, has_color=False).config().items()
-           if k != "density_activation"}  # fmt: skip
+    old = {
+        k: v for k, v in TensoRF(aabb=AABB, resolution=8, has_color=False).config().items() if k != "density_activation"
+    }
     assert make_field(old).density_activation == "softplus" and make_field(old).density_shift == -10.0
     assert make_field(field.config()).density_activation == "relu"
     with pytest.raises(ValueError, match="density_activation"):
@@ -219,8 +220,10 @@ def test_sampled_tv_is_unbiased_and_its_direct_gradient_matches_autograd():
     g = torch.Generator().manual_seed(2)
     planes = torch.randn(3, 5, 9, 7, generator=g, dtype=torch.float64).cumsum(2)  # rougher along H than W
     full = float(_plane_tv(planes))
-    draws = torch.tensor([float(plane_tv_sampled(planes, tv_pairs(planes.shape, 64, g, planes.device)))
-                          for _ in range(2000)], dtype=torch.float64)  # fmt: skip
+    draws = torch.tensor(
+        [float(plane_tv_sampled(planes, tv_pairs(planes.shape, 64, g, planes.device))) for _ in range(2000)],
+        dtype=torch.float64,
+    )
     assert abs(float(draws.mean()) - full) < 4 * float(draws.std()) / 2000**0.5
     pairs = tv_pairs(planes.shape, 64, g, planes.device)
     assert int(pairs.max()) < 9 * 7 and int(pairs.min()) >= 0
@@ -254,8 +257,16 @@ def test_density_volume_matches_the_factors_and_follows_their_updates():
     plane; an optimizer step, a load and an
     upsample each refresh it."""
     torch.manual_seed(0)
-    field = TensoRF(aabb=[[-1.0, -0.5, 0.0], [2.0, 0.5, 1.5]], resolution=12, density_rank=(3, 2, 1), app_rank=2,
-                    app_dim=4, hidden=8, density_shift=0.0, density_scale=1.0)  # fmt: skip
+    field = TensoRF(
+        aabb=[[-1.0, -0.5, 0.0], [2.0, 0.5, 1.5]],
+        resolution=12,
+        density_rank=(3, 2, 1),
+        app_rank=2,
+        app_dim=4,
+        hidden=8,
+        density_shift=0.0,
+        density_scale=1.0,
+    )
     lo, hi = field.aabb[0], field.aabb[1]
     x = lo + (hi - lo) * (torch.rand(3000, 3) * 1.4 - 0.2)  # 20 % beyond each face
     x[:4] = torch.stack([lo, hi, (lo + hi) / 2, torch.stack([lo[0], hi[1], lo[2]])])  # corners and the centre

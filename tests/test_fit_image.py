@@ -57,8 +57,14 @@ def test_fits_a_small_image_and_writes_every_output(smooth_image, tmp_path):
     by_name = {m.name: m for m in out.models}
     assert list(by_name) == ["fourier_L6", "grid_R32"]
     assert by_name["fourier_L6"].psnr > 22.0 and by_name["grid_R32"].psnr > 35.0, by_name  # 26, 54 dB here
-    files = [out.montage, out.plot, out.metrics, out.summary, tmp_path / "fit" / "config.json",
-             *(m.reconstruction for m in out.models)]  # fmt: skip
+    files = [
+        out.montage,
+        out.plot,
+        out.metrics,
+        out.summary,
+        tmp_path / "fit" / "config.json",
+        *(m.reconstruction for m in out.models),
+    ]
     for f in files:
         assert f.is_file() and f.stat().st_size > 0, f
     assert all(out.manifest.stat().st_mtime_ns >= f.stat().st_mtime_ns for f in files)  # manifest last
@@ -77,8 +83,9 @@ def test_fits_a_small_image_and_writes_every_output(smooth_image, tmp_path):
 
 
 def test_frequencies_matter_on_a_high_frequency_pattern(checker_image, tmp_path):
-    out = fit_image.run(fit_image.Config(image=checker_image, out_dir=tmp_path / "fit", sweep=(0, 6),
-                                         encoding="fourier", **SMALL))  # fmt: skip
+    out = fit_image.run(
+        fit_image.Config(image=checker_image, out_dir=tmp_path / "fit", sweep=(0, 6), encoding="fourier", **SMALL)
+    )
     psnr = {m.name: m.psnr for m in out.models}
     assert psnr["fourier_L0"] + 10.0 < psnr["fourier_L6"], psnr  # 8.0 and 27.4 dB here
 
@@ -100,11 +107,20 @@ def test_grid_model_is_the_fast_field_on_a_plane():
 
 @pytest.mark.parametrize(
     ("kw", "field"),
-    [(dict(freqs=-1), "--freqs"), (dict(sweep=(2, 2)), "--sweep"), (dict(sweep=(0, 99)), "--sweep"),
-     (dict(steps=0), "--steps"), (dict(max_seconds=0.0), "--max-seconds"), (dict(lr=-1.0), "--lr"),
-     (dict(batch=0), "--batch"), (dict(encoding="hash"), "--encoding"), (dict(grid_resolution=1), "--grid-resolution"),
-     (dict(device="tpu"), "device"), (dict(threads=0), "--threads")],
-)  # fmt: skip
+    [
+        (dict(freqs=-1), "--freqs"),
+        (dict(sweep=(2, 2)), "--sweep"),
+        (dict(sweep=(0, 99)), "--sweep"),
+        (dict(steps=0), "--steps"),
+        (dict(max_seconds=0.0), "--max-seconds"),
+        (dict(lr=-1.0), "--lr"),
+        (dict(batch=0), "--batch"),
+        (dict(encoding="hash"), "--encoding"),
+        (dict(grid_resolution=1), "--grid-resolution"),
+        (dict(device="tpu"), "device"),
+        (dict(threads=0), "--threads"),
+    ],
+)
 def test_bad_options_are_one_line_naming_the_field(smooth_image, tmp_path, kw, field):
     with pytest.raises(UserError) as e:
         fit_image.run(fit_image.Config(image=smooth_image, out_dir=tmp_path / "o", **kw))
@@ -125,8 +141,22 @@ def test_unreadable_image_is_one_user_error_line(tmp_path, capsys, fresh_cli):
 
 
 def test_cli_builds_the_config_and_runs(smooth_image, tmp_path, capsys, fresh_cli):
-    args = [str(smooth_image), str(tmp_path / "o"), "--sweep", "0,2", "--encoding", "fourier", "--steps", "3",
-            "--hidden", "16", "--device", "cpu", "--threads", "1"]  # fmt: skip
+    args = [
+        str(smooth_image),
+        str(tmp_path / "o"),
+        "--sweep",
+        "0,2",
+        "--encoding",
+        "fourier",
+        "--steps",
+        "3",
+        "--hidden",
+        "16",
+        "--device",
+        "cpu",
+        "--threads",
+        "1",
+    ]
     config = cli.config_from_args("fit-image", args)
     assert config.sweep == (0, 2) and config.encoding == "fourier" and config.lr is None and config.batch == 10000
     with pytest.raises(SystemExit) as e:

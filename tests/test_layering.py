@@ -81,9 +81,11 @@ def _python_files() -> list[Path]:
     return sorted(
         p
         for p in ROOT.rglob("*.py")
-        if not any(part in SKIP_DIRS or part.startswith(".") or part.endswith(".egg-info") for part in
-                   p.relative_to(ROOT).parts[:-1])
-    )  # fmt: skip
+        if not any(
+            part in SKIP_DIRS or part.startswith(".") or part.endswith(".egg-info")
+            for part in p.relative_to(ROOT).parts[:-1]
+        )
+    )
 
 
 def test_checker_flags_bad_imports():
@@ -103,8 +105,10 @@ def test_checker_flags_bad_imports():
     assert violations("from nerfpipe.cli import main", "model.run")
     assert violations("import fixtures_convert", "data.importers.colmap")
     assert violations("from benchmarks.standin import StandIn", "stages.mesh")
-    ok = ("import torch\nfrom nerfpipe.stages.poses import colmap\nfrom .images import screen_image\n"
-          "from nerfpipe.data.errors import E\n")  # fmt: skip
+    ok = (
+        "import torch\nfrom nerfpipe.stages.poses import colmap\nfrom .images import screen_image\n"
+        "from nerfpipe.data.errors import E\n"
+    )
     assert violations(ok, "stages.poses", is_package=True) == []
     assert violations("from nerfpipe.stages.poses.images import Screen", "stages.poses.report") == []
     assert violations("from nerfpipe.radiance.camera import Intrinsics", "data.transforms") == []

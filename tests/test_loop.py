@@ -78,8 +78,9 @@ class Toy:
 
 
 def _settings(max_steps: int = 10, max_seconds: float = float("inf"), **kw) -> LoopSettings:
-    base = dict(name="toy", budget=Budget(max_steps=max_steps, max_seconds=max_seconds),
-                schedule=Schedule(lr=0.1, decay=0.01))  # fmt: skip
+    base = dict(
+        name="toy", budget=Budget(max_steps=max_steps, max_seconds=max_seconds), schedule=Schedule(lr=0.1, decay=0.01)
+    )
     base.update(kw)
     return LoopSettings(**base)
 
@@ -169,8 +170,12 @@ def test_agreement_decides_the_budget_the_stop_and_checkpoints_for_every_rank():
 
     toy = Toy()
     toy.clock = Clock()
-    seconds = TrainingLoop(_settings(max_steps=100, max_seconds=5.5, checkpoint_seconds=1e9), toy, toy.clock,
-                           agree=rank0_seconds(toy, wall_at=3)).run()  # fmt: skip
+    seconds = TrainingLoop(
+        _settings(max_steps=100, max_seconds=5.5, checkpoint_seconds=1e9),
+        toy,
+        toy.clock,
+        agree=rank0_seconds(toy, wall_at=3),
+    ).run()
     assert toy.step == 6 and seconds == 6.0 and toy.finished == [6]  # rank 0's 6 s spent the 5.5 s budget
     assert toy.lrs == pytest.approx([0.1 * 0.01 ** (k / 5.5) for k in range(6)], rel=1e-12)  # its fraction
     assert [s for s, _ in toy.checkpoints] == [4]  # due at the top of step 4 (step 3 done), taken at its end
@@ -178,6 +183,7 @@ def test_agreement_decides_the_budget_the_stop_and_checkpoints_for_every_rank():
     toy = Toy()
     toy.clock = Clock()
     with pytest.raises(Interrupted, match=r"interrupted \(SIGTERM\) at step 2 after 2.0 s") as e:
-        TrainingLoop(_settings(checkpoint_path="ckpt.pt"), toy, toy.clock, StopRequest(),
-                     agree=rank0_seconds(toy, stop_at=2)).run()  # fmt: skip
+        TrainingLoop(
+            _settings(checkpoint_path="ckpt.pt"), toy, toy.clock, StopRequest(), agree=rank0_seconds(toy, stop_at=2)
+        ).run()
     assert e.value.exit_code == 143 and [s for s, _ in toy.checkpoints] == [2] and toy.finished == []

@@ -26,8 +26,9 @@ pytestmark = pytest.mark.skipif(
 
 def _make(*args: str) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if not k.startswith("MAKE")}
-    return subprocess.run(["make", "-C", str(ROOT), "--no-print-directory", *args], capture_output=True, text=True,
-                          env=env, timeout=600)  # fmt: skip
+    return subprocess.run(
+        ["make", "-C", str(ROOT), "--no-print-directory", *args], capture_output=True, text=True, env=env, timeout=600
+    )
 
 
 STAGES = ("poses", "convert", "train", "render", "depth", "eval", "mesh")
@@ -46,10 +47,12 @@ def test_posed_chain_builds_everything_then_nothing(tmp_path):
     scene.run(scene.Config(out_dir=src, kind="posed", size=48, views=12, seed=0))
     out = tmp_path / "out"
     args = [
-        f"POSED={src}", f"OUT={out}",
+        f"POSED={src}",
+        f"OUT={out}",
         "TRAIN_ARGS=--max-steps 150 --batch-rays 1024 --eval-every 0 --final-eval-views 1",
-        "RENDER_ARGS=--frames=3", "MESH_ARGS=--resolution 48 --no-colors",
-    ]  # fmt: skip
+        "RENDER_ARGS=--frames=3",
+        "MESH_ARGS=--resolution 48 --no-colors",
+    ]
     first = _make("all", *args)
     assert first.returncode == 0, first.stderr[-2000:]
     assert first.stdout.count("nerfpipe plan:") == 1, first.stdout  # once, before the first stage
@@ -63,8 +66,15 @@ def test_posed_chain_builds_everything_then_nothing(tmp_path):
     trained = json.loads((out / "run" / "manifest.json").read_text())["used"]["train_seconds"]
     budget = json.loads((out / "video.manifest.json").read_text())["used"]["budget"]
     assert budget["max_seconds"] == max(60, math.ceil(trained)), budget  # as long as training took
-    for rel in ("scene/transforms.json", "run/manifest.json", "run/checkpoint.pt", "video.mp4",
-                "depth/manifest.json", "eval.json", "mesh.ply"):  # fmt: skip
+    for rel in (
+        "scene/transforms.json",
+        "run/manifest.json",
+        "run/checkpoint.pt",
+        "video.mp4",
+        "depth/manifest.json",
+        "eval.json",
+        "mesh.ply",
+    ):
         assert (out / rel).is_file(), rel
     again = _make("-n", "all", *args)  # nothing to rebuild: only the (phony) self-check summary would run
     assert again.returncode == 0 and _stages_run(again.stdout) == [], again.stdout
@@ -92,8 +102,14 @@ def test_all_ends_with_the_self_check_summary_and_it_never_fails_the_build(tmp_p
     (src / "transforms.json").write_text("{}")
     later = time.time() + 3600  # newer than any code file, even one being edited now
     os.utime(src / "transforms.json", (later, later))
-    records = {"scene/transforms.json": {}, "run/manifest.json": {}, "video.mp4": None, "depth/manifest.json": {},
-               "eval.json": {}, "mesh.ply": None}  # fmt: skip
+    records = {
+        "scene/transforms.json": {},
+        "run/manifest.json": {},
+        "video.mp4": None,
+        "depth/manifest.json": {},
+        "eval.json": {},
+        "mesh.ply": None,
+    }
     for k, (rel, doc) in enumerate(records.items(), start=1):
         (out / rel).parent.mkdir(parents=True, exist_ok=True)
         (out / rel).write_text(json.dumps(doc) if doc is not None else "")

@@ -51,8 +51,13 @@ def _scene(root: Path, views: int = 3, masks: bool = True, mask_size: tuple[int,
             m[:, : mask_size[0] // 2] = 255
             _png(root / "masks" / name, m)
         eye = np.array([3.0 * np.cos(k), 3.0 * np.sin(k), 1.0])
-        frames.append(Frame(file_path=f"images/{name}", world_from_cam=look_at(eye, np.zeros(3), np.array([0, 0, 1.0])),
-                            mask_path=f"masks/{name}" if masks else None))  # fmt: skip
+        frames.append(
+            Frame(
+                file_path=f"images/{name}",
+                world_from_cam=look_at(eye, np.zeros(3), np.array([0, 0, 1.0])),
+                mask_path=f"masks/{name}" if masks else None,
+            )
+        )
     scene = Scene(root=root, frames=tuple(frames), intrinsics=Intrinsics(w=W, h=H, fx=10.0, fy=10.0, cx=6.0, cy=4.0))
     return write_scene(scene, root / "transforms.json")
 

@@ -71,8 +71,15 @@ def test_standin_mesh_sits_on_its_levels_iso_surface_and_cleanup_does_not_move_i
     offsets = {}
     for threshold in ("auto", 50.0):
         for name, cleanup in (("raw", None), ("clean", mesh.Cleanup())):
-            cfg = mesh.Config(run_dir=tmp_path, out=tmp_path / f"{name}.ply", resolution=96, threshold=threshold,
-                              cleanup=cleanup, target_faces=0, colors=False)  # fmt: skip
+            cfg = mesh.Config(
+                run_dir=tmp_path,
+                out=tmp_path / f"{name}.ply",
+                resolution=96,
+                threshold=threshold,
+                cleanup=cleanup,
+                target_faces=0,
+                colors=False,
+            )
             out = mesh.extract(s, cfg)
             m = _load(out.mesh)
             p = surface_points(np.asarray(m.vertices), np.asarray(m.faces), 20_000, seed=0)
@@ -182,8 +189,18 @@ def test_cleanup_removes_a_small_floating_blob(tmp_path):
 def test_decimation_and_bbox_crop_in_normalized_frame(tmp_path):
     s = StandIn(tmp_path)
     bbox = (-1.0, -1.0, -1.0, 0.0, 1.0, 1.0)  # the left half: cuts the sphere, the cap closes it
-    out = mesh.extract(s, mesh.Config(run_dir=tmp_path, out=tmp_path / "m.ply", resolution=64, threshold=50.0,
-                                      frame="normalized", bbox=bbox, target_faces=2000))  # fmt: skip
+    out = mesh.extract(
+        s,
+        mesh.Config(
+            run_dir=tmp_path,
+            out=tmp_path / "m.ply",
+            resolution=64,
+            threshold=50.0,
+            frame="normalized",
+            bbox=bbox,
+            target_faces=2000,
+        ),
+    )
     m = _load(out.mesh)
     assert len(m.faces) <= 2000
     assert m.bounds[1, 0] <= 0.05 and m.bounds[0, 0] == pytest.approx(-0.6, abs=0.03)  # scene frame
@@ -196,8 +213,9 @@ def test_bbox_in_the_user_frame_crops_there(tmp_path):
     lo, hi = gt.min(0), gt.max(0)
     mid = 0.5 * (lo + hi)
     bbox = (*(lo - 0.1), mid[0], *(hi[1:] + 0.1))  # user-frame box: everything with x below the middle
-    out = mesh.extract(s, mesh.Config(run_dir=tmp_path, out=tmp_path / "m.ply", resolution=48, threshold=50.0,
-                                      bbox=bbox))  # fmt: skip
+    out = mesh.extract(
+        s, mesh.Config(run_dir=tmp_path, out=tmp_path / "m.ply", resolution=48, threshold=50.0, bbox=bbox)
+    )
     m = _load(out.mesh)
     grid = json.loads(out.report.read_text())["grid"]
     assert grid["crop"] == "--bbox (user frame)"
@@ -230,8 +248,11 @@ def test_self_check_tells_an_object_from_a_slab_across_the_box():
 
 
 def test_self_check_counts_large_components():
-    balls = [trimesh.creation.icosphere(subdivisions=1, radius=0.1).apply_translation([x, y, 0.0])
-             for x in np.linspace(-0.8, 0.8, 4) for y in np.linspace(-0.6, 0.6, 3)]  # fmt: skip
+    balls = [
+        trimesh.creation.icosphere(subdivisions=1, radius=0.1).apply_translation([x, y, 0.0])
+        for x in np.linspace(-0.8, 0.8, 4)
+        for y in np.linspace(-0.6, 0.6, 3)
+    ]
     many = trimesh.util.concatenate(balls)
     assert component_faces(many.faces).tolist() == [80] * 12
     assert not _checks(many.vertices, many.faces)["large_components"].ok
@@ -253,8 +274,9 @@ class _WallAndBlob(StandIn):
 
 def test_self_check_flags_a_wall_meshed_with_the_object(tmp_path):
     s = _WallAndBlob(tmp_path)
-    out = mesh.extract(s, mesh.Config(run_dir=tmp_path, out=tmp_path / "m.ply", resolution=40, threshold=50.0,
-                                      colors=False))  # fmt: skip
+    out = mesh.extract(
+        s, mesh.Config(run_dir=tmp_path, out=tmp_path / "m.ply", resolution=40, threshold=50.0, colors=False)
+    )
     report = json.loads(out.report.read_text())
     checks = {c["name"]: c for c in report["checks"]}
     assert report["final"]["components"] == 1  # one piece, like the real capture's slab
@@ -311,10 +333,20 @@ def test_short_training_meshes_near_the_ground_truth(tmp_path):
     src = scene_stage.run(scene_stage.Config(out_dir=tmp_path / "src", kind="posed", size=32, views=16, seed=1))
     convert.run(convert.Config(source=tmp_path / "src", scene_dir=tmp_path / "scene"))
     # step-bound (not time-bound), as in test_train: a loaded machine makes it slower, not flaky
-    train.run(train.Config(scene_dir=tmp_path / "scene", run_dir=tmp_path / "run", max_steps=TRAIN_STEPS,
-                           max_seconds=600.0, batch_rays=256,
-                           fast=train.FastOptions(resolution=(24, 48), occupancy_resolution=32),
-                           log_every=50, eval_every=0, final_eval_views=1, device="cpu"))  # fmt: skip
+    train.run(
+        train.Config(
+            scene_dir=tmp_path / "scene",
+            run_dir=tmp_path / "run",
+            max_steps=TRAIN_STEPS,
+            max_seconds=600.0,
+            batch_rays=256,
+            fast=train.FastOptions(resolution=(24, 48), occupancy_resolution=32),
+            log_every=50,
+            eval_every=0,
+            final_eval_views=1,
+            device="cpu",
+        )
+    )
     out = mesh.run(mesh.Config(run_dir=tmp_path / "run", out=tmp_path / "mesh.glb", resolution=48))
     report = json.loads(out.report.read_text())
     assert not report["threshold"]["fallback"] and report["frame"] == "user"
@@ -354,10 +386,14 @@ class _ObjectInRoom(StandIn):
         super().__init__(root, identity=True, views=16, size=32)
         self.space = types.SimpleNamespace(object_box=False, name="contract")
         azimuths, elevations = np.linspace(0, 2 * math.pi, 16, endpoint=False), np.tile([0.35, 0.8], 8)
-        eyes = [3.0 * np.array([math.cos(a) * math.cos(e), math.sin(a) * math.cos(e), math.sin(e)])
-                for a, e in zip(azimuths, elevations, strict=True)]  # fmt: skip
-        frames = tuple(dataclasses.replace(f, world_from_cam=look_at(e, np.zeros(3), np.array([0.0, 0.0, 1.0])))
-                       for f, e in zip(self.scene.frames, eyes, strict=True))  # fmt: skip
+        eyes = [
+            3.0 * np.array([math.cos(a) * math.cos(e), math.sin(a) * math.cos(e), math.sin(e)])
+            for a, e in zip(azimuths, elevations, strict=True)
+        ]
+        frames = tuple(
+            dataclasses.replace(f, world_from_cam=look_at(e, np.zeros(3), np.array([0.0, 0.0, 1.0])))
+            for f, e in zip(self.scene.frames, eyes, strict=True)
+        )
         self.scene = dataclasses.replace(self.scene, frames=frames)
 
     def sdf(self, x):
@@ -378,8 +414,12 @@ def test_looked_at_crop_meshes_the_object_not_the_floor(tmp_path):
     """A real capture (not an object scene): the default crop is what the views centre on, the floor every camera
     looks down at is cut as the support plane, and pieces the box cuts through go; the objects stay whole."""
     s = _ObjectInRoom(tmp_path)
-    out = mesh.extract(s, mesh.Config(run_dir=tmp_path, out=tmp_path / "m.ply", resolution=48, threshold=50.0,
-                                      frame="normalized", colors=False))  # fmt: skip
+    out = mesh.extract(
+        s,
+        mesh.Config(
+            run_dir=tmp_path, out=tmp_path / "m.ply", resolution=48, threshold=50.0, frame="normalized", colors=False
+        ),
+    )
     report = json.loads(out.report.read_text())
     assert report["crop"]["rule"] == "looked-at" and report["crop"]["support_plane"]["cut"], report["crop"]
     m = _load(out.mesh)
@@ -389,8 +429,18 @@ def test_looked_at_crop_meshes_the_object_not_the_floor(tmp_path):
     assert np.allclose(m.bounds, [gt.min(0), gt.max(0)], atol=0.06), (m.bounds, gt.min(0), gt.max(0))
     assert report["check"] == "ok"
     # the same scene with the whole field's box meshes the floor, across the box
-    whole = mesh.extract(s, mesh.Config(run_dir=tmp_path, out=tmp_path / "w.ply", resolution=48, threshold=50.0,
-                                        frame="normalized", colors=False, crop="field"))  # fmt: skip
+    whole = mesh.extract(
+        s,
+        mesh.Config(
+            run_dir=tmp_path,
+            out=tmp_path / "w.ply",
+            resolution=48,
+            threshold=50.0,
+            frame="normalized",
+            colors=False,
+            crop="field",
+        ),
+    )
     wb = _load(whole.mesh).bounds
     assert wb[0, 2] < s.FLOOR - 0.05 and (wb[1, :2] - wb[0, :2] > 1.9).all(), wb
 
@@ -399,8 +449,18 @@ def test_texture_baked_from_the_field_through_the_stage(tmp_path):
     """`texture=True`: OBJ + MTL + PNG (and a GLB with the PNG inside) whose texels read back the field's colour
     at the surface; a PLY output with a texture is refused in one line."""
     s = StandIn(tmp_path)
-    out = mesh.extract(s, mesh.Config(run_dir=tmp_path, out=tmp_path / "m.obj", resolution=40, threshold=50.0,
-                                      frame="normalized", texture=True, texture_size=256))  # fmt: skip
+    out = mesh.extract(
+        s,
+        mesh.Config(
+            run_dir=tmp_path,
+            out=tmp_path / "m.obj",
+            resolution=40,
+            threshold=50.0,
+            frame="normalized",
+            texture=True,
+            texture_size=256,
+        ),
+    )
     report = json.loads(out.report.read_text())
     assert sorted(p.name for p in tmp_path.glob("m.*")) == ["m.mtl", "m.obj", "m.png", "m.report.json"]
     assert report["texture"]["size"] == [256, 256] and "vertex_colors" in report["left_out"]
@@ -412,8 +472,12 @@ def test_texture_baked_from_the_field_through_the_stage(tmp_path):
     got = sample_texture(np.asarray(m.visual.material.image.convert("RGB")), uv) / 255.0
     want = s.color(torch.as_tensor(np.asarray(m.vertices)), None).numpy()
     assert np.median(np.abs(got - want)) < 0.03, np.median(np.abs(got - want))
-    glb = mesh.extract(s, mesh.Config(run_dir=tmp_path, out=tmp_path / "g.glb", resolution=32, threshold=50.0,
-                                      texture=True, texture_size=128))  # fmt: skip
+    glb = mesh.extract(
+        s,
+        mesh.Config(
+            run_dir=tmp_path, out=tmp_path / "g.glb", resolution=32, threshold=50.0, texture=True, texture_size=128
+        ),
+    )
     assert len(trimesh.load(glb.mesh, force="mesh").faces) == glb.faces
     with pytest.raises(UserError, match="texture needs an .obj or .glb output"):
         mesh.extract(s, mesh.Config(run_dir=tmp_path, out=tmp_path / "t.ply", texture=True))

@@ -108,8 +108,9 @@ def test_glb_renders_in_three_js_as_in_our_rasteriser(tmp_path):
     import viser
 
     sphere = trimesh.creation.icosphere(subdivisions=3)
-    baked = bake_texture(sphere.vertices, sphere.faces, lambda x, d: 0.5 + 0.5 * x / x.norm(dim=1, keepdim=True),
-                         texture_size=256)  # fmt: skip
+    baked = bake_texture(
+        sphere.vertices, sphere.faces, lambda x, d: 0.5 + 0.5 * x / x.norm(dim=1, keepdim=True), texture_size=256
+    )
     glb = write_glb_textured(tmp_path / "sphere.glb", baked).read_bytes()
     world_from_cam = look_at(np.array([2.2, -3.0, 1.6]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
     want_rgb, want_mask = _rasterize(baked.vertices, baked.faces, baked.uv, baked.image, world_from_cam)
@@ -130,8 +131,9 @@ def test_glb_renders_in_three_js_as_in_our_rasteriser(tmp_path):
             client = next(iter(server.get_clients().values()))
             shot, previous = None, None
             while time.monotonic() < deadline:  # the GLB loads asynchronously: wait for two equal, non-empty frames
-                shot = client.get_render(H, W, wxyz=wxyz, position=position, fov=FOV, transport_format="png",
-                                         timeout=30)  # fmt: skip
+                shot = client.get_render(
+                    H, W, wxyz=wxyz, position=position, fov=FOV, transport_format="png", timeout=30
+                )
                 if previous is not None and (shot[..., 3] > 127).mean() > 0.05 and np.array_equal(shot, previous):
                     break
                 previous = shot
@@ -148,9 +150,11 @@ def test_glb_renders_in_three_js_as_in_our_rasteriser(tmp_path):
     inner_f = _erode(got_mask & field_mask)
     err_f = np.abs(shot[..., :3][inner_f] / 255.0 - field_rgb[inner_f])
     iou_f = (got_mask & field_mask).sum() / (got_mask | field_mask).sum()
-    print(f"against our rasteriser: IoU {iou:.4f}, colour error mean {err.mean():.4f}, p99 "
-          f"{np.percentile(err, 99):.4f}; against the field: IoU {iou_f:.4f}, mean {err_f.mean():.4f}, p99 "
-          f"{np.percentile(err_f, 99):.4f} ({tmp_path})")  # fmt: skip
+    print(
+        f"against our rasteriser: IoU {iou:.4f}, colour error mean {err.mean():.4f}, p99 "
+        f"{np.percentile(err, 99):.4f}; against the field: IoU {iou_f:.4f}, mean {err_f.mean():.4f}, p99 "
+        f"{np.percentile(err_f, 99):.4f} ({tmp_path})"
+    )
     assert iou >= 0.98, (iou, tmp_path)
     assert err.mean() <= 0.01 and np.percentile(err, 99) <= 0.03, (err.mean(), np.percentile(err, 99), tmp_path)
     assert iou_f >= 0.97 and err_f.mean() <= 0.02, (iou_f, err_f.mean(), tmp_path)

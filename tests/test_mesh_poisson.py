@@ -42,8 +42,9 @@ class Rendered(StandIn):
         def rgb_sigma(x, d):
             return self.color(x, d), self.density(x)
 
-        return render_rays(rays_o, rays_d, near=t0, far=t1, sampler=StratifiedSampler(n_samples=128),
-                           rgb_sigma_fn=rgb_sigma)  # fmt: skip
+        return render_rays(
+            rays_o, rays_d, near=t0, far=t1, sampler=StratifiedSampler(n_samples=128), rgb_sigma_fn=rgb_sigma
+        )
 
 
 def _sphere(n: int, radius: float, seed: int = 0) -> np.ndarray:
@@ -151,6 +152,13 @@ def test_cli_method_option_and_its_success_line():
 
     assert cli.config_from_args("mesh", ["r", "m.ply"]).method == "density"  # the Config's default, written once
     assert cli.config_from_args("mesh", ["r", "m.ply", "--method", "poisson"]).method == "poisson"
-    out = mesh.Outputs(mesh=Path("m.ply"), report=Path("m.report.json"), vertices=3, faces=1, threshold=None,
-                       watertight=False, seconds=1.0)  # fmt: skip
+    out = mesh.Outputs(
+        mesh=Path("m.ply"),
+        report=Path("m.report.json"),
+        vertices=3,
+        faces=1,
+        threshold=None,
+        watertight=False,
+        seconds=1.0,
+    )
     assert "poisson" in cli.STAGES["mesh"].summary(out)

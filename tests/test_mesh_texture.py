@@ -226,8 +226,10 @@ def _view_source(eyes: list, size: int = 96, render=None) -> ViewSource:
     f = 0.5 * size / math.tan(math.radians(25.0))
     intr = Intrinsics(w=size, h=size, fx=f, fy=f, cx=size / 2, cy=size / 2)
     up = np.array([0.0, 1.0, 0.0])
-    return ViewSource(cameras=tuple((intr, look_at(np.asarray(e, float), np.zeros(3), up)) for e in eyes),
-                      render=render or _two_spheres_render)  # fmt: skip
+    return ViewSource(
+        cameras=tuple((intr, look_at(np.asarray(e, float), np.zeros(3), up)) for e in eyes),
+        render=render or _two_spheres_render,
+    )
 
 
 def test_texels_take_the_colour_the_cameras_render_where_they_see_them():
@@ -257,8 +259,9 @@ def test_baking_from_views_colours_what_they_see_and_the_rest_from_the_field():
     verts, faces = _two_spheres()
     eyes = [(0.0, 0.0, 4.0), (4.0, 0.0, 0.0), (-4.0, 0.0, 0.0)]
     marker = torch.tensor([1.0, 0.0, 1.0])
-    t = bake_texture(verts, faces, lambda x, d: marker.to(x).expand(len(x), 3), texture_size=512,
-                     views=_view_source(eyes))  # fmt: skip
+    t = bake_texture(
+        verts, faces, lambda x, d: marker.to(x).expand(len(x), 3), texture_size=512, views=_view_source(eyes)
+    )
     assert 0.3 < t.info["views"]["texels_seen"] < 0.9
     x, uv = _surface_samples(t, 20000, seed=1)
     on_big = np.linalg.norm(x, axis=1) < 1.01

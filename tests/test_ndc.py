@@ -98,8 +98,9 @@ def test_directions_and_density_scale_match_finite_differences():
     d = d / torch.linalg.vector_norm(d, dim=-1, keepdim=True)
     h = 1e-6
     fd = (ndc.points_to_ndc(x + h * d) - ndc.points_to_ndc(x - h * d)) / (2 * h)
-    np.testing.assert_allclose(ndc.directions_to_ndc(x, d), fd / torch.linalg.vector_norm(fd, dim=-1, keepdim=True),
-                               atol=1e-8)  # fmt: skip
+    np.testing.assert_allclose(
+        ndc.directions_to_ndc(x, d), fd / torch.linalg.vector_norm(fd, dim=-1, keepdim=True), atol=1e-8
+    )
     u = x - ref[:3, 3]
     u = u / torch.linalg.vector_norm(u, dim=-1, keepdim=True)
     fd_u = (ndc.points_to_ndc(x + h * u) - ndc.points_to_ndc(x - h * u)) / (2 * h)
@@ -131,8 +132,9 @@ def test_box_holds_every_camera_frustum_and_bad_input_raises():
 def test_density_query_matches_its_parts_and_zeroes_points_before_the_near_plane():
     ndc = _ndc()
     ref = torch.as_tensor(ndc.world_from_ref)
-    q = torch.tensor([[0.2, -0.1, -2.5], [-0.5, 0.3, -7.0], [0.1, 0.1, -1.0], [0.0, 0.0, 0.0], [0.3, 0.0, 2.0]],
-                     dtype=torch.float64)  # fmt: skip
+    q = torch.tensor(
+        [[0.2, -0.1, -2.5], [-0.5, 0.3, -7.0], [0.1, 0.1, -1.0], [0.0, 0.0, 0.0], [0.3, 0.0, 2.0]], dtype=torch.float64
+    )
     x = q @ ref[:3, :3].T + ref[:3, 3]
     p, scale, front = ndc.density_query(x)
     assert front.tolist() == [True, True, False, False, False]  # near = 1.5

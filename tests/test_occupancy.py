@@ -128,8 +128,9 @@ def test_march_misses_and_empty_grid():
     o, d = rays(5)
     ri, t0, t1 = march_rays(g, o, d, step_size=0.1)
     assert ri.numel() == t0.numel() == t1.numel() == 0
-    out = render_rays(o, d, near=0.0, far=5.0, sampler=box_marcher(g, 0.1), rgb_sigma_fn=sphere_rgb_sigma,
-                      background=torch.ones(3))  # fmt: skip
+    out = render_rays(
+        o, d, near=0.0, far=5.0, sampler=box_marcher(g, 0.1), rgb_sigma_fn=sphere_rgb_sigma, background=torch.ones(3)
+    )
     torch.testing.assert_close(out["rgb"], torch.ones(5, 3))
     assert (out["acc"] == 0).all()
 
@@ -159,8 +160,14 @@ def test_empty_cells_follow_the_opacity_of_one_training_step(tmp_path):
     from nerfpipe.stages import scene as scene_stage
 
     scene_stage.run(scene_stage.Config(out_dir=tmp_path / "s", kind="posed", size=16, views=4, seed=0))
-    settings = ModelSettings(field="fast", resolution=(16, 32), step_ratio=2.0, occupancy_resolution=8,
-                             view_dependent=None, render_step_factor=0.5)  # fmt: skip
+    settings = ModelSettings(
+        field="fast",
+        resolution=(16, 32),
+        step_ratio=2.0,
+        occupancy_resolution=8,
+        view_dependent=None,
+        render_step_factor=0.5,
+    )
     model = build_model(settings, make_space(Box, read_scene(tmp_path / "s")), torch.device("cpu"), None)
     step = model.step_size
     for opacity, occupied in ((0.5 * EMPTY_OPACITY, False), (2 * EMPTY_OPACITY, True)):

@@ -11,8 +11,13 @@ from nerfpipe.radiance import paths
 
 
 def _orbit_cameras(n=12, radius=3.0, elevation=25.0, centre=(0.2, -0.1, 0.3)):
-    orbit = paths.Orbit(centre=np.array(centre), up=np.array([0.0, 0, 1]), radius=radius,
-                        elevation_deg=elevation, start_azimuth_deg=10.0)  # fmt: skip
+    orbit = paths.Orbit(
+        centre=np.array(centre),
+        up=np.array([0.0, 0, 1]),
+        radius=radius,
+        elevation_deg=elevation,
+        start_azimuth_deg=10.0,
+    )
     return paths.turntable(orbit, n), orbit
 
 
@@ -124,8 +129,13 @@ def _arc_cameras(azimuths_deg, radius=2.0, elevation=15.0, centre=(0.1, 0.2, -0.
 
 
 def test_azimuth_coverage_tells_a_full_circle_from_half_of_one():
-    orbit = paths.Orbit(centre=np.array([0.1, 0.2, -0.1]), up=np.array([0.0, 0, 1]), radius=2.0,
-                        elevation_deg=15.0, start_azimuth_deg=0.0)  # fmt: skip
+    orbit = paths.Orbit(
+        centre=np.array([0.1, 0.2, -0.1]),
+        up=np.array([0.0, 0, 1]),
+        radius=2.0,
+        elevation_deg=15.0,
+        start_azimuth_deg=0.0,
+    )
     full = paths.azimuth_coverage(_arc_cameras(np.arange(0, 360, 30)), orbit)
     assert full.largest_gap_deg == pytest.approx(30.0) and full.covered_deg == pytest.approx(330.0)
     half = paths.azimuth_coverage(_arc_cameras(np.linspace(150, 330, 10)), orbit)  # crosses +-180
@@ -145,8 +155,9 @@ def test_azimuth_order_sorts_along_the_covered_arc_across_the_wrap():
 
 
 def test_turntable_sweep_covers_an_arc_with_both_ends():
-    orbit = paths.Orbit(centre=np.zeros(3), up=np.array([0.0, 0, 1]), radius=1.0, elevation_deg=0.0,
-                        start_azimuth_deg=30.0)  # fmt: skip
+    orbit = paths.Orbit(
+        centre=np.zeros(3), up=np.array([0.0, 0, 1]), radius=1.0, elevation_deg=0.0, start_azimuth_deg=30.0
+    )
     poses = paths.turntable(orbit, 5, sweep_deg=120.0)
     _assert_rigid(poses)
     az = np.degrees(np.arctan2(poses[:, 1, 3], poses[:, 0, 3]))

@@ -248,8 +248,16 @@ def test_retry_recovers_a_starved_first_attempt(tmp_path):
 
 
 def _settings(**kw) -> sfm.SfmSettings:
-    base = dict(max_image_size=1000, max_num_features=8192, camera_model="SIMPLE_RADIAL", single_camera=True,
-                matcher="exhaustive", sequential_overlap=10, num_threads=2, seed=0)  # fmt: skip
+    base = dict(
+        max_image_size=1000,
+        max_num_features=8192,
+        camera_model="SIMPLE_RADIAL",
+        single_camera=True,
+        matcher="exhaustive",
+        sequential_overlap=10,
+        num_threads=2,
+        seed=0,
+    )
     return sfm.SfmSettings(**{**base, **kw})
 
 
@@ -294,8 +302,13 @@ def test_defaults_named_pycolmap_are_pycolmap_defaults():
     pipeline = pycolmap.IncrementalPipelineOptions()
     defaults = sfm.MapperThresholds()
     assert defaults.min_num_matches == pipeline.min_num_matches
-    for name in ("init_min_num_inliers", "init_min_tri_angle", "abs_pose_min_num_inliers",
-                 "abs_pose_min_inlier_ratio", "max_reg_trials"):  # fmt: skip
+    for name in (
+        "init_min_num_inliers",
+        "init_min_tri_angle",
+        "abs_pose_min_num_inliers",
+        "abs_pose_min_inlier_ratio",
+        "max_reg_trials",
+    ):
         assert getattr(defaults, name) == pytest.approx(getattr(pipeline.mapper, name)), name
 
 
@@ -351,8 +364,11 @@ def test_one_image(tmp_path):
 
 def test_bad_config_values(tmp_path):
     (tmp_path / "p").mkdir()
-    for kw, word in [({"matcher": "fast"}, "matcher"), ({"camera_model": "FOO"}, "camera_model"),
-                     ({"drop_blurry": -1.0}, "drop_blurry")]:  # fmt: skip
+    for kw, word in [
+        ({"matcher": "fast"}, "matcher"),
+        ({"camera_model": "FOO"}, "camera_model"),
+        ({"drop_blurry": -1.0}, "drop_blurry"),
+    ]:
         with pytest.raises(UserError) as e:
             poses.run(poses.Config(input=tmp_path / "p", scene_dir=tmp_path / "s", **kw))
         assert word in _one_line_error(e)

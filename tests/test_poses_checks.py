@@ -93,8 +93,9 @@ def test_field_of_view_without_a_prior():
 def test_opencv_camera_checks():
     def opencv(fx, fy, k1=0.0, k2=0.0, p1=0.0, p2=0.0):
         params = [fx, fy, 320, 240, k1, k2, p1, p2]
-        return _by_name(quality.camera_checks(pycolmap.Camera(model="OPENCV", width=640, height=480, params=params),
-                                              None))  # fmt: skip
+        return _by_name(
+            quality.camera_checks(pycolmap.Camera(model="OPENCV", width=640, height=480, params=params), None)
+        )
 
     sane = opencv(500, 501, k1=-0.1, k2=0.02, p1=1e-3, p2=-1e-3)
     assert all(c.ok for c in sane.values()) and "focal_aspect" in sane
@@ -119,8 +120,14 @@ def test_model_checks_of_a_sane_model():
     rec = _model()
     (camera_id,) = rec.cameras
     checks = _by_name(quality.model_checks(rec, {camera_id: 1300.0}, total=10))
-    assert set(checks) == {"focal_vs_exif", "distortion", "principal_point", "reprojection_error", "track_length",
-                           "registered_fraction"}  # fmt: skip
+    assert set(checks) == {
+        "focal_vs_exif",
+        "distortion",
+        "principal_point",
+        "reprojection_error",
+        "track_length",
+        "registered_fraction",
+    }
     assert all(c.ok for c in checks.values())
     assert checks["track_length"].value == 10 and checks["registered_fraction"].value == 100
     few = _by_name(quality.model_checks(rec, {}, total=20))  # 10 of 20; no prior: the FOV check instead
@@ -296,8 +303,9 @@ def test_prior_reaches_colmap_when_the_copy_lost_its_exif(tmp_path):
     assert cams[scan].params[1:].tolist() == before[ids[scan]].params[1:].tolist()  # only the focal changed
     assert info[ids[scan]]["source"] == "EXIF of 1 of 1 photos" and info[ids[scan]]["colmap_read"] is None
     assert not cams[plain].has_prior_focal_length and info[ids[plain]]["source"] == "absent"
-    state = RunState(started=0.0, names={scan: "scan.tif", plain: "plain.jpg"}, exif_focal={scan: prior},
-                     focal_prior=info)  # fmt: skip
+    state = RunState(
+        started=0.0, names={scan: "scan.tif", plain: "plain.jpg"}, exif_focal={scan: prior}, focal_prior=info
+    )
     record = focal_prior_record(state)
     assert record["exif"] == "1 of 2 photos" and json.dumps(record)
     assert focal_prior_record(RunState(started=0.0, names={plain: "plain.jpg"}))["exif"] == "absent"
@@ -315,17 +323,28 @@ def _run_ladder(tmp_path: Path, monkeypatch, models: list[pycolmap.Reconstructio
     from nerfpipe.stages.poses.report import PhaseTimer
 
     names = [f"{k}.jpg" for k in range(10)]
-    stats = sfm.DatabaseStats(features=dict.fromkeys(names, 500), matches=dict.fromkeys(names, 100),
-                              verified_pairs=dict.fromkeys(names, 3), camera_of=dict.fromkeys(names, 1))  # fmt: skip
+    stats = sfm.DatabaseStats(
+        features=dict.fromkeys(names, 500),
+        matches=dict.fromkeys(names, 100),
+        verified_pairs=dict.fromkeys(names, 3),
+        camera_of=dict.fromkeys(names, 1),
+    )
     made = iter(models)
     monkeypatch.setattr(sfm, "extract", lambda db, *a: pycolmap.Database.open(db).close())
     monkeypatch.setattr(sfm, "match", lambda db, s: None)
     monkeypatch.setattr(sfm, "database_stats", lambda db: stats)
     monkeypatch.setattr(sfm, "reconstruct", lambda db, images, out, s: {0: next(made)})
     monkeypatch.setattr(attempts, "apply_focal_priors", lambda db, priors: {1: {"prior_px": 1280.0}})
-    settings = sfm.SfmSettings(max_image_size=1000, max_num_features=2048, camera_model="SIMPLE_RADIAL",
-                               single_camera=True, matcher="exhaustive", sequential_overlap=10, num_threads=1,
-                               seed=0)  # fmt: skip
+    settings = sfm.SfmSettings(
+        max_image_size=1000,
+        max_num_features=2048,
+        camera_model="SIMPLE_RADIAL",
+        single_camera=True,
+        matcher="exhaustive",
+        sequential_overlap=10,
+        num_threads=1,
+        seed=0,
+    )
     state = RunState(started=0.0)
     columns = ["step", "seconds", "phase", "images", "registered"]
     phase = PhaseTimer(state, MetricsLog(tmp_path / "metrics.csv", columns), None)
@@ -363,8 +382,16 @@ def test_summary_prints_one_warning_per_failed_check():
     from nerfpipe.stages.poses.report import print_summary
 
     checks = quality.camera_checks(_camera(10450, k1=-2.56), EXIF_F_PX)
-    report = {"registered": 22, "total": 22, "mean_reprojection_error_px": 0.8, "timings_s": {"mapping": 1.0},
-              "attempts": [], "points3D": 5000, "warnings": [], **verdict(checks)}  # fmt: skip
+    report = {
+        "registered": 22,
+        "total": 22,
+        "mean_reprojection_error_px": 0.8,
+        "timings_s": {"mapping": 1.0},
+        "attempts": [],
+        "points3D": 5000,
+        "warnings": [],
+        **verdict(checks),
+    }
     out = StringIO()
     print_summary(Console(file=out, width=400), report)
     lines = out.getvalue().splitlines()

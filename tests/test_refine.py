@@ -90,8 +90,13 @@ def test_corrections_equal_rays_of_the_refined_cameras():
     poses = np.stack([_camera(s) for s in range(3)])
     cams = CameraOpt(poses, focal=True, pivot=np.array([0.0, 2.0, 5.0])).double()
     with torch.no_grad():
-        cams.load_dict({"delta": torch.randn(3, 6, generator=torch.Generator().manual_seed(1)).double() * 0.1,
-                        "pivot": cams.pivot, "log_focal": cams.log_focal.detach()})  # fmt: skip
+        cams.load_dict(
+            {
+                "delta": torch.randn(3, 6, generator=torch.Generator().manual_seed(1)).double() * 0.1,
+                "pivot": cams.pivot,
+                "log_focal": cams.log_focal.detach(),
+            }
+        )
         cams.log_focal.fill_(math.log(1.1))
     refined = cams.refined()
     scaled = Intrinsics(w=8, h=6, fx=7.7, fy=7.7, cx=4.0, cy=3.0)
@@ -319,8 +324,19 @@ REFINE = train.RefineOptions()
 
 def tiny_config(scene_dir: Path, run_dir: Path, **kw) -> train.Config:
     """A few-step CPU train config on a tiny grid (test_appearance uses it too)."""
-    base = dict(scene_dir=scene_dir, run_dir=run_dir, max_steps=3, max_seconds=600.0, batch_rays=256,
-                fast=TINY_GRID, log_every=1, eval_every=0, final_eval_views=1, device="cpu", threads=1)  # fmt: skip
+    base = dict(
+        scene_dir=scene_dir,
+        run_dir=run_dir,
+        max_steps=3,
+        max_seconds=600.0,
+        batch_rays=256,
+        fast=TINY_GRID,
+        log_every=1,
+        eval_every=0,
+        final_eval_views=1,
+        device="cpu",
+        threads=1,
+    )
     base.update(kw)
     return train.Config(**base)
 
@@ -369,8 +385,9 @@ def test_perturbed_poses_are_recovered(tiny, tmp_path):
     truth = np.stack([exact.frames[i].world_from_cam for i in idx])
     before = pose_errors(np.stack([perturbed.frames[i].world_from_cam for i in idx]), truth).median_rotation_deg
     run = tmp_path / "run"
-    out = train.run(tiny_config(tiny[1], run, max_steps=600, max_seconds=1e5, batch_rays=512, refine=REFINE,
-                            log_every=100))  # fmt: skip
+    out = train.run(
+        tiny_config(tiny[1], run, max_steps=600, max_seconds=1e5, batch_rays=512, refine=REFINE, log_every=100)
+    )
     trained = load_trained(run, "cpu")
     after = pose_errors(np.stack([trained.scene.frames[i].world_from_cam for i in idx]), truth).median_rotation_deg
     assert 2.5 < before < 3.5  # 3 degrees each, a little of it absorbed by the alignment
@@ -382,11 +399,13 @@ def test_perturbed_poses_are_recovered(tiny, tmp_path):
     assert len(used["per_camera"]) == len(idx) and used["median_rotation_deg"] > 1.0
     assert not used["guard"]["stopped"] and used["guard"]["suspect"] == [], used["guard"]
     assert trained.pose_refinement["test_poses"]["method"] == "similarity"
-    plain = eval_stage.run(eval_stage.Config(run_dir=run, out=tmp_path / "e.json", device="cpu", views=1,
-                                             test_pose_steps=0)).result  # fmt: skip
+    plain = eval_stage.run(
+        eval_stage.Config(run_dir=run, out=tmp_path / "e.json", device="cpu", views=1, test_pose_steps=0)
+    ).result
     assert plain["test_pose_optimisation"] is None and plain["test_poses"]["method"] == "similarity"
-    tuned = eval_stage.run(eval_stage.Config(run_dir=run, out=tmp_path / "t.json", device="cpu", views=1,
-                                             test_pose_steps=3)).result  # fmt: skip
+    tuned = eval_stage.run(
+        eval_stage.Config(run_dir=run, out=tmp_path / "t.json", device="cpu", views=1, test_pose_steps=3)
+    ).result
     assert tuned["test_poses"] == TEST_POSE_OPT_RULE and tuned["test_pose_optimisation"]["steps"] == 3
     assert 0 < tuned["test_pose_optimisation"]["median_rotation_deg"] < 1.0
     default = eval_stage.run(eval_stage.Config(run_dir=run, out=tmp_path / "d.json", device="cpu", views=1)).result
@@ -447,8 +466,9 @@ def test_a_stopped_refinement_takes_the_field_back_to_before_the_cameras_moved(t
         assert torch.allclose(refined[name], value, rtol=1e-4, atol=1e-6), name
     moved = plain_fields[STOP_AT]  # the plain field kept learning after the first move: the check can fail
     assert not all(torch.allclose(refined[k], v, rtol=1e-4, atol=1e-6) for k, v in moved.items())
-    scored = eval_stage.run(eval_stage.Config(run_dir=tmp_path / "refined", out=tmp_path / "e.json", device="cpu",
-                                              views=1)).result  # fmt: skip
+    scored = eval_stage.run(
+        eval_stage.Config(run_dir=tmp_path / "refined", out=tmp_path / "e.json", device="cpu", views=1)
+    ).result
     assert scored["test_pose_optimisation"] is None  # the input cameras were kept: test views as given
     stopped = f"as in transforms.json: the guard stopped pose refinement at step {STOP_AT}"
     assert scored["test_poses"].startswith(stopped)

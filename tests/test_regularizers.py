@@ -83,8 +83,10 @@ def test_depth_nll_prefers_weight_at_the_known_depth_and_matches_a_loop():
     w = torch.cat([peak / peak.sum(), fog]).requires_grad_(True)
     depth, sigma = torch.tensor([1.0, 1.0], dtype=torch.float64), torch.tensor([0.05, 0.05], dtype=torch.float64)
     wd = w.detach()
-    per_ray = [float(depth_nll_loss(wd[idx == r], t0[idx == r], t1[idx == r], idx[idx == r] * 0, depth[:1], sigma[:1]))
-               for r in range(2)]  # fmt: skip
+    per_ray = [
+        float(depth_nll_loss(wd[idx == r], t0[idx == r], t1[idx == r], idx[idx == r] * 0, depth[:1], sigma[:1]))
+        for r in range(2)
+    ]
     assert per_ray[0] < per_ray[1]
     loop = 0.0
     for i in range(80):

@@ -34,8 +34,22 @@ from nerfpipe.stages import train
 from nerfpipe.stages.train.views import Views, load_views
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = ["--device", "cpu", "--threads", "1", "--batch-rays", "256", "--resolution", "16,24",
-        "--occupancy-resolution", "16", "--eval-every", "0", "--final-eval-views", "1"]  # fmt: skip
+TINY = [
+    "--device",
+    "cpu",
+    "--threads",
+    "1",
+    "--batch-rays",
+    "256",
+    "--resolution",
+    "16,24",
+    "--occupancy-resolution",
+    "16",
+    "--eval-every",
+    "0",
+    "--final-eval-views",
+    "1",
+]
 
 
 @pytest.fixture(scope="module")
@@ -53,9 +67,18 @@ def finished_run(scene_dir, tmp_path_factory) -> Path:
 
 
 def _config(scene_dir: Path, run_dir: Path, **kw) -> train.Config:
-    base = dict(scene_dir=scene_dir, run_dir=run_dir, max_steps=2, max_seconds=60.0, batch_rays=256,
-                fast=train.FastOptions(resolution=(16, 24), occupancy_resolution=16), eval_every=0, final_eval_views=1,
-                device="cpu", threads=1)  # fmt: skip
+    base = dict(
+        scene_dir=scene_dir,
+        run_dir=run_dir,
+        max_steps=2,
+        max_seconds=60.0,
+        batch_rays=256,
+        fast=train.FastOptions(resolution=(16, 24), occupancy_resolution=16),
+        eval_every=0,
+        final_eval_views=1,
+        device="cpu",
+        threads=1,
+    )
     base.update(kw)
     return train.Config(**base)
 
@@ -72,8 +95,15 @@ def _cli(capsys, *args: str) -> tuple[int, str]:
 
 def _spawn(*args: str, **kw) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.Popen([sys.executable, str(ROOT / "cli.py"), *map(str, args)], cwd=ROOT, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)  # fmt: skip
+    return subprocess.Popen(
+        [sys.executable, str(ROOT / "cli.py"), *map(str, args)],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        **kw,
+    )
 
 
 def _wait_for(path: Path, proc: subprocess.Popen, timeout: float = 180.0) -> None:
@@ -97,8 +127,18 @@ def test_signal_during_train_leaves_a_checkpoint_to_resume(scene_dir, tmp_path, 
     """Ctrl-C / SIGTERM save the current step and say so in one line; kill -9 loses at most checkpoint_seconds
     (here 0.3 s); each run then continues with --resume."""
     run_dir = tmp_path / "run"
-    proc = _spawn("train", scene_dir, run_dir, *TINY, "--max-steps", "100000", "--max-seconds", "600",
-                  "--checkpoint-seconds", "0.3")  # fmt: skip
+    proc = _spawn(
+        "train",
+        scene_dir,
+        run_dir,
+        *TINY,
+        "--max-steps",
+        "100000",
+        "--max-seconds",
+        "600",
+        "--checkpoint-seconds",
+        "0.3",
+    )
     _wait_for(run_dir / "checkpoint.pt", proc)  # written by the time budget: the loop is running
     time.sleep(0.5)
     proc.send_signal(signum)
@@ -142,15 +182,23 @@ def test_interrupted_consumers_leave_nothing_that_looks_complete(finished_run, t
     monkeypatch.setattr(TensoRF, "density", interrupt_later(TensoRF.density))  # mesh queries the field directly
     monkeypatch.setattr(TensoRF, "density_inference", interrupt_later(TensoRF.density_inference))  # the renderers
     runs = {
-        "render": (lambda: render.run(render.Config(run_dir=finished_run, out=tmp_path / "v.mp4", frames=6,
-                                                    device="cpu")), [tmp_path / "v.mp4", tmp_path / "v.manifest.json"]),
-        "depth": (lambda: depth.run(depth.Config(run_dir=finished_run, out_dir=tmp_path / "d", device="cpu")),
-                  [tmp_path / "d" / "manifest.json"]),
-        "eval": (lambda: eval.run(eval.Config(run_dir=finished_run, out=tmp_path / "e.json", device="cpu")),
-                 [tmp_path / "e.json", tmp_path / "e.manifest.json"]),
-        "mesh": (lambda: mesh.run(mesh.Config(run_dir=finished_run, out=tmp_path / "m.ply", resolution=32,
-                                              device="cpu")), [tmp_path / "m.ply", tmp_path / "m.report.json"]),
-    }  # fmt: skip
+        "render": (
+            lambda: render.run(render.Config(run_dir=finished_run, out=tmp_path / "v.mp4", frames=6, device="cpu")),
+            [tmp_path / "v.mp4", tmp_path / "v.manifest.json"],
+        ),
+        "depth": (
+            lambda: depth.run(depth.Config(run_dir=finished_run, out_dir=tmp_path / "d", device="cpu")),
+            [tmp_path / "d" / "manifest.json"],
+        ),
+        "eval": (
+            lambda: eval.run(eval.Config(run_dir=finished_run, out=tmp_path / "e.json", device="cpu")),
+            [tmp_path / "e.json", tmp_path / "e.manifest.json"],
+        ),
+        "mesh": (
+            lambda: mesh.run(mesh.Config(run_dir=finished_run, out=tmp_path / "m.ply", resolution=32, device="cpu")),
+            [tmp_path / "m.ply", tmp_path / "m.report.json"],
+        ),
+    }
     for name, (run, outputs) in runs.items():
         calls["n"] = 0
         with pytest.raises(KeyboardInterrupt):
@@ -181,8 +229,11 @@ def test_failed_overwrite_keeps_the_earlier_run(scene_dir, finished_run, tmp_pat
     run_dir = _copy(finished_run, tmp_path)
     before = _sha(run_dir / "checkpoint.pt")
     _fail_writes(monkeypatch, "checkpoint.pt", errno.ENOSPC)
-    with pytest.raises(WriteFailed, match=r"no space left on device writing .*checkpoint.pt \(the earlier output "
-                                          r"is kept in .*run.previous\)"):  # fmt: skip
+    with pytest.raises(
+        WriteFailed,
+        match=r"no space left on device writing .*checkpoint.pt \(the earlier output "
+        r"is kept in .*run.previous\)",
+    ):
         train.run(_config(scene_dir, run_dir, overwrite=True))
     assert _sha(tmp_path / "run.previous" / "checkpoint.pt") == before
 
@@ -219,8 +270,9 @@ def _fail_writes(monkeypatch, name: str, code: int) -> None:
     monkeypatch.setattr(nerfpipe.data.atomic, "_write", write)
 
 
-def test_full_disk_during_train_is_one_line_and_keeps_the_checkpoint(scene_dir, finished_run, tmp_path, capsys,
-                                                                     monkeypatch):  # fmt: skip
+def test_full_disk_during_train_is_one_line_and_keeps_the_checkpoint(
+    scene_dir, finished_run, tmp_path, capsys, monkeypatch
+):
     run_dir = _copy(finished_run, tmp_path)
     before = _sha(run_dir / "checkpoint.pt")
     _fail_writes(monkeypatch, "checkpoint.pt", errno.ENOSPC)
@@ -230,8 +282,10 @@ def test_full_disk_during_train_is_one_line_and_keeps_the_checkpoint(scene_dir, 
     assert not list(run_dir.glob(".checkpoint.pt.*"))
 
 
-@pytest.mark.parametrize(("code", "cause"), [(errno.EIO, "input/output error"), (errno.EACCES, "permission denied"),
-                                             (errno.ENOSPC, "no space left on device")])  # fmt: skip
+@pytest.mark.parametrize(
+    ("code", "cause"),
+    [(errno.EIO, "input/output error"), (errno.EACCES, "permission denied"), (errno.ENOSPC, "no space left on device")],
+)
 def test_write_errors_name_the_file_and_cause(tmp_path, monkeypatch, code, cause):
     path = tmp_path / "m.json"
     write_json(path, {"old": 1})
@@ -261,10 +315,18 @@ def test_a_real_file_size_limit_during_train(scene_dir, tmp_path):
 def test_second_writer_is_refused_and_a_dead_holder_is_taken_over(scene_dir, tmp_path, capsys):
     run_dir = tmp_path / "run"
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys, time; from data.lock import folder_lock\n"
-         "with folder_lock(sys.argv[1]):\n    print('held', flush=True); time.sleep(120)", str(run_dir)],
-        cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, stdout=subprocess.PIPE, text=True,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-c",
+            "import sys, time; from data.lock import folder_lock\n"
+            "with folder_lock(sys.argv[1]):\n    print('held', flush=True); time.sleep(120)",
+            str(run_dir),
+        ],
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert holder.stdout.readline().strip() == "held"
         code, err = _cli(capsys, "train", scene_dir, run_dir, *TINY)
@@ -300,12 +362,20 @@ def test_checkpoint_that_no_longer_matches_its_manifest_is_refused(finished_run,
         load_trained(run_dir, "cpu")
 
 
-@pytest.mark.parametrize(("state", "match"), [
-    ({"format": "nerfpipe-xray-1", "nerfpipe_version": "0.9"},
-     r"not a nerfpipe train checkpoint \(format 1\): found format 'nerfpipe-xray-1' written by nerfpipe 0.9"),
-    ({"format": 2, "nerfpipe_version": "9.0"}, "found format 2 written by nerfpipe 9.0, this is nerfpipe"),
-    ({"format": 1, "field_config": {"kind": "gaussians"}}, "field of kind 'gaussians'; expected one of fast, vanilla"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    ("state", "match"),
+    [
+        (
+            {"format": "nerfpipe-xray-1", "nerfpipe_version": "0.9"},
+            r"not a nerfpipe train checkpoint \(format 1\): found format 'nerfpipe-xray-1' written by nerfpipe 0.9",
+        ),
+        ({"format": 2, "nerfpipe_version": "9.0"}, "found format 2 written by nerfpipe 9.0, this is nerfpipe"),
+        (
+            {"format": 1, "field_config": {"kind": "gaussians"}},
+            "field of kind 'gaussians'; expected one of fast, vanilla",
+        ),
+    ],
+)
 def test_foreign_checkpoints_are_refused_with_what_was_expected(tmp_path, state, match):
     torch.save(state, tmp_path / "checkpoint.pt")
     with pytest.raises(UserError, match=match):
@@ -330,9 +400,19 @@ def test_views_make_the_rays_whole_images_would(tmp_path):
         pose[:3, :3], pose[:3, 3] = q * torch.sign(torch.det(q)), torch.randn(3, generator=g, dtype=torch.float64)
         write_png(tmp_path / f"{i}.png", (torch.rand(14, 20, 3, generator=g).numpy() * 255).astype("uint8"))
         frames.append(Frame(file_path=f"{i}.png", world_from_cam=pose.numpy()))
-    scene = Scene(root=tmp_path, frames=tuple(frames), intrinsics=intr, applied_transform=np.eye(4)[:3],
-                  applied_scale=1.0, aabb=np.array([[-1.0] * 3, [1.0] * 3]), near=0.1, far=10.0,
-                  splits={"train": (0, 1, 2)}, has_alpha=False, extra={})  # fmt: skip
+    scene = Scene(
+        root=tmp_path,
+        frames=tuple(frames),
+        intrinsics=intr,
+        applied_transform=np.eye(4)[:3],
+        applied_scale=1.0,
+        aabb=np.array([[-1.0] * 3, [1.0] * 3]),
+        near=0.1,
+        far=10.0,
+        splits={"train": (0, 1, 2)},
+        has_alpha=False,
+        extra={},
+    )
     write_scene(scene, tmp_path / "transforms.json")
     scene = read_scene(tmp_path)
     views = load_views(scene, (0, 1, 2))

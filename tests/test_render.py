@@ -37,8 +37,10 @@ def rays(n=32, seed=0):
     """Rays from distance 2.5 towards random points in the sphere's bounding square (some miss)."""
     gen = torch.Generator().manual_seed(seed)
     o = torch.tensor([0.0, 0.0, 2.5], dtype=torch.float64).expand(n, 3).clone()
-    target = torch.cat([torch.rand(n, 2, generator=gen, dtype=torch.float64) * 1.8 - 0.9,
-                        torch.zeros(n, 1, dtype=torch.float64)], dim=-1)  # fmt: skip
+    target = torch.cat(
+        [torch.rand(n, 2, generator=gen, dtype=torch.float64) * 1.8 - 0.9, torch.zeros(n, 1, dtype=torch.float64)],
+        dim=-1,
+    )
     d = target - o
     return o, d / d.norm(dim=-1, keepdim=True)
 
@@ -51,8 +53,9 @@ def chord(o, d):
 def test_beer_lambert_matches_analytic_line_integral_through_sphere():
     o, d = rays()
     n, near, far = 800, 1.5, 3.5
-    out = render_attenuation(o, d, near=near, far=far, sampler=StratifiedSampler(n_samples=n), sigma_fn=sphere_sigma,
-                             i0=100.0)  # fmt: skip
+    out = render_attenuation(
+        o, d, near=near, far=far, sampler=StratifiedSampler(n_samples=n), sigma_fn=sphere_sigma, i0=100.0
+    )
     expected = MU * chord(o, d)
     step = (far - near) / n
     torch.testing.assert_close(out["optical_depth"], expected, atol=2 * MU * step, rtol=0)
@@ -63,8 +66,9 @@ def test_beer_lambert_matches_analytic_line_integral_through_sphere():
 def test_emission_absorption_matches_closed_form_with_background():
     o, d = rays(seed=1)
     bg = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
-    out = render_rays(o, d, near=1.5, far=3.5, sampler=StratifiedSampler(n_samples=800), rgb_sigma_fn=sphere_rgb_sigma,
-                      background=bg)  # fmt: skip
+    out = render_rays(
+        o, d, near=1.5, far=3.5, sampler=StratifiedSampler(n_samples=800), rgb_sigma_fn=sphere_rgb_sigma, background=bg
+    )
     acc = 1 - torch.exp(-MU * chord(o, d))
     torch.testing.assert_close(out["acc"], acc, atol=0.01, rtol=0)
     colour = torch.tensor([0.2, 0.6, 1.0], dtype=torch.float64)
@@ -90,9 +94,15 @@ def test_hierarchical_sampling_concentrates_near_the_surface():
     o, d = rays(8, seed=3)
     gen = torch.Generator().manual_seed(0)
     out = render_rays_hierarchical(
-        o, d, near=1.5, far=3.5, coarse_sampler=StratifiedSampler(n_samples=16, jitter=True, generator=gen),
-        n_fine=32, coarse_fn=sphere_rgb_sigma, fine_fn=sphere_rgb_sigma,
-    )  # fmt: skip
+        o,
+        d,
+        near=1.5,
+        far=3.5,
+        coarse_sampler=StratifiedSampler(n_samples=16, jitter=True, generator=gen),
+        n_fine=32,
+        coarse_fn=sphere_rgb_sigma,
+        fine_fn=sphere_rgb_sigma,
+    )
     assert out["t_starts"].shape == (8, 48) and out["coarse"]["t_starts"].shape == (8, 16)
     torch.testing.assert_close(out["t_starts"][:, 1:], out["t_ends"][:, :-1])
     acc = 1 - torch.exp(-MU * chord(o, d))
@@ -112,8 +122,15 @@ def test_gradients_flow_to_the_field():
 
 def test_infinite_far_plane_renders_finite():
     o, d = rays(8, seed=5)
-    out = render_rays(o, d, near=0.5, far=math.inf, sampler=StratifiedSampler(n_samples=64, spacing="disparity"),
-                      rgb_sigma_fn=sphere_rgb_sigma, background=torch.ones(3))  # fmt: skip
+    out = render_rays(
+        o,
+        d,
+        near=0.5,
+        far=math.inf,
+        sampler=StratifiedSampler(n_samples=64, spacing="disparity"),
+        rgb_sigma_fn=sphere_rgb_sigma,
+        background=torch.ones(3),
+    )
     for k in ("rgb", "depth", "acc"):
         assert torch.isfinite(out[k]).all()
     assert torch.isinf(out["t_ends"][:, -1]).all()
@@ -141,11 +158,19 @@ def test_render_validates_inputs():
             o[:, :2], d, near=1.0, far=2.0, sampler=StratifiedSampler(n_samples=4), rgb_sigma_fn=sphere_rgb_sigma
         )
     with pytest.raises(ValueError, match="near"):
-        render_rays(o, d, near=torch.ones(3), far=2.0, sampler=StratifiedSampler(n_samples=4),
-                    rgb_sigma_fn=sphere_rgb_sigma)  # fmt: skip
+        render_rays(
+            o, d, near=torch.ones(3), far=2.0, sampler=StratifiedSampler(n_samples=4), rgb_sigma_fn=sphere_rgb_sigma
+        )
     with pytest.raises(ValueError, match="background"):
-        render_rays(o, d, near=1.0, far=2.0, sampler=StratifiedSampler(n_samples=4), rgb_sigma_fn=sphere_rgb_sigma,
-                    background=torch.ones(2))  # fmt: skip
+        render_rays(
+            o,
+            d,
+            near=1.0,
+            far=2.0,
+            sampler=StratifiedSampler(n_samples=4),
+            rgb_sigma_fn=sphere_rgb_sigma,
+            background=torch.ones(2),
+        )
 
 
 # Occupancy-marched rendering of a Gaussian blob: compact enough that the grid's occupied box is much smaller
@@ -188,12 +213,24 @@ def test_marched_render_matches_dense_stratified_reference():
     bg = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
     scale = torch.tensor(1.0, dtype=torch.float64, requires_grad=True)
     out = render_marched(
-        o, d, marcher=box_marcher(grid), sigma_fn=lambda x: blob_sigma(x) * scale,
-        rgb_fn=lambda x, d_: blob_rgb(x, d_) * scale, background=bg, colour=ColourRule(threshold=0.0, per_ray=1e6),
+        o,
+        d,
+        marcher=box_marcher(grid),
+        sigma_fn=lambda x: blob_sigma(x) * scale,
+        rgb_fn=lambda x, d_: blob_rgb(x, d_) * scale,
+        background=bg,
+        colour=ColourRule(threshold=0.0, per_ray=1e6),
         with_median=True,
-    )  # fmt: skip
-    ref = render_rays(o, d, near=1.5, far=3.5, sampler=StratifiedSampler(n_samples=2000), background=bg,
-                      rgb_sigma_fn=lambda x, d_: (blob_rgb(x, d_), blob_sigma(x)))  # fmt: skip
+    )
+    ref = render_rays(
+        o,
+        d,
+        near=1.5,
+        far=3.5,
+        sampler=StratifiedSampler(n_samples=2000),
+        background=bg,
+        rgb_sigma_fn=lambda x, d_: (blob_rgb(x, d_), blob_sigma(x)),
+    )
     assert out["ray_indices"].numel() < 32 * 500  # marched: far fewer samples than a dense sweep of the box
     assert (ref["acc"] < 1e-3).any() and (ref["acc"] > 0.5).any()
     torch.testing.assert_close(out["acc"], ref["acc"], atol=5e-3, rtol=0)
@@ -238,8 +275,9 @@ def test_marcher_is_the_sampler_render_marched_uses():
     gives render_marched's density-only outputs; near, far that do not hold the space's march raise."""
     o, d = blob_rays(32, seed=10)
     marcher = box_marcher(blob_grid())
-    marched = render_marched(o, d, marcher=marcher, sigma_fn=blob_sigma, rgb_fn=None,
-                             jitter=torch.Generator().manual_seed(3))  # fmt: skip
+    marched = render_marched(
+        o, d, marcher=marcher, sigma_fn=blob_sigma, rgb_fn=None, jitter=torch.Generator().manual_seed(3)
+    )
     sampler = functools.partial(marcher, jitter=torch.Generator().manual_seed(3))
     via = render_depth(o, d, near=0.5, far=5.0, sampler=sampler, sigma_fn=lambda x, d_: blob_sigma(x))
     assert marched["ray_indices"].numel() > 0
@@ -296,8 +334,13 @@ def test_coarse_colour_rule_keeps_the_full_weight():
         queried.append(x.shape[0])
         return colour.expand(x.shape[0], 3)
 
-    kw = dict(marcher=box_marcher(grid), sigma_fn=lambda x: 20 * blob_sigma(x), rgb_fn=rgb, background=bg,
-              min_transmittance=0.0)  # fmt: skip
+    kw = dict(
+        marcher=box_marcher(grid),
+        sigma_fn=lambda x: 20 * blob_sigma(x),
+        rgb_fn=rgb,
+        background=bg,
+        min_transmittance=0.0,
+    )
     exact = render_marched(o, d, **kw)
     coarse = render_marched(o, d, colour=ColourRule(keep=0.02), **kw)
     dark = render_marched(o, d, colour=ColourRule(threshold=0.02), **kw)

@@ -59,15 +59,21 @@ def sphere_scene(root: Path, *, views: int = 8, w: int = 33, h: int = 25, applie
     """Cameras on an orbit (radius 3 scene units) looking at the origin; odd test split; images rendered by
     the sphere (so replay PSNR is ~ 8-bit quantisation only). Scene = applied_scale * source."""
     intr = Intrinsics(w=w, h=h, fx=30.0, fy=30.0, cx=w / 2, cy=h / 2)
-    orbit = paths.Orbit(centre=np.zeros(3), up=np.array([0.0, 0, 1]), radius=3.0, elevation_deg=20.0,
-                        start_azimuth_deg=0.0)  # fmt: skip
+    orbit = paths.Orbit(
+        centre=np.zeros(3), up=np.array([0.0, 0, 1]), radius=3.0, elevation_deg=20.0, start_azimuth_deg=0.0
+    )
     poses = paths.turntable(orbit, views)
     frames = tuple(Frame(file_path=f"images/v{i:03d}.png", world_from_cam=p) for i, p in enumerate(poses))
     scene = Scene(
-        root=root, frames=frames, intrinsics=intr, applied_scale=applied_scale,
-        applied_transform=np.eye(4)[:3], splits={"train": tuple(range(0, views, 2)), "test": tuple(range(1, views, 2))},
-        near=0.1, far=10.0,
-    )  # fmt: skip
+        root=root,
+        frames=frames,
+        intrinsics=intr,
+        applied_scale=applied_scale,
+        applied_transform=np.eye(4)[:3],
+        splits={"train": tuple(range(0, views, 2)), "test": tuple(range(1, views, 2))},
+        near=0.1,
+        far=10.0,
+    )
     fake = SphereRun(scene=scene)
     for i, p in enumerate(poses):
         view = render_view(fake, intr, p, torch.device("cpu"))
@@ -102,9 +108,16 @@ def _read_video(path: Path) -> np.ndarray:
 def test_turntable_mp4_decodes_with_frames_size_and_motion(sphere_run, tmp_path):
     run_dir, _ = sphere_run
     out = tmp_path / "out" / "turn.mp4"
-    res = render_stage.run(render_stage.Config(run_dir=run_dir, out=out, frames=10, fps=10,
-                                               outputs=("rgb", "depth", "accumulation"),
-                                               frames_dir=tmp_path / "frames"))  # fmt: skip
+    res = render_stage.run(
+        render_stage.Config(
+            run_dir=run_dir,
+            out=out,
+            frames=10,
+            fps=10,
+            outputs=("rgb", "depth", "accumulation"),
+            frames_dir=tmp_path / "frames",
+        )
+    )
     video = _read_video(out)
     assert video.shape == (10, 26, 100, 3)  # 25 x (3 * 33) padded to even
     assert res.size == (25, 99) and res.n_frames == 10
@@ -121,8 +134,9 @@ def test_turntable_mp4_decodes_with_frames_size_and_motion(sphere_run, tmp_path)
 def test_accumulation_panel_matches_sphere_silhouette(sphere_run, tmp_path):
     run_dir, fake = sphere_run
     out = tmp_path / "acc.mp4"
-    render_stage.run(render_stage.Config(run_dir=run_dir, out=out, frames=2, outputs=("accumulation",),
-                                         frames_dir=tmp_path / "f"))  # fmt: skip
+    render_stage.run(
+        render_stage.Config(run_dir=run_dir, out=out, frames=2, outputs=("accumulation",), frames_dir=tmp_path / "f")
+    )
     frame = iio.imread(tmp_path / "f" / "frame_00000.png")
     cams = camera_path(fake.scene, "turntable", frames=2)
     acc = render_view(fake, cams.intrinsics[0], cams.world_from_cams[0], torch.device("cpu"))["acc"]
@@ -146,8 +160,9 @@ def _checks(manifest: Path) -> tuple[str, dict[str, dict]]:
 
 def test_self_check_passes_the_sphere_turntable(sphere_run, tmp_path):
     run_dir, _ = sphere_run
-    res = render_stage.run(render_stage.Config(run_dir=run_dir, out=tmp_path / "v.mp4", frames=6,
-                                               outputs=("rgb", "depth")))  # fmt: skip
+    res = render_stage.run(
+        render_stage.Config(run_dir=run_dir, out=tmp_path / "v.mp4", frames=6, outputs=("rgb", "depth"))
+    )
     check, checks = _checks(res.manifest)
     assert check == "ok" and set(checks) == {"empty_frames", "still_frames", "non_finite"}, checks
     assert 0.8 < checks["empty_frames"]["value"] < render_stage.MAX_EMPTY  # the sphere covers ~10 % of a frame
@@ -218,8 +233,9 @@ def ring_scene(root: Path, azimuths_deg, *, names=None, elevation: float = 20.0)
     """A Scene (nothing on disk) whose cameras sit at these azimuths round the origin, 3 units away, looking at
     it; `names` are their file names (default: in azimuth order)."""
     intr = Intrinsics(w=33, h=25, fx=30.0, fy=30.0, cx=16.5, cy=12.5)
-    orbit = paths.Orbit(centre=np.zeros(3), up=np.array([0.0, 0, 1]), radius=3.0, elevation_deg=elevation,
-                        start_azimuth_deg=0.0)  # fmt: skip
+    orbit = paths.Orbit(
+        centre=np.zeros(3), up=np.array([0.0, 0, 1]), radius=3.0, elevation_deg=elevation, start_azimuth_deg=0.0
+    )
     poses = [paths.turntable(dataclasses.replace(orbit, start_azimuth_deg=a), 1)[0] for a in azimuths_deg]
     names = names or [f"images/IMG_{i + 1}.jpg" for i in range(len(poses))]
     frames = tuple(Frame(file_path=n, world_from_cam=p) for n, p in zip(names, poses, strict=True))
@@ -345,16 +361,29 @@ def train_tiny_run(root: Path, kind: str = "posed") -> Path:
 
     scene_dir = root / "scene"
     scene_stage.run(scene_stage.Config(out_dir=scene_dir, kind=kind, size=24, views=10, seed=0))
-    train.run(train.Config(scene_dir=scene_dir, run_dir=root / "run", max_steps=2, max_seconds=60.0, batch_rays=256,
-                           fast=train.FastOptions(resolution=(16, 24), occupancy_resolution=16), eval_every=0,
-                           final_eval_views=1, device="cpu"))  # fmt: skip
+    train.run(
+        train.Config(
+            scene_dir=scene_dir,
+            run_dir=root / "run",
+            max_steps=2,
+            max_seconds=60.0,
+            batch_rays=256,
+            fast=train.FastOptions(resolution=(16, 24), occupancy_resolution=16),
+            eval_every=0,
+            final_eval_views=1,
+            device="cpu",
+        )
+    )
     return root / "run"
 
 
 def test_render_from_a_real_training_run(tmp_path):
     run_dir = train_tiny_run(tmp_path)
-    out = render_stage.run(render_stage.Config(run_dir=run_dir, out=tmp_path / "v.mp4", frames=3, device="cpu",
-                                               outputs=("rgb", "depth", "accumulation")))  # fmt: skip
+    out = render_stage.run(
+        render_stage.Config(
+            run_dir=run_dir, out=tmp_path / "v.mp4", frames=3, device="cpu", outputs=("rgb", "depth", "accumulation")
+        )
+    )
     video = _read_video(out.video)
     assert video.shape == (3, 24, 72, 3)
     manifest = (tmp_path / "v.manifest.json").read_text()

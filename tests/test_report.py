@@ -24,10 +24,16 @@ def _fake_run(folder, rows, used):
 
 @pytest.fixture
 def two_runs(tmp_path):
-    fast = _fake_run(tmp_path / "a" / "fast", [(0, 0.5, None), (100, 10.0, 21.0), (200, 20.0, 26.5), (200, 20.5, 26.9)],
-                     {"peak_cuda_mb": 812.25, "peak_rss_mb": 900.0})  # fmt: skip
-    slow = _fake_run(tmp_path / "b" / "vanilla", [(0, 1.0, None), (100, 60.0, 18.0), (200, 120.0, 22.0)],
-                     {"peak_cuda_mb": None, "peak_rss_mb": 1500.5})  # fmt: skip
+    fast = _fake_run(
+        tmp_path / "a" / "fast",
+        [(0, 0.5, None), (100, 10.0, 21.0), (200, 20.0, 26.5), (200, 20.5, 26.9)],
+        {"peak_cuda_mb": 812.25, "peak_rss_mb": 900.0},
+    )
+    slow = _fake_run(
+        tmp_path / "b" / "vanilla",
+        [(0, 1.0, None), (100, 60.0, 18.0), (200, 120.0, 22.0)],
+        {"peak_cuda_mb": None, "peak_rss_mb": 1500.5},
+    )
     return fast, slow
 
 

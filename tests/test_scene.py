@@ -103,8 +103,9 @@ def test_sift_finds_hundreds_of_keypoints_at_256px():
     sift = cv2.SIFT_create()
     for world_from_cam in scene.cameras(40, 0)[[0, 13, 27]]:
         colour, alpha, _ = scene.render_view(prims, intr, world_from_cam)
-        grey = cv2.cvtColor(np.round(255 * (alpha[..., None] * colour + 1 - alpha[..., None])).astype(np.uint8),
-                            cv2.COLOR_RGB2GRAY)  # fmt: skip
+        grey = cv2.cvtColor(
+            np.round(255 * (alpha[..., None] * colour + 1 - alpha[..., None])).astype(np.uint8), cv2.COLOR_RGB2GRAY
+        )
         assert len(sift.detect(grey)) >= 200  # ~300-750 per view; at 64 px only ~15-30
 
 

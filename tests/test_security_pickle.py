@@ -125,8 +125,11 @@ def genuine(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def genuine_run(genuine, tmp_path_factory) -> Path:
     run_dir = tmp_path_factory.mktemp("run") / "run"
-    xray_train.run(xray_train.Config(scene=genuine, run_dir=run_dir, max_steps=2, batch_rays=64, eval_every=0,
-                                     device="cpu", threads=1))  # fmt: skip
+    xray_train.run(
+        xray_train.Config(
+            scene=genuine, run_dir=run_dir, max_steps=2, batch_rays=64, eval_every=0, device="cpu", threads=1
+        )
+    )
     return run_dir
 
 
@@ -239,7 +242,8 @@ def test_a_run_naming_an_evil_pickle_runs_no_code(genuine_run, tmp_path, capsys)
 
 def test_a_run_on_a_genuine_pickle_still_evaluates(genuine_run, tmp_path, capsys):
     """The restricted reader is no regression for a run trained on a real NAF pickle: xray-eval reads it."""
-    code, err = _cli(capsys, "xray-eval", genuine_run, tmp_path / "eval.json", "--device", "cpu", "--threads", "1",
-                     "--no-baseline")  # fmt: skip
+    code, err = _cli(
+        capsys, "xray-eval", genuine_run, tmp_path / "eval.json", "--device", "cpu", "--threads", "1", "--no-baseline"
+    )
     assert code == 0, err
     assert "psnr_3d" in json.loads((tmp_path / "eval.json").read_text())

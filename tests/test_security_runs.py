@@ -45,8 +45,11 @@ def _copy(run_dir: Path, tmp_path: Path) -> Path:
 
 
 def _hashes(folder: Path) -> dict[str, str]:
-    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file()}  # fmt: skip
+    return {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
 
 
 # ---------------------------------------------------------------------------------------------- the lock file
@@ -60,8 +63,10 @@ def test_a_lock_planted_as_a_symlink_is_refused_and_its_target_untouched(scene_d
     before = _hashes(run_dir)
     code, err = _cli(capsys, "train", scene_dir, run_dir, *TINY, "--resume")
     assert code == 2 and err.count("\n") == 1, err
-    assert err == f"error: {run_dir / LOCK_NAME}: the lock file is a symbolic link; expected a regular file " \
-                  f"(remove it if no nerfpipe process writes {run_dir})\n"  # fmt: skip
+    assert (
+        err == f"error: {run_dir / LOCK_NAME}: the lock file is a symbolic link; expected a regular file "
+        f"(remove it if no nerfpipe process writes {run_dir})\n"
+    )
     (tmp_path / "d2").mkdir()
     (tmp_path / "d2" / LOCK_NAME).symlink_to(victim)
     code, err = _cli(capsys, "depth", run_dir, tmp_path / "d2", "--device", "cpu")
@@ -119,8 +124,9 @@ def test_eval_into_a_file_the_run_owns_is_refused(finished_run, tmp_path, capsys
     run_dir = _copy(finished_run, tmp_path)
     before = _hashes(run_dir)
     code, err = _cli(capsys, "eval", run_dir, run_dir / name, "--device", "cpu")
-    assert code == 2 and err == (f"error: {run_dir / name}: the run {run_dir} owns {name}; expected another name "
-                                 "for the eval output\n")  # fmt: skip
+    assert code == 2 and err == (
+        f"error: {run_dir / name}: the run {run_dir} owns {name}; expected another name for the eval output\n"
+    )
     assert _hashes(run_dir) == before
 
 
@@ -130,8 +136,9 @@ def test_depth_or_report_into_the_run_or_its_parent_is_refused(finished_run, tmp
     run_dir = _copy(finished_run, tmp_path)
     before = _hashes(run_dir)
     code, err = _cli(capsys, "depth", run_dir, run_dir, "--overwrite", "--device", "cpu")
-    assert code == 2 and err == (f"error: {run_dir}: the depth output would be the run folder {run_dir} itself; "
-                                 "expected a path outside it\n")  # fmt: skip
+    assert code == 2 and err == (
+        f"error: {run_dir}: the depth output would be the run folder {run_dir} itself; expected a path outside it\n"
+    )
     code, err = _cli(capsys, "depth", run_dir, tmp_path, "--overwrite", "--device", "cpu")
     assert code == 2 and "the depth output folder holds the run" in err and err.count("\n") == 1, err
     link = tmp_path.parent / f"{tmp_path.name}-link"
@@ -234,8 +241,12 @@ def test_resume_with_other_settings_is_refused_naming_each(scene_dir, finished_r
     _resume_refused(scene_dir, run_dir, r"downscale: 1\.0 -> 2\.0", downscale=2.0)
     _resume_refused(scene_dir, run_dir, "scene_model: auto -> contract", scene_model="contract")
     _resume_refused(scene_dir, run_dir, "seed: 0 -> 3, background: auto -> white", background="white", seed=3)
-    _resume_refused(scene_dir, run_dir, r"fast.resolution: \[16, 24\] -> \[16, 32\]",
-                    fast=train.FastOptions(resolution=(16, 32), occupancy_resolution=16))  # fmt: skip
+    _resume_refused(
+        scene_dir,
+        run_dir,
+        r"fast.resolution: \[16, 24\] -> \[16, 32\]",
+        fast=train.FastOptions(resolution=(16, 32), occupancy_resolution=16),
+    )
     _resume_refused(scene_dir, run_dir, "field: fast -> vanilla", field="vanilla")
     (run_dir / "config.json").unlink()  # nothing to check the resumed run against
     with pytest.raises(UserError, match=r"config.json: missing; resume needs the config.json the run wrote"):
@@ -264,8 +275,12 @@ def test_resume_with_a_new_budget_goes_on_and_is_recorded(scene_dir, finished_ru
     doc = json.loads((run_dir / "config.json").read_text())
     assert doc["max_steps"] == 4 and doc["max_seconds"] == 90.0 and doc["scene_dir"] == str(moved.resolve())
     (entry,) = doc["resumed"]
-    assert entry["step"] == 2 and entry["changed"]["max_steps"] == [2, 4] and entry["changed"]["max_seconds"] == [
-        60.0, 90.0] and entry["changed"]["scene_dir"][1] == str(moved.resolve())  # fmt: skip
+    assert (
+        entry["step"] == 2
+        and entry["changed"]["max_steps"] == [2, 4]
+        and entry["changed"]["max_seconds"] == [60.0, 90.0]
+        and entry["changed"]["scene_dir"][1] == str(moved.resolve())
+    )
     assert set(entry["changed"]) == {"max_steps", "max_seconds", "scene_dir"}
 
 

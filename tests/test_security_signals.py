@@ -107,8 +107,12 @@ def test_outputs_that_are_the_wrong_kind_of_file_are_one_line(sphere_run, tmp_pa
         out = tmp_path / "file" / "v.mp4"
     code, err = _cli(capsys, "render", run_dir, out, "--frames", "2", "--frames-dir", frames)
     assert code == 2 and err.startswith("error: ") and "Error" not in err, err
-    assert {"out": f"{out} is a folder", "frames_dir": f"{frames} is a file", "sidecar": "v.manifest.json is a folder",
-            "parent": f"{tmp_path / 'file'} is a file"}[where] in err  # fmt: skip
+    assert {
+        "out": f"{out} is a folder",
+        "frames_dir": f"{frames} is a file",
+        "sidecar": "v.manifest.json is a folder",
+        "parent": f"{tmp_path / 'file'} is a file",
+    }[where] in err
     assert not _hidden(tmp_path)
 
 
@@ -121,8 +125,10 @@ def _path_file(path: Path, *, width: int = 32, height: int = 24, frames: int = 2
     return path
 
 
-@pytest.mark.parametrize(("width", "height", "field"), [(200000, 200000, "render_width"), (24, 20000, "render_height"),
-                                                        (16000, 16000, "render_width x render_height")])  # fmt: skip
+@pytest.mark.parametrize(
+    ("width", "height", "field"),
+    [(200000, 200000, "render_width"), (24, 20000, "render_height"), (16000, 16000, "render_width x render_height")],
+)
 def test_camera_path_asking_for_huge_frames_is_refused(sphere_run, tmp_path, capsys, width, height, field):
     """200000 x 200000 pixels once asked torch for 320 GB (exit 1); now one line naming the file and the field."""
     run_dir, _ = sphere_run
@@ -157,13 +163,18 @@ def test_a_downscale_that_asks_for_huge_frames_is_refused(sphere_run, tmp_path, 
 @pytest.mark.parametrize(
     ("exc", "line"),
     [
-        (RecursionError("maximum recursion depth exceeded while decoding a JSON array from a unicode string"),
-         "error: an input is nested too deeply to read (maximum recursion depth exceeded while decoding a JSON "
-         "array from a unicode string); rerun with --debug for details"),
-        (MemoryError(), "error: out of memory (an input or an option asks for more than this machine has); rerun "
-                        "with --debug for details"),
+        (
+            RecursionError("maximum recursion depth exceeded while decoding a JSON array from a unicode string"),
+            "error: an input is nested too deeply to read (maximum recursion depth exceeded while decoding a JSON "
+            "array from a unicode string); rerun with --debug for details",
+        ),
+        (
+            MemoryError(),
+            "error: out of memory (an input or an option asks for more than this machine has); rerun "
+            "with --debug for details",
+        ),
     ],
-)  # fmt: skip
+)
 def test_recursion_and_memory_errors_from_a_reader_are_one_line(capsys, monkeypatch, exc, line):
     """Readers outside the stages (model/, data/transforms.py, torch.load, ...) parse JSON and pickles: a
     RecursionError or MemoryError they raise is the input's doing, not a bug: exit 2, one line."""
@@ -238,7 +249,8 @@ def test_an_ignored_sigterm_stays_ignored():
 def test_sigterm_after_importing_pycolmap_is_still_one_line(tmp_path):
     """Importing pycolmap (the poses stage) installs glog's C handler over Python's, behind its back: SIGTERM then
     printed a 35-line stack trace. The CLI takes SIGTERM back once the stage is imported (`reclaim_sigterm`)."""
-    (tmp_path / "colmap_stage.py").write_text(textwrap.dedent('''
+    (tmp_path / "colmap_stage.py").write_text(
+        textwrap.dedent('''
         import os, signal, time
         from dataclasses import dataclass
         from pathlib import Path
@@ -252,10 +264,13 @@ def test_sigterm_after_importing_pycolmap_is_still_one_line(tmp_path):
         def run(config):
             os.kill(os.getpid(), signal.SIGTERM)
             time.sleep(30)
-    '''))  # fmt: skip
-    script = (f"import sys; sys.path.insert(0, {str(tmp_path)!r}); from nerfpipe import cli; "
-              "cli.STAGES['colmap-stage'] = cli.Stage('colmap_stage', 'A stage that imports pycolmap.'); "
-              "cli.main(['colmap-stage', 'o'])")  # fmt: skip
+    ''')
+    )
+    script = (
+        f"import sys; sys.path.insert(0, {str(tmp_path)!r}); from nerfpipe import cli; "
+        "cli.STAGES['colmap-stage'] = cli.Stage('colmap_stage', 'A stage that imports pycolmap.'); "
+        "cli.main(['colmap-stage', 'o'])"
+    )
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     r = subprocess.run([sys.executable, "-c", script], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
     assert (r.returncode, r.stderr.strip()) == (143, "error: interrupted (SIGTERM)")
@@ -268,10 +283,25 @@ def test_sigterm_during_render_is_one_line_and_leaves_nothing_complete(tmp_path)
     out, frames = tmp_path / "v.mp4", tmp_path / "frames"
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     proc = subprocess.Popen(
-        [sys.executable, str(ROOT / "cli.py"), "render", str(run_dir), str(out), "--device", "cpu", "--frames",
-         "100000", "--frames-dir", str(frames)], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        [
+            sys.executable,
+            str(ROOT / "cli.py"),
+            "render",
+            str(run_dir),
+            str(out),
+            "--device",
+            "cpu",
+            "--frames",
+            "100000",
+            "--frames-dir",
+            str(frames),
+        ],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
         text=True,
-    )  # fmt: skip
+    )
     t0 = time.monotonic()
     while not (frames / "frame_00001.png").exists():
         assert proc.poll() is None, proc.communicate()[1]

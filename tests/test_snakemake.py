@@ -45,8 +45,16 @@ resources:
   eval: {threads: 1, mem_mb: 1000}
   mesh: {threads: 1, mem_mb: 1000}
 """
-OUTPUTS = ("scene/transforms.json", "run/manifest.json", "run/checkpoint.pt", "video.mp4", "depth/manifest.json",
-           "eval.json", "mesh.ply", "self_checks.txt")  # fmt: skip
+OUTPUTS = (
+    "scene/transforms.json",
+    "run/manifest.json",
+    "run/checkpoint.pt",
+    "video.mp4",
+    "depth/manifest.json",
+    "eval.json",
+    "mesh.ply",
+    "self_checks.txt",
+)
 CHECK_LINE = re.compile(
     r"^self-checks: all \d+ ok$|^(convert|train|render|depth|eval|mesh) \(.+\): \w+ = .+ \(expected "
 )
@@ -112,8 +120,12 @@ def _assert_built(out: Path) -> None:
 def _make_prerequisites(root: Path, variables: list[str], target: str) -> set[str]:
     """What make's database says `target` depends on (normal prerequisites, absolute paths)."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("MAKE")}
-    res = subprocess.run(["make", "-pq", "--no-print-directory", "-C", str(root), *variables, target],
-                         capture_output=True, text=True, env=env)  # fmt: skip
+    res = subprocess.run(
+        ["make", "-pq", "--no-print-directory", "-C", str(root), *variables, target],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
     line = next(line for line in res.stdout.splitlines() if line.startswith(f"{target}: "))
     normal = line[len(target) + 2 :].split("|")[0].split()
     return {p if p.startswith("/") else str(root / p) for p in normal}
@@ -128,8 +140,11 @@ def test_jobs_read_what_make_reads_and_run_only_their_recipe(root, tmp_path):
     (work / "captures" / "walk").mkdir()
     (work / "captures" / "walk" / "walk.mp4").write_bytes(b"a video; only a dry run reads this folder")
     scene.run(scene.Config(out_dir=work / "posed" / "box", kind="posed", size=16, views=3, seed=0))
-    sources = {"mug": f"PHOTOS={work}/captures/mug/images", "walk": f"PHOTOS={work}/captures/walk/walk.mp4",
-               "box": f"POSED={work}/posed/box"}  # fmt: skip
+    sources = {
+        "mug": f"PHOTOS={work}/captures/mug/images",
+        "walk": f"PHOTOS={work}/captures/walk/walk.mp4",
+        "box": f"POSED={work}/posed/box",
+    }
     dry = _snakemake(root, work, "-n", "-p")
     assert dry.returncode == 0, dry.stderr[-3000:]
     seen = []
@@ -142,8 +157,13 @@ def test_jobs_read_what_make_reads_and_run_only_their_recipe(root, tmp_path):
         assert mine == _make_prerequisites(root, [f"OUT={work}/runs/{name}", sources[name]], target), output
         command = shellcmd.split(" > ")[0].replace("make -C", "make -n -C", 1)
         assert command.startswith("make -n -C") and f' "$PWD"/{output} ' in command  # no absolute path: a moved
-        plan = subprocess.run(["bash", "-c", command], capture_output=True, text=True, cwd=work,  # folder re-runs
-                              env={k: v for k, v in os.environ.items() if not k.startswith("MAKE")})  # fmt: skip
+        plan = subprocess.run(
+            ["bash", "-c", command],
+            capture_output=True,
+            text=True,
+            cwd=work,  # folder re-runs
+            env={k: v for k, v in os.environ.items() if not k.startswith("MAKE")},
+        )
         assert plan.returncode == 0, plan.stderr[-2000:]
         ran = re.findall(r"(?:^|/)nerfpipe (\w+) ", plan.stdout, flags=re.M)
         assert ran == [rule], (output, plan.stdout)
@@ -163,8 +183,16 @@ def test_dry_run_lint_and_profiles_are_clean(root, tmp_path):
     assert dry.returncode == 0, dry.stderr[-3000:]
     assert "This was a dry-run (flag -n)." in dry.stdout
     assert "warning" not in (dry.stdout + dry.stderr).lower()
-    assert _jobs(dry.stdout) == {"convert": 2, "train": 2, "depth": 2, "eval": 2, "mesh": 2, "render": 2,
-                                 "self_checks": 2, "all": 1}  # fmt: skip
+    assert _jobs(dry.stdout) == {
+        "convert": 2,
+        "train": 2,
+        "depth": 2,
+        "eval": 2,
+        "mesh": 2,
+        "render": 2,
+        "self_checks": 2,
+        "all": 1,
+    }
     lint = _snakemake(root, work, "--lint")
     assert lint.returncode == 0 and "Lints for" not in lint.stdout + lint.stderr, lint.stdout + lint.stderr
     assert "Congratulations, your workflow is in a good condition!" in lint.stdout + lint.stderr
@@ -228,11 +256,23 @@ def test_cluster_executor_submits_jobs_with_resources_retries_and_reenters(root,
     submit.write_text(SUBMIT)
     submit.chmod(0o755)
     log = work / "submitted.log"
-    command = (f"{submit} --rule {{rule}} --threads {{threads}} --mem {{resources.mem_mb}} "
-               "--runtime {resources.runtime} --gpu {resources.gpu}")  # fmt: skip
-    profile = ["--profile", str(root / "pipelines" / "snakemake" / "profiles" / "cluster-generic"),
-               "--cluster-generic-submit-cmd", command, "--jobs", "2", "--latency-wait", "5", "--keep-going",
-               "--seconds-between-status-checks", "1"]  # fmt: skip
+    command = (
+        f"{submit} --rule {{rule}} --threads {{threads}} --mem {{resources.mem_mb}} "
+        "--runtime {resources.runtime} --gpu {resources.gpu}"
+    )
+    profile = [
+        "--profile",
+        str(root / "pipelines" / "snakemake" / "profiles" / "cluster-generic"),
+        "--cluster-generic-submit-cmd",
+        command,
+        "--jobs",
+        "2",
+        "--latency-wait",
+        "5",
+        "--keep-going",
+        "--seconds-between-status-checks",
+        "1",
+    ]
     out = work / "runs" / "cap"
 
     first = _snakemake(root, work, *profile)

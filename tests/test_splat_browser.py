@@ -83,9 +83,14 @@ CHANGED_MIN = 0.2
 def _gaussians(n: int = 300) -> SplatData:
     """`n` random Gaussians in [-1, 1]^3 (file layout: SH degree 0, logit opacity, log scales, wxyz)."""
     rng = np.random.default_rng(0)
-    return SplatData(means=rng.uniform(-1, 1, (n, 3)), f_dc=(rng.uniform(0, 1, (n, 3)) - 0.5) / sp.SH_C0,
-                     f_rest=np.zeros((n, 3, 0)), opacity=rng.uniform(-1, 4, n),
-                     scales=np.log(rng.uniform(0.03, 0.25, (n, 3))), quats=rng.normal(size=(n, 4)))  # fmt: skip
+    return SplatData(
+        means=rng.uniform(-1, 1, (n, 3)),
+        f_dc=(rng.uniform(0, 1, (n, 3)) - 0.5) / sp.SH_C0,
+        f_rest=np.zeros((n, 3, 0)),
+        opacity=rng.uniform(-1, 4, n),
+        scales=np.log(rng.uniform(0.03, 0.25, (n, 3))),
+        quats=rng.normal(size=(n, 4)),
+    )
 
 
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -110,8 +115,9 @@ def test_ply_renders_in_visers_splat_viewer_as_in_our_rasteriser(tmp_path):
     try:
         server.scene.add_gaussian_splats("/splats", *viser_arrays(splats))
         with Browser(f"http://127.0.0.1:{server.get_port()}/?fixedDpr=1", tmp_path / "profile") as browser:
-            browser.call("Emulation.setDeviceMetricsOverride", width=4 * W, height=4 * H, deviceScaleFactor=1,
-                         mobile=False)  # fmt: skip
+            browser.call(
+                "Emulation.setDeviceMetricsOverride", width=4 * W, height=4 * H, deviceScaleFactor=1, mobile=False
+            )
             canvas = "Math.max(...[...document.querySelectorAll('canvas')].map(c => c.width * 1e5 + c.height))"
             wait_until(lambda: browser.evaluate(canvas) == 4 * W * 1e5 + 4 * H, "the page's canvas at 4 W x 4 H")
             wait_until(lambda: len(server.get_clients()) == 1, "the browser to connect")
@@ -122,8 +128,9 @@ def test_ply_renders_in_visers_splat_viewer_as_in_our_rasteriser(tmp_path):
             deadline = time.monotonic() + BROWSER_SECONDS
             shot, previous = None, None
             while time.monotonic() < deadline:  # sorting is asynchronous: wait for two equal, non-empty frames
-                shot = client.get_render(H, W, wxyz=wxyz, position=position, fov=FOV, transport_format="png",
-                                         timeout=30)  # fmt: skip
+                shot = client.get_render(
+                    H, W, wxyz=wxyz, position=position, fov=FOV, transport_format="png", timeout=30
+                )
                 if previous is not None and (shot[..., 3] > 127).mean() > 0.05 and np.array_equal(shot, previous):
                     break
                 previous = shot
@@ -155,8 +162,11 @@ def sphere_splats(tmp_path_factory):
     run_dir, fake = sphere_run(root)
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(splat_stage, "load_trained", lambda run_dir, device: fake)
-        out = splat_stage.run(splat_stage.Config(run_dir=run_dir, out=root / "s.ply", gaussians=300, max_steps=60,
-                                                 max_seconds=120.0, device="cpu"))  # fmt: skip
+        out = splat_stage.run(
+            splat_stage.Config(
+                run_dir=run_dir, out=root / "s.ply", gaussians=300, max_steps=60, max_seconds=120.0, device="cpu"
+            )
+        )
     return {"run_dir": run_dir, "fake": fake, "ply": out.out}
 
 
@@ -165,8 +175,9 @@ def test_view_redraws_the_splats_when_the_camera_moves(sphere_splats, tmp_path, 
     """The first splat draw after a camera move within 2 F (F: the page's splat frame time), and the frame then
     differs from the one before on at least CHANGED_MIN of the splats' pixels; the server renders nothing."""
     monkeypatch.setattr(view, "load_trained", lambda run_dir, device: sphere_splats["fake"])
-    viewer = view.serve(view.Config(target=sphere_splats["run_dir"], splats=sphere_splats["ply"], port=0, preview=96,
-                                    refine=160))  # fmt: skip
+    viewer = view.serve(
+        view.Config(target=sphere_splats["run_dir"], splats=sphere_splats["ply"], port=0, preview=96, refine=160)
+    )
     try:
         with Browser(viewer.url, tmp_path / "profile") as browser:
             before = browser.screenshot_when(_shows_splats)
@@ -196,8 +207,10 @@ def test_view_redraws_the_splats_when_the_camera_moves(sphere_splats, tmp_path, 
     splat_px = _splat_pixels(before)
     changed = np.abs(after[..., :3].astype(int) - before[..., :3].astype(int)).sum(-1) > 60
     share = (changed & splat_px).sum() / max(splat_px.sum(), 1)
-    print(f"first splat draw {draws[0]:.1f} ms after the move, frame time {frame:.1f} ms, {share:.0%} of "
-          f"{splat_px.sum()} splat pixels changed ({tmp_path})")  # fmt: skip
+    print(
+        f"first splat draw {draws[0]:.1f} ms after the move, frame time {frame:.1f} ms, {share:.0%} of "
+        f"{splat_px.sum()} splat pixels changed ({tmp_path})"
+    )
     assert draws[0] <= 2 * frame, (draws[:4], frame)
     assert share >= CHANGED_MIN, (share, tmp_path)
 

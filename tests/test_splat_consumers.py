@@ -62,8 +62,9 @@ def made(tmp_path_factory):
         mp.setattr(splat_stage, "load_trained", lambda run_dir, device: fake)
         common = dict(run_dir=run_dir, gaussians=300, max_steps=60, max_seconds=120.0, device="cpu")
         user = splat_stage.run(splat_stage.Config(out=root / "user" / "s.ply", **common))
-        scene_frame = splat_stage.run(splat_stage.Config(out=root / "scene_frame" / "s.ply", frame="normalized",
-                                                         **common))  # fmt: skip
+        scene_frame = splat_stage.run(
+            splat_stage.Config(out=root / "scene_frame" / "s.ply", frame="normalized", **common)
+        )
     return {"root": root, "run_dir": run_dir, "fake": fake, "user": user.out, "scene_frame": scene_frame.out}
 
 
@@ -89,8 +90,10 @@ def test_eval_scores_splats_on_the_runs_test_views(stand_in, tmp_path):
         assert manifest["used"]["input"]["splat_sha256"] == sha256_file(stand_in[frame])
         assert str(stand_in[frame]) in manifest["inputs"]  # hashed there too
         assert out.result["train_psnr_from"].startswith("s.report.json psnr_train_final")
-    # the same Gaussians written in two frames score the same once mapped back (0.5 x scale and back)
-    assert got["user"]["psnr"] == pytest.approx(got["scene_frame"]["psnr"], abs=1e-3)
+    # the same optimisation written in two frames scores the same once mapped back (0.5 x scale and back); the two
+    # 60-step optimisations run apart, and the rasteriser's parallel sums differ in order from run to run: 3e-3 dB
+    # apart was seen, a frame mapped wrong costs several dB
+    assert got["user"]["psnr"] == pytest.approx(got["scene_frame"]["psnr"], abs=0.02)
     field = eval_stage.run(eval_stage.Config(run_dir=stand_in["run_dir"], out=tmp_path / "f.json", device="cpu"))
     assert field.result["input"] == {"kind": "field", "run_dir": str(stand_in["run_dir"])}
     assert field.result["psnr"] > got["user"]["psnr"]  # the analytic sphere is its photos' own renderer
@@ -104,10 +107,13 @@ def test_splat_depth_is_the_z_depth_of_what_is_seen(stand_in):
     grid = np.stack(np.meshgrid(xs, xs, indexing="ij"), -1).reshape(-1, 2)
     z = np.where(grid[:, 0] < 0, -2.0, -3.0)  # the camera at the origin looks down -z (OpenGL)
     n = len(grid)
-    splats = sp.Splats(means=torch.from_numpy(np.column_stack([grid, z])).float(),
-                       log_scales=torch.log(torch.tensor([0.04, 0.04, 0.002])).expand(n, 3).contiguous(),
-                       quats=torch.tensor([1.0, 0, 0, 0]).expand(n, 4).contiguous(),
-                       opacity_logits=torch.full((n,), 6.0), sh=torch.zeros(n, 1, 3))  # fmt: skip
+    splats = sp.Splats(
+        means=torch.from_numpy(np.column_stack([grid, z])).float(),
+        log_scales=torch.log(torch.tensor([0.04, 0.04, 0.002])).expand(n, 3).contiguous(),
+        quats=torch.tensor([1.0, 0, 0, 0]).expand(n, 4).contiguous(),
+        opacity_logits=torch.full((n,), 6.0),
+        sh=torch.zeros(n, 1, 3),
+    )
     run = SplatRun(run=stand_in["fake"], splats=splats, source=open_input(stand_in["user"]))
     intr = Intrinsics(w=32, h=24, fx=20.0, fy=20.0, cx=16.0, cy=12.0)
     got = render_view(run, intr, np.eye(4), CPU)
@@ -123,8 +129,9 @@ def test_splat_depth_is_the_z_depth_of_what_is_seen(stand_in):
 
 def test_render_writes_a_video_from_splats(stand_in, tmp_path):
     out = tmp_path / "v.mp4"
-    res = render_stage.run(render_stage.Config(run_dir=stand_in["user"], out=out, frames=6, fps=6,
-                                               outputs=("rgb", "depth"), device="cpu"))  # fmt: skip
+    res = render_stage.run(
+        render_stage.Config(run_dir=stand_in["user"], out=out, frames=6, fps=6, outputs=("rgb", "depth"), device="cpu")
+    )
     reader = iio.get_reader(str(out), format="ffmpeg")
     try:
         video = np.stack(list(reader.iter_data()))
@@ -135,8 +142,9 @@ def test_render_writes_a_video_from_splats(stand_in, tmp_path):
     manifest = json.loads(res.manifest.read_text())
     assert manifest["used"]["input"]["kind"] == "splats" and manifest["check"] == "ok", manifest["checks"]
     assert manifest["used"]["input"]["splat_sha256"] == sha256_file(stand_in["user"])
-    field = render_stage.run(render_stage.Config(run_dir=stand_in["run_dir"], out=tmp_path / "f.mp4", frames=2,
-                                                 device="cpu"))  # fmt: skip
+    field = render_stage.run(
+        render_stage.Config(run_dir=stand_in["run_dir"], out=tmp_path / "f.mp4", frames=2, device="cpu")
+    )
     assert json.loads(field.manifest.read_text())["used"]["input"]["kind"] == "field"
 
 
@@ -172,8 +180,10 @@ def test_bad_splat_inputs_are_one_line_errors(stand_in, tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         cli.main(["eval", str(tmp_path / "missing.ply"), str(tmp_path / "o.json")])
     err = capsys.readouterr().err.strip().splitlines()
-    assert e.value.code == 2 and err == [f"error: {tmp_path / 'missing.ply'}: splat file not found (expected a run "
-                                         "directory or a .ply from the splat stage)"]  # fmt: skip
+    assert e.value.code == 2 and err == [
+        f"error: {tmp_path / 'missing.ply'}: splat file not found (expected a run "
+        "directory or a .ply from the splat stage)"
+    ]
     assert not (tmp_path / "o.json").exists()
 
 
@@ -251,8 +261,9 @@ def test_browser_draws_the_splats_and_switches_to_the_field(stand_in, tmp_path):
     """Headless Chromium on a run viewer with splats: the field's render is paused (no background image is ever
     sent), so the sphere's colours in the screenshot are the Gaussians the browser drew. Picking `field` in the
     `Draw` dropdown (mouse clicks) hides them and the server renders the field again."""
-    viewer = view.serve(view.Config(target=stand_in["run_dir"], splats=stand_in["user"], port=0, preview=96,
-                                    refine=160))  # fmt: skip
+    viewer = view.serve(
+        view.Config(target=stand_in["run_dir"], splats=stand_in["user"], port=0, preview=96, refine=160)
+    )
     try:
         with Browser(viewer.url, tmp_path / "profile") as browser:
             shot = browser.screenshot_when(_shows_splats)

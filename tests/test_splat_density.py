@@ -23,9 +23,13 @@ def _four() -> tuple[sp.Splats, dens.GradStats]:
     """0: small, large gradient (clone); 1: large, large gradient (split); 2: nearly transparent (prune); 3: quiet."""
     scales = torch.tensor([0.005, 0.2, 0.005, 0.005])
     opacity = torch.tensor([0.5, 0.5, 0.001, 0.5])
-    splats = sp.Splats(means=torch.arange(12.0).reshape(4, 3), log_scales=torch.log(scales)[:, None].repeat(1, 3),
-                       quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(4, 1), opacity_logits=torch.logit(opacity),
-                       sh=torch.arange(12.0).reshape(4, 1, 3))  # fmt: skip
+    splats = sp.Splats(
+        means=torch.arange(12.0).reshape(4, 3),
+        log_scales=torch.log(scales)[:, None].repeat(1, 3),
+        quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(4, 1),
+        opacity_logits=torch.logit(opacity),
+        sh=torch.arange(12.0).reshape(4, 1, 3),
+    )
     stats = dens.GradStats.zeros(4)
     grad = torch.tensor([[1e-3, 0.0], [0.0, 2e-3], [1e-3, 0.0], [1e-6, 0.0]])  # half-image units at w = h = 2
     stats.add(grad, torch.tensor([True, True, True, True]), 2, 2)
@@ -62,8 +66,9 @@ def test_adam_moments_follow_their_rows_and_new_rows_start_at_zero():
     opt = torch.optim.Adam([{"params": [p], "lr": 1e-3} for p in params])
     sum(p.square().sum() for p in params).backward()
     opt.step()
-    new, source, fresh, _ = dens.refine(sp.Splats(*params), stats, extent=1.0, limit=100,
-                                        gen=torch.Generator().manual_seed(0))  # fmt: skip
+    new, source, fresh, _ = dens.refine(
+        sp.Splats(*params), stats, extent=1.0, limit=100, gen=torch.Generator().manual_seed(0)
+    )
     new_params = [p.requires_grad_(True) for p in new.parameters()]
     old_state = {i: {k: v.clone() for k, v in opt.state[p].items()} for i, p in enumerate(params)}
     dens.carry_adam(opt, params, new_params, source, fresh)
@@ -81,8 +86,17 @@ def test_adam_moments_follow_their_rows_and_new_rows_start_at_zero():
 def test_the_stage_densifies_on_its_loop_and_writes_what_it_ends_with(sphere_splat_run, tmp_path, monkeypatch):
     monkeypatch.setattr(splat_stage, "DENSIFY_EVERY", 10)
     run_dir, _ = sphere_splat_run
-    out = splat_stage.run(splat_stage.Config(run_dir=run_dir, out=tmp_path / "s.ply", gaussians=150, max_steps=60,
-                                             max_seconds=120, device="cpu", densify=True))  # fmt: skip
+    out = splat_stage.run(
+        splat_stage.Config(
+            run_dir=run_dir,
+            out=tmp_path / "s.ply",
+            gaussians=150,
+            max_steps=60,
+            max_seconds=120,
+            device="cpu",
+            densify=True,
+        )
+    )
     report = json.loads(out.report.read_text())
     refinements = report["used"]["densification"]["refinements"]
     assert [r["step"] for r in refinements] == [10, 20, 30]  # progress 1/6 .. 1/2, inside DENSIFY_SPAN
@@ -91,8 +105,11 @@ def test_the_stage_densifies_on_its_loop_and_writes_what_it_ends_with(sphere_spl
     assert out.gaussians == refinements[-1]["gaussians"] - report["used"]["dropped_invisible"]
     assert out.psnr_final > out.psnr_init and report["check"] == "ok"
     assert "densification" not in report["left_out"]
-    off = splat_stage.run(splat_stage.Config(run_dir=run_dir, out=tmp_path / "n.ply", gaussians=150, max_steps=60,
-                                             max_seconds=120, device="cpu"))  # fmt: skip
+    off = splat_stage.run(
+        splat_stage.Config(
+            run_dir=run_dir, out=tmp_path / "n.ply", gaussians=150, max_steps=60, max_seconds=120, device="cpu"
+        )
+    )
     off_report = json.loads(off.report.read_text())  # the default
     assert off_report["used"]["densification"] == "off (--densify turns it on)"
     assert off_report["left_out"]["densification"] == splat_stage.DENSIFY_OFF and off.gaussians <= 150

@@ -45,7 +45,7 @@ def _splats(n: int, *, seed: int = 0, degree: int = 0, opacity: float = 0.0, siz
         quats=torch.randn(n, 4, generator=g, dtype=F64),
         opacity_logits=opacity + torch.randn(n, generator=g, dtype=F64),
         sh=0.6 * torch.randn(n, (degree + 1) ** 2, 3, generator=g, dtype=F64),
-    )  # fmt: skip
+    )
 
 
 BG = torch.tensor([0.2, 0.5, 0.9], dtype=F64)
@@ -79,10 +79,13 @@ def test_saturated_pixels_stop_as_the_3dgs_kernel_does(kernel):
     intr = Intrinsics(w=9, h=9, fx=20.0, fy=20.0, cx=4.5, cy=4.5)  # the axis hits pixel (4, 4)'s centre
     o = torch.tensor([0.98, 0.98, 0.9, 0.5], dtype=F64)
     n = len(o)
-    s = sp.Splats(means=torch.linspace(0.5, 0, n, dtype=F64)[:, None] * torch.tensor([0, 0, 1.0], dtype=F64),
-                  log_scales=torch.full((n, 3), math.log(0.3), dtype=F64),
-                  quats=torch.tensor([[1.0, 0, 0, 0]], dtype=F64).expand(n, 4), opacity_logits=torch.log(o / (1 - o)),
-                  sh=torch.randn(n, 1, 3, dtype=F64, generator=torch.Generator().manual_seed(0)))  # fmt: skip
+    s = sp.Splats(
+        means=torch.linspace(0.5, 0, n, dtype=F64)[:, None] * torch.tensor([0, 0, 1.0], dtype=F64),
+        log_scales=torch.full((n, 3), math.log(0.3), dtype=F64),
+        quats=torch.tensor([[1.0, 0, 0, 0]], dtype=F64).expand(n, 4),
+        opacity_logits=torch.log(o / (1 - o)),
+        sh=torch.randn(n, 1, 3, dtype=F64, generator=torch.Generator().manual_seed(0)),
+    )
     fast = sp.rasterize(sp.project(s, pose, intr), intr.w, intr.h, BG, chunk=1, kernel=kernel)
     ref = sp.render_reference(s, pose, intr, BG)
     assert 1 - float(fast["alpha"][4, 4]) == pytest.approx(0.02 * 0.02, rel=1e-9)
@@ -99,8 +102,10 @@ def test_gradients_match_the_twin(kernel, opacity):
     s = _splats(10, seed=2, degree=1, opacity=opacity, size=0.15)
     weights = torch.rand(intr.h, intr.w, 3, dtype=F64, generator=torch.Generator().manual_seed(3))
     grads = []
-    for fn in (lambda x: sp.render(x, pose, intr, BG, tile=8, kernel=kernel),
-               lambda x: sp.render_reference(x, pose, intr, BG)):  # fmt: skip
+    for fn in (
+        lambda x: sp.render(x, pose, intr, BG, tile=8, kernel=kernel),
+        lambda x: sp.render_reference(x, pose, intr, BG),
+    ):
         params = [p.clone().requires_grad_(True) for p in s.parameters()]
         out = fn(sp.Splats(*params))
         ((out["rgb"] * weights).sum() + out["alpha"].sum()).backward()
@@ -129,8 +134,14 @@ def test_numba_kernel_gradcheck_on_its_own_inputs_with_background():
     g = torch.Generator().manual_seed(7)
     n, w, h, tile = 6, 7, 5, 4
     means2d = torch.rand(n, 2, generator=g, dtype=F64) * torch.tensor([w, h], dtype=F64)
-    conics = torch.stack([0.3 + torch.rand(n, generator=g, dtype=F64), 0.1 * torch.randn(n, generator=g, dtype=F64),
-                          0.3 + torch.rand(n, generator=g, dtype=F64)], dim=-1)  # fmt: skip
+    conics = torch.stack(
+        [
+            0.3 + torch.rand(n, generator=g, dtype=F64),
+            0.1 * torch.randn(n, generator=g, dtype=F64),
+            0.3 + torch.rand(n, generator=g, dtype=F64),
+        ],
+        dim=-1,
+    )
     opac = 0.3 + 0.65 * torch.rand(n, generator=g, dtype=F64)
     rgb = torch.rand(n, 3, generator=g, dtype=F64)
     nx, ny = -(-w // tile), -(-h // tile)
@@ -139,8 +150,9 @@ def test_numba_kernel_gradcheck_on_its_own_inputs_with_background():
 
     def fn(m, c, o, col, bg):
         tiles = splat_cpu.Tiles(gauss=gauss, starts=starts, w=w, h=h, tile=tile, nx=nx)
-        return splat_cpu.composite(m, c, o, col, bg, tiles, alpha_min=sp.ALPHA_MIN, alpha_max=sp.ALPHA_MAX,
-                                   t_min=sp.T_MIN)  # fmt: skip
+        return splat_cpu.composite(
+            m, c, o, col, bg, tiles, alpha_min=sp.ALPHA_MIN, alpha_max=sp.ALPHA_MAX, t_min=sp.T_MIN
+        )
 
     inputs = tuple(x.clone().requires_grad_(True) for x in (means2d, conics, opac, rgb, BG.clone()))
     out = fn(*inputs)
@@ -235,9 +247,14 @@ def test_sh_rotation_composes_like_the_rotations_it_turns():
 def _data(n: int = 5, degree: int = 1) -> SplatData:
     rng = np.random.default_rng(0)
     k = (degree + 1) ** 2 - 1
-    return SplatData(means=rng.normal(size=(n, 3)), f_dc=rng.normal(size=(n, 3)), f_rest=rng.normal(size=(n, 3, k)),
-                     opacity=rng.normal(size=n), scales=rng.normal(size=(n, 3)) - 3,
-                     quats=rng.normal(size=(n, 4)))  # fmt: skip
+    return SplatData(
+        means=rng.normal(size=(n, 3)),
+        f_dc=rng.normal(size=(n, 3)),
+        f_rest=rng.normal(size=(n, 3, k)),
+        opacity=rng.normal(size=n),
+        scales=rng.normal(size=(n, 3)) - 3,
+        quats=rng.normal(size=(n, 4)),
+    )
 
 
 def test_ply_layout_is_inrias_and_round_trips(tmp_path):
@@ -247,8 +264,26 @@ def test_ply_layout_is_inrias_and_round_trips(tmp_path):
     head, body = raw.split(b"end_header\n", 1)
     lines = head.decode().splitlines()
     assert lines[:3] == ["ply", "format binary_little_endian 1.0", "element vertex 5"]
-    names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", *[f"f_rest_{i}" for i in range(9)],
-             "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]  # fmt: skip
+    names = [
+        "x",
+        "y",
+        "z",
+        "nx",
+        "ny",
+        "nz",
+        "f_dc_0",
+        "f_dc_1",
+        "f_dc_2",
+        *[f"f_rest_{i}" for i in range(9)],
+        "opacity",
+        "scale_0",
+        "scale_1",
+        "scale_2",
+        "rot_0",
+        "rot_1",
+        "rot_2",
+        "rot_3",
+    ]
     assert lines[3:] == [f"property float {n}" for n in names] and ply_properties(1) == names
     assert len(body) == 5 * len(names) * 4
     rows = np.frombuffer(body, "<f4").reshape(5, len(names))
@@ -261,8 +296,22 @@ def test_ply_layout_is_inrias_and_round_trips(tmp_path):
 
 
 def test_ply_reader_takes_other_orders_and_refuses_bad_files(tmp_path):
-    names = ["rot_0", "rot_1", "rot_2", "rot_3", "x", "y", "z", "opacity", "f_dc_0", "f_dc_1", "f_dc_2", "scale_0",
-             "scale_1", "scale_2"]  # fmt: skip
+    names = [
+        "rot_0",
+        "rot_1",
+        "rot_2",
+        "rot_3",
+        "x",
+        "y",
+        "z",
+        "opacity",
+        "f_dc_0",
+        "f_dc_1",
+        "f_dc_2",
+        "scale_0",
+        "scale_1",
+        "scale_2",
+    ]
     values = np.arange(2 * len(names), dtype="<f8").reshape(2, -1)
     header = "ply\nformat binary_little_endian 1.0\ncomment x\nelement vertex 2\n"
     header += "".join(f"property double {n}\n" for n in names) + "end_header\n"
@@ -311,8 +360,11 @@ def sphere_splat_run(tmp_path, monkeypatch):
 
 def test_splat_stage_end_to_end_improves_psnr_and_writes_the_user_frame(sphere_splat_run, tmp_path):
     run_dir, fake = sphere_splat_run
-    out = splat_stage.run(splat_stage.Config(run_dir=run_dir, out=tmp_path / "o" / "s.ply", gaussians=400,
-                                             max_steps=150, max_seconds=120, device="cpu"))  # fmt: skip
+    out = splat_stage.run(
+        splat_stage.Config(
+            run_dir=run_dir, out=tmp_path / "o" / "s.ply", gaussians=400, max_steps=150, max_seconds=120, device="cpu"
+        )
+    )
     assert out.backend == "torch" and out.steps == 150
     assert out.psnr_final > out.psnr_init + 1.0, (out.psnr_init, out.psnr_final)
     data = read_ply(out.out)
@@ -328,8 +380,9 @@ def test_splat_stage_end_to_end_improves_psnr_and_writes_the_user_frame(sphere_s
     assert rows[0] == "step,seconds,loss,psnr" and len(rows) == 151
 
 
-def test_view_dependent_splats_read_back_from_the_users_frame_are_the_ones_optimised(sphere_splat_run, tmp_path,
-                                                                                      monkeypatch):  # fmt: skip
+def test_view_dependent_splats_read_back_from_the_users_frame_are_the_ones_optimised(
+    sphere_splat_run, tmp_path, monkeypatch
+):
     """SH degree 3 by default: the file holds 45 f_rest coefficients (INRIA's channel-major layout), learned, in a
     user frame turned and scaled from the scene frame; read back and mapped to the scene frame they are the
     Gaussians the stage optimised (higher bands turned back with the frame), and score on the training views what
@@ -346,8 +399,11 @@ def test_view_dependent_splats_read_back_from_the_users_frame_are_the_ones_optim
     optimised = []
     to_file = splat_stage._to_file
     monkeypatch.setattr(splat_stage, "_to_file", lambda s, m: (optimised.append(s), to_file(s, m))[1])
-    out = splat_stage.run(splat_stage.Config(run_dir=run_dir, out=tmp_path / "s.ply", gaussians=300, max_steps=60,
-                                             max_seconds=120, device="cpu"))  # fmt: skip
+    out = splat_stage.run(
+        splat_stage.Config(
+            run_dir=run_dir, out=tmp_path / "s.ply", gaussians=300, max_steps=60, max_seconds=120, device="cpu"
+        )
+    )
     data = read_ply(out.out)
     report = json.loads(out.report.read_text())
     assert data.sh_degree == 3 and report["used"]["sh"]["degree"] == 3
@@ -358,8 +414,9 @@ def test_view_dependent_splats_read_back_from_the_users_frame_are_the_ones_optim
     assert torch.allclose(splats.means, want.means, atol=1e-5)
     a = np.asarray(report["out_from_scene"])[:3, :3]
     rot = torch.as_tensor(a / abs(np.linalg.det(a)) ** (1 / 3))  # the user frame: the scene frame turned and scaled
-    d = torch.nn.functional.normalize(torch.randn(len(want), 3, generator=torch.Generator().manual_seed(0),
-                                                  dtype=F64), dim=-1)  # fmt: skip
+    d = torch.nn.functional.normalize(
+        torch.randn(len(want), 3, generator=torch.Generator().manual_seed(0), dtype=F64), dim=-1
+    )
     sh_user = torch.as_tensor(np.concatenate([data.f_dc[:, None], np.transpose(data.f_rest, (0, 2, 1))], 1), dtype=F64)
     assert torch.allclose(sp.sh_to_rgb(sh_user, d @ rot.T), sp.sh_to_rgb(want.sh, d), atol=2e-6)  # seen the same
     photos = load_training_photos(fake.scene, fake.scene.split("train"), 1.0, fake.background.numpy().reshape(3))
@@ -372,8 +429,11 @@ def test_view_dependent_splats_read_back_from_the_users_frame_are_the_ones_optim
 
 def test_splat_stage_writes_splat_format_and_refuses_unknown(sphere_splat_run, tmp_path):
     run_dir, _ = sphere_splat_run
-    out = splat_stage.run(splat_stage.Config(run_dir=run_dir, out=tmp_path / "s.splat", gaussians=50, max_steps=2,
-                                             device="cpu", frame="normalized"))  # fmt: skip
+    out = splat_stage.run(
+        splat_stage.Config(
+            run_dir=run_dir, out=tmp_path / "s.splat", gaussians=50, max_steps=2, device="cpu", frame="normalized"
+        )
+    )
     assert out.out.stat().st_size == 32 * out.gaussians
     left_out = json.loads((tmp_path / "s.report.json").read_text())["left_out"]
     assert left_out["view_dependent_colour"] == "optimised to degree 3; the .splat layout holds degree 0 only"
@@ -414,8 +474,10 @@ def test_cli_help_and_one_line_errors(sphere_splat_run, tmp_path, capsys):
     assert code == 0 and "--max-seconds" in out and "--format" in out and "run_dir" in out.lower()
     run_dir, _ = sphere_splat_run
     code, _, err = _cli(capsys, "splat", run_dir, tmp_path / "s.txt")
-    assert code == 2 and err.strip().splitlines() == [f"error: {tmp_path / 's.txt'}: unknown splat format; expected a "
-                                                      ".ply or .splat file (or format ply|splat)"]  # fmt: skip
-    code, out, _ = _cli(capsys, "splat", run_dir, tmp_path / "s.ply", "--gaussians", "40", "--max-steps", "1",
-                        "--device", "cpu")  # fmt: skip
+    assert code == 2 and err.strip().splitlines() == [
+        f"error: {tmp_path / 's.txt'}: unknown splat format; expected a .ply or .splat file (or format ply|splat)"
+    ]
+    code, out, _ = _cli(
+        capsys, "splat", run_dir, tmp_path / "s.ply", "--gaussians", "40", "--max-steps", "1", "--device", "cpu"
+    )
     assert code in (0, None) and "Gaussians, 1 steps" in out and (tmp_path / "s.report.json").is_file()

@@ -21,7 +21,14 @@ LIBRARIES = ("radiance", "data", "model")
 FLAG = re.compile(r"(?<![\w-])--[a-z]")
 """A CLI flag: two dashes then a lower-case letter, not inside a word (`NeRF--`, `a--b` are no flags)."""
 
-PENDING: set[str] = set()
+PENDING: set[str] = {
+    "stages/convert.py",
+    "stages/eval.py",
+    "stages/mesh/__init__.py",
+    "stages/render.py",
+    "stages/splat.py",
+    "stages/train/loop.py",
+}
 """Stage modules still over MAX_STAGE_LINES while another change splits them; the lead empties this set."""
 PENDING_FLAG_MESSAGES = {"model/loop.py"}
 """Library modules whose raised messages still name a flag. model/loop.py: the training loop's Interrupted and

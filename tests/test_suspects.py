@@ -62,8 +62,15 @@ def test_missing_records_are_skipped_and_unreadable_ones_said(tmp_path, capsys):
 
 def test_every_record_of_the_chain_is_read(tmp_path):
     rels = [rel for _, rel in suspects.RECORDS]
-    assert rels == ["scene/poses_report.json", "scene/convert_manifest.json", "run/manifest.json",
-                    "video.manifest.json", "depth/manifest.json", "eval.manifest.json", "mesh.report.json"]  # fmt: skip
+    assert rels == [
+        "scene/poses_report.json",
+        "scene/convert_manifest.json",
+        "run/manifest.json",
+        "video.manifest.json",
+        "depth/manifest.json",
+        "eval.manifest.json",
+        "mesh.report.json",
+    ]
     for stage, rel in suspects.RECORDS:
         _write(tmp_path, rel, [Check.upper(f"{stage}_check", 2.0, 1.0, "too big")])
     lines = suspects.summary(tmp_path)

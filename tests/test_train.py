@@ -33,8 +33,19 @@ SMALL = train.FastOptions(resolution=(24, 48), occupancy_resolution=32)
 
 
 def _config(scene_dir: Path, run_dir: Path, **kw) -> train.Config:
-    base = dict(scene_dir=scene_dir, run_dir=run_dir, max_steps=2, max_seconds=60.0, batch_rays=256, fast=TINY,
-                log_every=1, eval_every=2, eval_pixels=256, device="cpu", threads=1)  # fmt: skip
+    base = dict(
+        scene_dir=scene_dir,
+        run_dir=run_dir,
+        max_steps=2,
+        max_seconds=60.0,
+        batch_rays=256,
+        fast=TINY,
+        log_every=1,
+        eval_every=2,
+        eval_pixels=256,
+        device="cpu",
+        threads=1,
+    )
     base.update(kw)
     return train.Config(**base)
 
@@ -84,8 +95,9 @@ def test_a_run_saved_with_stacked_factors_resumes_as_it_would_have(rgba_scene, t
             triples = [ids[i : i + 3] for i in range(0, len(ids), 3)]
             for n, triple in enumerate(triples):
                 moments = [opt["state"][i] for i in triple]
-                stacked_state[n] = {k: torch.cat([m[k] for m in moments]) if moments[0][k].dim() else moments[0][k]
-                                    for k in moments[0]}  # fmt: skip
+                stacked_state[n] = {
+                    k: torch.cat([m[k] for m in moments]) if moments[0][k].dim() else moments[0][k] for k in moments[0]
+                }
             stacked_groups.append({**group, "params": list(range(len(triples)))})
         else:
             start = sum(len(gr["params"]) for gr in stacked_groups)
@@ -158,19 +170,22 @@ def test_config_json_holds_the_resolved_config_in_groups(rgba_scene, tmp_path):
     new = ModelSettings.from_config(doc, "config.json")
     flat = {k: v for k, v in doc.items() if k != "fast"} | fast  # a run folder from before the grouping
     assert ModelSettings.from_config(flat, "config.json") == new and new.resolution == (16, 24)
-    vanilla = train.run(_config(rgba_scene, tmp_path / "v", field="vanilla", batch_rays=32, eval_every=0,
-                                final_eval_views=1))  # fmt: skip
+    vanilla = train.run(
+        _config(rgba_scene, tmp_path / "v", field="vanilla", batch_rays=32, eval_every=0, final_eval_views=1)
+    )
     assert json.loads((vanilla.run_dir / "config.json").read_text())["lr"] == 5e-4
 
 
 def test_config_errors_come_before_any_file_is_read(tmp_path):
     """What the config alone can tell is checked first: no scene (here: none at all) is read, no folder made."""
     missing, run_dir = tmp_path / "missing", tmp_path / "run"
-    for fast, match in ((train.FastOptions(tv=-1.0), "--tv: expected >= 0"),
-                        (train.FastOptions(depth_loss=-1.0), "--depth-loss: expected >= 0"),
-                        (train.FastOptions(distortion=-1.0), "distortion >= 0"),
-                        (train.FastOptions(upsample_at=(0.5, 0.2)), "upsample_at"),
-                        (train.FastOptions(rank=(0, 24)), "expected rank as 2 counts")):  # fmt: skip
+    for fast, match in (
+        (train.FastOptions(tv=-1.0), "--tv: expected >= 0"),
+        (train.FastOptions(depth_loss=-1.0), "--depth-loss: expected >= 0"),
+        (train.FastOptions(distortion=-1.0), "distortion >= 0"),
+        (train.FastOptions(upsample_at=(0.5, 0.2)), "upsample_at"),
+        (train.FastOptions(rank=(0, 24)), "expected rank as 2 counts"),
+    ):
         with pytest.raises(UserError, match=match):
             train.run(_config(missing, run_dir, fast=fast))
     with pytest.raises(UserError, match="camera_lr > 0"):
@@ -232,8 +247,18 @@ def test_short_training_clears_a_psnr_floor(tmp_path):
     scene_dir = tmp_path / "posed"
     scene_stage.run(scene_stage.Config(out_dir=scene_dir, kind="posed", size=32, views=16, seed=1))
     # Step-bound (not time-bound) so a loaded machine makes it slower, not flaky; ~11 s on the dev CPU.
-    out = train.run(_config(scene_dir, tmp_path / "run", max_steps=STEPS, max_seconds=600.0, batch_rays=512,
-                            fast=SMALL, log_every=50, eval_every=0))  # fmt: skip
+    out = train.run(
+        _config(
+            scene_dir,
+            tmp_path / "run",
+            max_steps=STEPS,
+            max_seconds=600.0,
+            batch_rays=512,
+            fast=SMALL,
+            log_every=50,
+            eval_every=0,
+        )
+    )
     # A white image scores ~11 dB on this scene; measured 22.7 dB after 300 steps (seed 1).
     assert out.test_psnr is not None and out.test_psnr > PSNR_FLOOR, out.test_psnr
     checks = {c["name"]: c for c in json.loads(out.manifest.read_text())["checks"]}
@@ -303,7 +328,15 @@ def test_forward_facing_scene_trains_in_ndc_and_depth_maps_back(tmp_path):
     sigma = trained.density(x)
     assert torch.isfinite(sigma).all() and sigma[1] == 0.0
 
-    box = train.run(_config(scene_dir, tmp_path / "box", max_steps=2, scene_model="box", final_eval_views=1,
-                            fast=dataclasses.replace(TINY, mlp_width=24)))  # fmt: skip
+    box = train.run(
+        _config(
+            scene_dir,
+            tmp_path / "box",
+            max_steps=2,
+            scene_model="box",
+            final_eval_views=1,
+            fast=dataclasses.replace(TINY, mlp_width=24),
+        )
+    )
     used = json.loads(box.manifest.read_text())["used"]
     assert used["scene_model"] == "box" and used["field"]["hidden"] == 24  # --mlp-width reaches the field

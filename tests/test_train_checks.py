@@ -24,15 +24,20 @@ def _failed(checks) -> dict:
 
 
 def test_a_sound_run_is_ok():
-    checks = train_checks(rows=_rows(30.0), test_psnr=28.0, per_view={"suspect": [], "views_total": 20},
-                          occupied=0.1, object_box=True, pose=None)  # fmt: skip
+    checks = train_checks(
+        rows=_rows(30.0),
+        test_psnr=28.0,
+        per_view={"suspect": [], "views_total": 20},
+        occupied=0.1,
+        object_box=True,
+        pose=None,
+    )
     assert verdict(checks)["check"] == "ok", [c for c in checks if not c.ok]
     assert {c.name for c in checks} >= {"holdout_psnr", "holdout_gap", "still_improving", "unexplained_views"}
 
 
 def test_held_out_far_under_train_is_suspect_with_the_gap():
-    checks = train_checks(rows=_rows(31.0), test_psnr=20.0, per_view=None, occupied=None, object_box=False,
-                          pose=None)  # fmt: skip
+    checks = train_checks(rows=_rows(31.0), test_psnr=20.0, per_view=None, occupied=None, object_box=False, pose=None)
     bad = _failed(checks)
     assert set(bad) == {"holdout_gap"}
     assert bad["holdout_gap"].value == pytest.approx(11.0) and bad["holdout_gap"].limit == f"<= {GAP_DB:g} dB"
@@ -40,28 +45,34 @@ def test_held_out_far_under_train_is_suspect_with_the_gap():
 
 
 def test_low_held_out_psnr_and_still_rising_loss_are_suspect():
-    checks = train_checks(rows=_rows(16.0, rise=2.5), test_psnr=14.0, per_view=None, occupied=None,
-                          object_box=False, pose=None)  # fmt: skip
+    checks = train_checks(
+        rows=_rows(16.0, rise=2.5), test_psnr=14.0, per_view=None, occupied=None, object_box=False, pose=None
+    )
     bad = _failed(checks)
     assert bad["holdout_psnr"].value == pytest.approx(14.0) and f"{HOLDOUT_FLOOR_DB:g}" in bad["holdout_psnr"].limit
     assert bad["still_improving"].value == pytest.approx(2.5, abs=0.01) and RISE_DB < 2.5
 
 
 def test_fog_in_the_box_and_an_empty_grid_and_unexplained_views_are_suspect():
-    fog = train_checks(rows=_rows(30.0), test_psnr=28.0, per_view={"suspect": list("abcdef"), "views_total": 10},
-                       occupied=0.9, object_box=True, pose=None)  # fmt: skip
+    fog = train_checks(
+        rows=_rows(30.0),
+        test_psnr=28.0,
+        per_view={"suspect": list("abcdef"), "views_total": 10},
+        occupied=0.9,
+        object_box=True,
+        pose=None,
+    )
     assert set(_failed(fog)) == {"occupied_share", "unexplained_views"}
-    empty = train_checks(rows=_rows(30.0), test_psnr=28.0, per_view=None, occupied=0.0, object_box=False,
-                         pose=None)  # fmt: skip
+    empty = train_checks(rows=_rows(30.0), test_psnr=28.0, per_view=None, occupied=0.0, object_box=False, pose=None)
     assert set(_failed(empty)) == {"occupied_share_min"}
-    room = train_checks(rows=_rows(30.0), test_psnr=28.0, per_view=None, occupied=0.9, object_box=False,
-                        pose=None)  # fmt: skip
+    room = train_checks(rows=_rows(30.0), test_psnr=28.0, per_view=None, occupied=0.9, object_box=False, pose=None)
     assert verdict(room)["check"] == "ok"  # a contracted room is full of surfaces: not fog
 
 
 def test_checks_that_do_not_apply_are_left_out():
-    checks = train_checks(rows=_rows(30.0)[:3], test_psnr=None, per_view=None, occupied=None, object_box=True,
-                          pose=None)  # fmt: skip
+    checks = train_checks(
+        rows=_rows(30.0)[:3], test_psnr=None, per_view=None, occupied=None, object_box=True, pose=None
+    )
     assert checks == []
 
 

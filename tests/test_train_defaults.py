@@ -24,9 +24,13 @@ def _views(images: list[np.ndarray]) -> Views:
     rgba = [np.concatenate([im, np.full(im.shape[:2] + (1,), 255, np.uint8)], -1).reshape(-1, 4) for im in images]
     n = len(images)
     offsets = torch.tensor([0] + [len(r) for r in rgba]).cumsum(0)
-    return Views(rgba=torch.from_numpy(np.concatenate(rgba)), offsets=offsets,
-                 world_from_cams=torch.eye(4, dtype=torch.float64).repeat(n, 1, 1),
-                 intrinsics=torch.ones(n, 9, dtype=torch.float64), shapes=[im.shape[:2] for im in images])  # fmt: skip
+    return Views(
+        rgba=torch.from_numpy(np.concatenate(rgba)),
+        offsets=offsets,
+        world_from_cams=torch.eye(4, dtype=torch.float64).repeat(n, 1, 1),
+        intrinsics=torch.ones(n, 9, dtype=torch.float64),
+        shapes=[im.shape[:2] for im in images],
+    )
 
 
 def _object_on(colour: int | None, seed: int) -> np.ndarray:
@@ -76,8 +80,17 @@ def test_detect_plain_colour_thresholds():
 
 
 def _train(scene_dir: Path, run_dir: Path, **kw) -> train.Outputs:
-    base = dict(scene_dir=scene_dir, run_dir=run_dir, max_steps=120, max_seconds=600.0, eval_every=0,
-                final_eval_views=2, device="cpu", threads=1, seed=0)  # fmt: skip
+    base = dict(
+        scene_dir=scene_dir,
+        run_dir=run_dir,
+        max_steps=120,
+        max_seconds=600.0,
+        eval_every=0,
+        final_eval_views=2,
+        device="cpu",
+        threads=1,
+        seed=0,
+    )
     base.update(kw)
     return train.run(train.Config(**base))
 

@@ -31,10 +31,18 @@ def _scene(root, n=4, per_frame=False):
     a[:3, :3] = _rot([0.0, 0.0, 0.5])
     a[:, 3] = [1.0, -2.0, 0.5]
     return Scene(
-        root=root, frames=tuple(frames), intrinsics=None if per_frame else intr, applied_transform=a,
-        applied_scale=0.25, aabb=np.array([[-1, -1, -0.5], [1, 1, 0.5]]), near=0.1, far=math.inf,
-        splits={"train": (0, 1, 2), "test": (3,)}, has_alpha=True, extra={"custom_key": [1, 2]},
-    )  # fmt: skip
+        root=root,
+        frames=tuple(frames),
+        intrinsics=None if per_frame else intr,
+        applied_transform=a,
+        applied_scale=0.25,
+        aabb=np.array([[-1, -1, -0.5], [1, 1, 0.5]]),
+        near=0.1,
+        far=math.inf,
+        splits={"train": (0, 1, 2), "test": (3,)},
+        has_alpha=True,
+        extra={"custom_key": [1, 2]},
+    )
 
 
 @pytest.mark.parametrize("per_frame", [False, True])
@@ -59,9 +67,30 @@ def test_round_trip(tmp_path, per_frame):
 def test_written_file_has_nerfstudio_and_instant_ngp_keys(tmp_path):
     write_scene(_scene(tmp_path))
     doc = json.loads((tmp_path / "transforms.json").read_text())
-    for key in ("w", "h", "fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2", "camera_model", "frames",
-                "applied_transform", "camera_angle_x", "camera_angle_y", "aabb_scale", "aabb", "near", "far",
-                "applied_scale", "train_filenames", "test_filenames"):  # fmt: skip
+    for key in (
+        "w",
+        "h",
+        "fl_x",
+        "fl_y",
+        "cx",
+        "cy",
+        "k1",
+        "k2",
+        "p1",
+        "p2",
+        "camera_model",
+        "frames",
+        "applied_transform",
+        "camera_angle_x",
+        "camera_angle_y",
+        "aabb_scale",
+        "aabb",
+        "near",
+        "far",
+        "applied_scale",
+        "train_filenames",
+        "test_filenames",
+    ):
         assert key in doc, key
     assert doc["camera_model"] == "OPENCV"
     assert doc["far"] is None  # infinite far plane: strict JSON has no inf
@@ -133,9 +162,11 @@ def test_missing_and_invalid_json(tmp_path):
 
 def test_instant_ngp_camera_angle_only(tmp_path):
     doc = {
-        "camera_angle_x": 0.69, "w": 100, "h": 80,
+        "camera_angle_x": 0.69,
+        "w": 100,
+        "h": 80,
         "frames": [{"file_path": "a.png", "transform_matrix": np.eye(4).tolist()}],
-    }  # fmt: skip
+    }
     (tmp_path / "transforms.json").write_text(json.dumps(doc))
     s = read_scene(tmp_path)
     assert np.isclose(s.intrinsics.fx, 50 / math.tan(0.345)) and s.intrinsics.fy == s.intrinsics.fx

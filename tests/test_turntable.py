@@ -26,8 +26,9 @@ SIZE, VIEWS = 128, 16
 @pytest.fixture(scope="module")
 def turntable(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("turntable")
-    scene_stage.run(scene_stage.Config(out_dir=root / "scene", kind="posed", layout="turntable", size=SIZE,
-                                       views=VIEWS, seed=0))  # fmt: skip
+    scene_stage.run(
+        scene_stage.Config(out_dir=root / "scene", kind="posed", layout="turntable", size=SIZE, views=VIEWS, seed=0)
+    )
     return root
 
 
@@ -53,8 +54,14 @@ def test_scene_writes_object_relative_poses_and_masks(turntable):
 
 def test_poses_with_masks_registers_every_view(turntable):
     """Masks -> every view registers; poses match the object-relative truth; convert carries the masks."""
-    out = poses.run(poses.Config(input=turntable / "scene" / "images", scene_dir=turntable / "masked",
-                                 masks=turntable / "scene" / "masks", num_threads=2))  # fmt: skip
+    out = poses.run(
+        poses.Config(
+            input=turntable / "scene" / "images",
+            scene_dir=turntable / "masked",
+            masks=turntable / "scene" / "masks",
+            num_threads=2,
+        )
+    )
     assert (out.registered, out.total) == (VIEWS, VIEWS)
     est = read_world_from_cam(out.sparse)
     gt = read_ground_truth(turntable / "scene").by_file_name()
@@ -74,8 +81,7 @@ def test_poses_with_masks_registers_every_view(turntable):
 
 def test_poses_without_masks_says_static_camera(turntable):
     with pytest.raises(UserError) as e:
-        poses.run(poses.Config(input=turntable / "scene" / "images", scene_dir=turntable / "unmasked",
-                               num_threads=2))  # fmt: skip
+        poses.run(poses.Config(input=turntable / "scene" / "images", scene_dir=turntable / "unmasked", num_threads=2))
     msg = str(e.value)
     assert "\n" not in msg and msg.startswith("static camera") and "--masks" in msg
     report = json.loads((turntable / "unmasked" / "poses_report.json").read_text())

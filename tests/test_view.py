@@ -53,9 +53,20 @@ CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 def trained_run(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("view")
     scene_stage.run(scene_stage.Config(out_dir=root / "scene", kind="rgba", size=32, views=10, seed=0))
-    train.run(train.Config(scene_dir=root / "scene", run_dir=root / "run", max_steps=120, max_seconds=600.0,
-                           batch_rays=512, fast=train.FastOptions(resolution=(24, 32), occupancy_resolution=16),
-                           eval_every=0, final_eval_views=1, device="cpu", threads=2))  # fmt: skip
+    train.run(
+        train.Config(
+            scene_dir=root / "scene",
+            run_dir=root / "run",
+            max_steps=120,
+            max_seconds=600.0,
+            batch_rays=512,
+            fast=train.FastOptions(resolution=(24, 32), occupancy_resolution=16),
+            eval_every=0,
+            final_eval_views=1,
+            device="cpu",
+            threads=2,
+        )
+    )
     return root / "run"
 
 
@@ -91,8 +102,12 @@ def test_early_termination_matches_its_plain_twin(trained_run):
 
     o, d = (t.float() for t in generate_rays(intr, torch.as_tensor(_test_camera(trained))))
     marcher = Marcher(space=m.space, grid=m.grid, step_size=m.step_size * m.render_step_factor, segment=5)
-    kw = dict(marcher=marcher, sigma_fn=m.field.density, rgb_fn=lambda x, v: m.field.color(x, v),
-              background=trained.background)  # fmt: skip
+    kw = dict(
+        marcher=marcher,
+        sigma_fn=m.field.density,
+        rgb_fn=lambda x, v: m.field.color(x, v),
+        background=trained.background,
+    )
     with torch.no_grad():
         plain = render_marched(o, d, **kw)
         exact = render_marched(o, d, min_transmittance=0.0, **kw)
@@ -179,8 +194,9 @@ def test_recorded_path_renders(trained_run, tmp_path):
         rec.save("bad.json", seconds=0, fps=4, height=12)
     path = rec.save("rec.json", seconds=1.0, fps=4.0, height=12)
     assert path == tmp_path / "rec.json"
-    res = render_stage.run(render_stage.Config(run_dir=trained_run, out=tmp_path / "rec.mp4", path=str(path),
-                                               device="cpu"))  # fmt: skip
+    res = render_stage.run(
+        render_stage.Config(run_dir=trained_run, out=tmp_path / "rec.mp4", path=str(path), device="cpu")
+    )
     assert res.n_frames == 5 and res.size == (12, 16)
     assert "PSNR" in psnr_summary(trained_run)
 
@@ -196,8 +212,11 @@ def _sphere_run(root: Path, monkeypatch) -> Path:
 
 
 def test_frame_image_modes():
-    v = {"rgb": np.full((2, 3, 3), 0.5, np.float32), "depth": np.array([[1, 2, 3], [4, 5, 6]], np.float32),
-         "acc": np.ones((2, 3), np.float32)}  # fmt: skip
+    v = {
+        "rgb": np.full((2, 3, 3), 0.5, np.float32),
+        "depth": np.array([[1, 2, 3], [4, 5, 6]], np.float32),
+        "acc": np.ones((2, 3), np.float32),
+    }
     assert frame_image(v, "rgb").shape == (2, 3, 3) and frame_image(v, "depth").std() > 0
     with pytest.raises(ValueError):
         frame_image(v, "bogus")
@@ -231,10 +250,24 @@ class Browser:
     JavaScript, and real mouse clicks (Input.dispatchMouseEvent at an element's centre, as a user's would be)."""
 
     def __init__(self, url: str, profile: Path, size: tuple[int, int] = (1280, 720)) -> None:
-        cmd = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader",
-               "--enable-unsafe-swiftshader", "--disable-quic", "--no-first-run", "--disable-background-networking",
-               "--disable-component-update", "--disable-sync", f"--user-data-dir={profile}", "--hide-scrollbars",
-               f"--window-size={size[0]},{size[1]}", "--remote-debugging-port=0", url]  # fmt: skip
+        cmd = [
+            CHROMIUM,
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--use-angle=swiftshader",
+            "--enable-unsafe-swiftshader",
+            "--disable-quic",
+            "--no-first-run",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            f"--user-data-dir={profile}",
+            "--hide-scrollbars",
+            f"--window-size={size[0]},{size[1]}",
+            "--remote-debugging-port=0",
+            url,
+        ]
         self.proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         self._id, self.ws = 0, None
         try:
@@ -328,8 +361,10 @@ def button(text: str) -> str:
 
 def labelled(label: str) -> str:
     """JS: the input (text, number, dropdown) labelled `label`."""
-    return (f"[...document.querySelectorAll('label')].filter(l => l.innerText.trim() === {json.dumps(label)})"
-            ".map(l => document.getElementById(l.htmlFor)).find(e => e)")  # fmt: skip
+    return (
+        f"[...document.querySelectorAll('label')].filter(l => l.innerText.trim() === {json.dumps(label)})"
+        ".map(l => document.getElementById(l.htmlFor)).find(e => e)"
+    )
 
 
 def option(text: str) -> str:
@@ -362,8 +397,13 @@ def test_signal_stops_the_cli_viewer_in_one_line(tmp_path, signum, code):
     seconds with 130 / 143, one line on stderr, nothing of viser's on stdout, and the port is closed."""
     sphere_scene(tmp_path / "scene")
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    proc = subprocess.Popen([sys.executable, str(ROOT / "cli.py"), "view", str(tmp_path / "scene"), "--port", "0"],
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    proc = subprocess.Popen(
+        [sys.executable, str(ROOT / "cli.py"), "view", str(tmp_path / "scene"), "--port", "0"],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     watchdog = threading.Timer(120.0, proc.kill)  # a viewer that never starts must not hang the suite
     watchdog.start()
     try:

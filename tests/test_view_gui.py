@@ -80,8 +80,10 @@ def test_browser_run_modes_and_recorder(tmp_path, monkeypatch):
             (client,) = viewer.server.get_clients().values()
             first = client.camera.position
             client.camera.position = tuple(np.asarray(first) * 1.3)  # the browser's camera moves back
-            wait_until(lambda: np.allclose(client.camera.position, np.asarray(first) * 1.3, atol=1e-3),
-                       "the browser to report its new camera")  # fmt: skip
+            wait_until(
+                lambda: np.allclose(client.camera.position, np.asarray(first) * 1.3, atol=1e-3),
+                "the browser to report its new camera",
+            )
             browser.click(button("Add keyframe (this view)"))
             wait_until(lambda: len(viewer.recorder.keyframes) == 2, "the second keyframe")
             browser.type_into(labelled("Seconds"), "1")
@@ -102,8 +104,9 @@ def test_browser_run_modes_and_recorder(tmp_path, monkeypatch):
     scene = viewer.scene_view.scene
     monkeypatch.setattr(render_stage, "load_trained", lambda run_dir, device: SphereRun(scene=scene))
     saved = run_dir / "camera_paths" / "camera_path.json"
-    res = render_stage.run(render_stage.Config(run_dir=run_dir, out=tmp_path / "path.mp4", downscale=10.0,
-                                               path=str(saved), device="cpu"))  # fmt: skip
+    res = render_stage.run(
+        render_stage.Config(run_dir=run_dir, out=tmp_path / "path.mp4", downscale=10.0, path=str(saved), device="cpu")
+    )
     assert res.n_frames == 5 and res.size[0] == 48  # 1 s at 4 fps (typed in), 480 px high / 10
 
 
@@ -114,10 +117,29 @@ def xray_run(tmp_path_factory) -> Path:
 
     tmp = tmp_path_factory.mktemp("xray_view")
     np.save(tmp / "phantom.npy", phantom(16))
-    xray_simulate.run(xray_simulate.Config(volume=tmp / "phantom.npy", out_dir=tmp / "scene", views=12, arc=360.0,
-                                           test_views=2, voxel_size=1.0, dso=100.0, dsd=150.0))  # fmt: skip
-    cfg = xray_train.Config(scene=tmp / "scene", run_dir=tmp / "run", max_steps=20, max_seconds=60.0, batch_rays=512,
-                            lr=0.1, eval_every=0.0, threads=1, device="cpu")  # fmt: skip
+    xray_simulate.run(
+        xray_simulate.Config(
+            volume=tmp / "phantom.npy",
+            out_dir=tmp / "scene",
+            views=12,
+            arc=360.0,
+            test_views=2,
+            voxel_size=1.0,
+            dso=100.0,
+            dsd=150.0,
+        )
+    )
+    cfg = xray_train.Config(
+        scene=tmp / "scene",
+        run_dir=tmp / "run",
+        max_steps=20,
+        max_seconds=60.0,
+        batch_rays=512,
+        lr=0.1,
+        eval_every=0.0,
+        threads=1,
+        device="cpu",
+    )
     return xray_train.run(cfg).run_dir
 
 
@@ -183,8 +205,10 @@ def test_browser_scene_camera_click_and_rays(tmp_path):
             forward, scale = -pose[:3, 2], 0.05 * sv.size
             client.camera.position = tuple(pose[:3, 3] - 3 * scale * forward)
             client.camera.look_at = tuple(pose[:3, 3] + scale * forward)
-            wait_until(lambda: np.allclose(client.camera.position, pose[:3, 3] - 3 * scale * forward, atol=1e-3),
-                       "the browser to report its new camera")  # fmt: skip
+            wait_until(
+                lambda: np.allclose(client.camera.position, pose[:3, 3] - 3 * scale * forward, atol=1e-3),
+                "the browser to report its new camera",
+            )
             before = browser.screenshot()
             browser.click_at(*browser.evaluate("[window.innerWidth / 2, window.innerHeight / 2]"))
             wait_until(lambda: sv.selected == i, f"camera {i} clicked in the 3-D view")

@@ -24,11 +24,21 @@ def bad_view_run(tmp_path_factory) -> tuple[Path, str]:
     bad = scene.frames[scene.split("train")[3]].file_path
     path = root / "scene" / bad
     cv2.imwrite(str(path), 255 - cv2.imread(str(path)))  # a photo that no 3-D scene explains
-    out = train.run(train.Config(
-        scene_dir=root / "scene", run_dir=root / "run", max_steps=150, max_seconds=60.0, batch_rays=512,
-        fast=train.FastOptions(resolution=(16, 32), occupancy_resolution=16), eval_every=0, final_eval_views=1,
-        device="cpu", threads=1, scene_model="box",
-    ))  # fmt: skip
+    out = train.run(
+        train.Config(
+            scene_dir=root / "scene",
+            run_dir=root / "run",
+            max_steps=150,
+            max_seconds=60.0,
+            batch_rays=512,
+            fast=train.FastOptions(resolution=(16, 32), occupancy_resolution=16),
+            eval_every=0,
+            final_eval_views=1,
+            device="cpu",
+            threads=1,
+            scene_model="box",
+        )
+    )
     return out.run_dir, bad
 
 

@@ -43,14 +43,20 @@ def viewer(scene_dir):
     v.stop()
 
 
-def request(port: int, host: str, *, origin: str | None = None, path: str = "/", cookie: str | None = None,
-            upgrade: bool = True) -> tuple[int, dict[str, str], bytes]:  # fmt: skip
+def request(
+    port: int, host: str, *, origin: str | None = None, path: str = "/", cookie: str | None = None, upgrade: bool = True
+) -> tuple[int, dict[str, str], bytes]:
     """One raw HTTP request (a websocket upgrade unless `upgrade=False`) to 127.0.0.1:port with exactly these
     Host / Origin / Cookie headers -> (status, headers, body: at most 4 kB of it)."""
     lines = [f"GET {path} HTTP/1.1", f"Host: {host}"]
     if upgrade:
-        lines += ["Upgrade: websocket", "Connection: Upgrade", "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==",
-                  "Sec-WebSocket-Version: 13", f"Sec-WebSocket-Protocol: {PROTOCOL}"]  # fmt: skip
+        lines += [
+            "Upgrade: websocket",
+            "Connection: Upgrade",
+            "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==",
+            "Sec-WebSocket-Version: 13",
+            f"Sec-WebSocket-Protocol: {PROTOCOL}",
+        ]
     lines += [f"Origin: {origin}"] * (origin is not None) + [f"Cookie: {cookie}"] * (cookie is not None)
     data = b""
     with socket.create_connection(("127.0.0.1", port), timeout=10) as s:
@@ -101,8 +107,9 @@ def test_own_page_gets_in_with_its_token(viewer):
     cookie = headers["set-cookie"].split(";")[0]
     for host in (f"127.0.0.1:{port}", f"localhost:{port}", "localhost:9999", f"[::1]:{port}"):
         assert request(port, host, origin=f"http://{host}", cookie=cookie)[0] == 101, host
-    with connect(f"ws://localhost:{port}{q}", origin=f"http://localhost:{port}", subprotocols=[PROTOCOL],
-                 max_size=None) as ws:  # fmt: skip
+    with connect(
+        f"ws://localhost:{port}{q}", origin=f"http://localhost:{port}", subprotocols=[PROTOCOL], max_size=None
+    ) as ws:
         assert "Save path" in ViewerPage(ws).gui
 
 
@@ -115,8 +122,12 @@ def test_every_request_needs_the_token(scene_dir, host, capsys):
         port, q = v.port, token_query(v)
         assert "?token=" in v.url and len(v.gate.token) >= 32
         own = dict(host=f"127.0.0.1:{port}", origin=f"http://127.0.0.1:{port}")
-        for path, cookie in (("/", None), ("/?token=wrong", None), ("/", f"{v.gate.cookie}=wrong"),
-                             (q.replace("token=", "token=x"), None)):  # fmt: skip
+        for path, cookie in (
+            ("/", None),
+            ("/?token=wrong", None),
+            ("/", f"{v.gate.cookie}=wrong"),
+            (q.replace("token=", "token=x"), None),
+        ):
             assert request(port, **own, path=path, cookie=cookie)[0] == 403, (path, cookie)
             assert request(port, own["host"], path=path, cookie=cookie, upgrade=False)[0] == 403, (path, cookie)
         assert request(port, **own, path=q)[0] == 101
@@ -145,8 +156,17 @@ def test_recorder_writes_only_new_json_under_paths_dir(tmp_path):
     rec.add_browser_camera((1, 0, 0, 0), (3, 0, 0), 0.7, 4 / 3)
     rec.add_browser_camera((1, 0, 0, 0), (4, 0, 0), 0.7, 4 / 3)
     kw = dict(seconds=1.0, fps=2.0, height=8)
-    for bad in ("../x.json", "../manifest.json", "a/b.json", "/tmp/x.json", ".hidden.json", "..json", "x y.json",
-                "", "a\\b.json"):  # fmt: skip
+    for bad in (
+        "../x.json",
+        "../manifest.json",
+        "a/b.json",
+        "/tmp/x.json",
+        ".hidden.json",
+        "..json",
+        "x y.json",
+        "",
+        "a\\b.json",
+    ):
         with pytest.raises(UserError, match="camera path name"):
             rec.save(bad, **kw)
     assert rec.save("manifest.json", **kw) == run / "camera_paths" / "manifest.json"
@@ -161,8 +181,7 @@ def test_recorder_writes_only_new_json_under_paths_dir(tmp_path):
     assert (run / "camera_paths" / "orbit.json").read_bytes() == before
     assert (run / "manifest.json").read_text() == "{}"
     files = sorted(p.relative_to(run).as_posix() for p in run.rglob("*") if not p.is_dir())
-    assert files == ["camera_paths/link.json", "camera_paths/manifest.json", "camera_paths/orbit.json",
-                     "manifest.json"]  # fmt: skip
+    assert files == ["camera_paths/link.json", "camera_paths/manifest.json", "camera_paths/orbit.json", "manifest.json"]
 
 
 class ViewerPage:
@@ -193,8 +212,18 @@ class ViewerPage:
         self.send(type="GuiUpdateMessage", uuid=self.gui[label], updates={"value": value})
 
     def camera(self, position) -> None:
-        self.send(type="ViewerCameraMessage", wxyz=[1.0, 0, 0, 0], position=list(position), fov=0.7, near=0.01,
-                  far=100.0, image_height=48, image_width=64, look_at=[0.0, 0, 0], up_direction=[0, 0, 1])  # fmt: skip
+        self.send(
+            type="ViewerCameraMessage",
+            wxyz=[1.0, 0, 0, 0],
+            position=list(position),
+            fov=0.7,
+            near=0.01,
+            far=100.0,
+            image_height=48,
+            image_width=64,
+            look_at=[0.0, 0, 0],
+            up_direction=[0, 0, 1],
+        )
 
     def notification(self) -> dict:
         """The next notification's props (title, body)."""
@@ -209,8 +238,9 @@ def test_recorder_over_the_websocket_stays_in_paths_dir(viewer, scene_dir):
     that name again (refused: the first file stays). The scene's transforms.json is the same bytes throughout."""
     transforms = (scene_dir / "transforms.json").read_bytes()
     port, q = viewer.port, token_query(viewer)
-    with connect(f"ws://127.0.0.1:{port}{q}", origin=f"http://127.0.0.1:{port}", subprotocols=[PROTOCOL],
-                 max_size=None) as ws:  # fmt: skip
+    with connect(
+        f"ws://127.0.0.1:{port}{q}", origin=f"http://127.0.0.1:{port}", subprotocols=[PROTOCOL], max_size=None
+    ) as ws:
         page = ViewerPage(ws)
         assert page.photos == 4  # an admitted page sees the photos: hence the gate
 

@@ -66,8 +66,9 @@ def test_marcher_line_integrals_match_the_chord_and_skip_empty_cells():
     marcher = xray_marcher(sphere_grid(), STEP)
     marched = render_attenuation(o, d, near=near, far=far, sampler=marcher, sigma_fn=lambda x, d_: sphere_mu(x))
     n_dense = math.ceil(float((far - near).max()) / STEP)
-    dense = render_attenuation(o, d, near=near, far=far, sampler=StratifiedSampler(n_samples=n_dense),
-                               sigma_fn=lambda x, d_: sphere_mu(x))  # fmt: skip
+    dense = render_attenuation(
+        o, d, near=near, far=far, sampler=StratifiedSampler(n_samples=n_dense), sigma_fn=lambda x, d_: sphere_mu(x)
+    )
     want = MU * chord(o, d)
     assert (want == 0).any() and (want > 1.0).any()
     tol = MU * STEP * (1 + 1e-9)
@@ -108,8 +109,9 @@ def test_marched_line_integrals_are_differentiable_and_inside_the_chord():
     o, d = rays(16, seed=3)
     near, far = box_chord(o, d)
     scale = torch.tensor(1.0, dtype=torch.float64, requires_grad=True)
-    out = render_attenuation(o, d, near=near, far=far, sampler=xray_marcher(sphere_grid(), STEP),
-                             sigma_fn=lambda x, d_: sphere_mu(x) * scale)  # fmt: skip
+    out = render_attenuation(
+        o, d, near=near, far=far, sampler=xray_marcher(sphere_grid(), STEP), sigma_fn=lambda x, d_: sphere_mu(x) * scale
+    )
     out["optical_depth"].sum().backward()
     torch.testing.assert_close(scale.grad, out["optical_depth"].sum().detach(), rtol=1e-12, atol=0)
     assert (out["t_starts"] >= near[out["ray_indices"]]).all() and (out["t_ends"] <= far[out["ray_indices"]]).all()

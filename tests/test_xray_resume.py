@@ -24,8 +24,22 @@ from nerfpipe.model.loop import TrainingDiverged
 from nerfpipe.stages import xray_simulate, xray_train
 
 STEPS = 40  # upsampling at steps 4 and 10 (upsample_at 0.1, 0.25)
-OPTIONS = ["--max-steps", str(STEPS), "--max-seconds", "600", "--batch-rays", "256", "--eval-every", "0",
-           "--eval-test-views", "1", "--threads", "1", "--device", "cpu"]  # fmt: skip
+OPTIONS = [
+    "--max-steps",
+    str(STEPS),
+    "--max-seconds",
+    "600",
+    "--batch-rays",
+    "256",
+    "--eval-every",
+    "0",
+    "--eval-test-views",
+    "1",
+    "--threads",
+    "1",
+    "--device",
+    "cpu",
+]
 
 
 @pytest.fixture(scope="module")
@@ -36,8 +50,18 @@ def scene(tmp_path_factory) -> Path:
     vol[np.linalg.norm(c - [0.3, 0.1, 0.0], axis=-1) < 0.3] = 0.05
     np.save(tmp / "phantom.npy", vol)
     out = tmp / "scene"
-    xray_simulate.run(xray_simulate.Config(volume=tmp / "phantom.npy", out_dir=out, views=16, arc=360.0, test_views=2,
-                                           voxel_size=1.0, dso=100.0, dsd=150.0))  # fmt: skip
+    xray_simulate.run(
+        xray_simulate.Config(
+            volume=tmp / "phantom.npy",
+            out_dir=out,
+            views=16,
+            arc=360.0,
+            test_views=2,
+            voxel_size=1.0,
+            dso=100.0,
+            dsd=150.0,
+        )
+    )
     return out
 
 
@@ -49,8 +73,17 @@ def straight(scene, tmp_path_factory) -> xray_train.Outputs:
 
 def _config(scene: Path, run_dir: Path, **kw) -> xray_train.Config:
     # no time budget: progress (and so the learning rate) is the step fraction alone, the same in every run
-    base = dict(scene=scene, run_dir=run_dir, max_steps=STEPS, max_seconds=math.inf, batch_rays=256, eval_every=0.0,
-                eval_test_views=1, threads=1, device="cpu")  # fmt: skip
+    base = dict(
+        scene=scene,
+        run_dir=run_dir,
+        max_steps=STEPS,
+        max_seconds=math.inf,
+        batch_rays=256,
+        eval_every=0.0,
+        eval_test_views=1,
+        threads=1,
+        device="cpu",
+    )
     base.update(kw)
     return xray_train.Config(**base)
 
@@ -68,8 +101,7 @@ def _ctrl_c_after(monkeypatch, step: int) -> None:
     monkeypatch.setattr(xray_loop.XraySteps, "train_step", train_step)
 
 
-def test_ctrl_c_saves_a_checkpoint_and_resume_reaches_the_uninterrupted_volume(scene, straight, tmp_path,
-                                                                               monkeypatch):  # fmt: skip
+def test_ctrl_c_saves_a_checkpoint_and_resume_reaches_the_uninterrupted_volume(scene, straight, tmp_path, monkeypatch):
     run_dir = tmp_path / "run"
     _ctrl_c_after(monkeypatch, 7)  # between the two upsamplings: the schedule's level must come back too
     with pytest.raises(Interrupted, match=r"^interrupted \(SIGINT\) at step 7 after .* s; continue with --resume") as e:

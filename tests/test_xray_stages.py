@@ -194,9 +194,18 @@ def test_cli_parses_options():
 def test_sart_optimizer_and_its_guard(chain, tmp_path):
     tmp, sim, _ = chain
     out = xray_train.run(
-        xray_train.Config(scene=sim.out_dir, run_dir=tmp_path / "sart", optimizer="sart", max_steps=100,
-                          max_seconds=60.0, batch_rays=512, eval_every=0, threads=1, device="cpu")
-    )  # fmt: skip
+        xray_train.Config(
+            scene=sim.out_dir,
+            run_dir=tmp_path / "sart",
+            optimizer="sart",
+            max_steps=100,
+            max_seconds=60.0,
+            batch_rays=512,
+            eval_every=0,
+            threads=1,
+            device="cpu",
+        )
+    )
     assert out.steps == 100 and out.psnr_3d > 22.0, out.psnr_3d
     with pytest.raises(UserError, match="optimizer: sart needs the grid field"):
         xray_train.run(xray_train.Config(scene=sim.out_dir, run_dir=tmp_path / "x", optimizer="sart", field="tensorf"))
@@ -206,9 +215,19 @@ def test_sart_optimizer_and_its_guard(chain, tmp_path):
 def test_tensorf_field_trains_and_loads(chain, tmp_path):
     _, sim, _ = chain
     out = xray_train.run(
-        xray_train.Config(scene=sim.out_dir, run_dir=tmp_path / "tf", field="tensorf", rank=4, max_steps=40,
-                          max_seconds=60.0, batch_rays=256, eval_every=0, threads=1, device="cpu")
-    )  # fmt: skip
+        xray_train.Config(
+            scene=sim.out_dir,
+            run_dir=tmp_path / "tf",
+            field="tensorf",
+            rank=4,
+            max_steps=40,
+            max_seconds=60.0,
+            batch_rays=256,
+            eval_every=0,
+            threads=1,
+            device="cpu",
+        )
+    )
     assert out.steps == 40 and np.isfinite(out.psnr_3d)
     run = load_xray_run(out.run_dir, "cpu")
     assert not run.field.has_color and run.volume().shape == (24, 24, 24)

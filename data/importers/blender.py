@@ -85,6 +85,12 @@ def load(source: Path) -> Source:
         intr = Intrinsics(w=w, h=h, fx=f, fy=f, cx=w / 2, cy=h / 2)
         out.append(SourceFrame(name=name, world_from_cam=m, intrinsics=intr, image=img))
     return Source(
-        kind="blender", frames=tuple(out), splits=splits, has_alpha=channels == 4, up="keep", scene_type="object",
-        inputs=tuple(files.values()), used={"splits": {s: len(i) for s, i in splits.items()}},
-    )  # fmt: skip
+        kind="blender",
+        frames=tuple(out),
+        splits=splits,
+        has_alpha=channels == 4,
+        up="keep",
+        scene_type="object",
+        inputs=tuple(files.values()),
+        used={"splits": {s: len(i) for s, i in splits.items()}},
+    )

@@ -159,7 +159,7 @@ def load(source: Path, *, images: Path | None = None) -> Source:
                         dtype=np.int64,
                     )
                 ),
-            )  # fmt: skip
+            )
         )
     points = np.array([rec.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
     colors = np.array([rec.points3D[i].color for i in ids], dtype=np.uint8).reshape(-1, 3)
@@ -170,9 +170,18 @@ def load(source: Path, *, images: Path | None = None) -> Source:
     if mask_dir is not None:
         left_out.update({f"mask of {n}": f"not in {mask_dir}" for n in names if not (mask_dir / f"{n}.png").is_file()})
     return Source(
-        kind="colmap", frames=tuple(frames), up="cameras", points=points, colors=colors, inputs=inputs,
-        used={"model": str(model), "images": str(image_dir), "models_found": len(models),
-              "cameras": sorted({rec.cameras[c].model.name for c in rec.cameras}),
-              "masks": str(mask_dir) if mask_dir is not None else None},
+        kind="colmap",
+        frames=tuple(frames),
+        up="cameras",
+        points=points,
+        colors=colors,
+        inputs=inputs,
+        used={
+            "model": str(model),
+            "images": str(image_dir),
+            "models_found": len(models),
+            "cameras": sorted({rec.cameras[c].model.name for c in rec.cameras}),
+            "masks": str(mask_dir) if mask_dir is not None else None,
+        },
         left_out=left_out,
-    )  # fmt: skip
+    )

@@ -82,7 +82,12 @@ def load(source: Path, *, images: Path | None = None) -> Source:
         intr = Intrinsics(w=w, h=h, fx=f, fy=f, cx=w / 2, cy=h / 2)
         frames.append(SourceFrame(name=p.name, world_from_cam=c2w[i], intrinsics=intr, image=resolved[i]))
     return Source(
-        kind="llff", frames=tuple(frames), has_alpha=channels == 4, up="cameras", scene_type="forward",
-        depth_bounds=pb[:, 15:17].copy(), inputs=(pb_path,),
+        kind="llff",
+        frames=tuple(frames),
+        has_alpha=channels == 4,
+        up="cameras",
+        scene_type="forward",
+        depth_bounds=pb[:, 15:17].copy(),
+        inputs=(pb_path,),
         used={"images": str(image_dir), "focal_factor": factor},
-    )  # fmt: skip
+    )

@@ -52,15 +52,21 @@ def load(source: Path) -> Source:
                 depth=inside(root, fr.depth_file_path, f"frames[{i}].depth_file_path", file=path)
                 if fr.depth_file_path
                 else None,
-            )  # fmt: skip
+            )
         )
     applied = "applied_transform" in doc or "applied_scale" in doc
     extra = {k: v for k, v in scene.extra.items() if k not in _NOT_CARRIED}
     left_out = {k: f"{scene.extra[k]!r}: names a file in the source's folder" for k in scene.extra if k not in extra}
     return Source(
-        kind="transforms", frames=tuple(frames), splits=dict(scene.splits) or None, has_alpha=bool(has_alpha),
-        up="keep", box=scene.aabb if "aabb" in doc else None,
+        kind="transforms",
+        frames=tuple(frames),
+        splits=dict(scene.splits) or None,
+        has_alpha=bool(has_alpha),
+        up="keep",
+        box=scene.aabb if "aabb" in doc else None,
         source_from_original=scene.scene_from_source() if applied else None,
-        inputs=(path,), extra=extra, left_out=left_out,
+        inputs=(path,),
+        extra=extra,
+        left_out=left_out,
         used={"file": str(path), "composed_applied_transform": applied},
-    )  # fmt: skip
+    )

@@ -65,14 +65,20 @@ def load(source: Path) -> Source:
             name=f"{i:0{digits}d}.png",
             world_from_cam=poses[i],
             intrinsics=Intrinsics(w=w, h=h, fx=float(focals[i]), fy=float(focals[i]), cx=w / 2, cy=h / 2),
-        )  # fmt: skip
+        )
         for i in range(n)
     )
     splits = None
     if n == TINY_NERF_VIEWS:
         splits = {"train": tuple(range(100)), "test": tuple(range(100, n))}
     return Source(
-        kind="npz", frames=frames, splits=splits, has_alpha=pixels.shape[-1] == 4, up="keep", scene_type="object",
-        pixels=lambda i: pixels[i], inputs=(source,),
+        kind="npz",
+        frames=frames,
+        splits=splits,
+        has_alpha=pixels.shape[-1] == 4,
+        up="keep",
+        scene_type="object",
+        pixels=lambda i: pixels[i],
+        inputs=(source,),
         used={"keys": sorted(keys), "split": "tiny_nerf 0-99 train / 100-105 test" if splits else "hold-out"},
-    )  # fmt: skip
+    )

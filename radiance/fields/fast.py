@@ -238,18 +238,22 @@ class TensoRF(Field):
             if self.view_dependent:
                 n_in += 3 + 2 * view_freqs * 3
             self.mlp = nn.Sequential(
-                nn.Linear(n_in, hidden), nn.ReLU(inplace=True),
-                nn.Linear(hidden, hidden), nn.ReLU(inplace=True),
+                nn.Linear(n_in, hidden),
+                nn.ReLU(inplace=True),
+                nn.Linear(hidden, hidden),
+                nn.ReLU(inplace=True),
                 nn.Linear(hidden, 3),
-            )  # fmt: skip
+            )
             nn.init.constant_(self.mlp[-1].bias, 0.0)
         self.register_load_state_dict_pre_hook(_unstack_factors)
 
     def _factors(self, ranks: tuple[int, int, int]) -> tuple[nn.ParameterList, nn.ParameterList]:
         """Planes (xy, xz, yz) [1, C_m, R, R] and lines (z, y, x) [1, C_m, R, 1], C_m = ranks[m]."""
         r, std = self.resolution, self.init_std
-        return (nn.ParameterList([std * torch.randn(1, c, r, r) for c in ranks]),
-                nn.ParameterList([std * torch.randn(1, c, r, 1) for c in ranks]))  # fmt: skip
+        return (
+            nn.ParameterList([std * torch.randn(1, c, r, r) for c in ranks]),
+            nn.ParameterList([std * torch.randn(1, c, r, 1) for c in ranks]),
+        )
 
     def normalize(self, x: Tensor) -> Tensor:
         """Scene frame [N, 3] -> box coordinates in [-1, 1]^3 (outside the box: beyond +-1)."""
@@ -276,8 +280,12 @@ class TensoRF(Field):
         float rounding) from 8 values a point instead of 3 x (4 + 2) x density_rank. Kept until the factors
         change (their version counters: optimizer steps, loads and upsampling all bump or replace them)."""
         factors = [*self.density_planes, *self.density_lines]
-        key = (tuple((t.data_ptr(), t._version, t.shape) for t in factors), self._edits, factors[0].dtype,
-               factors[0].device)  # fmt: skip
+        key = (
+            tuple((t.data_ptr(), t._version, t.shape) for t in factors),
+            self._edits,
+            factors[0].dtype,
+            factors[0].device,
+        )
         if self._volume is None or self._volume[0] != key:
             with torch.no_grad():
                 p = [t.detach()[0] for t in self.density_planes]  # [C, H, W] each

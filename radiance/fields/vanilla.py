@@ -99,8 +99,9 @@ class VanillaNeRF(Field):
     n_coarse: int = 64
     n_fine: int = 128
 
-    def __init__(self, *, has_color: bool = True, view_dependent: bool = True, n_coarse: int = 64,
-                 n_fine: int = 128) -> None:  # fmt: skip
+    def __init__(
+        self, *, has_color: bool = True, view_dependent: bool = True, n_coarse: int = 64, n_fine: int = 128
+    ) -> None:
         super().__init__()
         self.has_color = has_color
         self.view_dependent = view_dependent and has_color

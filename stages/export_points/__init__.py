@@ -150,16 +150,32 @@ def _inside(config: Config, out_from_scene: np.ndarray):
 
 def _checks(g: Gathered, outlier_share: float, facing: float) -> list[Check]:
     return [
-        Check.lower("ray_hit_fraction", (len(g.points) + g.outside) / max(1, g.rays), MIN_HIT_FRACTION,
-                    "almost no ray is opaque enough to give a point: the views miss the object or the field is empty"),
-        Check.upper("outlier_fraction", outlier_share, MAX_OUTLIER_FRACTION,
-                    "the statistical rule removed many points: fog or floaters scattered through the volume"),
-        Check.lower("normals_facing_camera", facing, MIN_FACING,
-                    "the density gradient at the points is noise (normals face away from the cameras that saw "
-                    "them): an untrained or foggy field"),
-        Check.upper("non_finite", g.non_finite, 0, "NaN or inf opacity, depth or colour: the field's output is broken "
-                    "there (those rays were dropped)"),
-    ]  # fmt: skip
+        Check.lower(
+            "ray_hit_fraction",
+            (len(g.points) + g.outside) / max(1, g.rays),
+            MIN_HIT_FRACTION,
+            "almost no ray is opaque enough to give a point: the views miss the object or the field is empty",
+        ),
+        Check.upper(
+            "outlier_fraction",
+            outlier_share,
+            MAX_OUTLIER_FRACTION,
+            "the statistical rule removed many points: fog or floaters scattered through the volume",
+        ),
+        Check.lower(
+            "normals_facing_camera",
+            facing,
+            MIN_FACING,
+            "the density gradient at the points is noise (normals face away from the cameras that saw "
+            "them): an untrained or foggy field",
+        ),
+        Check.upper(
+            "non_finite",
+            g.non_finite,
+            0,
+            "NaN or inf opacity, depth or colour: the field's output is broken there (those rays were dropped)",
+        ),
+    ]
 
 
 def export(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), progress: Progress | None = None) -> Outputs:
@@ -172,15 +188,24 @@ def export(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), progr
     out_from_scene = scene.source_from_scene() if config.frame == "user" else np.eye(4)
     downscale = config.downscale or float(trained.run_config.get("downscale") or 1.0)
     cams = camera_path(scene, "train", downscale=downscale)
-    g = gather_points(trained, cams, target=config.num_points, acc_threshold=config.acc_threshold,
-                      keep=_inside(config, out_from_scene), seed=config.seed, progress=progress)  # fmt: skip
+    g = gather_points(
+        trained,
+        cams,
+        target=config.num_points,
+        acc_threshold=config.acc_threshold,
+        keep=_inside(config, out_from_scene),
+        seed=config.seed,
+        progress=progress,
+    )
     timing["render"] = round(time.perf_counter() - t0, 3)
     if len(g.points) == 0:
         where = (
             f" inside bbox {[float(v) for v in config.bbox]} ({config.frame} frame)" if config.bbox is not None else ""
         )
-        raise UserError(f"{config.run_dir}: none of the {g.rays} rays rendered gave a point{where} (accumulated "
-                        f"opacity >= {config.acc_threshold}, acc_threshold); nothing to export")  # fmt: skip
+        raise UserError(
+            f"{config.run_dir}: none of the {g.rays} rays rendered gave a point{where} (accumulated "
+            f"opacity >= {config.acc_threshold}, acc_threshold); nothing to export"
+        )
     points, rgb, dirs = g.points, g.rgb, g.dirs
     over = max(0, len(points) - config.num_points)
     if over:
@@ -206,29 +231,56 @@ def export(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), progr
     p_out, n_out = to_frame(out_from_scene, points, normals)
     colors = np.rint(rgb.astype(np.float64) * 255).astype(np.uint8)
     record = {
-        "used": {"config": config_to_json(config), "downscale": downscale, "device": str(trained.device),
-                 "cameras": {**cams.used, "count": len(cams.names)}},
-        "left_out": _left_out(trained, config, outliers), "points": len(p_out), "frame": config.frame,
-        "out_from_scene": out_from_scene.tolist(), "transform": TRANSFORM,
-        "rays": {"pixels": g.pixels, "stride": g.stride, "passes": g.passes, "of_passes": g.stride**2,
-                 "rendered": g.rays, "opaque": g.opaque, "gave_points": len(g.points)},
+        "used": {
+            "config": config_to_json(config),
+            "downscale": downscale,
+            "device": str(trained.device),
+            "cameras": {**cams.used, "count": len(cams.names)},
+        },
+        "left_out": _left_out(trained, config, outliers),
+        "points": len(p_out),
+        "frame": config.frame,
+        "out_from_scene": out_from_scene.tolist(),
+        "transform": TRANSFORM,
+        "rays": {
+            "pixels": g.pixels,
+            "stride": g.stride,
+            "passes": g.passes,
+            "of_passes": g.stride**2,
+            "rendered": g.rays,
+            "opaque": g.opaque,
+            "gave_points": len(g.points),
+        },
         "removed": _removed(config, g, over, outliers),
-        "normals": {"rule": "-grad sigma / |grad sigma|, central differences of the density", "step_scene": step,
-                    "from_view_direction": int((~from_gradient).sum()), "reoriented": int(flipped.sum()),
-                    "facing_camera_before_reorienting": facing},
+        "normals": {
+            "rule": "-grad sigma / |grad sigma|, central differences of the density",
+            "step_scene": step,
+            "from_view_direction": int((~from_gradient).sum()),
+            "reoriented": int(flipped.sum()),
+            "facing_camera_before_reorienting": facing,
+        },
         "colors": "rendered colour with the background taken out: (rgb - (1 - acc) * background) / acc, uint8",
         "ply": {"format": "binary_little_endian 1.0", "properties": [f"{k} {n}" for n, _, k in PLY_PROPERTIES]},
         **verdict(_checks(g, outliers.get("removed", 0) / max(1, gathered), facing)),
-    }  # fmt: skip
+    }
     t = time.perf_counter()
     with atomic_path(out) as tmp:  # OUT takes its name only after its report: no OUT that looks complete before
         write_ply(tmp, p_out, n_out, colors, comments=(f"nerfpipe export-points, frame {config.frame}",))
         timing["write"] = round(time.perf_counter() - t, 3)
         timing["total"] = round(time.perf_counter() - t0, 3)
-        report = write_manifest(out.parent, name=f"{out.stem}.report.json", stage="export-points", started=started,
-                                inputs=inputs, outputs=[out], timing_seconds=timing, **record)  # fmt: skip
-    return Outputs(out=out, report=report, points=len(p_out), rays=g.rays, outliers=gathered - len(points),
-                   seconds=timing["total"])  # fmt: skip
+        report = write_manifest(
+            out.parent,
+            name=f"{out.stem}.report.json",
+            stage="export-points",
+            started=started,
+            inputs=inputs,
+            outputs=[out],
+            timing_seconds=timing,
+            **record,
+        )
+    return Outputs(
+        out=out, report=report, points=len(p_out), rays=g.rays, outliers=gathered - len(points), seconds=timing["total"]
+    )
 
 
 def _left_out(trained: Any, config: Config, outliers: dict[str, Any]) -> dict[str, str]:
@@ -244,18 +296,31 @@ def _left_out(trained: Any, config: Config, outliers: dict[str, Any]) -> dict[st
 
 def _removed(config: Config, g: Gathered, over: int, outliers: dict[str, Any]) -> list[dict[str, Any]]:
     """The report's `removed`: each step that dropped rays or points, how many, and why."""
-    cap = (f"an even random subset (seed {config.seed}) of {config.num_points} of the {len(g.points)} gathered"
-           if over else f"{len(g.points)} gathered, not over {config.num_points}")  # fmt: skip
+    cap = (
+        f"an even random subset (seed {config.seed}) of {config.num_points} of the {len(g.points)} gathered"
+        if over
+        else f"{len(g.points)} gathered, not over {config.num_points}"
+    )
     return [
-        {"what": "rays below acc_threshold", "count": g.rays - g.opaque,
-         "why": f"accumulated opacity < {config.acc_threshold}: background (the ray more likely misses than hits)"},
+        {
+            "what": "rays below acc_threshold",
+            "count": g.rays - g.opaque,
+            "why": f"accumulated opacity < {config.acc_threshold}: background (the ray more likely misses than hits)",
+        },
         {"what": "non-finite", "count": g.non_finite, "why": "NaN / inf opacity, or depth or colour of an opaque ray"},
-        {"what": "outside bbox", "count": g.outside,
-         "why": f"bbox {list(config.bbox)} ({config.frame} frame)" if config.bbox is not None else "no bbox"},
+        {
+            "what": "outside bbox",
+            "count": g.outside,
+            "why": f"bbox {list(config.bbox)} ({config.frame} frame)" if config.bbox is not None else "no bbox",
+        },
         {"what": "over num_points", "count": over, "why": cap},
-        {"what": "statistical outliers", "count": outliers.get("removed", 0),
-         "why": "mean distance to the k nearest points > mean + std_ratio * std (open3d's rule)", **outliers},
-    ]  # fmt: skip
+        {
+            "what": "statistical outliers",
+            "count": outliers.get("removed", 0),
+            "why": "mean distance to the k nearest points > mean + std_ratio * std (open3d's rule)",
+            **outliers,
+        },
+    ]
 
 
 def run(config: Config, progress: Progress | None = None) -> Outputs:

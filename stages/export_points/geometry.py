@@ -34,8 +34,15 @@ def statistical_outliers(points: np.ndarray, neighbors: int, std_ratio: float) -
     mu, sd = float(mean.mean()), float(mean.std(ddof=1))
     limit = mu + std_ratio * sd
     keep = mean <= limit
-    info = {"applied": True, "neighbors": neighbors, "std_ratio": std_ratio, "mean_neighbor_distance_scene": mu,
-            "std_scene": sd, "limit_scene": limit, "removed": int((~keep).sum())}  # fmt: skip
+    info = {
+        "applied": True,
+        "neighbors": neighbors,
+        "std_ratio": std_ratio,
+        "mean_neighbor_distance_scene": mu,
+        "std_scene": sd,
+        "limit_scene": limit,
+        "removed": int((~keep).sum()),
+    }
     return keep, info
 
 

@@ -14,9 +14,17 @@ import numpy as np
 
 __all__ = ["PLY_PROPERTIES", "write_ply"]
 
-PLY_PROPERTIES = (("x", "<f8", "double"), ("y", "<f8", "double"), ("z", "<f8", "double"),
-                  ("nx", "<f4", "float"), ("ny", "<f4", "float"), ("nz", "<f4", "float"),
-                  ("red", "u1", "uchar"), ("green", "u1", "uchar"), ("blue", "u1", "uchar"))  # fmt: skip
+PLY_PROPERTIES = (
+    ("x", "<f8", "double"),
+    ("y", "<f8", "double"),
+    ("z", "<f8", "double"),
+    ("nx", "<f4", "float"),
+    ("ny", "<f4", "float"),
+    ("nz", "<f4", "float"),
+    ("red", "u1", "uchar"),
+    ("green", "u1", "uchar"),
+    ("blue", "u1", "uchar"),
+)
 
 
 def write_ply(

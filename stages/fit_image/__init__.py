@@ -144,8 +144,13 @@ def _validate(config: Config) -> None:
         raise UserError(f"--sweep: a frequency is listed twice in {','.join(map(str, config.sweep))}")
     if config.grid_resolution is not None and not 2 <= config.grid_resolution <= 4096:
         raise UserError(f"--grid-resolution: expected 2..4096, got {config.grid_resolution}")
-    at_least = {"--hidden": (config.hidden, 1), "--layers": (config.layers, 1), "--steps": (config.steps, 1),
-                "--batch": (config.batch, 1), "--eval-every": (config.eval_every, 0)}  # fmt: skip
+    at_least = {
+        "--hidden": (config.hidden, 1),
+        "--layers": (config.layers, 1),
+        "--steps": (config.steps, 1),
+        "--batch": (config.batch, 1),
+        "--eval-every": (config.eval_every, 0),
+    }
     for name, (value, lo) in at_least.items():
         if value < lo:
             raise UserError(f"{name}: expected an integer >= {lo}, got {value}")
@@ -243,8 +248,16 @@ class _Steps:
         pass
 
 
-def _fit(model: nn.Module, lr: float, coords: Tensor, target: Tensor, config: Config, log: MetricsLog, name: str,
-         progress: Progress) -> tuple[Tensor, int, float, float]:  # fmt: skip
+def _fit(
+    model: nn.Module,
+    lr: float,
+    coords: Tensor,
+    target: Tensor,
+    config: Config,
+    log: MetricsLog,
+    name: str,
+    progress: Progress,
+) -> tuple[Tensor, int, float, float]:
     """Train one model on the shared loop (`model.loop`: budget, clock, non-finite recovery); returns
     (prediction [P, 3], steps, seconds, final PSNR)."""
 
@@ -261,10 +274,23 @@ def _fit(model: nn.Module, lr: float, coords: Tensor, target: Tensor, config: Co
     task = progress.add_task(f"fit {name}", total=config.steps)
     record(0, 0.0, "")
     clock = Clock()
-    steps = _Steps(model=model, opt=opt, coords=coords, target=target, config=config, gen=gen, clock=clock,
-                   record=record, progress=progress, task=task)  # fmt: skip
-    settings = LoopSettings(name=f"fit-image {name}", budget=Budget(max_steps=config.steps,
-                            max_seconds=config.max_seconds), schedule=Schedule(lr=lr))  # fmt: skip
+    steps = _Steps(
+        model=model,
+        opt=opt,
+        coords=coords,
+        target=target,
+        config=config,
+        gen=gen,
+        clock=clock,
+        record=record,
+        progress=progress,
+        task=task,
+    )
+    settings = LoopSettings(
+        name=f"fit-image {name}",
+        budget=Budget(max_steps=config.steps, max_seconds=config.max_seconds),
+        schedule=Schedule(lr=lr),
+    )
     seconds = TrainingLoop(settings, steps, clock).run()
     final = record(steps.step, seconds, round(steps.loss, 6))
     return _predict(model, coords), steps.step, seconds, final
@@ -300,24 +326,66 @@ def _run(config: Config, progress: Progress) -> Outputs:
         recon = pred.reshape(h, w, 3).cpu().numpy()
         path = write_png(out_dir / f"{name}.png", to_uint8(recon))
         recons.append(recon)
-        results.append(ModelResult(name=name, label=label, reconstruction=path, parameters=parameters(model),
-                                   steps=steps, seconds=seconds, psnr=final))  # fmt: skip
+        results.append(
+            ModelResult(
+                name=name,
+                label=label,
+                reconstruction=path,
+                parameters=parameters(model),
+                steps=steps,
+                seconds=seconds,
+                psnr=final,
+            )
+        )
     montage_path = montage(out_dir / "montage.png", image, recons, results)
     plot_path = plot(out_dir / "psnr_vs_time.png", log.rows, results, Path(config.image).name)
-    summary = write_json(out_dir / "summary.json", {
-        "image": str(config.image), "width": w, "height": h, "device": str(device),
-        "models": [{"name": r.name, "label": r.label, "encoding": r.name.split("_")[0], "parameters": r.parameters,
-                    "steps": r.steps, "seconds": round(r.seconds, 3), "psnr": round(r.psnr, 3)} for r in results],
-    })  # fmt: skip
+    summary = write_json(
+        out_dir / "summary.json",
+        {
+            "image": str(config.image),
+            "width": w,
+            "height": h,
+            "device": str(device),
+            "models": [
+                {
+                    "name": r.name,
+                    "label": r.label,
+                    "encoding": r.name.split("_")[0],
+                    "parameters": r.parameters,
+                    "steps": r.steps,
+                    "seconds": round(r.seconds, 3),
+                    "psnr": round(r.psnr, 3),
+                }
+                for r in results
+            ],
+        },
+    )
     outputs = [out_dir / "config.json", log.path, montage_path, plot_path, summary]
     outputs += [r.reconstruction for r in results]
-    manifest = write_manifest(out_dir, stage="fit-image", started=started, inputs=[config.image], outputs=outputs,
-                              used={"device": str(device), "models": [r.name for r in results],
-                                    "pixels": h * w, "batch": min(config.batch, h * w),
-                                    "threads": torch.get_num_threads()},
-                              version=VERSION)  # fmt: skip
-    return Outputs(out_dir=out_dir, models=tuple(results), montage=montage_path, plot=plot_path, metrics=log.path,
-                   summary=summary, manifest=manifest)  # fmt: skip
+    manifest = write_manifest(
+        out_dir,
+        stage="fit-image",
+        started=started,
+        inputs=[config.image],
+        outputs=outputs,
+        used={
+            "device": str(device),
+            "models": [r.name for r in results],
+            "pixels": h * w,
+            "batch": min(config.batch, h * w),
+            "threads": torch.get_num_threads(),
+        },
+        version=VERSION,
+    )
+    return Outputs(
+        out_dir=out_dir,
+        models=tuple(results),
+        montage=montage_path,
+        plot=plot_path,
+        metrics=log.path,
+        summary=summary,
+        manifest=manifest,
+    )
 
 
 # ---------------------------------------------------------------------------------------------- figures

@@ -43,8 +43,13 @@ class GridImage(nn.Module):
 
     def __init__(self, resolution: int) -> None:
         super().__init__()
-        self.field = TensoRF(aabb=[[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], resolution=resolution, density_rank=1,
-                             app_rank=GRID_RANK, view_dependent=False)  # fmt: skip
+        self.field = TensoRF(
+            aabb=[[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]],
+            resolution=resolution,
+            density_rank=1,
+            app_rank=GRID_RANK,
+            view_dependent=False,
+        )
         # Density is never queried: leave its factors out of the optimizer and the parameter count.
         self.field.density_planes.requires_grad_(False)  # ParameterList: each plane
         self.field.density_lines.requires_grad_(False)

@@ -33,8 +33,9 @@ def montage(path: Path, image: np.ndarray, recons: list[np.ndarray], results: li
     rows = math.ceil(len(panels) / cols)
     h, w = image.shape[:2]
     side = max(2.5, min(w, 512) / 100)
-    fig, axes = plt.subplots(rows, cols, figsize=(side * cols, side * h / w * rows + 0.6 * rows), dpi=100,
-                             squeeze=False)  # fmt: skip
+    fig, axes = plt.subplots(
+        rows, cols, figsize=(side * cols, side * h / w * rows + 0.6 * rows), dpi=100, squeeze=False
+    )
     try:
         for ax in axes.flat:
             ax.axis("off")

@@ -72,8 +72,18 @@ from nerfpipe.stages.mesh.texture_files import write_glb_textured, write_obj_tex
 from nerfpipe.stages.mesh.texture_views import TEXTURE_VIEWS, training_views
 from nerfpipe.stages.mesh.threshold import auto_threshold
 
-__all__ = ["Config", "Outputs", "Cleanup", "run", "extract", "auto_threshold", "density_function", "parse_threshold",
-           "parse_bbox", "FORMATS"]  # fmt: skip
+__all__ = [
+    "Config",
+    "Outputs",
+    "Cleanup",
+    "run",
+    "extract",
+    "auto_threshold",
+    "density_function",
+    "parse_threshold",
+    "parse_bbox",
+    "FORMATS",
+]
 
 VERSION = "1"
 FORMATS = (".ply", ".obj", ".glb")
@@ -294,9 +304,13 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
         t = time.perf_counter()
     elif config.threshold == "auto":
         level, threshold_info = auto_threshold(
-            density, scene, as_np(trained.aabb).reshape(2, 3), n_rays=config.threshold_rays, device=device,
+            density,
+            scene,
+            as_np(trained.aabb).reshape(2, 3),
+            n_rays=config.threshold_rays,
+            device=device,
             chunk=config.chunk,
-        )  # fmt: skip
+        )
     else:
         level, threshold_info = float(config.threshold), {"rule": "given (--threshold)"}
     if level is not None:
@@ -328,8 +342,9 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
     v_scene, f_scene = transform_mesh(verts, faces, np.linalg.inv(out_from_scene))
     if config.texture and has_color(trained):  # the training views' renders where they see a texel, else the normal
         views = training_views(trained, config.texture_views)
-        tex = bake_texture(v_scene, f_scene, trained.color, texture_size=config.texture_size, views=views,
-                           device=device)  # fmt: skip
+        tex = bake_texture(
+            v_scene, f_scene, trained.color, texture_size=config.texture_size, views=views, device=device
+        )
         timing.update({f"texture_{k}": v for k, v in tex.info["timing_seconds"].items()})
         tex = tex.transformed(out_from_scene)
         left_out["vertex_colors"] = "a texture is baked instead (texture)"
@@ -360,23 +375,49 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
         timing["total"] = round(time.perf_counter() - t_start, 3)
         seconds = timing["total"]
         report = write_manifest(
-            out.parent, name=f"{out.stem}.report.json", stage="mesh", started=started, inputs=inputs,
+            out.parent,
+            name=f"{out.stem}.report.json",
+            stage="mesh",
+            started=started,
+            inputs=inputs,
             outputs=[out, *extra],
-            used={"config": config_to_json(config)}, left_out=left_out, version=VERSION,
-            method=method_info, threshold={"value": level, **threshold_info} if threshold_info else None,
-            crop=crop_info, texture=tex.info if tex is not None else None,
-            grid={"crop": how, "frame": "scene" if np.allclose(grid.scene_from_grid, np.eye(4)) else config.frame,
-                  "lo": grid.lo.tolist(), "hi": grid.hi.tolist(), "voxel": grid.h, "samples_per_axis": list(grid.shape),
-                  "coarse_stride": grid.stride, "occupancy_skipping": occupancy_binary(trained) is not None,
-                  **{k: v for k, v in sample_stats.items()}},
-            steps=steps, final={"vertices": len(verts), "faces": len(faces), **stats},
-            frame=config.frame, out_from_scene=out_from_scene.tolist(),
+            used={"config": config_to_json(config)},
+            left_out=left_out,
+            version=VERSION,
+            method=method_info,
+            threshold={"value": level, **threshold_info} if threshold_info else None,
+            crop=crop_info,
+            texture=tex.info if tex is not None else None,
+            grid={
+                "crop": how,
+                "frame": "scene" if np.allclose(grid.scene_from_grid, np.eye(4)) else config.frame,
+                "lo": grid.lo.tolist(),
+                "hi": grid.hi.tolist(),
+                "voxel": grid.h,
+                "samples_per_axis": list(grid.shape),
+                "coarse_stride": grid.stride,
+                "occupancy_skipping": occupancy_binary(trained) is not None,
+                **{k: v for k, v in sample_stats.items()},
+            },
+            steps=steps,
+            final={"vertices": len(verts), "faces": len(faces), **stats},
+            frame=config.frame,
+            out_from_scene=out_from_scene.tolist(),
             winding_reversed=bool(np.linalg.det(out_from_grid[:3, :3]) < 0),
-            timing_seconds=timing, peak_rss_mb=round(_peak_rss_mb(), 1), device=str(device),
+            timing_seconds=timing,
+            peak_rss_mb=round(_peak_rss_mb(), 1),
+            device=str(device),
             **verdict(mesh_checks(v_scene, f_scene, as_np(trained.aabb))),
-        )  # fmt: skip
-    return Outputs(mesh=out, report=report, vertices=len(verts), faces=len(faces), threshold=level,
-                   watertight=stats["watertight"], seconds=seconds)  # fmt: skip
+        )
+    return Outputs(
+        mesh=out,
+        report=report,
+        vertices=len(verts),
+        faces=len(faces),
+        threshold=level,
+        watertight=stats["watertight"],
+        seconds=seconds,
+    )
 
 
 def run(config: Config, progress: Any | None = None) -> Outputs:

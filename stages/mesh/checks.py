@@ -63,13 +63,17 @@ def mesh_checks(verts: np.ndarray, faces: np.ndarray, aabb: np.ndarray) -> list[
     fills = " x ".join(f"{f:.0%}" for f in fill)
     return [
         Check.upper(
-            "box_fill", float(fill.min()), MAX_BOX_FILL,
+            "box_fill",
+            float(fill.min()),
+            MAX_BOX_FILL,
             f"the mesh spans the scene's box on every axis ({fills}): it is the surroundings the box cuts out (a "
             "wall, the floor, fog), not an object; mesh a --bbox round the object (or raise --threshold if it is fog)",
         ),
         Check.upper(
-            "large_components", large, MAX_LARGE_COMPONENTS,
+            "large_components",
+            large,
+            MAX_LARGE_COMPONENTS,
             f"the surface breaks into {large} sizeable pieces (each >= {LARGE_COMPONENT:.0%} of the faces): fog or "
             "floaters meshed, or an iso-level that cuts the surface apart; try --threshold or a longer training",
         ),
-    ]  # fmt: skip
+    ]

@@ -84,9 +84,14 @@ def cleanup_mesh(
             steps.append(_counts(ms, "taubin_smoothing"))
     if target_faces is not None and ms.current_mesh().face_number() > target_faces:
         ms.meshing_decimation_quadric_edge_collapse(
-            targetfacenum=int(target_faces), preservenormal=True, preservetopology=True, optimalplacement=True,
-            planarquadric=True, qualitythr=0.3, autoclean=True,
-        )  # fmt: skip
+            targetfacenum=int(target_faces),
+            preservenormal=True,
+            preservetopology=True,
+            optimalplacement=True,
+            planarquadric=True,
+            qualitythr=0.3,
+            autoclean=True,
+        )
         ms.meshing_remove_unreferenced_vertices()
         steps.append(_counts(ms, "decimation"))
     m = ms.current_mesh()
@@ -119,8 +124,13 @@ def mesh_stats(verts: np.ndarray, faces: np.ndarray) -> dict:
     """Connected components (vertices joined by faces), watertightness (every edge in exactly two faces, once
     in each direction), boundary / non-manifold edge counts, signed volume (> 0: faces wind outward)."""
     if len(faces) == 0:
-        return {"components": 0, "watertight": False, "boundary_edges": 0, "non_manifold_edges": 0,
-                "signed_volume": 0.0}  # fmt: skip
+        return {
+            "components": 0,
+            "watertight": False,
+            "boundary_edges": 0,
+            "non_manifold_edges": 0,
+            "signed_volume": 0.0,
+        }
     faces = np.asarray(faces, np.int64)
     a, b, c = faces[:, 0], faces[:, 1], faces[:, 2]
     n_v = int(faces.max()) + 1

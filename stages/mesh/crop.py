@@ -183,8 +183,14 @@ def drop_box_cut_pieces(
     used[faces[keep_face].ravel()] = True
     index = np.cumsum(used) - 1
     why = "pieces the looked-at box cuts through, other than the largest, are surroundings at its edge"
-    step = {"step": "box_cut_pieces", "removed_pieces": int(cut.sum()), "removed_faces": int(sizes[cut].sum()),
-            "vertices": int(used.sum()), "faces": int(keep_face.sum()), "why": why}  # fmt: skip
+    step = {
+        "step": "box_cut_pieces",
+        "removed_pieces": int(cut.sum()),
+        "removed_faces": int(sizes[cut].sum()),
+        "vertices": int(used.sum()),
+        "faces": int(keep_face.sum()),
+        "why": why,
+    }
     return verts[used], index[faces[keep_face]], step
 
 
@@ -197,8 +203,11 @@ def default_box(rule: str, trained: Any) -> tuple[np.ndarray, np.ndarray, str, d
     if rule == "auto":
         looks = space is not None and not space.object_box and hasattr(trained, "render_rays")
         rule = "looked-at" if looks else "occupied"
-        why = (f"auto: a real capture (scene model {space.name}: the photos see surroundings)" if looks
-               else "auto: an object scene (alpha or a plain background)")  # fmt: skip
+        why = (
+            f"auto: a real capture (scene model {space.name}: the photos see surroundings)"
+            if looks
+            else "auto: an object scene (alpha or a plain background)"
+        )
     else:
         why = f"--crop {rule}"
     if rule == "field":
@@ -212,8 +221,15 @@ def default_box(rule: str, trained: Any) -> tuple[np.ndarray, np.ndarray, str, d
             cams = np.stack([f.world_from_cam[:3, 3] for f in trained.scene.frames])
             tol = 0.01 * float(np.linalg.norm(hi - lo))
             plane, best = support_plane(inside, cams, tolerance=tol)
-            info = {"rule": "looked-at", "why": why, "points": len(pts), "window": 0.5, "quantiles": [0.01, 0.99],
-                    "margin": 0.1, "support_plane": _plane_report(plane, best, tol)}  # fmt: skip
+            info = {
+                "rule": "looked-at",
+                "why": why,
+                "points": len(pts),
+                "window": 0.5,
+                "quantiles": [0.01, 0.99],
+                "margin": 0.1,
+                "support_plane": _plane_report(plane, best, tol),
+            }
             return lo, hi, "looked-at box" + (", support plane cut" if plane else ""), info, plane
         why += f"; looked-at rule found {len(pts)} surface points (fewer than 64): occupied box instead"
     lo, hi, how = occupied_box(trained)
@@ -223,9 +239,15 @@ def default_box(rule: str, trained: Any) -> tuple[np.ndarray, np.ndarray, str, d
 def _plane_report(plane: Plane | None, best: Plane | None, tolerance: float) -> dict:
     if best is None:
         return {"cut": False, "why": "no plane found"}
-    entry = {"cut": plane is not None, "normal": best.normal.round(6).tolist(), "offset": round(best.offset, 6),
-             "share": round(best.share, 4), "spans": [round(x, 4) for x in best.spans],
-             "cameras_on_side": round(best.cameras_on_side, 4), "tolerance": round(tolerance, 6),
-             "keep_beyond": round(SUPPORT_CLEARANCE * tolerance, 6),
-             "rule": "share >= 0.2, spans >= 0.9 both ways, every camera on one side"}  # fmt: skip
+    entry = {
+        "cut": plane is not None,
+        "normal": best.normal.round(6).tolist(),
+        "offset": round(best.offset, 6),
+        "share": round(best.share, 4),
+        "spans": [round(x, 4) for x in best.spans],
+        "cameras_on_side": round(best.cameras_on_side, 4),
+        "tolerance": round(tolerance, 6),
+        "keep_beyond": round(SUPPORT_CLEARANCE * tolerance, 6),
+        "rule": "share >= 0.2, spans >= 0.9 both ways, every camera on one side",
+    }
     return entry

@@ -15,8 +15,15 @@ import torch
 from nerfpipe.stages.mesh.cleanup import vertex_normals
 from nerfpipe.stages.mesh.grid import DensityFn
 
-__all__ = ["as_np", "field_device", "has_color", "occupancy_binary", "density_function", "occupied_box",
-           "vertex_colors"]  # fmt: skip
+__all__ = [
+    "as_np",
+    "field_device",
+    "has_color",
+    "occupancy_binary",
+    "density_function",
+    "occupied_box",
+    "vertex_colors",
+]
 
 
 def as_np(x: Any) -> np.ndarray:

@@ -109,12 +109,18 @@ def screened_poisson(
     )
     threads = params.threads or torch.get_num_threads()
     ms.generate_surface_reconstruction_screened_poisson(
-        depth=depth, samplespernode=params.samples_per_node, pointweight=params.point_weight, preclean=True,
+        depth=depth,
+        samplespernode=params.samples_per_node,
+        pointweight=params.point_weight,
+        preclean=True,
         threads=max(1, threads),
-    )  # fmt: skip
+    )
     m = ms.current_mesh()
-    return (m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64),
-            m.vertex_scalar_array().astype(np.float64))  # fmt: skip
+    return (
+        m.vertex_matrix().astype(np.float64),
+        m.face_matrix().astype(np.int64),
+        m.vertex_scalar_array().astype(np.float64),
+    )
 
 
 def trim_and_crop(verts: np.ndarray, faces: np.ndarray, keep_vertex: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
@@ -143,8 +149,15 @@ def _oriented_points(
     trained: Any, cams: CameraPath, keep: Callable[[np.ndarray], np.ndarray], params: Poisson, device: torch.device
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Steps 1-2 of the module doc: (points [N, 3] scene frame, outward unit normals [N, 3], report entries)."""
-    g = gather_points(trained, cams, target=params.points, acc_threshold=params.acc_threshold, keep=keep,
-                      seed=params.seed, depth="median")  # fmt: skip
+    g = gather_points(
+        trained,
+        cams,
+        target=params.points,
+        acc_threshold=params.acc_threshold,
+        keep=keep,
+        seed=params.seed,
+        depth="median",
+    )
     if len(g.points) < 100:
         raise UserError(
             f"{len(g.points)} of {g.rays} training rays end inside the box (accumulated opacity >= "
@@ -156,10 +169,18 @@ def _oriented_points(
     facing = facing_share(normals[from_gradient], g.dirs[from_gradient])
     flip = np.einsum("ij,ij->i", normals, g.dirs.astype(np.float64)) > 0  # away from the camera that saw it
     normals[flip] *= -1
-    info = {"points_gathered": len(g.points), "rays": g.rays, "opaque_rays": g.opaque, "rays_outside_box": g.outside,
-            "passes": g.passes, "point_depth": "median (opacity 0.5)", "normal_step_scene": step,
-            "normals_from_view_direction": int((~from_gradient).sum()), "normals_flipped": int(flip.sum()),
-            "normals_facing_camera_before_flip": facing}  # fmt: skip
+    info = {
+        "points_gathered": len(g.points),
+        "rays": g.rays,
+        "opaque_rays": g.opaque,
+        "rays_outside_box": g.outside,
+        "passes": g.passes,
+        "point_depth": "median (opacity 0.5)",
+        "normal_step_scene": step,
+        "normals_from_view_direction": int((~from_gradient).sum()),
+        "normals_flipped": int(flip.sum()),
+        "normals_facing_camera_before_flip": facing,
+    }
     return g.points, normals, info
 
 
@@ -169,19 +190,41 @@ def _trimmed(
     """Step 4 of the module doc: (verts, faces, the report's steps)."""
     level = float(np.quantile(density, params.trim)) if params.trim > 0 and len(density) else -math.inf
     verts, faces, removed = trim_and_crop(verts, faces, density >= level)
-    steps = [{"step": "trim_low_density", "vertices": len(verts), "faces": len(faces), "removed_faces": removed,
-              "quantile": params.trim, "density_below": level}]  # fmt: skip
+    steps = [
+        {
+            "step": "trim_low_density",
+            "vertices": len(verts),
+            "faces": len(faces),
+            "removed_faces": removed,
+            "quantile": params.trim,
+            "density_below": level,
+        }
+    ]
     if params.support > 0 and len(verts):
         verts, faces, removed = trim_and_crop(verts, faces, ~unsupported(verts, points, params.support * cell))
-        steps.append({"step": "trim_unsupported", "vertices": len(verts), "faces": len(faces),
-                      "removed_faces": removed, "farther_than": params.support * cell})  # fmt: skip
+        steps.append(
+            {
+                "step": "trim_unsupported",
+                "vertices": len(verts),
+                "faces": len(faces),
+                "removed_faces": removed,
+                "farther_than": params.support * cell,
+            }
+        )
     return verts, faces, steps
 
 
 def poisson_surface(
-    trained: Any, grid: Grid, plane: Plane | None, keep_beyond: float, *, resolution: int, params: Poisson,
-    device: torch.device, lap: Callable[[str, float], float],
-) -> tuple[np.ndarray, np.ndarray, list[dict], dict]:  # fmt: skip
+    trained: Any,
+    grid: Grid,
+    plane: Plane | None,
+    keep_beyond: float,
+    *,
+    resolution: int,
+    params: Poisson,
+    device: torch.device,
+    lap: Callable[[str, float], float],
+) -> tuple[np.ndarray, np.ndarray, list[dict], dict]:
     """The trimmed Poisson surface in `grid`'s box (module doc): (verts [V, 3] grid frame, faces [F, 3] int64,
     the report's steps, the report's `method` entry). `plane`: the support plane to cut (`keep_beyond` scene
     units of it kept away), or None; `lap(name, t0) -> now` records each step's time."""
@@ -212,6 +255,12 @@ def poisson_surface(
     steps.append({"step": "crop_to_box", "vertices": len(verts), "faces": len(faces), "removed_faces": removed})
     lap("poisson", t)
     depth_rule = "given" if params.depth is not None else "ceil(log2(resolution))"
-    info = {"name": "poisson", **asdict(params), "octree_depth": depth, "depth_rule": depth_rule, "octree_cell": cell,
-            **points_info}  # fmt: skip
+    info = {
+        "name": "poisson",
+        **asdict(params),
+        "octree_depth": depth,
+        "depth_rule": depth_rule,
+        "octree_cell": cell,
+        **points_info,
+    }
     return verts, faces, steps, info

@@ -233,8 +233,11 @@ def bake_texture(
     if views is not None:
         rgb, weight, skipped = project_views(x, -d, verts, faces, views)
         seen = weight > 0
-        info["views"] = {**views.info, "texels_seen": round(float(seen.mean()), 4) if len(seen) else 0.0,
-                         "skipped": skipped}  # fmt: skip
+        info["views"] = {
+            **views.info,
+            "texels_seen": round(float(seen.mean()), 4) if len(seen) else 0.0,
+            "skipped": skipped,
+        }
     rest = np.flatnonzero(~seen) if seen is not None else np.arange(len(x))
     rgb[rest] = _query(color_fn, x[rest], d[rest], chunk, torch.device(device))
     image = np.zeros((size, size, 3), np.float32)
@@ -244,9 +247,13 @@ def bake_texture(
     coverage = float(filled.mean())
     image = _fill(image, filled, dilate)
     t2 = time.perf_counter()
-    info.update(size=[size, size], texels_baked=int(filled.sum()), coverage=round(coverage, 4),
-                faces_without_texel=int(len(new_faces) - len(np.unique(face))),
-                timing_seconds={"unwrap": round(t1 - t0, 3), "bake": round(t2 - t1, 3)})  # fmt: skip
+    info.update(
+        size=[size, size],
+        texels_baked=int(filled.sum()),
+        coverage=round(coverage, 4),
+        faces_without_texel=int(len(new_faces) - len(np.unique(face))),
+        timing_seconds={"unwrap": round(t1 - t0, 3), "bake": round(t2 - t1, 3)},
+    )
     img8 = np.rint(np.clip(image, 0, 1) * 255).astype(np.uint8)
     return Textured(vertices=pos, faces=new_faces, uv=uv, image=img8, source_vertex=source, info=info)
 

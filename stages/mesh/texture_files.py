@@ -41,8 +41,10 @@ def write_obj_textured(path: str | Path, textured: Textured, *, into: Path | Non
     after its report); the MTL and PNG are still named after `path`.
     """
     paths = texture_paths(path)
-    mtl = (f"# nerfpipe baked texture\nnewmtl {MATERIAL}\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nd 1\nillum 1\n"
-           f"map_Kd {paths['png'].name}\n")  # fmt: skip
+    mtl = (
+        f"# nerfpipe baked texture\nnewmtl {MATERIAL}\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nd 1\nillum 1\n"
+        f"map_Kd {paths['png'].name}\n"
+    )
     with contextlib.ExitStack() as stack:  # exits run innermost first: the PNG, then the MTL, then the OBJ
         obj_tmp = into if into is not None else stack.enter_context(atomic_path(paths["obj"]))
         with open(obj_tmp, "w") as f:  # written first, so that a failure here is reported as the OBJ's
@@ -65,9 +67,12 @@ def write_glb_textured(path: str | Path, textured: Textured, *, into: Path | Non
     from PIL import Image
 
     material = trimesh.visual.material.PBRMaterial(
-        name=MATERIAL, baseColorTexture=Image.fromarray(textured.image, "RGB"), metallicFactor=0.0,
-        roughnessFactor=1.0, doubleSided=True,
-    )  # fmt: skip
+        name=MATERIAL,
+        baseColorTexture=Image.fromarray(textured.image, "RGB"),
+        metallicFactor=0.0,
+        roughnessFactor=1.0,
+        doubleSided=True,
+    )
     visual = trimesh.visual.TextureVisuals(uv=textured.uv, material=material)
     mesh = trimesh.Trimesh(vertices=textured.vertices, faces=textured.faces, visual=visual, process=False)
     data = _mark_unlit(mesh.export(file_type="glb"))

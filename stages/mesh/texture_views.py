@@ -37,8 +37,20 @@ from torch import Tensor
 
 from nerfpipe.radiance.camera import Intrinsics, generate_rays, project
 
-__all__ = ["ViewSource", "TEXTURE_VIEWS", "VIEW_DOWNSCALE", "VIEW_MAX_SIDE", "POWER", "COS_MIN", "DEPTH_TOL",
-           "BEHIND_TOL", "spread_views", "depth_buffer", "project_views", "training_views"]  # fmt: skip
+__all__ = [
+    "ViewSource",
+    "TEXTURE_VIEWS",
+    "VIEW_DOWNSCALE",
+    "VIEW_MAX_SIDE",
+    "POWER",
+    "COS_MIN",
+    "DEPTH_TOL",
+    "BEHIND_TOL",
+    "spread_views",
+    "depth_buffer",
+    "project_views",
+    "training_views",
+]
 
 TEXTURE_VIEWS = 24
 """Training cameras rendered for a texture by default (spread out, `spread_views`): on the fox 24 of 43 gave the mean
@@ -93,8 +105,9 @@ def spread_views(world_from_cams: np.ndarray, k: int) -> list[int]:
     return sorted(chosen)
 
 
-def depth_buffer(verts: np.ndarray, faces: np.ndarray, world_from_cam: np.ndarray,
-                 intr: Intrinsics) -> np.ndarray | None:  # fmt: skip
+def depth_buffer(
+    verts: np.ndarray, faces: np.ndarray, world_from_cam: np.ndarray, intr: Intrinsics
+) -> np.ndarray | None:
     """The mesh's (verts [V, 3], faces [F, 3]) z-depth at each pixel centre seen by the camera (nearest surface,
     perspective-correct), [H, W] float64, inf where no face covers the centre; None when a face crosses the camera's
     plane (the mesh around the camera: its depth there is not a triangle's on the screen)."""
@@ -102,8 +115,9 @@ def depth_buffer(verts: np.ndarray, faces: np.ndarray, world_from_cam: np.ndarra
 
     if verts.ndim != 2 or verts.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
         raise ValueError(f"expected verts [V, 3] and faces [F, 3], got {verts.shape} and {faces.shape}")
-    px, z = (a.numpy() for a in project(torch.as_tensor(verts), torch.as_tensor(world_from_cam, dtype=torch.float64),
-                                        intr))  # fmt: skip
+    px, z = (
+        a.numpy() for a in project(torch.as_tensor(verts), torch.as_tensor(world_from_cam, dtype=torch.float64), intr)
+    )
     front = z[faces] > 1e-9
     if (front.any(axis=1) & ~front.all(axis=1)).any():
         return None
@@ -116,8 +130,7 @@ def depth_buffer(verts: np.ndarray, faces: np.ndarray, world_from_cam: np.ndarra
     return out.reshape(intr.h, intr.w)
 
 
-def _view_image(source: ViewSource, intr: Intrinsics, world_from_cam: np.ndarray,
-                covered: np.ndarray) -> np.ndarray:  # fmt: skip
+def _view_image(source: ViewSource, intr: Intrinsics, world_from_cam: np.ndarray, covered: np.ndarray) -> np.ndarray:
     """The field's render of the camera's covered pixels, [H, W, 3] float32 (zero elsewhere)."""
     ys, xs = np.nonzero(covered)
     image = np.zeros((intr.h, intr.w, 3), np.float32)
@@ -131,8 +144,9 @@ def _view_image(source: ViewSource, intr: Intrinsics, world_from_cam: np.ndarray
     return image
 
 
-def project_views(points: np.ndarray, normals: np.ndarray, verts: np.ndarray, faces: np.ndarray,
-                  source: ViewSource) -> tuple[np.ndarray, np.ndarray, int]:  # fmt: skip
+def project_views(
+    points: np.ndarray, normals: np.ndarray, verts: np.ndarray, faces: np.ndarray, source: ViewSource
+) -> tuple[np.ndarray, np.ndarray, int]:
     """Texel points [N, 3] with unit outward normals [N, 3] on the mesh (verts, faces) -> (rgb [N, 3] float32, the
     weights' sum [N]: 0 where no camera sees the texel, its rgb is then 0; the cameras skipped because the mesh
     reaches round them, `depth_buffer`). See the module doc."""
@@ -205,6 +219,11 @@ def training_views(trained: Any, count: int) -> ViewSource | None:
         return trained.render_rays(rays_o, rays_d, median=False)["rgb"]
 
     sizes = sorted({(intr.w, intr.h) for intr, _ in cameras})
-    info = {"views": len(cameras), "of": len(train), "sizes": [list(wh) for wh in sizes], "weights": f"cos^{POWER:g}",
-            "rule": "the field's renders of spread-out training cameras, projected onto the texels seen"}  # fmt: skip
+    info = {
+        "views": len(cameras),
+        "of": len(train),
+        "sizes": [list(wh) for wh in sizes],
+        "weights": f"cos^{POWER:g}",
+        "rule": "the field's renders of spread-out training cameras, projected onto the texels seen",
+    }
     return ViewSource(cameras=tuple(cameras), render=render, info=info)

@@ -113,8 +113,9 @@ def auto_threshold(
     }
     if lv.numel() < max(16, int(0.01 * n_valid)):
         level = LN2 / (0.01 * diag)
-        info.update(rule="fallback: ln 2 / (1 % of the aabb diagonal): too few training rays reach 0.5 opacity",
-                    fallback=True)  # fmt: skip
+        info.update(
+            rule="fallback: ln 2 / (1 % of the aabb diagonal): too few training rays reach 0.5 opacity", fallback=True
+        )
         return level, info
     q = torch.quantile(lv, torch.tensor([0.25, 0.5, 0.75], dtype=torch.float64)).tolist()
     info.update(fallback=False, quartiles=q)

@@ -87,8 +87,15 @@ from nerfpipe.stages.poses.report import (
 )
 
 __all__ = [
-    "Config", "Outputs", "run", "MIN_REGISTERED", "FAIL_FRACTION", "WARN_FRACTION", "CameraModel", "CAMERA_MODELS",
-]  # fmt: skip
+    "Config",
+    "Outputs",
+    "run",
+    "MIN_REGISTERED",
+    "FAIL_FRACTION",
+    "WARN_FRACTION",
+    "CameraModel",
+    "CAMERA_MODELS",
+]
 
 
 def run(config: Config, progress: Progress | None = None) -> Outputs:
@@ -115,10 +122,15 @@ def _run(config: Config, kind: str, progress: Progress | None) -> Outputs:
     phase = PhaseTimer(state, metrics, progress)
     matcher = config.matcher if config.matcher != "auto" else ("sequential" if kind == "video" else "exhaustive")
     settings = sfm.SfmSettings(  # max_image_size: a placeholder until inputs.working_size, after screening
-        max_image_size=sfm.PYCOLMAP_MAX_IMAGE_SIZE, max_num_features=config.max_num_features,
-        camera_model=config.camera_model, single_camera=config.single_camera, matcher=matcher,
-        sequential_overlap=config.sequential_overlap, num_threads=config.num_threads, seed=config.seed,
-    )  # fmt: skip
+        max_image_size=sfm.PYCOLMAP_MAX_IMAGE_SIZE,
+        max_num_features=config.max_num_features,
+        camera_model=config.camera_model,
+        single_camera=config.single_camera,
+        matcher=matcher,
+        sequential_overlap=config.sequential_overlap,
+        num_threads=config.num_threads,
+        seed=config.seed,
+    )
     pycolmap.set_random_seed(config.seed)
     try:
         with phase("images"):
@@ -138,8 +150,16 @@ def _run(config: Config, kind: str, progress: Progress | None) -> Outputs:
         with phase("working_size"):
             settings = inputs.working_size(config, settings, build / "probe.db", images, names, max(long_sides), state)
         plan = ladder(settings, config.max_attempts, max(long_sides))
-        run_attempts(plan, build, images, groups, long_sides, state, phase,
-                     after_matching=lambda db: check_static_matches(db, masked, state))  # fmt: skip
+        run_attempts(
+            plan,
+            build,
+            images,
+            groups,
+            long_sides,
+            state,
+            phase,
+            after_matching=lambda db: check_static_matches(db, masked, state),
+        )
         check_features(state.stats)
         check_registered(state, matcher)
         check_static_cameras(state.model, masked)

@@ -92,9 +92,15 @@ def describe(settings: SfmSettings, long_side: int) -> str:
 
 
 def run_attempts(
-    plan: list[Attempt], build: Path, images: Path, groups: list[list[str]], long_sides: list[int],
-    state: RunState, phase: PhaseTimer, after_matching: Callable[[Path], None] | None = None,
-) -> None:  # fmt: skip
+    plan: list[Attempt],
+    build: Path,
+    images: Path,
+    groups: list[list[str]],
+    long_sides: list[int],
+    state: RunState,
+    phase: PhaseTimer,
+    after_matching: Callable[[Path], None] | None = None,
+) -> None:
     """Run `plan` until `choice.stop_reason` says stop. Leaves the kept attempt's (`choice.choose`) statistics,
     models and camera priors in `state`, its database at build/database.db, one record per attempt (with its
     checks) in `state.attempts`, and the choice and the ladder's stop in `state.choice` / `state.ladder`.
@@ -131,15 +137,23 @@ def run_attempts(
                     state.model = max(models.values(), key=lambda m: (m.num_reg_images(), m.num_points3D()))
         found = candidate(attempt.name, state.model, prior_focals(priors), total)
         seconds.append(time.perf_counter() - t0)
-        state.attempts.append({
-            "attempt": k, "name": attempt.name, "registered": found.registered, "total": total,
-            "models_found": sorted((m.num_reg_images() for m in models.values()), reverse=True),
-            "features_median": float(np.median(list(state.stats.features.values()))) if state.stats.features else 0,
-            "seconds": round(seconds[-1], 3), "reused": attempt.reuse, "kept": False,
-            "cameras_pass": found.sane,
-            **(verdict(found.checks) if state.model is not None else {"check": None, "checks": []}),
-            "settings": describe(s, max(long_sides)), "options": config_to_json(s),
-        })  # fmt: skip
+        state.attempts.append(
+            {
+                "attempt": k,
+                "name": attempt.name,
+                "registered": found.registered,
+                "total": total,
+                "models_found": sorted((m.num_reg_images() for m in models.values()), reverse=True),
+                "features_median": float(np.median(list(state.stats.features.values()))) if state.stats.features else 0,
+                "seconds": round(seconds[-1], 3),
+                "reused": attempt.reuse,
+                "kept": False,
+                "cameras_pass": found.sane,
+                **(verdict(found.checks) if state.model is not None else {"check": None, "checks": []}),
+                "settings": describe(s, max(long_sides)),
+                "options": config_to_json(s),
+            }
+        )
         results.append((db, state.stats, models, state.model, priors))
         candidates.append(found)
         reason = stop_reason(candidates, total, seconds)
@@ -153,8 +167,7 @@ def run_attempts(
     state.choice = chosen.sentence
     if chosen.warning is not None:
         state.warnings.append(chosen.warning)
-    state.ladder = {"stopped": stopped, "retry_budget_s": round(retry_budget(seconds[0]), 1),
-                    "rule": LADDER_RULE}  # fmt: skip
+    state.ladder = {"stopped": stopped, "retry_budget_s": round(retry_budget(seconds[0]), 1), "rule": LADDER_RULE}
     phase.attempt = 1
     os.replace(kept_db, build / "database.db")
     for other in build.glob("database.*.db"):

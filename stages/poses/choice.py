@@ -28,9 +28,16 @@ from nerfpipe.stages.poses import quality
 from nerfpipe.stages.poses.report import FAIL_FRACTION, MIN_REGISTERED, WARN_FRACTION
 
 __all__ = [
-    "Candidate", "Choice", "candidate", "choose", "stop_reason", "usable", "retry_budget", "RETRY_BUDGET",
+    "Candidate",
+    "Choice",
+    "candidate",
+    "choose",
+    "stop_reason",
+    "usable",
+    "retry_budget",
+    "RETRY_BUDGET",
     "RETRY_MIN_SECONDS",
-]  # fmt: skip
+]
 
 RETRY_BUDGET = 10.0
 """Retries may take this many times the first attempt's seconds once a usable, sane model exists. Attempt 2
@@ -124,8 +131,10 @@ def stop_reason(candidates: Sequence[Candidate], total: int, seconds: Sequence[f
     if len(candidates) >= 2 and usable_sane:
         spent, budget = sum(seconds[1:]), retry_budget(seconds[0])
         if spent >= budget:
-            return (f"the retries took {spent:.0f} s, over their budget of {budget:.0f} s, and '{usable_sane[0].name}' "
-                    f"is usable ({usable_sane[0].registered}/{total} registered, cameras pass the checks)")  # fmt: skip
+            return (
+                f"the retries took {spent:.0f} s, over their budget of {budget:.0f} s, and '{usable_sane[0].name}' "
+                f"is usable ({usable_sane[0].registered}/{total} registered, cameras pass the checks)"
+            )
     return None
 
 

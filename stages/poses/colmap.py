@@ -28,10 +28,22 @@ import pycolmap
 from nerfpipe.data.errors import Interrupted
 
 __all__ = [
-    "SfmSettings", "MapperThresholds", "RELAXED_MAPPER", "PYCOLMAP_MAX_IMAGE_SIZE", "PYCOLMAP_MAX_NUM_FEATURES",
-    "WORKING_SIZES", "ENOUGH_FEATURES", "choose_working_size", "count_features", "extract", "match",
-    "reconstruct", "database_stats", "DatabaseStats", "interrupted_by_sigterm",
-]  # fmt: skip
+    "SfmSettings",
+    "MapperThresholds",
+    "RELAXED_MAPPER",
+    "PYCOLMAP_MAX_IMAGE_SIZE",
+    "PYCOLMAP_MAX_NUM_FEATURES",
+    "WORKING_SIZES",
+    "ENOUGH_FEATURES",
+    "choose_working_size",
+    "count_features",
+    "extract",
+    "match",
+    "reconstruct",
+    "database_stats",
+    "DatabaseStats",
+    "interrupted_by_sigterm",
+]
 
 
 @contextlib.contextmanager
@@ -111,9 +123,13 @@ class MapperThresholds:
 
 
 RELAXED_MAPPER = MapperThresholds(
-    min_num_matches=8, init_min_num_inliers=50, init_min_tri_angle=8.0, abs_pose_min_num_inliers=15,
-    abs_pose_min_inlier_ratio=0.15, max_reg_trials=6,
-)  # fmt: skip
+    min_num_matches=8,
+    init_min_num_inliers=50,
+    init_min_tri_angle=8.0,
+    abs_pose_min_num_inliers=15,
+    abs_pose_min_inlier_ratio=0.15,
+    max_reg_trials=6,
+)
 """About half of each default (twice the registration trials): less evidence to start a model and to register
 an image. The reprojection-error filters (4 px) that every registered image and point must pass are unchanged."""
 

@@ -118,8 +118,11 @@ def apply_focal_priors(db_path: Path, priors: Mapping[str, float]) -> dict[int, 
                 cam.params = params
                 cam.has_prior_focal_length = True
                 db.update_camera(cam)
-                info.update(prior_px=_round(focal), source=f"EXIF of {len(ours)} of {len(members)} photos",
-                            spread=round(max(ours) / min(ours) - 1, 4))  # fmt: skip
+                info.update(
+                    prior_px=_round(focal),
+                    source=f"EXIF of {len(ours)} of {len(members)} photos",
+                    spread=round(max(ours) / min(ours) - 1, 4),
+                )
             elif colmap_read is not None:
                 info.update(prior_px=_round(colmap_read), source="COLMAP (EXIF focal length, its sensor database)")
             else:

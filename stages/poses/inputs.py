@@ -139,9 +139,14 @@ def camera_groups(config: Config, names: list[str], state: RunState) -> list[lis
 
 
 def working_size(
-    config: Config, settings: sfm.SfmSettings, probe_db: Path, images: Path, names: list[str], long_side: int,
+    config: Config,
+    settings: sfm.SfmSettings,
+    probe_db: Path,
+    images: Path,
+    names: list[str],
+    long_side: int,
     state: RunState,
-) -> sfm.SfmSettings:  # fmt: skip
+) -> sfm.SfmSettings:
     """`settings` with the first attempt's SIFT working size: the Config's, or `sfm.choose_working_size`'s."""
     if config.max_image_size is not None:
         state.working_size = {"size": min(config.max_image_size, long_side), "rule": "max_image_size"}

@@ -32,8 +32,13 @@ import pycolmap
 from nerfpipe.stages.poses.quality import MAX_DISTORTION, distortion_at_edges
 
 __all__ = [
-    "LENS_MIN_IMAGES", "LENS_MIN_F", "PP_MAX_SHIFT", "refine_principal_point", "add_radial_term", "improvement_f",
-]  # fmt: skip
+    "LENS_MIN_IMAGES",
+    "LENS_MIN_F",
+    "PP_MAX_SHIFT",
+    "refine_principal_point",
+    "add_radial_term",
+    "improvement_f",
+]
 
 LENS_MIN_IMAGES = 10
 """A camera's lens is refined past the mapper only if this many registered images share it."""
@@ -91,8 +96,9 @@ def refine_principal_point(rec: pycolmap.Reconstruction, num_threads: int) -> tu
     return refined, f"refined for {len(shared)} shared camera(s) ({what})"
 
 
-def add_radial_term(rec: pycolmap.Reconstruction, principal_point: bool,
-                    num_threads: int) -> tuple[pycolmap.Reconstruction, str]:  # fmt: skip
+def add_radial_term(
+    rec: pycolmap.Reconstruction, principal_point: bool, num_threads: int
+) -> tuple[pycolmap.Reconstruction, str]:
     """Step 2 (module doc): shared SIMPLE_RADIAL cameras -> RADIAL, the principal point free if `principal_point`
     (step 1 kept it). Returns (the model to keep, what was done, for the report)."""
     shared = [c for c in _shared(rec) if rec.cameras[c].model == pycolmap.CameraModelId.SIMPLE_RADIAL]

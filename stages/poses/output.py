@@ -37,9 +37,15 @@ def set_aside(colmap_dir: Path, report_path: Path) -> Path | None:
 
 
 def write_model(
-    config: Config, state: RunState, build: Path, colmap_dir: Path, report_path: Path, metrics: MetricsLog,
-    matcher: str, groups: list[list[str]],
-) -> dict[str, Any]:  # fmt: skip
+    config: Config,
+    state: RunState,
+    build: Path,
+    colmap_dir: Path,
+    report_path: Path,
+    metrics: MetricsLog,
+    matcher: str,
+    groups: list[list[str]],
+) -> dict[str, Any]:
     """Write the kept model (`state.model`), names.json, metrics.csv, the report and the manifest into `build`,
     then rename `build` to `colmap_dir`; returns the report."""
     masked = config.masks is not None
@@ -51,18 +57,40 @@ def write_model(
     metrics.save()
     write_json(report_path, report)
     write_manifest(
-        build, stage="poses", started=state.started, inputs=[config.input],
-        outputs=["images/", *(["masks/"] if masked else []), "names.json", "database.db", "sparse/",
-                 "metrics.csv", "../poses_report.json"],
-        used={"matcher": matcher, "principal_point": state.principal_point, "radial_term": report["radial_term"],
-              "camera_groups": [len(g) for g in groups], "pycolmap": pycolmap.__version__,
-              "working_size": state.working_size, "masks": str(config.masks) if masked else None,
-              "stationary_matches": state.stationary, "focal_prior": report["focal_prior"],
-              "attempts": [{k: a[k] for k in ("name", "registered", "total", "kept", "check", "settings")}
-                           for a in state.attempts], "choice": state.choice, "ladder": state.ladder},
-        left_out={**state.skipped, **report["not_registered"]}, version=VERSION,
-        config=config_to_json(config), **verdict(state.checks),
-    )  # fmt: skip
+        build,
+        stage="poses",
+        started=state.started,
+        inputs=[config.input],
+        outputs=[
+            "images/",
+            *(["masks/"] if masked else []),
+            "names.json",
+            "database.db",
+            "sparse/",
+            "metrics.csv",
+            "../poses_report.json",
+        ],
+        used={
+            "matcher": matcher,
+            "principal_point": state.principal_point,
+            "radial_term": report["radial_term"],
+            "camera_groups": [len(g) for g in groups],
+            "pycolmap": pycolmap.__version__,
+            "working_size": state.working_size,
+            "masks": str(config.masks) if masked else None,
+            "stationary_matches": state.stationary,
+            "focal_prior": report["focal_prior"],
+            "attempts": [
+                {k: a[k] for k in ("name", "registered", "total", "kept", "check", "settings")} for a in state.attempts
+            ],
+            "choice": state.choice,
+            "ladder": state.ladder,
+        },
+        left_out={**state.skipped, **report["not_registered"]},
+        version=VERSION,
+        config=config_to_json(config),
+        **verdict(state.checks),
+    )
     os.replace(build, colmap_dir)
     return report
 
@@ -79,10 +107,18 @@ def write_failed_report(config: Config, state: RunState, report_path: Path, erro
 def outputs(colmap_dir: Path, report_path: Path, report: dict[str, Any], state: RunState) -> Outputs:
     """The `Outputs` of a successful run, from its report and state."""
     return Outputs(
-        colmap_dir=colmap_dir, sparse=colmap_dir / "sparse", images=colmap_dir / "images",
-        database=colmap_dir / "database.db", report=report_path, registered=report["registered"],
-        total=report["total"], mean_reprojection_error=float(report["mean_reprojection_error_px"]),
-        working_size=state.working_size["size"], check=report["check"],
-        attempts=tuple(f"{a['name']}: {a['registered']}/{a['total']} registered{' (kept)' if a['kept'] else ''}; "
-                       f"{a['settings']}" for a in state.attempts),
-    )  # fmt: skip
+        colmap_dir=colmap_dir,
+        sparse=colmap_dir / "sparse",
+        images=colmap_dir / "images",
+        database=colmap_dir / "database.db",
+        report=report_path,
+        registered=report["registered"],
+        total=report["total"],
+        mean_reprojection_error=float(report["mean_reprojection_error_px"]),
+        working_size=state.working_size["size"],
+        check=report["check"],
+        attempts=tuple(
+            f"{a['name']}: {a['registered']}/{a['total']} registered{' (kept)' if a['kept'] else ''}; {a['settings']}"
+            for a in state.attempts
+        ),
+    )

@@ -53,10 +53,20 @@ from nerfpipe.data.checks import Check
 from nerfpipe.stages.poses.report import WARN_FRACTION
 
 __all__ = [
-    "CAMERA_CHECKS", "FOCAL_TOLERANCE", "FOV_RANGE_DEG", "ASPECT_TOLERANCE", "MAX_DISTORTION", "PP_TOLERANCE",
-    "MAX_REPROJECTION_PX", "MIN_TRACK_LENGTH", "camera_checks", "model_checks", "distortion_at_edges",
-    "cameras_pass", "failed",
-]  # fmt: skip
+    "CAMERA_CHECKS",
+    "FOCAL_TOLERANCE",
+    "FOV_RANGE_DEG",
+    "ASPECT_TOLERANCE",
+    "MAX_DISTORTION",
+    "PP_TOLERANCE",
+    "MAX_REPROJECTION_PX",
+    "MIN_TRACK_LENGTH",
+    "camera_checks",
+    "model_checks",
+    "distortion_at_edges",
+    "cameras_pass",
+    "failed",
+]
 
 FOCAL_TOLERANCE = 0.25
 FOV_RANGE_DEG = (10.0, 140.0)
@@ -78,42 +88,57 @@ def camera_checks(cam: pycolmap.Camera, prior_px: float | None, label: str = "th
     checks = []
     if prior_px is not None:
         off = f / prior_px - 1
-        checks.append(_said(
-            Check.upper("focal_vs_exif", abs(off) * 100, FOCAL_TOLERANCE * 100, unit=" %", says=""),
-            f"{label}: f = {f:.0f} px against the EXIF prior {prior_px:.0f} px ({off:+.0%})",
-            "the self-calibration drifted, so the poses are likely off too",
-        ))  # fmt: skip
+        checks.append(
+            _said(
+                Check.upper("focal_vs_exif", abs(off) * 100, FOCAL_TOLERANCE * 100, unit=" %", says=""),
+                f"{label}: f = {f:.0f} px against the EXIF prior {prior_px:.0f} px ({off:+.0%})",
+                "the self-calibration drifted, so the poses are likely off too",
+            )
+        )
     else:
         fov = math.degrees(2 * math.atan(long_side / (2 * f))) if f > 0 else math.nan
         lo, hi = FOV_RANGE_DEG
-        checks.append(_said(
-            Check(name="field_of_view", ok=bool(lo <= fov <= hi), value=_round(fov), limit=f"{lo:g}-{hi:g} deg",
-                  says=""),
-            f"{label}: f = {f:.0f} px gives a {fov:.0f} deg field of view across {long_side} px (no EXIF focal "
-            "length to compare with)",
-            "no rectilinear lens has that: a degenerate self-calibration",
-        ))  # fmt: skip
+        checks.append(
+            _said(
+                Check(
+                    name="field_of_view",
+                    ok=bool(lo <= fov <= hi),
+                    value=_round(fov),
+                    limit=f"{lo:g}-{hi:g} deg",
+                    says="",
+                ),
+                f"{label}: f = {f:.0f} px gives a {fov:.0f} deg field of view across {long_side} px (no EXIF focal "
+                "length to compare with)",
+                "no rectilinear lens has that: a degenerate self-calibration",
+            )
+        )
     if len(cam.focal_length_idxs()) == 2:
-        checks.append(_said(
-            Check.upper("focal_aspect", abs(fx / fy - 1) * 100, ASPECT_TOLERANCE * 100, unit=" %", says=""),
-            f"{label}: fx = {fx:.0f} px, fy = {fy:.0f} px",
-            "pixels are square, so this is a degenerate fit",
-        ))  # fmt: skip
+        checks.append(
+            _said(
+                Check.upper("focal_aspect", abs(fx / fy - 1) * 100, ASPECT_TOLERANCE * 100, unit=" %", says=""),
+                f"{label}: fx = {fx:.0f} px, fy = {fy:.0f} px",
+                "pixels are square, so this is a degenerate fit",
+            )
+        )
     bend = distortion_at_edges(cam)
     params = ", ".join(f"{n.strip()} = {v:.3g}" for n, v in _extra_params(cam))
-    checks.append(_said(
-        Check.upper("distortion", bend * 100, MAX_DISTORTION * 100, unit=" %", says=""),
-        f"{label}: the distortion ({params or 'none'}) moves points at the image edge by up to {bend:.1%} of their "
-        "distance from the centre",
-        "more than a rectilinear lens does: a degenerate self-calibration",
-    ))  # fmt: skip
+    checks.append(
+        _said(
+            Check.upper("distortion", bend * 100, MAX_DISTORTION * 100, unit=" %", says=""),
+            f"{label}: the distortion ({params or 'none'}) moves points at the image edge by up to {bend:.1%} of their "
+            "distance from the centre",
+            "more than a rectilinear lens does: a degenerate self-calibration",
+        )
+    )
     shift = math.hypot(cam.principal_point_x - w / 2, cam.principal_point_y - h / 2) / long_side
-    checks.append(_said(
-        Check.upper("principal_point", shift * 100, PP_TOLERANCE * 100, unit=" %", says=""),
-        f"{label}: the principal point ({cam.principal_point_x:.0f}, {cam.principal_point_y:.0f}) is {shift:.1%} "
-        "of the image size off its centre",
-        "lenses are centred, so this is a degenerate fit",
-    ))  # fmt: skip
+    checks.append(
+        _said(
+            Check.upper("principal_point", shift * 100, PP_TOLERANCE * 100, unit=" %", says=""),
+            f"{label}: the principal point ({cam.principal_point_x:.0f}, {cam.principal_point_y:.0f}) is {shift:.1%} "
+            "of the image size off its centre",
+            "lenses are centred, so this is a degenerate fit",
+        )
+    )
     return checks
 
 
@@ -156,21 +181,31 @@ def model_checks(rec: pycolmap.Reconstruction, priors: Mapping[int, float | None
         checks += camera_checks(cam, priors.get(camera_id), label)
     if rec.num_points3D() > 0:
         err = float(rec.compute_mean_reprojection_error())
-        checks.append(_said(
-            Check.upper("reprojection_error", err, MAX_REPROJECTION_PX, unit=" px", says=""),
-            f"mean reprojection error {err:.2f} px", "the model fits its own observations poorly",
-        ))  # fmt: skip
+        checks.append(
+            _said(
+                Check.upper("reprojection_error", err, MAX_REPROJECTION_PX, unit=" px", says=""),
+                f"mean reprojection error {err:.2f} px",
+                "the model fits its own observations poorly",
+            )
+        )
         track = float(rec.compute_mean_track_length())
-        checks.append(_said(
-            Check.lower("track_length", track, MIN_TRACK_LENGTH, says=""),
-            f"3D points are seen in {track:.1f} images on average", "the views are linked only pairwise",
-        ))  # fmt: skip
+        checks.append(
+            _said(
+                Check.lower("track_length", track, MIN_TRACK_LENGTH, says=""),
+                f"3D points are seen in {track:.1f} images on average",
+                "the views are linked only pairwise",
+            )
+        )
     reg = rec.num_reg_images()
-    checks.append(_said(
-        Check.lower("registered_fraction", reg / total * 100 if total else math.nan, WARN_FRACTION * 100, unit=" %",
-                    says=""),
-        f"{reg} of {total} images registered", "poses_report.json says why each other one did not",
-    ))  # fmt: skip
+    checks.append(
+        _said(
+            Check.lower(
+                "registered_fraction", reg / total * 100 if total else math.nan, WARN_FRACTION * 100, unit=" %", says=""
+            ),
+            f"{reg} of {total} images registered",
+            "poses_report.json says why each other one did not",
+        )
+    )
     return checks
 
 

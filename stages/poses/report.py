@@ -30,10 +30,24 @@ if TYPE_CHECKING:
     from nerfpipe.stages.poses.config import Config
 
 __all__ = [
-    "MIN_REGISTERED", "FAIL_FRACTION", "WARN_FRACTION", "MIN_FEATURES", "RunState", "PhaseTimer",
-    "textured", "check_features", "check_registered", "build_report", "print_summary", "STATIC_FRACTION",
-    "STATIC_SPREAD", "stationary_matches", "check_static_matches", "check_static_cameras", "focal_prior_record",
-]  # fmt: skip
+    "MIN_REGISTERED",
+    "FAIL_FRACTION",
+    "WARN_FRACTION",
+    "MIN_FEATURES",
+    "RunState",
+    "PhaseTimer",
+    "textured",
+    "check_features",
+    "check_registered",
+    "build_report",
+    "print_summary",
+    "STATIC_FRACTION",
+    "STATIC_SPREAD",
+    "stationary_matches",
+    "check_static_matches",
+    "check_static_cameras",
+    "focal_prior_record",
+]
 
 MIN_REGISTERED = 3
 FAIL_FRACTION = 0.4
@@ -157,16 +171,22 @@ def _per_image(state: RunState) -> dict[str, Any]:
             entry["size"] = list(state.sizes[name])
         sc = state.screens.get(name)
         if sc is not None:
-            entry.update(blur=round(sc.blur, 2), overexposed=round(sc.overexposed, 4),
-                         underexposed=round(sc.underexposed, 4), flags=sc.flags())  # fmt: skip
+            entry.update(
+                blur=round(sc.blur, 2),
+                overexposed=round(sc.overexposed, 4),
+                underexposed=round(sc.underexposed, 4),
+                flags=sc.flags(),
+            )
         if name in state.duplicates:
             entry["near_duplicate_of"] = state.duplicates[name]
         prior = state.exif_focal.get(name)
-        entry["exif_focal"] = "absent" if prior is None else {"focal_px": round(prior.focal_px, 2),
-                                                              "source": prior.source}  # fmt: skip
+        entry["exif_focal"] = (
+            "absent" if prior is None else {"focal_px": round(prior.focal_px, 2), "source": prior.source}
+        )
         if stats is not None and name in stats.features:
-            entry.update(features=stats.features[name], verified_pairs=stats.verified_pairs[name],
-                         matches=stats.matches[name])  # fmt: skip
+            entry.update(
+                features=stats.features[name], verified_pairs=stats.verified_pairs[name], matches=stats.matches[name]
+            )
             image = rec.find_image_with_name(name) if rec is not None else None
             entry["registered"] = bool(image is not None and image.has_pose)
             entry["observations"] = int(image.num_points3D) if entry["registered"] else 0
@@ -206,7 +226,7 @@ def build_report(config: Config, state: RunState, status: str, error: str | None
                 "params": [round(float(v), 6) for v in cam.params],
             }
             for c, cam in (rec.cameras.items() if rec is not None else [])
-        },  # fmt: skip
+        },
         "principal_point": state.principal_point,
         "radial_term": state.radial_term or "not tried (--no-second-radial-term or one camera per image)",
         "focal_prior": focal_prior_record(state),
@@ -253,12 +273,16 @@ def focal_prior_record(state: RunState) -> dict[str, Any]:
     values = [p.focal_px for p in state.exif_focal.values()]
     photos = len(state.names)
     if values:
-        says = ("COLMAP's cameras start from the EXIF focal length (has_prior_focal_length) and the focal_vs_exif "
-                "check compares the model's with it")  # fmt: skip
+        says = (
+            "COLMAP's cameras start from the EXIF focal length (has_prior_focal_length) and the focal_vs_exif "
+            "check compares the model's with it"
+        )
     else:
-        says = ("absent: no photo's EXIF gives a focal length (FocalLengthIn35mmFilm, or FocalLength with "
-                "FocalPlaneXResolution), so COLMAP starts from 1.2 x the long side and calibrates it alone; the "
-                "field_of_view check stands in for the EXIF one")  # fmt: skip
+        says = (
+            "absent: no photo's EXIF gives a focal length (FocalLengthIn35mmFilm, or FocalLength with "
+            "FocalPlaneXResolution), so COLMAP starts from 1.2 x the long side and calibrates it alone; the "
+            "field_of_view check stands in for the EXIF one"
+        )
     return {
         "exif": f"{len(values)} of {photos} photos" if values else "absent",
         "focal_px_median": round(float(np.median(values)), 2) if values else None,
@@ -295,9 +319,13 @@ class PhaseTimer:
                 state.timings[phase] = state.timings.get(phase, 0.0) + time.perf_counter() - self.t0
                 if exc[0] is None:
                     registered = state.model.num_reg_images() if state.model is not None else ""
-                    timer.metrics.append(step=len(timer.metrics.rows), seconds=round(time.time() - state.started, 3),
-                                         phase=label, images=len(state.sizes) or len(state.names),
-                                         registered=registered)  # fmt: skip
+                    timer.metrics.append(
+                        step=len(timer.metrics.rows),
+                        seconds=round(time.time() - state.started, 3),
+                        phase=label,
+                        images=len(state.sizes) or len(state.names),
+                        registered=registered,
+                    )
                 return False
 
         return _Phase()
@@ -339,8 +367,11 @@ def check_static_matches(db_path: Path, masked: bool, state: RunState) -> None:
     fraction, total = stationary_matches(db_path)
     state.stationary = {"fraction": round(fraction, 4), "inlier_matches": total, "limit": STATIC_FRACTION}
     if fraction > STATIC_FRACTION:
-        fix = ("the masks leave too much of the static background white; mask it black" if masked else
-               "give --masks DIR (one mask per photo, the object white, the rest black)")  # fmt: skip
+        fix = (
+            "the masks leave too much of the static background white; mask it black"
+            if masked
+            else "give --masks DIR (one mask per photo, the object white, the rest black)"
+        )
         raise UserError(
             f"static camera: {fraction:.0%} of the {total} verified feature matches stay at the same pixel "
             f"across views, so the background does not move (a turntable or tripod capture): the poses would be "

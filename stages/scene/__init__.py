@@ -79,9 +79,18 @@ from nerfpipe.stages.scene.turntable import angles as turntable_angles
 from nerfpipe.stages.scene.turntable import room_from_cam
 
 __all__ = [
-    "Config", "Outputs", "run", "cameras", "intrinsics", "render_view", "scene_mesh", "blender_split", "SUPERSAMPLE",
-    "BACKGROUND", "FOV_X_DEG",
-]  # fmt: skip
+    "Config",
+    "Outputs",
+    "run",
+    "cameras",
+    "intrinsics",
+    "render_view",
+    "scene_mesh",
+    "blender_split",
+    "SUPERSAMPLE",
+    "BACKGROUND",
+    "FOV_X_DEG",
+]
 
 VERSION = "1"
 BACKGROUND = (1.0, 1.0, 1.0)
@@ -161,12 +170,14 @@ def _run(config: Config) -> Outputs:
         "camera_model": "PINHOLE",
         **intr_doc,
         "background": list(BACKGROUND) if not rgba else None,
-        "aabb": aabb.tolist(), "near": near, "far": far,
+        "aabb": aabb.tolist(),
+        "near": near,
+        "far": far,
         "frames": {
             stem: {"file_path": rel, "world_from_cam": w.tolist(), **intr_doc}
             for (rel, stem), w in zip(views, scaled_from_cam, strict=True)
         },
-    }  # fmt: skip
+    }
     cams_path = write_json(out / "ground_truth" / "cameras.json", cams_doc)
     transforms, split_files = None, ()
     rel = [r for r, _ in views]
@@ -179,19 +190,40 @@ def _run(config: Config) -> Outputs:
 
     outputs = [*images, *masks, *depths, mesh_path, cams_path, *([transforms] if transforms else []), *split_files]
     manifest_path = write_manifest(
-        out, stage="scene", started=started, outputs=[p.relative_to(out) for p in outputs],
-        used={"supersample": f"{SUPERSAMPLE}x{SUPERSAMPLE} rays per pixel, box filter", "fov_x_deg": FOV_X_DEG,
-              "background": "transparent" if rgba else list(BACKGROUND), "camera_radius_m": CAMERA_RADIUS,
-              "scale": scale, "layout": config.layout,
-              "test_split": f"every {TEST_EVERY}th view" + (f", val every {TEST_EVERY}th from {TEST_EVERY // 2}"
-                                                            if config.kind == "blender" else ""),
-              **({"turntable": "the objects turn, camera and room fixed; poses object-relative; masks/ = object"}
-                 if turntable else {}),
-              **({"elevation_deg": list(ELEVATION_DEG)} if config.layout == "orbit" else
-                 {"forward_spread_m": list(FORWARD_SPREAD), "elevation_deg": FORWARD_ELEVATION_DEG})},
+        out,
+        stage="scene",
+        started=started,
+        outputs=[p.relative_to(out) for p in outputs],
+        used={
+            "supersample": f"{SUPERSAMPLE}x{SUPERSAMPLE} rays per pixel, box filter",
+            "fov_x_deg": FOV_X_DEG,
+            "background": "transparent" if rgba else list(BACKGROUND),
+            "camera_radius_m": CAMERA_RADIUS,
+            "scale": scale,
+            "layout": config.layout,
+            "test_split": f"every {TEST_EVERY}th view"
+            + (f", val every {TEST_EVERY}th from {TEST_EVERY // 2}" if config.kind == "blender" else ""),
+            **(
+                {"turntable": "the objects turn, camera and room fixed; poses object-relative; masks/ = object"}
+                if turntable
+                else {}
+            ),
+            **(
+                {"elevation_deg": list(ELEVATION_DEG)}
+                if config.layout == "orbit"
+                else {"forward_spread_m": list(FORWARD_SPREAD), "elevation_deg": FORWARD_ELEVATION_DEG}
+            ),
+        },
         config=config_to_json(config),
-    )  # fmt: skip
+    )
     return Outputs(
-        out_dir=out, images=tuple(images), masks=tuple(masks), transforms=transforms, split_files=split_files,
-        cameras=cams_path, depths=tuple(depths), mesh=mesh_path, manifest=manifest_path,
-    )  # fmt: skip
+        out_dir=out,
+        images=tuple(images),
+        masks=tuple(masks),
+        transforms=transforms,
+        split_files=split_files,
+        cameras=cams_path,
+        depths=tuple(depths),
+        mesh=mesh_path,
+        manifest=manifest_path,
+    )

@@ -14,8 +14,18 @@ from nerfpipe.data.atomic import atomic_path, write_json
 from nerfpipe.data.transforms import Frame, Scene, write_scene
 from nerfpipe.radiance.camera import Intrinsics
 
-__all__ = ["TEST_EVERY", "BLENDER_SPLITS", "png", "grey_png", "write_npy", "write_mesh", "write_transforms", "views",
-           "blender_split", "write_blender"]  # fmt: skip
+__all__ = [
+    "TEST_EVERY",
+    "BLENDER_SPLITS",
+    "png",
+    "grey_png",
+    "write_npy",
+    "write_mesh",
+    "write_transforms",
+    "views",
+    "blender_split",
+    "write_blender",
+]
 
 TEST_EVERY = 8
 BLENDER_SPLITS = ("train", "val", "test")
@@ -32,9 +42,16 @@ def write_mesh(path: Path, mesh: trimesh.Trimesh) -> None:
 
 
 def write_transforms(
-    out_dir: Path, names: list[str], world_from_cam: np.ndarray, intr: Intrinsics, aabb, near, far, rgba: bool,
+    out_dir: Path,
+    names: list[str],
+    world_from_cam: np.ndarray,
+    intr: Intrinsics,
+    aabb,
+    near,
+    far,
+    rgba: bool,
     masks: list[str] | None = None,
-) -> Path:  # fmt: skip
+) -> Path:
     """transforms.json in the scene frame (= this generator's world: identity applied_transform, scale 1);
     `masks`: each frame's mask_path (relative to out_dir), or None."""
     test = tuple(range(0, len(names), TEST_EVERY))
@@ -44,9 +61,17 @@ def write_transforms(
         for n, w, m in zip(names, world_from_cam, masks or [None] * len(names), strict=True)
     )
     scene = Scene(
-        root=out_dir, frames=frames, intrinsics=intr, applied_transform=np.eye(4)[:3], applied_scale=1.0,
-        aabb=aabb, near=near, far=far, splits={"train": train, "val": test, "test": test}, has_alpha=rgba,
-    )  # fmt: skip
+        root=out_dir,
+        frames=frames,
+        intrinsics=intr,
+        applied_transform=np.eye(4)[:3],
+        applied_scale=1.0,
+        aabb=aabb,
+        near=near,
+        far=far,
+        splits={"train": train, "val": test, "test": test},
+        has_alpha=rgba,
+    )
     return Path(write_scene(scene, out_dir / "transforms.json"))
 
 

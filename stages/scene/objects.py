@@ -321,19 +321,40 @@ def default_primitives(seed: int) -> tuple[Primitive, ...]:
     keys = rng.integers(0, 2**31, size=6)
     sink = 0.01
     return (
-        Cylinder(center=np.array([0.0, 0.0]), radius=0.75, z0=-0.05, z1=0.0,
-                 material=_material(rng, int(keys[0]), 0.12, 0.035)),
-        Sphere(center=np.array([-0.28, 0.22, 0.2 - sink]), radius=0.2,
-               material=_material(rng, int(keys[1]), 0.08, 0.025)),
-        Box(center=np.array([0.27, 0.22, 0.16 - sink]), half=np.array([0.16, 0.1, 0.16]), yaw=0.5,
-            material=_material(rng, int(keys[2]), 0.08, 0.025)),
-        Cylinder(center=np.array([0.05, -0.3]), radius=0.12, z0=-sink, z1=0.45, sections=512,
-                 material=_material(rng, int(keys[3]), 0.08, 0.025)),
-        Box(center=np.array([-0.38, -0.22, 0.09 - sink]), half=np.array([0.09, 0.09, 0.09]), yaw=-0.35,
-            material=_material(rng, int(keys[4]), 0.06, 0.02)),
-        Sphere(center=np.array([0.4, -0.2, 0.12 - sink]), radius=0.12,
-               material=_material(rng, int(keys[5]), 0.06, 0.02)),
-    )  # fmt: skip
+        Cylinder(
+            center=np.array([0.0, 0.0]),
+            radius=0.75,
+            z0=-0.05,
+            z1=0.0,
+            material=_material(rng, int(keys[0]), 0.12, 0.035),
+        ),
+        Sphere(
+            center=np.array([-0.28, 0.22, 0.2 - sink]), radius=0.2, material=_material(rng, int(keys[1]), 0.08, 0.025)
+        ),
+        Box(
+            center=np.array([0.27, 0.22, 0.16 - sink]),
+            half=np.array([0.16, 0.1, 0.16]),
+            yaw=0.5,
+            material=_material(rng, int(keys[2]), 0.08, 0.025),
+        ),
+        Cylinder(
+            center=np.array([0.05, -0.3]),
+            radius=0.12,
+            z0=-sink,
+            z1=0.45,
+            sections=512,
+            material=_material(rng, int(keys[3]), 0.08, 0.025),
+        ),
+        Box(
+            center=np.array([-0.38, -0.22, 0.09 - sink]),
+            half=np.array([0.09, 0.09, 0.09]),
+            yaw=-0.35,
+            material=_material(rng, int(keys[4]), 0.06, 0.02),
+        ),
+        Sphere(
+            center=np.array([0.4, -0.2, 0.12 - sink]), radius=0.12, material=_material(rng, int(keys[5]), 0.06, 0.02)
+        ),
+    )
 
 
 def room(seed: int) -> tuple[Primitive, ...]:
@@ -341,8 +362,12 @@ def room(seed: int) -> tuple[Primitive, ...]:
     centre, 3.25 m tall (8 m x 8 m): the unbounded background a phone capture of an object in a room sees."""
     rng = np.random.default_rng([seed, 20261123])
     keys = [int(k) for k in rng.integers(0, 2**31, size=5)]
-    floor = Box(center=np.array([0.0, 0.0, -0.3]), half=np.array([4.0, 4.0, 0.05]), yaw=0.0,
-                material=_material(rng, keys[0], 0.45, 0.2))  # fmt: skip
+    floor = Box(
+        center=np.array([0.0, 0.0, -0.3]),
+        half=np.array([4.0, 4.0, 0.05]),
+        yaw=0.0,
+        material=_material(rng, keys[0], 0.45, 0.2),
+    )
     walls = [
         Box(center=np.array(c), half=np.array(h), yaw=0.0, material=_material(rng, k, 0.55, 0.2))
         for c, h, k in (
@@ -360,5 +385,9 @@ def backdrop(seed: int) -> Primitive:
     tall: the far content of a forward-facing capture, beyond any box drawn round the objects."""
     rng = np.random.default_rng([seed, 20261122])
     key = int(rng.integers(0, 2**31))
-    return Box(center=np.array([0.0, 4.05, 0.0]), half=np.array([4.0, 0.05, 3.0]), yaw=0.0,
-               material=_material(rng, key, 0.5, 0.15))  # fmt: skip
+    return Box(
+        center=np.array([0.0, 4.05, 0.0]),
+        half=np.array([4.0, 0.05, 3.0]),
+        yaw=0.0,
+        material=_material(rng, key, 0.5, 0.15),
+    )

@@ -71,9 +71,12 @@ def render_view(
 
 
 def render_turntable_view(
-    objects: tuple[Primitive, ...], background: tuple[Primitive, ...], intr: Intrinsics, fixed: np.ndarray,
+    objects: tuple[Primitive, ...],
+    background: tuple[Primitive, ...],
+    intr: Intrinsics,
+    fixed: np.ndarray,
     theta: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One turntable view (stages.scene.turntable): the camera `fixed` (room frame), the objects turned by
     `theta`. Returns straight colour of everything [H, W, 3], its coverage [H, W], the object's straight colour
     [H, W, 3] and coverage (the mask) [H, W], and the object's z-depth [H, W] (0 = not the object), float64."""
@@ -93,8 +96,9 @@ def render_turntable_view(
     o, d, oo, do, t_obj, w_obj, t_bg, w_bg, on_obj = cast(offsets)
     rgb = np.zeros((len(o), 3))
     for prims, origin, direction, t, which, use in (
-        (objects, oo, do, t_obj, w_obj, on_obj), (background, o, d, t_bg, w_bg, ~on_obj & (w_bg >= 0)),
-    ):  # fmt: skip
+        (objects, oo, do, t_obj, w_obj, on_obj),
+        (background, o, d, t_bg, w_bg, ~on_obj & (w_bg >= 0)),
+    ):
         for k, prim in enumerate(prims):
             m = use & (which == k)
             if m.any():

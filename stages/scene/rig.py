@@ -12,9 +12,16 @@ from nerfpipe.radiance.paths import look_at
 from nerfpipe.stages.scene.turntable import object_cameras, room_from_cam
 
 __all__ = [
-    "FOV_X_DEG", "CAMERA_RADIUS", "UP", "LOOK_AT", "ELEVATION_DEG", "FORWARD_SPREAD", "FORWARD_ELEVATION_DEG",
-    "intrinsics", "cameras",
-]  # fmt: skip
+    "FOV_X_DEG",
+    "CAMERA_RADIUS",
+    "UP",
+    "LOOK_AT",
+    "ELEVATION_DEG",
+    "FORWARD_SPREAD",
+    "FORWARD_ELEVATION_DEG",
+    "intrinsics",
+    "cameras",
+]
 
 FOV_X_DEG = 45.0
 CAMERA_RADIUS = 2.4

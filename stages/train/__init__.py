@@ -105,8 +105,9 @@ def _folder(config: Config, par: DataParallel) -> Iterator[None]:
         return
     taken = False
     try:
-        with output_folder(config.run_dir, overwrite=config.overwrite, resume=config.resume,
-                           marks=("checkpoint.pt", "manifest.json")):  # fmt: skip
+        with output_folder(
+            config.run_dir, overwrite=config.overwrite, resume=config.resume, marks=("checkpoint.pt", "manifest.json")
+        ):
             taken = True
             par.announce(True)
             yield
@@ -126,38 +127,78 @@ def _run(config: Config, progress: Progress, par: DataParallel | None = None) ->
         loop.stop = stop
         seconds = loop.run()
     if par is not None and not par.writer:  # rank 0 evaluates and writes the rest
-        return Outputs(run_dir=run_dir, checkpoint=loop.ckpt_path, metrics=loop.metrics.path,
-                       plot=run_dir / "psnr_vs_time.png", manifest=run_dir / "manifest.json", steps=loop.step,
-                       seconds=seconds, test_psnr=None)  # fmt: skip
+        return Outputs(
+            run_dir=run_dir,
+            checkpoint=loop.ckpt_path,
+            metrics=loop.metrics.path,
+            plot=run_dir / "psnr_vs_time.png",
+            manifest=run_dir / "manifest.json",
+            steps=loop.step,
+            seconds=seconds,
+            test_psnr=None,
+        )
     test_psnr, chosen, n_views = _final_eval(config, loop, seconds)
     write_run_config(run_dir, dataclasses.replace(config, final_eval_views=n_views), scene_path)
     plot = run_dir / "psnr_vs_time.png"
     plot_psnr(plot, loop.metrics.rows, f"train {config.field} on {scene_path.name}")
     train_idx, test_idx = scene.split("train"), scene.split("test") or scene.split("val")
-    used, left_out = used_and_left_out(scene=scene, loop=loop, seconds=seconds, train_idx=train_idx,
-                                       test_idx=test_idx, chosen=chosen, test_psnr=test_psnr)  # fmt: skip
+    used, left_out = used_and_left_out(
+        scene=scene,
+        loop=loop,
+        seconds=seconds,
+        train_idx=train_idx,
+        test_idx=test_idx,
+        chosen=chosen,
+        test_psnr=test_psnr,
+    )
     used["defaults"] = record
     outputs = [run_dir / n for n in ("config.json", "checkpoint.pt", "metrics.csv", "psnr_vs_time.png")]
-    used["per_view"] = per_view_report(run_dir, loop.model, scene, train_idx, config.downscale, seconds,
-                                       loop.eval_rays_per_second, loop.device)  # fmt: skip
+    used["per_view"] = per_view_report(
+        run_dir, loop.model, scene, train_idx, config.downscale, seconds, loop.eval_rays_per_second, loop.device
+    )
     outputs += [run_dir / f for f in used["per_view"]["files"]]
     outputs += _refinement_records(loop, scene, train_idx, used, left_out)
-    checks = train_checks(rows=loop.metrics.rows, test_psnr=test_psnr, per_view=used["per_view"],
-                          occupied=None if loop.model.grid is None else 1.0 - loop.model.grid.skip_fraction,
-                          object_box=loop.model.space.object_box, pose=used.get("pose_refinement"))  # fmt: skip
+    checks = train_checks(
+        rows=loop.metrics.rows,
+        test_psnr=test_psnr,
+        per_view=used["per_view"],
+        occupied=None if loop.model.grid is None else 1.0 - loop.model.grid.skip_fraction,
+        object_box=loop.model.space.object_box,
+        pose=used.get("pose_refinement"),
+    )
     inputs = [scene_path / "transforms.json"] if scene_path.is_dir() else [scene_path]
-    manifest = write_manifest(run_dir, stage="train", started=started, inputs=inputs, outputs=outputs, used=used,
-                              left_out=left_out, version=VERSION, checkpoint_sha256=loop.ckpt_sha256,
-                              **verdict(checks))  # fmt: skip
-    return Outputs(run_dir=run_dir, checkpoint=loop.ckpt_path, metrics=loop.metrics.path, plot=plot,
-                   manifest=manifest, steps=loop.step, seconds=seconds, test_psnr=test_psnr)  # fmt: skip
+    manifest = write_manifest(
+        run_dir,
+        stage="train",
+        started=started,
+        inputs=inputs,
+        outputs=outputs,
+        used=used,
+        left_out=left_out,
+        version=VERSION,
+        checkpoint_sha256=loop.ckpt_sha256,
+        **verdict(checks),
+    )
+    return Outputs(
+        run_dir=run_dir,
+        checkpoint=loop.ckpt_path,
+        metrics=loop.metrics.path,
+        plot=plot,
+        manifest=manifest,
+        steps=loop.step,
+        seconds=seconds,
+        test_psnr=test_psnr,
+    )
 
 
 def _refinement_records(loop: Loop, scene: Scene, train_idx: tuple[int, ...], used: dict, left_out: dict) -> list:
     """Pose refinement and appearance in the manifest; the refined cameras' transforms.json (its path, or [])."""
     if loop.model.appearance is not None:
-        used["appearance"] = {"codes": loop.model.appearance.n_views, "dim": loop.model.appearance.dim,
-                              "evaluation": APPEARANCE_EVAL_RULE}  # fmt: skip
+        used["appearance"] = {
+            "codes": loop.model.appearance.n_views,
+            "dim": loop.model.appearance.dim,
+            "evaluation": APPEARANCE_EVAL_RULE,
+        }
     else:
         left_out["appearance"] = "off (train --appearance): every image is assumed to share one appearance"
     if loop.cameras is None:

@@ -60,42 +60,90 @@ def _rise(rows: list[dict]) -> float | None:
     return float(np.mean(last) - np.mean(before))
 
 
-def train_checks(*, rows: list[dict], test_psnr: float | None, per_view: dict[str, Any] | None,
-                 occupied: float | None, object_box: bool, pose: dict[str, Any] | None) -> list[Check]:  # fmt: skip
+def train_checks(
+    *,
+    rows: list[dict],
+    test_psnr: float | None,
+    per_view: dict[str, Any] | None,
+    occupied: float | None,
+    object_box: bool,
+    pose: dict[str, Any] | None,
+) -> list[Check]:
     """The run's checks from its metrics rows, final held-out PSNR, per-view report, occupied cell share (None
     without a grid), whether the field's box is the object's own (`radiance.space.Space.object_box`) and the
     pose-refinement record (None without refinement)."""
     out: list[Check] = []
     if test_psnr is not None:
-        out.append(Check.lower("holdout_psnr", test_psnr, HOLDOUT_FLOOR_DB, unit=" dB",
-                               says="the field reproduces the held-out photos poorly (poses, background rule or "
-                                    "too little training)"))  # fmt: skip
+        out.append(
+            Check.lower(
+                "holdout_psnr",
+                test_psnr,
+                HOLDOUT_FLOOR_DB,
+                unit=" dB",
+                says="the field reproduces the held-out photos poorly (poses, background rule or too little training)",
+            )
+        )
     train_end = _train_psnr_end(rows)
     if test_psnr is not None and train_end is not None:
-        out.append(Check.upper("holdout_gap", train_end - test_psnr, GAP_DB, unit=" dB",
-                               says="training photos are reproduced far better than held-out ones: the field learned "
-                                    "the photos, not the scene (mis-posed or too few views)"))  # fmt: skip
+        out.append(
+            Check.upper(
+                "holdout_gap",
+                train_end - test_psnr,
+                GAP_DB,
+                unit=" dB",
+                says="training photos are reproduced far better than held-out ones: the field learned "
+                "the photos, not the scene (mis-posed or too few views)",
+            )
+        )
     rise = _rise(rows)
     if rise is not None:
-        out.append(Check.upper("still_improving", rise, RISE_DB, unit=" dB",
-                               says=f"training PSNR still rose this much over the last {RISE_WINDOW:.0%} of the run: "
-                                    "undertrained, more --max-seconds would change the result"))  # fmt: skip
+        out.append(
+            Check.upper(
+                "still_improving",
+                rise,
+                RISE_DB,
+                unit=" dB",
+                says=f"training PSNR still rose this much over the last {RISE_WINDOW:.0%} of the run: "
+                "undertrained, more --max-seconds would change the result",
+            )
+        )
     if per_view and per_view.get("views_total"):
         share = len(per_view.get("suspect", [])) / per_view["views_total"]
-        out.append(Check.upper("unexplained_views", share, UNEXPLAINED_SHARE,
-                               says="many training views are far under the median view's PSNR (per_view_worst.png): "
-                                    "blur, exposure or poses the field cannot explain"))  # fmt: skip
+        out.append(
+            Check.upper(
+                "unexplained_views",
+                share,
+                UNEXPLAINED_SHARE,
+                says="many training views are far under the median view's PSNR (per_view_worst.png): "
+                "blur, exposure or poses the field cannot explain",
+            )
+        )
     if occupied is not None:
-        out.append(Check.lower("occupied_share_min", occupied, 1e-4,
-                               says="the occupancy grid is empty: the field renders nothing"))  # fmt: skip
+        out.append(
+            Check.lower(
+                "occupied_share_min", occupied, 1e-4, says="the occupancy grid is empty: the field renders nothing"
+            )
+        )
         if object_box:
-            out.append(Check.upper("occupied_share", occupied, FOG_SHARE,
-                                   says="most of the box is occupied: a fog of density rather than an object "
-                                        "(the background rule or the box may be wrong)"))  # fmt: skip
+            out.append(
+                Check.upper(
+                    "occupied_share",
+                    occupied,
+                    FOG_SHARE,
+                    says="most of the box is occupied: a fog of density rather than an object "
+                    "(the background rule or the box may be wrong)",
+                )
+            )
     if pose is not None and "guard" in pose:
         guard = pose["guard"]
-        out.append(Check(name="pose_corrections", ok=not guard.get("suspect"),
-                         value=guard.get("summary", ""), limit=guard.get("limit", ""),
-                         says="pose refinement hit its bounds: corrections beyond what a capture's poses can be "
-                              "off by were pulled back or refinement was stopped"))  # fmt: skip
+        out.append(
+            Check(
+                name="pose_corrections",
+                ok=not guard.get("suspect"),
+                value=guard.get("summary", ""),
+                limit=guard.get("limit", ""),
+                says="pose refinement hit its bounds: corrections beyond what a capture's poses can be "
+                "off by were pulled back or refinement was stopped",
+            )
+        )
     return out

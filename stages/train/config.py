@@ -198,11 +198,15 @@ def _budget(config: Config) -> None:
     if config.lr is not None and not config.lr > 0:
         raise UserError(f"expected lr > 0, got {config.lr}")
     if config.log_every < 1 or config.eval_every < 0 or config.eval_pixels < 1:
-        raise UserError(f"expected log_every >= 1, eval_every >= 0 and eval_pixels >= 1, got {config.log_every}, "
-                        f"{config.eval_every}, {config.eval_pixels}")  # fmt: skip
+        raise UserError(
+            f"expected log_every >= 1, eval_every >= 0 and eval_pixels >= 1, got {config.log_every}, "
+            f"{config.eval_every}, {config.eval_pixels}"
+        )
     if config.checkpoint_every < 1 or not config.checkpoint_seconds >= 0:
-        raise UserError(f"expected checkpoint_every >= 1 and checkpoint_seconds >= 0, got "
-                        f"{config.checkpoint_every}, {config.checkpoint_seconds}")  # fmt: skip
+        raise UserError(
+            f"expected checkpoint_every >= 1 and checkpoint_seconds >= 0, got "
+            f"{config.checkpoint_every}, {config.checkpoint_seconds}"
+        )
     if config.threads is not None and config.threads < 1:
         raise UserError(f"expected threads >= 1, got {config.threads}")
     if config.downscale is not None and not config.downscale >= 1:
@@ -218,8 +222,9 @@ def _fast(fast: FastOptions) -> None:
     if fast.resolution is not None and (len(fast.resolution) != 2 or min(fast.resolution) < 2):
         raise UserError(f"expected resolution (start, end) >= 2, got {fast.resolution}")
     if fast.density_activation is not None and fast.density_activation not in DENSITY_ACTIVATIONS:
-        raise UserError(f"unknown density activation {fast.density_activation!r}: expected one of "
-                        f"{', '.join(DENSITY_ACTIVATIONS)}")  # fmt: skip
+        raise UserError(
+            f"unknown density activation {fast.density_activation!r}: expected one of {', '.join(DENSITY_ACTIVATIONS)}"
+        )
     if fast.mlp_width is not None and fast.mlp_width < 1:
         raise UserError(f"--mlp-width: expected >= 1, got {fast.mlp_width}")
     if fast.rank is not None:
@@ -231,11 +236,14 @@ def _fast(fast: FastOptions) -> None:
     if at is not None and (any(not 0 <= a <= 1 for a in at) or list(at) != sorted(at)):
         raise UserError(f"expected upsample_at: increasing fractions in [0, 1], got {at}")
     if not ((fast.step_ratio is None or fast.step_ratio > 0) and 0 < fast.render_step_factor <= 1):
-        raise UserError(f"expected step_ratio > 0 and 0 < render_step_factor <= 1, got {fast.step_ratio}, "
-                        f"{fast.render_step_factor}")  # fmt: skip
+        raise UserError(
+            f"expected step_ratio > 0 and 0 < render_step_factor <= 1, got {fast.step_ratio}, {fast.render_step_factor}"
+        )
     if fast.occupancy_resolution < 1 or fast.occupancy_every < 1:
-        raise UserError(f"expected occupancy_resolution >= 1 and occupancy_every >= 1, got "
-                        f"{fast.occupancy_resolution}, {fast.occupancy_every}")  # fmt: skip
+        raise UserError(
+            f"expected occupancy_resolution >= 1 and occupancy_every >= 1, got "
+            f"{fast.occupancy_resolution}, {fast.occupancy_every}"
+        )
     if not fast.distortion >= 0:
         raise UserError(f"expected distortion >= 0, got {fast.distortion}")
     if fast.tv is not None and not fast.tv >= 0:

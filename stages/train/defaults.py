@@ -68,8 +68,10 @@ REFINE_UPSAMPLE_AT = (0.2, 0.3, 0.4, 0.5)
 """The same with --refine-poses: the grid stays coarse while the cameras move most."""
 DEPTH_LOSS = 0.01
 """Default `--depth-loss` weight where sparse points exist (contracted scenes)."""
-LR = {"fast": (0.03, "0.03 for the fast field's grids (its MLP at lr/20)"),
-      "vanilla": (5e-4, "5e-4 for the vanilla field's MLPs")}  # fmt: skip
+LR = {
+    "fast": (0.03, "0.03 for the fast field's grids (its MLP at lr/20)"),
+    "vanilla": (5e-4, "5e-4 for the vanilla field's MLPs"),
+}
 """Each field's learning rate and its reason (`Config.lr`)."""
 
 
@@ -98,8 +100,9 @@ def _max_side(device: torch.device) -> int:
     return 1600 if device.type == "cuda" else 800
 
 
-def resolve_defaults(config: Config, scene: Scene, views: Views, train_idx: tuple[int, ...], device: torch.device,
-                     downscale: float) -> Defaults:  # fmt: skip
+def resolve_defaults(
+    config: Config, scene: Scene, views: Views, train_idx: tuple[int, ...], device: torch.device, downscale: float
+) -> Defaults:
     """The Config with its None values resolved from the scene, its training views (read at `downscale`, from
     `resolve_downscale`) and the device (see the module doc): the background, then the scene space, then its
     kind's grid, step and priors, the depth loss, the batch, learning rate and threads. UserError when a loss
@@ -109,16 +112,29 @@ def resolve_defaults(config: Config, scene: Scene, views: Views, train_idx: tupl
     why = " (asked for)" if config.downscale else f": long side <= {_max_side(device)} px"
     reasons = {"background": bg_reason, "downscale": f"{downscale:g}{why}"}
     kind, space = _space(config, scene, plain, reasons)
-    need = Need(scene=scene, space=space, train_idx=tuple(train_idx), downscale=downscale, cuda=device.type == "cuda",
-                refine_poses=config.refine is not None)  # fmt: skip
+    need = Need(
+        scene=scene,
+        space=space,
+        train_idx=tuple(train_idx),
+        downscale=downscale,
+        cuda=device.type == "cuda",
+        refine_poses=config.refine is not None,
+    )
     fast = _fast_options(config.fast, RULES[kind], need, reasons)
     rays, fast = _depth_loss(config.field, fast, scene, need.train_idx, space, reasons)
     resolved = dataclasses.replace(config, fast=fast, downscale=downscale, **_run_options(config, need.cuda, reasons))
     plain_colour = None
     if config.background == "auto" and plain and not has_alpha:
         plain_colour = tuple(float(v) for v in background.eval_colour())
-    return Defaults(config=resolved, space=space, background=background, plain_background=plain, reasons=reasons,
-                    plain_colour=plain_colour, depth_rays=rays)  # fmt: skip
+    return Defaults(
+        config=resolved,
+        space=space,
+        background=background,
+        plain_background=plain,
+        reasons=reasons,
+        plain_colour=plain_colour,
+        depth_rays=rays,
+    )
 
 
 def _space(config: Config, scene: Scene, plain: bool, reasons: dict[str, str]) -> tuple[type[Space], Space]:
@@ -143,12 +159,21 @@ def _fast_options(fast: FastOptions, rules: BoxRules | NDCRules, need: Need, rea
     act, reasons["density_activation"] = (act, "asked for") if act is not None else rules.density_activation()
     width = fast.mlp_width
     width, reasons["mlp_width"] = (width, "asked for") if width is not None else rules.mlp_width()
-    return dataclasses.replace(fast, resolution=resolution, rank=rank, upsample_at=upsample_at, step_ratio=step_ratio,
-                               tv=tv, density_activation=act, mlp_width=width)  # fmt: skip
+    return dataclasses.replace(
+        fast,
+        resolution=resolution,
+        rank=rank,
+        upsample_at=upsample_at,
+        step_ratio=step_ratio,
+        tv=tv,
+        density_activation=act,
+        mlp_width=width,
+    )
 
 
-def _grid(fast: FastOptions, rules: BoxRules | NDCRules, need: Need,
-          reasons: dict[str, str]) -> tuple[tuple[int, int], tuple[float, ...]]:  # fmt: skip
+def _grid(
+    fast: FastOptions, rules: BoxRules | NDCRules, need: Need, reasons: dict[str, str]
+) -> tuple[tuple[int, int], tuple[float, ...]]:
     """The grid's start and final resolution and its upsampling fractions (coarse-to-fine with pose refinement)."""
     if fast.resolution is not None:
         resolution, reasons["resolution"] = tuple(fast.resolution), "asked for"
@@ -168,8 +193,9 @@ def _grid(fast: FastOptions, rules: BoxRules | NDCRules, need: Need,
     return resolution, upsample_at
 
 
-def _depth_loss(field: str, fast: FastOptions, scene: Scene, train_idx: tuple[int, ...], space: Space,
-                reasons: dict[str, str]) -> tuple[DepthRays | None, FastOptions]:  # fmt: skip
+def _depth_loss(
+    field: str, fast: FastOptions, scene: Scene, train_idx: tuple[int, ...], space: Space, reasons: dict[str, str]
+) -> tuple[DepthRays | None, FastOptions]:
     """The rays through the training photos' sparse points (or None) and `fast` with the depth loss's weight:
     as given, else DEPTH_LOSS where the scene has sparse points and a fast contracted field, else 0."""
     given, rel = fast.depth_loss, scene.extra.get(SPARSE_KEY)

@@ -85,8 +85,9 @@ def upsample_schedule(resolution: tuple[int, int], upsample_at: tuple[float, ...
 
 
 @torch.no_grad()
-def evaluate_psnr(model: FieldModel, views: Views, idx: Tensor, bg: Tensor, device: torch.device,
-                  rays: Callable | None = None) -> float:  # fmt: skip
+def evaluate_psnr(
+    model: FieldModel, views: Views, idx: Tensor, bg: Tensor, device: torch.device, rays: Callable | None = None
+) -> float:
     """PSNR over the rays idx [K] of `views`, photos with alpha composited on bg [3]; `rays` maps (o, d) into
     the frame of refined cameras (`CameraOpt.test_rays`; None: as given)."""
     se, n, chunk = 0.0, 0, model.chunk
@@ -145,11 +146,14 @@ class Loop:
     def settings(self) -> LoopSettings:
         """The shared loop's settings from the train config."""
         cfg = self.config
-        return LoopSettings(name="train", budget=Budget(max_steps=cfg.max_steps, max_seconds=cfg.max_seconds),
-                            schedule=Schedule(lr=cfg.lr, decay=cfg.lr_decay),
-                            checkpoint_every=cfg.checkpoint_every,
-                            checkpoint_seconds=cfg.checkpoint_seconds,
-                            checkpoint_path=self.ckpt_path)  # fmt: skip
+        return LoopSettings(
+            name="train",
+            budget=Budget(max_steps=cfg.max_steps, max_seconds=cfg.max_seconds),
+            schedule=Schedule(lr=cfg.lr, decay=cfg.lr_decay),
+            checkpoint_every=cfg.checkpoint_every,
+            checkpoint_seconds=cfg.checkpoint_seconds,
+            checkpoint_path=self.ckpt_path,
+        )
 
     def run(self) -> float:
         """Train until max_steps or max_seconds; refresh the occupancy grid; checkpoint. Returns seconds."""
@@ -175,8 +179,9 @@ class Loop:
                 self.model.field.upsample(res)
                 self.opt = make_optimizer(self.model, self.config.lr)
                 upsampled = True
-        self.model.grid.update(self.model.field.density, self.step, every=self.config.fast.occupancy_every,
-                               warmup_steps=64)  # fmt: skip
+        self.model.grid.update(
+            self.model.field.density, self.step, every=self.config.fast.occupancy_every, warmup_steps=64
+        )
         return upsampled or rolled_back  # the loop keeps a new good state for its non-finite recovery
 
     def train_step(self, lr: float) -> bool:
@@ -324,8 +329,9 @@ class Loop:
         if bg.ndim == 2:  # per-ray colours of the photometric batch, reused (the colour does not enter the loss)
             bg = bg[torch.arange(o.shape[0], device=bg.device) % bg.shape[0]]
         out = self.model.render(o, d, bg.detach(), train=True, gen=None, view=view)
-        return depth_nll_loss(out["weights"], out["t_starts"], out["t_ends"], out["ray_indices"], depth,
-                              DEPTH_SIGMA * depth)  # fmt: skip
+        return depth_nll_loss(
+            out["weights"], out["t_starts"], out["t_ends"], out["ray_indices"], depth, DEPTH_SIGMA * depth
+        )
 
     def snapshot(self) -> tuple[dict, dict]:
         return copy.deepcopy(self.model.field.state_dict()), copy.deepcopy(self.opt.state_dict())
@@ -346,10 +352,15 @@ class Loop:
             return
         self.model.field.eval()
         mean_loss = float(np.mean(self._losses))
-        row = {"step": self.step, "seconds": round(self.elapsed(), 3), "loss": f"{mean_loss:.6g}",
-               "train_psnr": f"{psnr_from_mse(mean_loss):.3f}", "lr": f"{lr:.4g}",
-               "samples_per_ray": f"{self.samples_per_ray:.2f}",
-               "skip_fraction": f"{self.skip_fraction:.4f}"}  # fmt: skip
+        row = {
+            "step": self.step,
+            "seconds": round(self.elapsed(), 3),
+            "loss": f"{mean_loss:.6g}",
+            "train_psnr": f"{psnr_from_mse(mean_loss):.3f}",
+            "lr": f"{lr:.4g}",
+            "samples_per_ray": f"{self.samples_per_ray:.2f}",
+            "skip_fraction": f"{self.skip_fraction:.4f}",
+        }
         if evaluate:
             with self._loop.clock.paused():
                 t_eval = time.perf_counter()
@@ -361,8 +372,11 @@ class Loop:
         self.model.field.train()
         self.metrics.append(**row)
         self._losses = []
-        self.progress.update(self._task, completed=min(row["seconds"], cfg.max_seconds),
-                             description=f"train step {self.step}, {row['train_psnr']} dB")  # fmt: skip
+        self.progress.update(
+            self._task,
+            completed=min(row["seconds"], cfg.max_seconds),
+            description=f"train step {self.step}, {row['train_psnr']} dB",
+        )
 
     def checkpoint(self, seconds: float) -> None:
         """checkpoint.pt and metrics.csv at the current step (periodic, and on Ctrl-C or SIGTERM)."""
@@ -392,5 +406,6 @@ class Loop:
         self._check_same(f"at step {self.step}")
         if self.parallel is not None and not self.parallel.writer:  # rank 0 writes
             return
-        self.ckpt_sha256 = save_checkpoint(self.ckpt_path, self.model, self.opt, self.step, seconds, self.lr_factor,
-                                           self.gen.get_state(), self.cameras)  # fmt: skip
+        self.ckpt_sha256 = save_checkpoint(
+            self.ckpt_path, self.model, self.opt, self.step, seconds, self.lr_factor, self.gen.get_state(), self.cameras
+        )

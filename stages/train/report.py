@@ -67,9 +67,15 @@ def plot_psnr(path: Path, rows: list[dict], title: str) -> None:
 
 
 def used_and_left_out(
-    *, scene: Scene, loop: Loop, seconds: float, train_idx: tuple[int, ...], test_idx: tuple[int, ...],
-    chosen: list[int], test_psnr: float | None,
-) -> tuple[dict[str, Any], dict[str, str]]:  # fmt: skip
+    *,
+    scene: Scene,
+    loop: Loop,
+    seconds: float,
+    train_idx: tuple[int, ...],
+    test_idx: tuple[int, ...],
+    chosen: list[int],
+    test_psnr: float | None,
+) -> tuple[dict[str, Any], dict[str, str]]:
     """The manifest's record of what the finished `loop` used and what it left out (and why)."""
     model, device, batch_rays, steps = loop.model, loop.device, loop.config.batch_rays, loop.step
     samples_per_ray = loop.samples_per_ray
@@ -126,8 +132,10 @@ def _render(model: FieldModel, intr, world_from_cam: np.ndarray, bg: torch.Tenso
     """The field's colour of every pixel of `intr` (rows first): float32 [h, w, 3]."""
     o, d = generate_rays(intr, torch.as_tensor(world_from_cam, dtype=torch.float64))
     o, d = o.float().to(device), d.float().to(device)
-    out = [model.render(o[k : k + model.chunk], d[k : k + model.chunk], bg, train=False)["rgb"]
-           for k in range(0, o.shape[0], model.chunk)]  # fmt: skip
+    out = [
+        model.render(o[k : k + model.chunk], d[k : k + model.chunk], bg, train=False)["rgb"]
+        for k in range(0, o.shape[0], model.chunk)
+    ]
     return torch.cat(out).clamp(0, 1).cpu().numpy().reshape(intr.h, intr.w, 3)
 
 
@@ -164,8 +172,9 @@ def _contact_sheet(rows: list[tuple[str, float, np.ndarray, np.ndarray]], height
             tiles.append(_label(u8, what))
         lines.append(np.concatenate(tiles, axis=1))
     width = max(line.shape[1] for line in lines)
-    sheet = np.concatenate([np.pad(line, ((0, 2), (0, width - line.shape[1]), (0, 0)), constant_values=255)
-                            for line in lines])  # fmt: skip
+    sheet = np.concatenate(
+        [np.pad(line, ((0, 2), (0, width - line.shape[1]), (0, 0)), constant_values=255) for line in lines]
+    )
     ok, buf = cv2.imencode(".png", sheet[..., ::-1].copy())
     if not ok:
         raise RuntimeError("PNG encoding failed")
@@ -173,10 +182,16 @@ def _contact_sheet(rows: list[tuple[str, float, np.ndarray, np.ndarray]], height
 
 
 def per_view_report(
-    run_dir: Path, model: FieldModel, scene: Scene, train_idx: tuple[int, ...], downscale: float,
-    train_seconds: float, rays_per_second: float | None, device: torch.device,
+    run_dir: Path,
+    model: FieldModel,
+    scene: Scene,
+    train_idx: tuple[int, ...],
+    downscale: float,
+    train_seconds: float,
+    rays_per_second: float | None,
+    device: torch.device,
     fraction: float = PER_VIEW_FRACTION,
-) -> dict[str, Any]:  # fmt: skip
+) -> dict[str, Any]:
     """Write run_dir/per_view.json and per_view_worst.png (module docstring); returns the manifest's summary
     (`files` lists the two files). `rays_per_second`: the render speed measured in training (None: measured on
     the first view)."""
@@ -199,8 +214,14 @@ def per_view_report(
         render = _render(model, intr, scene.frames[i].world_from_cam, bg, device)
         mse = float(np.mean((render - target) ** 2))
         name = Path(scene.frames[i].file_path).name
-        views.append({"frame": i, "file": scene.frames[i].file_path, "psnr": round(psnr_from_mse(mse), 3),
-                      "masked": scene.frames[i].mask_path is not None})  # fmt: skip
+        views.append(
+            {
+                "frame": i,
+                "file": scene.frames[i].file_path,
+                "psnr": round(psnr_from_mse(mse), 3),
+                "masked": scene.frames[i].mask_path is not None,
+            }
+        )
         sheet_rows[i] = (name, views[-1]["psnr"], target, render)
     worst = sorted(views, key=lambda v: v["psnr"])
     median = float(np.median([v["psnr"] for v in views]))
@@ -210,18 +231,25 @@ def per_view_report(
     seconds = time.perf_counter() - t0
     doc = {
         "what": "PSNR of each training view rendered at low resolution against its photo (shrunk the same way, "
-                "masks applied, composited on the evaluation colour); worst first",
+        "masks applied, composited on the evaluation colour); worst first",
         "resolution": {"downscale": round(factor, 3), "example_size": [intr.w, intr.h]},
-        "budget_seconds": round(budget, 3), "seconds": round(seconds, 3),
+        "budget_seconds": round(budget, 3),
+        "seconds": round(seconds, 3),
         "median_psnr": round(median, 3),
         "suspect": suspect,
         "suspect_rule": f"PSNR more than {SUSPECT_DB:g} dB under the median: blurred, occluded, badly exposed or "
-                        "mis-posed photos; the sheet per_view_worst.png shows photo | render | error x4",
+        "mis-posed photos; the sheet per_view_worst.png shows photo | render | error x4",
         "sheet": [v["file"] for v in shown],
         "views": worst,
-    }  # fmt: skip
+    }
     write_json(run_dir / "per_view.json", doc)
-    return {"files": ["per_view.json", "per_view_worst.png"], "median_psnr": doc["median_psnr"],
-            "worst": [[v["file"], v["psnr"]] for v in shown[:3]], "suspect": suspect, "views_total": len(views),
-            "seconds": doc["seconds"], "budget_seconds": doc["budget_seconds"],
-            "downscale": round(factor, 3)}  # fmt: skip
+    return {
+        "files": ["per_view.json", "per_view_worst.png"],
+        "median_psnr": doc["median_psnr"],
+        "worst": [[v["file"], v["psnr"]] for v in shown[:3]],
+        "suspect": suspect,
+        "views_total": len(views),
+        "seconds": doc["seconds"],
+        "budget_seconds": doc["budget_seconds"],
+        "downscale": round(factor, 3),
+    }

@@ -30,13 +30,32 @@ from nerfpipe.stages.train.config import Config, FastOptions
 
 __all__ = ["BUDGET", "AUTOMATIC", "RECORDED_BEFORE", "scene_sha256", "resume_config"]
 
-BUDGET = ("max_steps", "max_seconds", "device", "threads", "eval_every", "eval_pixels", "log_every",
-          "checkpoint_every", "checkpoint_seconds", "final_eval_views", "final_eval_fraction")  # fmt: skip
+BUDGET = (
+    "max_steps",
+    "max_seconds",
+    "device",
+    "threads",
+    "eval_every",
+    "eval_pixels",
+    "log_every",
+    "checkpoint_every",
+    "checkpoint_seconds",
+    "final_eval_views",
+    "final_eval_fraction",
+)
 """Options that change how long the run goes on and what it logs, not what it fits: may change on resume."""
 AUTOMATIC = ("batch_rays", "lr", "view_dependent", "downscale")
 """Options whose None means "chosen by the run" (and the fast group's `AUTOMATIC_FAST`): None takes the record."""
-AUTOMATIC_FAST = ("resolution", "rank", "upsample_at", "step_ratio", "tv", "depth_loss", "density_activation",
-                  "mlp_width")  # fmt: skip
+AUTOMATIC_FAST = (
+    "resolution",
+    "rank",
+    "upsample_at",
+    "step_ratio",
+    "tv",
+    "depth_loss",
+    "density_activation",
+    "mlp_width",
+)
 RECORDED_BEFORE = {"density_activation": DEFAULT_ACTIVATION, "mlp_width": DEFAULT_HIDDEN}
 """What a run recorded before the option existed had (every fast field's density was softplus, its colour MLP
 DEFAULT_HIDDEN wide)."""
@@ -73,9 +92,11 @@ def resume_config(config: Config, run_dir: Path, scene_path: Path) -> tuple[Conf
         else:
             differ.append(f"{key}: {_show(before)} -> {_show(value)}")
     if differ:
-        raise UserError(f"{path}: resume continues the run recorded here, and the given settings differ: "
-                        f"{', '.join(differ)}; give the recorded values, or replace the run with "
-                        "overwrite=True")  # fmt: skip
+        raise UserError(
+            f"{path}: resume continues the run recorded here, and the given settings differ: "
+            f"{', '.join(differ)}; give the recorded values, or replace the run with "
+            "overwrite=True"
+        )
     return config, {"changed": changed}
 
 
@@ -83,8 +104,9 @@ def _read(path: Path) -> dict[str, Any]:
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
-        raise UserError(f"{path}: missing; resume needs the config.json the run wrote to check that it "
-                        "continues the same run") from None  # fmt: skip
+        raise UserError(
+            f"{path}: missing; resume needs the config.json the run wrote to check that it continues the same run"
+        ) from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise UserError(f"{path}: cannot read the run's config ({exc})") from None
     if not isinstance(doc, dict):
@@ -102,8 +124,7 @@ def _inherit(config: Config, stored: dict[str, Any]) -> Config:
     """`config` with its automatic options (None) replaced by the recorded values."""
     fast_doc = _stored_fast(stored)
     recorded = RECORDED_BEFORE | {k: v for k, v in fast_doc.items() if v is not None}
-    fast = {k: _typed(recorded[k]) for k in AUTOMATIC_FAST
-            if getattr(config.fast, k) is None and k in recorded}  # fmt: skip
+    fast = {k: _typed(recorded[k]) for k in AUTOMATIC_FAST if getattr(config.fast, k) is None and k in recorded}
     top = {k: _typed(stored[k]) for k in AUTOMATIC if getattr(config, k) is None and stored.get(k) is not None}
     return dataclasses.replace(config, fast=dataclasses.replace(config.fast, **fast), **top)
 
@@ -150,8 +171,10 @@ def _scene_difference(stored: dict[str, Any], run_dir: Path, scene_path: Path) -
         found = scene_sha256(scene_path)
         if found == stored["scene_sha256"]:
             return None
-        return (f"scene: {stored.get('scene_dir')} (transforms.json sha256 {stored['scene_sha256'][:12]}) -> "
-                f"{scene_path} (sha256 {found[:12]})")  # fmt: skip
+        return (
+            f"scene: {stored.get('scene_dir')} (transforms.json sha256 {stored['scene_sha256'][:12]}) -> "
+            f"{scene_path} (sha256 {found[:12]})"
+        )
     recorded = find_run_scene(run_dir, stored, ("scene_dir",))
     if not recorded or any(p.resolve() == scene_path.resolve() for p in recorded):
         return None

@@ -211,8 +211,10 @@ class NDCRules:
         width = float(np.median([need.scene.frame_intrinsics(i).w for i in need.train_idx])) / need.downscale
         r1 = int(min(NDC_MAX, max(NDC_MIN, round(side * width / (2.0 * NDC_PIXELS_PER_VOXEL)))))
         r0 = min(NDC_START, r1)
-        why = (f"image {width:.0f} px wide: a voxel every {NDC_PIXELS_PER_VOXEL:g} px across it (NDC box side "
-               f"{side:.2f}), final in [{NDC_MIN}, {NDC_MAX}], start {r0}")  # fmt: skip
+        why = (
+            f"image {width:.0f} px wide: a voxel every {NDC_PIXELS_PER_VOXEL:g} px across it (NDC box side "
+            f"{side:.2f}), final in [{NDC_MIN}, {NDC_MAX}], start {r0}"
+        )
         return (r0, r1), why
 
     def step_ratio(self, resolution: tuple[int, int], need: Need) -> tuple[float, str]:
@@ -227,8 +229,10 @@ class NDCRules:
 
     def rank(self) -> tuple[tuple[int, ...], str]:
         d, a = NDC_RANK[:3], NDC_RANK[3:]
-        why = (f"TensoRF's LLFF components: density {d[0]} on the xy (image) plane, {d[1]} and {d[2]} on xz and yz; "
-               f"appearance {a[0]}, {a[1]}, {a[2]} (a step's cost follows the planes' size)")  # fmt: skip
+        why = (
+            f"TensoRF's LLFF components: density {d[0]} on the xy (image) plane, {d[1]} and {d[2]} on xz and yz; "
+            f"appearance {a[0]}, {a[1]}, {a[2]} (a step's cost follows the planes' size)"
+        )
         return NDC_RANK, why
 
     def density_activation(self) -> tuple[str, str]:

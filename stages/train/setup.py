@@ -81,10 +81,25 @@ def setup(config: Config, progress: Progress, par: DataParallel | None = None) -
     if par is None or par.writer:
         run_dir.mkdir(parents=True, exist_ok=True)
         write_run_config(run_dir, resolved, scene_path, record)
-    loop = Loop(config=resolved, model=model, opt=opt, train=train, test=test, eval_px=_eval_pixels(resolved, test),
-                gen=gen, device=device, metrics=metrics, ckpt_path=ckpt_path, progress=progress, step=step,
-                seconds_before=seconds_before, lr_factor=lr_factor, cameras=cameras,
-                depth_rays=found.depth_rays, parallel=par)  # fmt: skip
+    loop = Loop(
+        config=resolved,
+        model=model,
+        opt=opt,
+        train=train,
+        test=test,
+        eval_px=_eval_pixels(resolved, test),
+        gen=gen,
+        device=device,
+        metrics=metrics,
+        ckpt_path=ckpt_path,
+        progress=progress,
+        step=step,
+        seconds_before=seconds_before,
+        lr_factor=lr_factor,
+        cameras=cameras,
+        depth_rays=found.depth_rays,
+        parallel=par,
+    )
     return loop, scene, scene_path, _record(found, model)
 
 
@@ -94,8 +109,11 @@ def write_run_config(run_dir: Path, resolved: Config, scene_path: Path, record: 
     scene_abs = scene_path.resolve()
     if record is None:
         record = {k: v for k, v in _recorded(run_dir).items() if k in RECORD}
-    doc = {**config_to_json(dataclasses.replace(resolved, scene_dir=scene_abs)),
-           "scene_from_run": scene_from_run(run_dir, scene_abs), **record}  # fmt: skip
+    doc = {
+        **config_to_json(dataclasses.replace(resolved, scene_dir=scene_abs)),
+        "scene_from_run": scene_from_run(run_dir, scene_abs),
+        **record,
+    }
     write_json(run_dir / "config.json", doc)
 
 
@@ -117,8 +135,9 @@ def _read_scene(scene_path: Path) -> tuple[Path, Scene]:
 def _check_field(config: Config, ckpt_path: Path, state: dict | None) -> None:
     """UserError when the checkpoint to resume from holds another field than the config asks for."""
     if state is not None and state["field_config"]["kind"] != config.field:
-        raise UserError(f"{ckpt_path}: checkpoint holds a {state['field_config']['kind']} field, "
-                        f"config asks for {config.field}")  # fmt: skip
+        raise UserError(
+            f"{ckpt_path}: checkpoint holds a {state['field_config']['kind']} field, config asks for {config.field}"
+        )
 
 
 def _clear_plain_background(found: Defaults, train: Views, test: Views | None) -> None:
@@ -131,10 +150,15 @@ def _clear_plain_background(found: Defaults, train: Views, test: Views | None) -
     share = train.mask_colour(found.plain_colour, opaque_object=refine)
     if test is not None:
         test.mask_colour(found.plain_colour)
-    found.reasons["background"] += (f"; {share:.1%} of the training pixels (the plain colour's regions that touch "
-                                    "the image border) made transparent" + ("; pose refinement: the object's "
-                                    "pixels train on a random colour too (they must be opaque)" if refine
-                                    else ""))  # fmt: skip
+    found.reasons["background"] += (
+        f"; {share:.1%} of the training pixels (the plain colour's regions that touch "
+        "the image border) made transparent"
+        + (
+            "; pose refinement: the object's pixels train on a random colour too (they must be opaque)"
+            if refine
+            else ""
+        )
+    )
 
 
 def _check_scene(found: Defaults) -> None:
@@ -144,8 +168,9 @@ def _check_scene(found: Defaults) -> None:
         raise UserError(f"--distortion applies to contracted scenes only (this one is {found.reasons['scene_model']})")
 
 
-def _model(config: Config, found: Defaults, scene: Scene, state: dict | None, device: torch.device,
-           n_train: int) -> FieldModel:  # fmt: skip
+def _model(
+    config: Config, found: Defaults, scene: Scene, state: dict | None, device: torch.device, n_train: int
+) -> FieldModel:
     """The field model in its space with its background and appearance codes: new, or restored from `state`
     (its field's weights: `_optimizer`)."""
     if state is not None:
@@ -162,14 +187,22 @@ def _model(config: Config, found: Defaults, scene: Scene, state: dict | None, de
 
 def _settings(config: Config) -> ModelSettings:
     fast = config.fast
-    return ModelSettings(field=config.field, resolution=fast.resolution, rank=fast.rank, step_ratio=fast.step_ratio,
-                         occupancy_resolution=fast.occupancy_resolution, render_step_factor=fast.render_step_factor,
-                         view_dependent=config.view_dependent,
-                         density_activation=fast.density_activation, mlp_width=fast.mlp_width)  # fmt: skip
+    return ModelSettings(
+        field=config.field,
+        resolution=fast.resolution,
+        rank=fast.rank,
+        step_ratio=fast.step_ratio,
+        occupancy_resolution=fast.occupancy_resolution,
+        render_step_factor=fast.render_step_factor,
+        view_dependent=config.view_dependent,
+        density_activation=fast.density_activation,
+        mlp_width=fast.mlp_width,
+    )
 
 
-def _camera_opt(refine: RefineOptions | None, scene: Scene, train_idx: tuple[int, ...], state: dict | None,
-                device: torch.device) -> CameraOpt | None:  # fmt: skip
+def _camera_opt(
+    refine: RefineOptions | None, scene: Scene, train_idx: tuple[int, ...], state: dict | None, device: torch.device
+) -> CameraOpt | None:
     """The training cameras' corrections (restored on resume), or None without pose refinement."""
     if refine is None:
         return None
@@ -182,8 +215,9 @@ def _camera_opt(refine: RefineOptions | None, scene: Scene, train_idx: tuple[int
     return cameras
 
 
-def _optimizer(model: FieldModel, lr: float, state: dict | None,
-               gen: torch.Generator) -> tuple[torch.optim.Optimizer, int, float, float]:  # fmt: skip
+def _optimizer(
+    model: FieldModel, lr: float, state: dict | None, gen: torch.Generator
+) -> tuple[torch.optim.Optimizer, int, float, float]:
     """Adam over the model, and the step, training seconds and learning-rate factor to start from: 0 for a new run,
     the checkpoint's (with the field, occupancy grid, optimiser and ray generator) on resume."""
     opt = make_optimizer(model, lr)
@@ -215,7 +249,11 @@ def _eval_pixels(config: Config, test: Views | None) -> torch.Tensor | None:
 def _record(found: Defaults, model: FieldModel) -> dict:
     """The manifest's `used.defaults`: each default's reason, and the values the run resolved."""
     fast = found.config.fast
-    resolved = {"resolution": list(fast.resolution), "step_ratio": fast.step_ratio,
-                "batch_rays": found.config.batch_rays, "background": model.background.describe(),
-                "tv": fast.tv}  # fmt: skip
+    resolved = {
+        "resolution": list(fast.resolution),
+        "step_ratio": fast.step_ratio,
+        "batch_rays": found.config.batch_rays,
+        "background": model.background.describe(),
+        "tv": fast.tv,
+    }
     return {**found.reasons, "resolved": resolved}

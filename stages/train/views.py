@@ -107,8 +107,7 @@ class Views:
         c = self.rgba[idx].to(device).float() / 255.0
         return o.to(device), d.to(device), c[:, :3], c[:, 3]
 
-    def mask_colour(self, colour: tuple[float, float, float], tolerance: int = 4,
-                    opaque_object: bool = False) -> float:  # fmt: skip
+    def mask_colour(self, colour: tuple[float, float, float], tolerance: int = 4, opaque_object: bool = False) -> float:
         """Pixels within `tolerance` (of 255) of `colour` on every channel AND connected to the image's border through
         such pixels become transparent (alpha 0): the background around the object, not the object's own parts of
         that colour (a white carton on a whitened background keeps its white faces; a rule on colour alone made
@@ -174,8 +173,9 @@ def load_views(scene: Scene, indices: tuple[int, ...], downscale: float = 1.0) -
         img = load_masked_image(scene, i)  # a frame's mask_path makes its masked-out pixels transparent
         full = scene.frame_intrinsics(i)
         if img.shape[:2] != (full.h, full.w):
-            raise UserError(f"{scene.image_path(i)}: image is {img.shape[1]}x{img.shape[0]}, "
-                            f"transforms.json says {full.w}x{full.h}")  # fmt: skip
+            raise UserError(
+                f"{scene.image_path(i)}: image is {img.shape[1]}x{img.shape[0]}, transforms.json says {full.w}x{full.h}"
+            )
         if downscale != 1.0:
             img = cv2.resize(img, (intrs[k].w, intrs[k].h), interpolation=cv2.INTER_AREA)
         out = rgba[int(offsets[k]) : int(offsets[k + 1])].numpy().reshape(*shapes[k], 4)
@@ -231,5 +231,9 @@ def sparse_depth_rays(scene: Scene, rel: str, train_idx: tuple[int, ...]) -> Dep
     depth = np.concatenate(depths)
     if depth.size == 0:
         return None
-    return DepthRays(torch.from_numpy(np.concatenate(os_)), torch.from_numpy(np.concatenate(ds)),
-                     torch.from_numpy(depth), torch.from_numpy(np.concatenate(views)).long())  # fmt: skip
+    return DepthRays(
+        torch.from_numpy(np.concatenate(os_)),
+        torch.from_numpy(np.concatenate(ds)),
+        torch.from_numpy(depth),
+        torch.from_numpy(np.concatenate(views)).long(),
+    )

@@ -120,8 +120,9 @@ def kind_of(target: Path) -> str:
     if cfg.is_file() and (target / "checkpoint.pt").is_file():
         doc = json.loads(cfg.read_text())
         return "run" if "scene_dir" in doc else "xray"
-    raise UserError(f"{target}: neither a scene folder (transforms.json) nor a finished run (config.json, "
-                    "checkpoint.pt)")  # fmt: skip
+    raise UserError(
+        f"{target}: neither a scene folder (transforms.json) nor a finished run (config.json, checkpoint.pt)"
+    )
 
 
 def _look_from_first_camera(server, scene, centre: np.ndarray, pull_back: float = 1.0) -> None:

@@ -38,8 +38,10 @@ def new_path_file(paths_dir: Path, name: str) -> Path:
     name = name.strip()
     name = name if name.endswith(".json") else name + ".json"
     if not NAME.fullmatch(name) or ".." in name:
-        raise UserError(f"camera path name {name[:120]!r}: expected a file name of letters, digits, '.', '_', '-' "
-                        "ending in .json (no folder, no '..')")  # fmt: skip
+        raise UserError(
+            f"camera path name {name[:120]!r}: expected a file name of letters, digits, '.', '_', '-' "
+            "ending in .json (no folder, no '..')"
+        )
     path = Path(paths_dir) / name
     if os.path.lexists(path):
         raise UserError(f"{path} already exists: choose another name (the recorder never replaces a file)")
@@ -79,10 +81,14 @@ class PathRecorder:
         width = max(1, round(height * self.keyframes[-1].aspect))
         with self._saving:  # two browsers saving one name: the second finds the first's file
             return write_camera_path(
-                new_path_file(self.paths_dir, name), keyframes=np.stack([k.world_from_cam for k in self.keyframes]),
+                new_path_file(self.paths_dir, name),
+                keyframes=np.stack([k.world_from_cam for k in self.keyframes]),
                 fovs_deg=np.array([k.fov_deg for k in self.keyframes]),
-                times=np.linspace(0.0, seconds, len(self.keyframes)), width=width, height=int(height), fps=fps,
-            )  # fmt: skip
+                times=np.linspace(0.0, seconds, len(self.keyframes)),
+                width=width,
+                height=int(height),
+                fps=fps,
+            )
 
 
 def add_recorder_gui(server, out_dir: Path, *, size: float) -> PathRecorder:
@@ -104,9 +110,17 @@ def add_recorder_gui(server, out_dir: Path, *, size: float) -> PathRecorder:
         cam = event.client.camera
         key = rec.add_browser_camera(cam.wxyz, cam.position, cam.fov, cam.aspect)
         wxyz, pos = viser_pose(key.world_from_cam)
-        handles.append(server.scene.add_camera_frustum(
-            f"/path/key_{len(rec.keyframes):03d}", fov=cam.fov, aspect=cam.aspect, scale=0.04 * size,
-            wxyz=wxyz, position=pos, color=(230, 40, 160)))  # fmt: skip
+        handles.append(
+            server.scene.add_camera_frustum(
+                f"/path/key_{len(rec.keyframes):03d}",
+                fov=cam.fov,
+                aspect=cam.aspect,
+                scale=0.04 * size,
+                wxyz=wxyz,
+                position=pos,
+                color=(230, 40, 160),
+            )
+        )
         status.content = f"{len(rec.keyframes)} keyframes; saved under {out_dir}"
 
     @clear.on_click

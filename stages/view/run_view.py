@@ -46,8 +46,9 @@ def frame_image(view: dict, mode: str) -> np.ndarray:
     return to_uint8(colorize(view["depth"], float(lo), float(max(hi, lo + 1e-6)), valid=valid))
 
 
-def render_camera(trained, wxyz, position, fov: float, aspect: float, long_side: int, *, coarse: bool,
-                  mode: str = "rgb") -> np.ndarray:  # fmt: skip
+def render_camera(
+    trained, wxyz, position, fov: float, aspect: float, long_side: int, *, coarse: bool, mode: str = "rgb"
+) -> np.ndarray:
     """The render callback: a browser camera (viser's pose, vertical fov in radians, aspect w/h) -> uint8 image
     [H, W, 3] with `long_side` pixels on its long side."""
     intr = browser_intrinsics(fov, aspect, long_side)
@@ -126,8 +127,16 @@ class LiveRender:
         if self.paused or not cam.fov > 0 or not cam.aspect > 0:
             return
         t0 = time.perf_counter()
-        img = render_camera(self.trained, cam.wxyz, cam.position, cam.fov, cam.aspect,
-                            self.preview if coarse else self.refine, coarse=coarse, mode=self.mode)  # fmt: skip
+        img = render_camera(
+            self.trained,
+            cam.wxyz,
+            cam.position,
+            cam.fov,
+            cam.aspect,
+            self.preview if coarse else self.refine,
+            coarse=coarse,
+            mode=self.mode,
+        )
         self.last_seconds["coarse" if coarse else "refined"] = time.perf_counter() - t0
         if self._stop.is_set() or self.paused or client.client_id not in self._events:
             return

@@ -90,8 +90,12 @@ class SceneView:
         centre = aabb.mean(axis=0)
         poses = np.stack([f.world_from_cam for f in self.scene.frames])
         up, why = paths.up_axis(poses)
-        s.scene.add_line_segments("/scene/up", np.array([[centre, centre + 0.35 * self.size * up]]),
-                                  colors=(40, 120, 255), thickness=0.008 * self.size)  # fmt: skip
+        s.scene.add_line_segments(
+            "/scene/up",
+            np.array([[centre, centre + 0.35 * self.size * up]]),
+            colors=(40, 120, 255),
+            thickness=0.008 * self.size,
+        )
         s.scene.add_label("/scene/up_label", "up", position=tuple(centre + 0.38 * self.size * up))
         self._draw_points()
         with s.gui.add_folder(label):
@@ -120,9 +124,15 @@ class SceneView:
         intr = self.scene.frame_intrinsics(i)
         wxyz, pos = viser_pose(self.scene.frames[i].world_from_cam)
         frustum = self.server.scene.add_camera_frustum(
-            f"/cameras/{i:04d}", fov=vertical_fov(intr), aspect=intr.w / intr.h, scale=0.05 * self.size,
-            image=thumbnail(self.scene, i) if image else None, wxyz=wxyz, position=pos, color=(60, 60, 60),
-        )  # fmt: skip
+            f"/cameras/{i:04d}",
+            fov=vertical_fov(intr),
+            aspect=intr.w / intr.h,
+            scale=0.05 * self.size,
+            image=thumbnail(self.scene, i) if image else None,
+            wxyz=wxyz,
+            position=pos,
+            color=(60, 60, 60),
+        )
         frustum.on_click(lambda _event, i=i: self.select(i))
         self.frusta[i] = frustum
 

@@ -56,9 +56,11 @@ def start(host: str, port: int, gate: Gate):
             except OSError as exc:
                 raise UserError(f"--port: cannot listen on {host}:{port} ({exc.strerror})") from None
     if not is_loopback(host):
-        print(f"warning: serving on {host}: anyone who can reach this machine on port {port} and has the URL (its "
-              "token) can use the viewer (use the default --host 127.0.0.1 to keep it to this machine)",
-              file=sys.stderr)  # fmt: skip
+        print(
+            f"warning: serving on {host}: anyone who can reach this machine on port {port} and has the URL (its "
+            "token) can use the viewer (use the default --host 127.0.0.1 to keep it to this machine)",
+            file=sys.stderr,
+        )
     import viser
 
     gate.port, server = port, None

@@ -47,8 +47,9 @@ def find_splats(run_dir: Path, given: Path | None) -> RenderInput | None:
         if source.splat_file is None:
             raise UserError(f"{path}: splats: expected a splat .ply made by the splat stage, got a folder")
         if not os.path.samefile(source.run_dir, run_dir):
-            raise UserError(f"{path}: made from the run {source.run_dir}, not {run_dir}; expected splats of the run "
-                            "viewed")  # fmt: skip
+            raise UserError(
+                f"{path}: made from the run {source.run_dir}, not {run_dir}; expected splats of the run viewed"
+            )
         return source
     except UserError as exc:
         if given is not None:
@@ -63,8 +64,9 @@ def viser_arrays(splats: sp.Splats) -> tuple[np.ndarray, np.ndarray, np.ndarray,
         cov = sp.covariance(splats.log_scales, splats.quats)
         rgb = (0.5 + sp.SH_C0 * splats.sh[:, 0]).clamp(0.0, 1.0)
         opacity = torch.sigmoid(splats.opacity_logits)[:, None]
-    return tuple(np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32)
-                 for t in (splats.means, cov, rgb, opacity))  # fmt: skip
+    return tuple(
+        np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32) for t in (splats.means, cov, rgb, opacity)
+    )
 
 
 @dataclass

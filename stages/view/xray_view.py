@@ -92,6 +92,10 @@ class XrayView:
         rot[first, 0], rot[second, 1] = 1.0, 1.0
         rot[:, 2] = np.cross(rot[:, 0], rot[:, 1])
         self.handles["slice"] = self.server.scene.add_image(
-            "/xray/slice", img, render_width=float(hi[first] - lo[first]),
-            render_height=float(hi[second] - lo[second]), wxyz=quat_from_matrix(rot), position=pos,
-        )  # fmt: skip
+            "/xray/slice",
+            img,
+            render_width=float(hi[first] - lo[first]),
+            render_height=float(hi[second] - lo[second]),
+            wxyz=quat_from_matrix(rot),
+            position=pos,
+        )

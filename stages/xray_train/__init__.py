@@ -177,8 +177,13 @@ def _run(config: Config, progress: Progress) -> Outputs:
         seconds = TrainingLoop(steps.settings(), steps, steps.clock, stop).run()
     scene, run_dir = steps.scene, Path(config.run_dir)
     final = evaluate(steps.model, scene, list(scene.split("test")))
-    steps.metrics.append(step=steps.step, seconds=round(seconds, 3), resolution=steps.schedule[steps.level],
-                         lr=steps.lr, **{k: round(v, 4) for k, v in final.items() if k != "volume"})  # fmt: skip
+    steps.metrics.append(
+        step=steps.step,
+        seconds=round(seconds, 3),
+        resolution=steps.schedule[steps.level],
+        lr=steps.lr,
+        **{k: round(v, 4) for k, v in final.items() if k != "volume"},
+    )
     volume_path = write_npy(run_dir / "volume.npy", final["volume"].numpy().astype(np.float32))
     metrics = steps.metrics.save()
     plot = plot_metrics(steps.metrics.rows, run_dir / "psnr_vs_time.png")
@@ -224,15 +229,20 @@ def _setup(config: Config, progress: Progress) -> XraySteps:
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "manifest.json").unlink(missing_ok=True)  # resumed: not a finished run until the end
     scene_abs = Path(config.scene).resolve()
-    cfg_json = {**config_to_json(config), "scene": str(config.scene), "scene_abs": str(scene_abs),
-                "scene_from_run": scene_from_run(run_dir, scene_abs)}  # fmt: skip
+    cfg_json = {
+        **config_to_json(config),
+        "scene": str(config.scene),
+        "scene_abs": str(scene_abs),
+        "scene_from_run": scene_from_run(run_dir, scene_abs),
+    }
     write_json(run_dir / "config.json", cfg_json)
     metrics = MetricsLog(run_dir / "metrics.csv", METRICS)
     if config.resume:
         metrics.load()
         metrics.rows = [r for r in metrics.rows if int(r["step"]) <= begin.step]
-    return XraySteps(config=config, scene=scene, begin=begin, gen=gen, device=device, metrics=metrics,
-                     progress=progress)  # fmt: skip
+    return XraySteps(
+        config=config, scene=scene, begin=begin, gen=gen, device=device, metrics=metrics, progress=progress
+    )
 
 
 def _used(steps: XraySteps, seconds: float, final: dict) -> dict:

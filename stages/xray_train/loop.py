@@ -172,13 +172,15 @@ class XraySteps:
         self.step, self.lr_factor, self.level, self.schedule = begin.step, begin.lr_factor, begin.level, begin.schedule
         self.clock = Clock(begin.seconds)
         self.samples = samples_per_level(scene, cfg.step_ratio, self.schedule)
-        self.lr = Schedule(lr=begin.lr, decay=cfg.lr_decay).at(budget(cfg).fraction(begin.step, begin.seconds),
-                                                               begin.lr_factor)  # fmt: skip
+        self.lr = Schedule(lr=begin.lr, decay=cfg.lr_decay).at(
+            budget(cfg).fraction(begin.step, begin.seconds), begin.lr_factor
+        )
         self.ckpt_path = Path(cfg.run_dir) / "checkpoint.pt"
         projections = torch.from_numpy(scene.projections).reshape(scene.geometry.n_views, -1)
         train_views = torch.as_tensor(scene.split("train"))
-        self.batches = Batches(geometry=scene.geometry, projections=projections, train_views=train_views,
-                               generator=self.gen)  # fmt: skip
+        self.batches = Batches(
+            geometry=scene.geometry, projections=projections, train_views=train_views, generator=self.gen
+        )
         self.test_views = evenly(scene.split("test"), cfg.eval_test_views)  # re-projected at each periodic evaluation
         every = cfg.eval_every  # training seconds between periodic evaluations
         self.next_eval = (math.floor(begin.seconds / every) + 1) * every if every > 0 else math.inf
@@ -190,9 +192,13 @@ class XraySteps:
     def settings(self) -> LoopSettings:
         """The shared loop's settings from the config."""
         cfg = self.config
-        return LoopSettings(name="xray-train", budget=budget(cfg), schedule=Schedule(lr=self.base_lr,
-                            decay=cfg.lr_decay), checkpoint_seconds=cfg.checkpoint_seconds,
-                            checkpoint_path=self.ckpt_path)  # fmt: skip
+        return LoopSettings(
+            name="xray-train",
+            budget=budget(cfg),
+            schedule=Schedule(lr=self.base_lr, decay=cfg.lr_decay),
+            checkpoint_seconds=cfg.checkpoint_seconds,
+            checkpoint_path=self.ckpt_path,
+        )
 
     def prepare(self, fraction: float) -> bool:
         """Upsample the field at the schedule's fractions (a new optimiser); True when it did."""
@@ -222,8 +228,9 @@ class XraySteps:
         return True
 
     def _render(self, o: Tensor, d: Tensor) -> Tensor:
-        return field_line_integrals(self.model, o, d, self._box, self.samples[self.level], jitter=True,
-                                    generator=self.gen)  # fmt: skip
+        return field_line_integrals(
+            self.model, o, d, self._box, self.samples[self.level], jitter=True, generator=self.gen
+        )
 
     def _unit_integrals(self, o: Tensor, d: Tensor) -> Tensor:
         """Line integrals of theta = 1 (mu = mu_ref) over the box: SART's row sums."""
@@ -236,9 +243,14 @@ class XraySteps:
         if not (self.step % cfg.log_every == 0 or clock() >= self.next_eval):
             return
         mean = float(np.mean(self._recent))
-        row = {"step": self.step, "seconds": round(clock(), 3), "loss": mean,
-               "train_psnr": round(psnr_from_mse(mean / self._p_range**2), 3), "lr": lr,
-               "resolution": self.schedule[self.level]}  # fmt: skip
+        row = {
+            "step": self.step,
+            "seconds": round(clock(), 3),
+            "loss": mean,
+            "train_psnr": round(psnr_from_mse(mean / self._p_range**2), 3),
+            "lr": lr,
+            "resolution": self.schedule[self.level],
+        }
         self._recent = []
         if clock() >= self.next_eval:
             with clock.paused():
@@ -266,6 +278,15 @@ class XraySteps:
 
     def finish(self, seconds: float) -> None:
         """checkpoint.pt: the field, the optimiser and what `--resume` continues from (model.xray's format)."""
-        save_xray_checkpoint(self.ckpt_path, self.model, self.opt, step=self.step, seconds=seconds, mu_ref=self.mu_ref,
-                             n_samples_render=samples_for(self.scene.grid, 0.5 * self.config.step_ratio),
-                             lr_factor=self.lr_factor, level=self.level, rng=self.gen.get_state())  # fmt: skip
+        save_xray_checkpoint(
+            self.ckpt_path,
+            self.model,
+            self.opt,
+            step=self.step,
+            seconds=seconds,
+            mu_ref=self.mu_ref,
+            n_samples_render=samples_for(self.scene.grid, 0.5 * self.config.step_ratio),
+            lr_factor=self.lr_factor,
+            level=self.level,
+            rng=self.gen.get_state(),
+        )

@@ -90,12 +90,15 @@ def start(config: Any, scene: ProjectionScene, device: torch.device, gen: torch.
     return Start(model=model, opt=make_optimizer(model, lr), mu_ref=ref, lr=lr, schedule=schedule)
 
 
-def _resumed(path: Path, field: str, device: torch.device, gen: torch.Generator, lr: float,
-             schedule: list[int]) -> Start:  # fmt: skip
+def _resumed(
+    path: Path, field: str, device: torch.device, gen: torch.Generator, lr: float, schedule: list[int]
+) -> Start:
     state = read_xray_checkpoint(path, device)
     if "rng" not in state:
-        raise UserError(f"{path}: written by an xray-train without --resume (no step state to continue from); "
-                        "train again with --overwrite")  # fmt: skip
+        raise UserError(
+            f"{path}: written by an xray-train without --resume (no step state to continue from); "
+            "train again with --overwrite"
+        )
     kind = state["field_config"].get("kind")
     if kind != FIELD_KINDS[field]:
         raise UserError(f"{path}: checkpoint holds a {kind!r} field, config asks for {field} ({FIELD_KINDS[field]!r})")
@@ -104,6 +107,14 @@ def _resumed(path: Path, field: str, device: torch.device, gen: torch.Generator,
     opt = make_optimizer(model, lr)
     opt.load_state_dict(state["optimizer"])
     gen.set_state(state["rng"].cpu())
-    return Start(model=model, opt=opt, mu_ref=float(state["mu_ref"]), lr=lr, schedule=schedule,
-                 step=int(state["step"]), seconds=float(state["seconds"]), lr_factor=float(state["lr_factor"]),
-                 level=int(state["level"]))  # fmt: skip
+    return Start(
+        model=model,
+        opt=opt,
+        mu_ref=float(state["mu_ref"]),
+        lr=lr,
+        schedule=schedule,
+        step=int(state["step"]),
+        seconds=float(state["seconds"]),
+        lr_factor=float(state["lr_factor"]),
+        level=int(state["level"]),
+    )
