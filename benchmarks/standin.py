@@ -174,8 +174,8 @@ def visible_points(points: np.ndarray, scene_src: Path, tol: float = VISIBILITY_
     are dropped; floaters in free space are kept."""
     import json
 
+    from nerfpipe.data.synthetic.objects import default_primitives
     from nerfpipe.data.transforms import read_scene
-    from nerfpipe.stages.scene.objects import default_primitives
 
     scene = read_scene(scene_src)
     manifest = json.loads((Path(scene_src) / "manifest.json").read_text())

@@ -12,10 +12,10 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
+from nerfpipe.data.synthetic.objects import default_primitives
 from nerfpipe.data.transforms import load_image, read_scene
 from nerfpipe.radiance.camera import generate_rays, project
 from nerfpipe.stages import scene
-from nerfpipe.stages.scene.objects import default_primitives
 
 
 @pytest.fixture(scope="module")

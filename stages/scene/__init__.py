@@ -1,7 +1,7 @@
 """`scene` stage: a synthetic, analytically rendered scene with exact cameras, depth and mesh.
 
 The project's fixture for every later stage and its built-in demo. A textured ground slab and five
-high-texture objects (spheres, boxes, a cylinder; `stages.scene.objects`) are ray cast exactly from cameras on
+high-texture objects (spheres, boxes, a cylinder; `data.synthetic.objects`) are ray cast exactly from cameras on
 a hemisphere around them.
 
 Conventions (docs/DESIGN.md):
@@ -34,9 +34,9 @@ No scene bounds are stated (as in NeRF synthetic). Views i % 8 == 0 are test, i 
 split without views gets no file. Ground truth is keyed by the name `convert` gives each image (`train_r_0`),
 so `eval --ground-truth` finds it after conversion.
 
-Modules: `config` (the Config, its validation, the Outputs), `rig` (the cameras per layout), `raycast` (the exact
-renderer and the scene's mesh), `objects` (primitives, textures, shading), `turntable` (the turntable's cameras
-and angles), `files` (PNG, depth, mesh, transforms.json and Blender-layout writers).
+Modules: `config` (the Config, its validation, the Outputs), `rig` (the cameras per layout), `turntable` (the
+turntable's cameras and angles), `files` (PNG, depth, mesh, transforms.json and Blender-layout writers); the
+primitives and the exact renderer are `data.synthetic`'s.
 """
 
 from __future__ import annotations
@@ -48,6 +48,8 @@ import numpy as np
 
 from nerfpipe.data.atomic import write_bytes, write_json
 from nerfpipe.data.rundir import config_to_json, output_folder, write_manifest
+from nerfpipe.data.synthetic.objects import backdrop, default_primitives, room
+from nerfpipe.data.synthetic.raycast import SUPERSAMPLE, render_turntable_view, render_view, scene_mesh
 from nerfpipe.stages.scene.config import Config, Outputs, check
 from nerfpipe.stages.scene.files import (
     TEST_EVERY,
@@ -62,8 +64,6 @@ from nerfpipe.stages.scene.files import (
 from nerfpipe.stages.scene.files import (
     views as view_files,
 )
-from nerfpipe.stages.scene.objects import backdrop, default_primitives, room
-from nerfpipe.stages.scene.raycast import SUPERSAMPLE, render_turntable_view, render_view, scene_mesh
 from nerfpipe.stages.scene.rig import (
     CAMERA_RADIUS,
     ELEVATION_DEG,

@@ -21,20 +21,13 @@ import math
 
 import numpy as np
 
+from nerfpipe.data.synthetic.objects import rot_z
 from nerfpipe.radiance.paths import look_at
 
 __all__ = ["ELEVATION_DEG", "angles", "room_from_cam", "object_cameras", "rot_z"]
 
 ELEVATION_DEG = 30.0
 """The fixed camera's elevation above the turntable's centre (degrees)."""
-
-
-def rot_z(angle: float) -> np.ndarray:
-    """[4, 4] rotation by `angle` radians about +z."""
-    c, s = math.cos(angle), math.sin(angle)
-    m = np.eye(4)
-    m[:2, :2] = [[c, -s], [s, c]]
-    return m
 
 
 def angles(views: int) -> np.ndarray:

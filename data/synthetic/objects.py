@@ -1,4 +1,4 @@
-"""Analytic primitives and solid textures of the synthetic scene (`stages.scene`).
+"""Analytic primitives and solid textures of the synthetic scene (the `scene` stage and other generators).
 
 Conventions:
 - World frame = scene frame: metres, right-handed, up +z. The ground slab's top face is the plane z = 0.
@@ -12,6 +12,7 @@ Conventions:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,7 +29,17 @@ __all__ = [
     "default_primitives",
     "backdrop",
     "room",
+    "rot_z",
 ]
+
+
+def rot_z(angle: float) -> np.ndarray:
+    """[4, 4] rotation by `angle` radians about +z."""
+    c, s = math.cos(angle), math.sin(angle)
+    m = np.eye(4)
+    m[:2, :2] = [[c, -s], [s, c]]
+    return m
+
 
 _MASK32 = np.uint64(0xFFFFFFFF)
 

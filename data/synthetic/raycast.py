@@ -1,4 +1,4 @@
-"""The scene stage's exact renderer: rays cast against the primitives (`stages.scene.objects`), `SUPERSAMPLE` x
+"""The scene stage's exact renderer: rays cast against the primitives (`data.synthetic.objects`), `SUPERSAMPLE` x
 `SUPERSAMPLE` stratified rays per pixel averaged with a box filter, shaded colour, coverage alpha and the z-depth of
 the pixel-centre ray; a turntable view (the objects turned, camera and room fixed); the scene's mesh."""
 
@@ -8,9 +8,8 @@ import numpy as np
 import torch
 import trimesh
 
+from nerfpipe.data.synthetic.objects import Primitive, rot_z, shade, solid_texture
 from nerfpipe.radiance.camera import Intrinsics, generate_rays, pixel_centers
-from nerfpipe.stages.scene.objects import Primitive, shade, solid_texture
-from nerfpipe.stages.scene.turntable import rot_z
 
 __all__ = ["SUPERSAMPLE", "render_view", "render_turntable_view", "scene_mesh"]
 
@@ -77,7 +76,7 @@ def render_turntable_view(
     fixed: np.ndarray,
     theta: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """One turntable view (stages.scene.turntable): the camera `fixed` (room frame), the objects turned by
+    """One turntable view (the `scene` stage's turntable layout): the camera `fixed` (room frame), the objects turned by
     `theta`. Returns straight colour of everything [H, W, 3], its coverage [H, W], the object's straight colour
     [H, W, 3] and coverage (the mask) [H, W], and the object's z-depth [H, W] (0 = not the object), float64."""
     s = SUPERSAMPLE
