@@ -53,7 +53,7 @@ bench-refine: $(INSTALLED)
 	$(VENV)/bin/python -m benchmarks.bench_refine --out $(BENCH_OUT)/refine
 
 # issue 16: the viewer's 256 px preview (coarse / refined) against render's path, on lego_400's run from bench-train
-VIEW_RUN ?= $(BENCH_OUT)/train/lego_400/fast
+VIEW_RUN ?= $(BENCH_OUT)/train/lego_400/density
 bench-view: $(INSTALLED)
 	@test -f $(VIEW_RUN)/checkpoint.pt || { echo "bench-view: no trained run at $(VIEW_RUN) (make bench-train makes it, or VIEW_RUN=DIR)"; exit 2; }
 	$(VENV)/bin/python -m benchmarks.bench_view $(VIEW_RUN)

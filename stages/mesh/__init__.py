@@ -64,6 +64,7 @@ from nerfpipe.stages.mesh.field_access import (
     field_device,
     has_color,
     occupancy_binary,
+    surface_function,
     vertex_colors,
 )
 from nerfpipe.stages.mesh.grid import Grid, make_grid, sample_volume
@@ -288,14 +289,18 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
     scene = trained.scene
     out_from_scene = scene.source_from_scene() if config.frame == "user" else np.eye(4)
     device = field_device(trained)
-    density = density_function(trained)
+    surface = surface_function(trained)
+    density = surface.values
     t = time.perf_counter()
     grid, how, crop_info, plane = _grid_for(config, trained, out_from_scene)
     t = lap("crop", t)
 
     keep_beyond = SUPPORT_CLEARANCE * crop_info["support_plane"]["tolerance"] if plane is not None else 0.0
     level, method_info, sample_stats, threshold_info = None, {"name": "density"}, {}, None
-    if config.method == "poisson":
+    if surface.level is not None and config.method != "poisson":  # a signed distance: its zero, no level rule
+        method_info = {"name": surface.what}
+        level, threshold_info = surface.level, {"rule": f"the zero level set of the run's {surface.what}"}
+    elif config.method == "poisson":
         from nerfpipe.stages.mesh.poisson import Poisson, poisson_surface
 
         verts_g, faces_g, steps, method_info = poisson_surface(

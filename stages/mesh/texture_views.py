@@ -208,7 +208,7 @@ def training_views(trained: Any, count: int) -> ViewSource | None:
         return None
     c2w = np.stack([np.asarray(scene.frames[i].world_from_cam, np.float64) for i in train])
     picked = [train[k] for k in spread_views(c2w, count)]
-    downscale = VIEW_DOWNSCALE * float(trained.run_config.get("downscale") or 1.0)
+    downscale = VIEW_DOWNSCALE * trained.downscale
     cameras = []
     for i in picked:
         intr = scene.frame_intrinsics(i)
