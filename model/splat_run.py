@@ -287,7 +287,7 @@ class SplatRun:
 def load_splats(path: str | Path, device: str | torch.device = "auto") -> SplatRun:
     """A splat file made by the splat stage, ready to render (its run loaded with `model.load_trained`)."""
     from nerfpipe.model.device import resolve_device
-    from nerfpipe.model.trained import load_trained
+    from nerfpipe.model.run import load_trained
 
     source = open_input(path)
     if source.splat_file is None:
