@@ -69,7 +69,7 @@ from nerfpipe.data.lock import folder_lock
 from nerfpipe.data.rundir import MetricsLog
 from nerfpipe.stages.poses import colmap as sfm
 from nerfpipe.stages.poses import inputs, lens, output, quality
-from nerfpipe.stages.poses.attempts import ladder, prior_focals, run_attempts
+from nerfpipe.stages.poses.attempts import ladder, prior_focals, run_attempts, weak_priors
 from nerfpipe.stages.poses.colmap import interrupted_by_sigterm
 from nerfpipe.stages.poses.config import CAMERA_MODELS, CameraModel, Config, Outputs, check
 from nerfpipe.stages.poses.inputs import camera_groups as _camera_groups  # tests/test_poses.py reaches it by this name
@@ -173,7 +173,12 @@ def _run(config: Config, kind: str, progress: Progress | None) -> Outputs:
                     state.model, state.radial_term = lens.add_radial_term(
                         state.model, state.model is not mapped, config.num_threads
                     )
-        state.checks = quality.model_checks(state.model, prior_focals(state.focal_prior), len(state.stats.features))
+        state.checks = [
+            *quality.model_checks(
+                state.model, prior_focals(state.focal_prior), len(state.stats.features), weak_priors(state.focal_prior)
+            ),
+            *state.consistency[0],
+        ]
         report = output.write_model(config, state, build, colmap_dir, report_path, metrics, matcher, groups)
     except BaseException as e:
         shutil.rmtree(build, ignore_errors=True)

@@ -84,6 +84,7 @@ def write_model(
                 {k: a[k] for k in ("name", "registered", "total", "kept", "check", "settings")} for a in state.attempts
             ],
             "choice": state.choice,
+            "consistency": state.consistency[1],
             "ladder": state.ladder,
         },
         left_out={**state.skipped, **report["not_registered"]},

@@ -98,6 +98,8 @@ class RunState:
     focal_prior: dict[int, dict[str, Any]] = field(default_factory=dict)  # camera id -> prior (exif.apply_...)
     checks: list[Check] | None = None  # stages.poses.quality's checks of the model written; None: no model
     choice: str = ""  # why the kept attempt won (stages.poses.choice)
+    consistency: tuple[list[Check], dict[str, Any] | None] = field(default_factory=lambda: ([], None))
+    """The kept model's consistency checks and their record (stages.poses.consistency)."""
     ladder: dict[str, Any] = field(default_factory=dict)  # why the retry ladder stopped, its time budget
 
 
@@ -181,7 +183,13 @@ def _per_image(state: RunState) -> dict[str, Any]:
             entry["near_duplicate_of"] = state.duplicates[name]
         prior = state.exif_focal.get(name)
         entry["exif_focal"] = (
-            "absent" if prior is None else {"focal_px": round(prior.focal_px, 2), "source": prior.source}
+            "absent"
+            if prior is None
+            else {
+                "focal_px": round(prior.focal_px, 2),
+                "source": prior.source,
+                **({"weak": prior.weak} if prior.weak else {}),
+            }
         )
         if stats is not None and name in stats.features:
             entry.update(
@@ -209,6 +217,7 @@ def build_report(config: Config, state: RunState, status: str, error: str | None
         "error": error,
         **checked,
         "choice": state.choice or None,
+        "consistency": state.consistency[1],
         "input": str(config.input),
         "registered": registered,
         "total": total,
@@ -272,7 +281,13 @@ def focal_prior_record(state: RunState) -> dict[str, Any]:
     """poses_report.json "focal_prior": whether the photos' EXIF gave a focal length, and each camera's prior."""
     values = [p.focal_px for p in state.exif_focal.values()]
     photos = len(state.names)
-    if values:
+    weak = sorted({p.weak for p in state.exif_focal.values() if p.weak})
+    if weak:
+        says = (
+            f"weak: {weak[0]}; COLMAP's cameras start from it without has_prior_focal_length, and the "
+            "focal_vs_weak_exif check compares the model's with it but never decides which attempt is kept"
+        )
+    elif values:
         says = (
             "COLMAP's cameras start from the EXIF focal length (has_prior_focal_length) and the focal_vs_exif "
             "check compares the model's with it"
@@ -285,6 +300,7 @@ def focal_prior_record(state: RunState) -> dict[str, Any]:
         )
     return {
         "exif": f"{len(values)} of {photos} photos" if values else "absent",
+        "strength": ("weak" if weak else "strong") if values else None,
         "focal_px_median": round(float(np.median(values)), 2) if values else None,
         "sources": sorted({p.source for p in state.exif_focal.values()})[:5],
         "says": says,

@@ -165,6 +165,7 @@ def _run(config: Config, progress: Progress, par: DataParallel | None = None) ->
         occupied=None if loop.model.grid is None else 1.0 - loop.model.grid.skip_fraction,
         object_box=loop.model.space.object_box,
         pose=used.get("pose_refinement"),
+        scene_dir=scene_path if scene_path.is_dir() else None,
     )
     inputs = [scene_path / "transforms.json"] if scene_path.is_dir() else [scene_path]
     manifest = write_manifest(
