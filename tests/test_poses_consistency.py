@@ -239,3 +239,30 @@ def _model10() -> pycolmap.Reconstruction:
     opts.num_rigs, opts.num_cameras_per_rig, opts.num_frames_per_rig, opts.num_points3D = 1, 1, 10, 100
     pycolmap.set_random_seed(0)
     return pycolmap.synthesize_dataset(opts)
+
+
+def test_choice_names_the_deciding_check_when_the_kept_attempt_also_registered_most():
+    """The folded attempt registered as many (40/40), with fewer points: the sentence says which attempt was passed
+    over and which check decided (issue 53); one that registered fewer and failed is listed too."""
+    folded = Candidate(
+        name="as configured",
+        registered=40,
+        points=4260,
+        checks=(),
+        consistency=(Check.upper("capture_order", 2, 0, says=""),),
+    )
+    right = Candidate(
+        name="neighbours in capture order",
+        registered=40,
+        points=4341,
+        checks=(),
+        consistency=(Check.upper("capture_order", 0, 0, says=""),),
+    )
+    chosen = choose([folded, right], total=40)
+    assert chosen.index == 1
+    assert "registered as many or more: 'as configured' (40/40) failed capture_order = 2" in chosen.sentence
+    assert chosen.sentence.endswith("(decided by capture_order)")
+    fewer = Candidate(name="as configured", registered=38, points=4260, checks=(), consistency=folded.consistency)
+    chosen = choose([fewer, right], total=40)
+    assert chosen.index == 1 and "the most registered" in chosen.sentence
+    assert "passed over: 'as configured' (38/40) failed capture_order = 2" in chosen.sentence

@@ -122,21 +122,20 @@ def choose(candidates: Sequence[Candidate], total: int) -> Choice:
     if kept.registered == 0:
         return Choice(index=k, sentence=f"{head}): no attempt registered any image", warning=None)
     if pool:
-        over = order[: order.index(k)]  # attempts that registered more: each failed a camera or a consistency check
+        # attempts that failed a check and registered as many or more, then the others that failed one
+        over = [i for i in order if i != k and i not in pool and candidates[i].registered >= kept.registered]
+        under = [i for i in order if i != k and i not in pool and i not in over]
         if not over:
             only = "the only attempt" if len(candidates) == 1 else "the most registered"
             consistent = ", and its poses agree with the photos" if kept.consistency else ""
-            return Choice(
-                index=k, sentence=f"{head}, {only}), and its cameras pass the checks{consistent}", warning=None
-            )
-        passed = "; ".join(
-            f"'{candidates[i].name}' ({candidates[i].registered}/{total}) {_why_not(candidates[i])}" for i in over
-        )
-        decided = sorted({_decider(candidates[i]) for i in over})
+            sentence = f"{head}, {only}), and its cameras pass the checks{consistent}"
+            if under:
+                sentence += f"; passed over: {_passed(candidates, under, total)}"
+            return Choice(index=k, sentence=sentence, warning=None)
         sentence = (
             f"{head}), whose cameras pass the checks and whose poses agree with the photos, over attempts that "
-            f"registered as many or more: {passed} (decided by {', '.join(decided)})"
-        )
+            f"registered as many or more: {_passed(candidates, over, total)}"
+        ) + (f"; also passed over: {_passed(candidates, under, total)}" if under else "")
         return Choice(index=k, sentence=sentence, warning=None)
     if sane:  # sane cameras, but every such model folded: the most registered of them, suspect
         bad = quality.failed(list(kept.consistency))
@@ -156,6 +155,16 @@ def choose(candidates: Sequence[Candidate], total: int) -> Choice:
         sentence=f"{head}), the most registered, although its camera failed {bad}: {why}",
         warning=f"the kept model's camera failed {bad}, and {why}: check the intrinsics before trusting the poses",
     )
+
+
+def _passed(candidates: Sequence[Candidate], passed: list[int], total: int) -> str:
+    """ "'a' (22/22) failed focal_vs_exif = 40 (expected <= 25 %) (decided by focal_vs_exif)": the attempts passed
+    over for a failed check, and which checks decided."""
+    listed = "; ".join(
+        f"'{candidates[i].name}' ({candidates[i].registered}/{total}) {_why_not(candidates[i])}" for i in passed
+    )
+    decided = sorted({_decider(candidates[i]) for i in passed})
+    return f"{listed} (decided by {', '.join(decided)})"
 
 
 def _why_not(c: Candidate) -> str:
