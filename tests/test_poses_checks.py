@@ -17,7 +17,7 @@ from PIL import Image
 
 from nerfpipe.data.checks import verdict
 from nerfpipe.stages.poses import quality
-from nerfpipe.stages.poses.choice import Candidate, candidate, choose, retry_budget, stop_reason
+from nerfpipe.stages.poses.choice import Candidate, candidate, choose, keepable, stop_reason
 from nerfpipe.stages.poses.exif import FILM_DIAGONAL_MM, apply_focal_priors, exif_focal
 from nerfpipe.stages.poses.images import write_upright
 from nerfpipe.stages.poses.report import RunState, focal_prior_record
@@ -190,16 +190,18 @@ def test_choice_when_every_attempt_fails_a_camera_check():
 
 def test_ladder_stops_on_a_good_attempt_not_on_a_bad_one_and_within_its_budget():
     total = 22
-    assert stop_reason([_cand("as configured", 22, True)], total, [30.0]).startswith("'as configured' registered 22/22")
+    assert stop_reason([_cand("as configured", 22, True)], total, 30.0, 110.0).startswith(
+        "'as configured' registered 22/22"
+    )
     # 80 %+ registered but a camera check failed: go on
-    assert stop_reason([_cand("as configured", 22, False)], total, [30.0]) is None
-    # a usable, sane model (15/22) and retries past max(10 x 30 s, 60 s): stop; under it: go on
+    assert stop_reason([_cand("as configured", 22, False)], total, 30.0, 110.0) is None
+    # a usable, sane model (15/22) and the stage past its time budget: stop; under it: go on
     tried = [_cand("as configured", 22, False), _cand("more features", 15, True)]
-    assert stop_reason(tried, total, [30.0, 200.0]) is None
-    assert "budget of 300 s" in stop_reason(tried, total, [30.0, 320.0])
+    assert stop_reason(tried, total, 100.0, 110.0) is None
+    assert "time budget of 110 s" in stop_reason(tried, total, 120.0, 110.0)
     # without a usable, sane model the budget does not stop the ladder (the result would be failed or suspect)
-    assert stop_reason([_cand("a", 22, False), _cand("b", 8, True)], total, [30.0, 900.0]) is None
-    assert retry_budget(2.0) == 60.0 and retry_budget(30.0) == 300.0
+    assert stop_reason([_cand("a", 22, False), _cand("b", 8, True)], total, 900.0, 110.0) is None
+    assert keepable(tried, total).name == "more features" and keepable(tried[:1], total) is None
 
 
 # ---------------------------------------------------------------- EXIF focal prior, sideways photos

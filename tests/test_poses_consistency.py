@@ -167,8 +167,9 @@ def test_choice_keeps_the_attempt_that_did_not_fold_and_says_which_check_decided
     assert "'as configured' (40/40) failed capture_order = 2" in chosen.sentence
     assert "decided by capture_order" in chosen.sentence
     # a folded model does not stop the ladder, a consistent one does
-    assert stop_reason(cands[:1], 40, [10.0]) is None
-    assert "poses agree with the photos" in stop_reason(cands, 40, [10.0, 2.0])
+    assert stop_reason(cands[:1], 40, 10.0, 200.0) is None
+    assert stop_reason(cands[:1], 40, 900.0, 200.0) is None  # nothing to keep: the budget does not stop it
+    assert "poses agree with the photos" in stop_reason(cands, 40, 12.0, 200.0)
     # every attempt folded: the most registered, with a warning naming the fold
     chosen = choose([_cand("as configured", 40, False), _cand("more features", 39, False)], total=40)
     assert chosen.index == 0 and "capture_order = 2" in chosen.warning

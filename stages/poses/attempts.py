@@ -31,6 +31,7 @@ it no proof.
 
 from __future__ import annotations
 
+import math
 import os
 import shutil
 import time
@@ -45,15 +46,8 @@ import pycolmap
 from nerfpipe.data.checks import verdict
 from nerfpipe.data.rundir import config_to_json
 from nerfpipe.stages.poses import colmap as sfm
-from nerfpipe.stages.poses.choice import (
-    RETRY_BUDGET,
-    RETRY_MIN_SECONDS,
-    Candidate,
-    candidate,
-    choose,
-    retry_budget,
-    stop_reason,
-)
+from nerfpipe.stages.poses.budget import AttemptCost, attempt_cost, fit_retry
+from nerfpipe.stages.poses.choice import Candidate, candidate, choose, keepable, stop_reason
 from nerfpipe.stages.poses.colmap import PYCOLMAP_MAX_IMAGE_SIZE, PYCOLMAP_MAX_NUM_FEATURES, RELAXED_MAPPER, SfmSettings
 from nerfpipe.stages.poses.consistency import (
     AGREE_DEG,
@@ -71,8 +65,8 @@ LADDER_RULE = (
     f"stop at an attempt that registers >= {WARN_FRACTION:.0%} of the images, whose cameras pass the checks and "
     "whose poses agree with the photos; a model that folded along the capture order is retried at once with the "
     "matches restricted to neighbours in capture order; once a usable model (cameras passing, poses consistent) "
-    f"exists, start no retry after the retries took max({RETRY_BUDGET:g} x the first attempt's time, "
-    f"{RETRY_MIN_SECONDS:g} s) (retry_budget_s)"
+    "exists, start no retry past the stage's time budget (time_budget_s), nor one predicted to end past it (an "
+    "extraction retry is first shrunk to fit)"
 )
 """The ladder's stopping rule, as poses_report.json states it (`choice.stop_reason`)."""
 
@@ -127,31 +121,42 @@ def run_attempts(
     state: RunState,
     phase: PhaseTimer,
     after_matching: Callable[[Path], None] | None = None,
+    budget: float = math.inf,
 ) -> None:
     """Run `plan` until `choice.stop_reason` says stop. Leaves the kept attempt's (`choice.choose`) statistics,
     models and camera priors in `state`, its database at build/database.db, one record per attempt (with its
     checks) in `state.attempts`, the kept model's consistency checks and their record in `state.consistency`, and
     the choice and the ladder's stop in `state.choice` / `state.ladder`.
     Each extraction gets the photos' EXIF focal priors (`exif.apply_focal_priors`, before matching).
-    `after_matching(database)` runs once, after the first attempt's matching (it may raise to stop before mapping)."""
+    `after_matching(database)` runs once, after the first attempt's matching (it may raise to stop before mapping).
+    `budget`: the stage's time budget in seconds from `state.started` (`budget` module: it bounds the retries)."""
     plan = list(plan)
     total = sum(len(g) for g in groups)
     order = sorted((n for g in groups for n in g), key=natural_key)
-    results, candidates, seconds, records = [], [], [], []  # per attempt: (database, statistics, models, model, priors)
+    results, candidates, records, skipped = [], [], [], []  # per attempt: (database, statistics, models, model, priors)
     db = extracted = build / "database.db"
+    source: SfmSettings = plan[0].settings  # the settings of the last extraction
     priors: dict[int, dict] = {}
     evidence_db = db  # the database with every pair the photos gave, that the consistency checks read
+    first: AttemptCost | None = None
     stopped = f"every attempt allowed was made (max_attempts {len(plan)})"
     k = 0
     while k < len(plan):
         attempt = plan[k]
         k += 1
-        phase.attempt, t0, s = k, time.perf_counter(), attempt.settings
+        if attempt.reuse != "nothing":  # its features come from the last extraction: say so in its settings
+            attempt = replace(attempt, settings=_extracted_with(attempt.settings, source))
+        fitted = _within_budget(attempt, first, candidates, total, state, budget, max(long_sides))
+        if fitted is None:
+            skipped.append(attempt.name)
+            continue
+        attempt, budget_note = fitted
+        phase.attempt, t0, s, before = k, time.perf_counter(), attempt.settings, dict(state.timings)
         state.model, models, restricted = None, {}, None
         if attempt.reuse == "neighbours":
-            source, db = db, build / f"database.{k}.db"
+            previous, db = db, build / f"database.{k}.db"
             with phase("matching"):
-                kept, dropped, window = restrict_to_neighbours(source, db, order)
+                kept, dropped, window = restrict_to_neighbours(previous, db, order)
                 state.stats = sfm.database_stats(db)
             restricted = {"window": window, "pairs_kept": kept, "pairs_dropped": dropped}
         elif attempt.reuse != "matches":
@@ -166,7 +171,7 @@ def run_attempts(
                         {n: p.focal_px for n, p in state.exif_focal.items()},
                         {n: p.weak for n, p in state.exif_focal.items() if p.weak},
                     )
-                    extracted = db
+                    extracted, source = db, s
                 state.stats = sfm.database_stats(db)
             if textured(state.stats):
                 with phase("matching"):
@@ -186,7 +191,10 @@ def run_attempts(
         found = candidate(
             attempt.name, state.model, prior_focals(priors), total, weak_priors(priors), consistency=consistency
         )
-        seconds.append(time.perf_counter() - t0)
+        seconds = time.perf_counter() - t0
+        if first is None:
+            spent = {p: state.timings.get(p, 0.0) - before.get(p, 0.0) for p in state.timings}
+            first = attempt_cost(s, max(long_sides), list(state.stats.features.values()), spent)
         state.attempts.append(
             {
                 "attempt": k,
@@ -195,7 +203,7 @@ def run_attempts(
                 "total": total,
                 "models_found": sorted((m.num_reg_images() for m in models.values()), reverse=True),
                 "features_median": float(np.median(list(state.stats.features.values()))) if state.stats.features else 0,
-                "seconds": round(seconds[-1], 3),
+                "seconds": round(seconds, 3),
                 "reused": attempt.reuse,
                 "kept": False,
                 "cameras_pass": found.sane,
@@ -205,6 +213,7 @@ def run_attempts(
                 ),
                 "consistency": record,
                 **({"restricted_to_neighbours": restricted} if restricted else {}),
+                **({"budget": budget_note} if budget_note else {}),
                 "settings": describe(s, max(long_sides))
                 + (f", pairs within {restricted['window']} places in capture order" if restricted else ""),
                 "options": config_to_json(s),
@@ -213,7 +222,7 @@ def run_attempts(
         results.append((db, state.stats, models, state.model, priors))
         records.append(record)
         candidates.append(found)
-        reason = stop_reason(candidates, total, seconds)
+        reason = stop_reason(candidates, total, time.time() - state.started, budget)
         if reason is not None:
             stopped = reason
             break
@@ -227,11 +236,45 @@ def run_attempts(
     state.choice = chosen.sentence + _agreement(state.attempts, results, chosen.index)
     if chosen.warning is not None:
         state.warnings.append(chosen.warning)
-    state.ladder = {"stopped": stopped, "retry_budget_s": round(retry_budget(seconds[0]), 1), "rule": LADDER_RULE}
+    if skipped and stopped.startswith("every attempt"):
+        stopped = f"the retries that fit the time budget were made ({', '.join(skipped)} did not fit)"
+    state.ladder = {
+        "stopped": stopped,
+        "time_budget_s": None if math.isinf(budget) else round(budget, 1),
+        "left_out_for_time": skipped,
+        "rule": LADDER_RULE,
+    }
     phase.attempt = 1
     os.replace(kept_db, build / "database.db")
     for other in build.glob("database.*.db"):
         other.unlink()
+
+
+def _extracted_with(settings: SfmSettings, source: SfmSettings) -> SfmSettings:
+    """`settings` with the extraction of `source` (an attempt that reuses features was not extracted with its own)."""
+    return replace(settings, max_image_size=source.max_image_size, max_num_features=source.max_num_features)
+
+
+def _within_budget(
+    attempt: Attempt,
+    first: AttemptCost | None,
+    candidates: list[Candidate],
+    total: int,
+    state: RunState,
+    budget: float,
+    long_side: int,
+) -> tuple[Attempt, str | None] | None:
+    """`attempt` as it may run within the time budget (an extraction retry possibly shrunk), with a note for its
+    record, or None when it does not fit (`budget` module). Unbounded: the first attempt, the neighbours attempt,
+    and every attempt while no usable model the stage would keep exists."""
+    if first is None or attempt.reuse == "neighbours" or math.isinf(budget) or keepable(candidates, total) is None:
+        return attempt, None
+    left = budget - (time.time() - state.started)
+    fitted, _, why = fit_retry(attempt.settings, attempt.reuse, first, left, long_side)
+    if fitted is None:
+        state.warnings.append(f"retry '{attempt.name}' {why} (poses --time-budget)")
+        return None
+    return replace(attempt, settings=fitted), why
 
 
 def _folded(found: Candidate) -> bool:

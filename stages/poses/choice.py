@@ -11,11 +11,10 @@ poses_report.json says why the kept one won, what was passed over, and which che
 Stop (`stop_reason`, asked after each attempt):
   - an attempt registered >= WARN_FRACTION (80 %), its cameras pass the checks and its poses are consistent: good
     enough, stop. A model at 80 %+ whose camera fails a check, or that folded, does NOT stop the ladder;
-  - time: once a usable, sane model is in hand, no retry starts after the retries have spent
-    max(RETRY_BUDGET x the first attempt's seconds, RETRY_MIN_SECONDS). The second attempt (pycolmap's own
-    defaults) is always allowed, so a set that ends under 80 % never ends with fewer images than they register;
-    the budget bounds attempts 3-4 (relaxed mapper, guided matching), which a usable model makes optional. With
-    no usable, sane model every attempt is made: the alternative is a failed or a suspect result.
+  - time (`budget`): once a usable model that the stage would keep (enough registered, cameras passing, poses
+    consistent) is in hand, no retry starts after the stage spent its time budget, nor one predicted to end past it
+    (`budget.fit_retry`, which may shrink an extraction retry to fit). With no such model every attempt is made:
+    the alternative is a failed or a suspect result.
 """
 
 from __future__ import annotations
@@ -36,17 +35,8 @@ __all__ = [
     "choose",
     "stop_reason",
     "usable",
-    "retry_budget",
-    "RETRY_BUDGET",
-    "RETRY_MIN_SECONDS",
+    "keepable",
 ]
-
-RETRY_BUDGET = 10.0
-"""Retries may take this many times the first attempt's seconds once a usable, sane model exists. Attempt 2
-(3200 px, 8192 features) alone often costs 5-30x an attempt at 1000 px (extraction follows the pixels,
-exhaustive matching the square of the features), so this mostly decides whether attempts 3-4 run."""
-RETRY_MIN_SECONDS = 60.0
-"""... but never less than this: on a small set, whose first attempt takes seconds, retries are cheap."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -180,24 +170,23 @@ def _decider(c: Candidate) -> str:
     return ", ".join(x.name for x in c.consistency if not x.ok)
 
 
-def stop_reason(candidates: Sequence[Candidate], total: int, seconds: Sequence[float]) -> str | None:
-    """Why the ladder stops after the attempts made so far (`seconds`: each one's time), or None to go on."""
+def stop_reason(candidates: Sequence[Candidate], total: int, spent: float, budget: float) -> str | None:
+    """Why the ladder stops after the attempts made so far (`spent`: the stage's seconds so far, `budget`: its time
+    budget), or None to go on."""
     for c in candidates:
         if c.sane and c.consistent and c.registered >= WARN_FRACTION * total:
             enough = f"{c.registered}/{total} (>= {WARN_FRACTION:.0%})"
             agree = " and its poses agree with the photos" if c.consistency else ""
             return f"'{c.name}' registered {enough}, its cameras pass the checks{agree}"
-    usable_sane = [c for c in candidates if c.sane and c.consistent and usable(c.registered, total)]
-    if len(candidates) >= 2 and usable_sane:
-        spent, budget = sum(seconds[1:]), retry_budget(seconds[0])
-        if spent >= budget:
-            return (
-                f"the retries took {spent:.0f} s, over their budget of {budget:.0f} s, and '{usable_sane[0].name}' "
-                f"is usable ({usable_sane[0].registered}/{total} registered, cameras pass the checks)"
-            )
+    kept = keepable(candidates, total)
+    if kept is not None and spent >= budget:
+        return (
+            f"the stage took {spent:.0f} s, its time budget of {budget:.0f} s, and '{kept.name}' is usable "
+            f"({kept.registered}/{total} registered, cameras pass the checks, poses consistent)"
+        )
     return None
 
 
-def retry_budget(first_seconds: float) -> float:
-    """Seconds the retries may take, once a usable, sane model exists, after a first attempt of `first_seconds`."""
-    return max(RETRY_BUDGET * first_seconds, RETRY_MIN_SECONDS)
+def keepable(candidates: Sequence[Candidate], total: int) -> Candidate | None:
+    """The first attempt the stage would keep as it is (usable, sane cameras, consistent poses), or None."""
+    return next((c for c in candidates if c.sane and c.consistent and usable(c.registered, total)), None)
