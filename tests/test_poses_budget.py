@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
 import pycolmap
 import pytest
 
@@ -130,3 +131,44 @@ def test_without_a_usable_model_the_budget_leaves_nothing_out(tmp_path, monkeypa
     state = _run_ladder(tmp_path, monkeypatch, [5, 20], FIRST, 110.0)  # 5/22 is under 40 %: not usable
     assert [a["name"] for a in state.attempts] == ["as configured", "more features"]
     assert state.ladder["left_out_for_time"] == [] and "budget" not in state.attempts[1]
+
+
+# ---------------------------------------------------------------- working copies of large photos
+
+
+def test_working_copies_give_colmaps_own_database(tmp_path):
+    """Photos of 512 px at a 200 px working size (>= 2x: copies): the database after `to_full_resolution` is the
+    one COLMAP makes from the full photos itself, up to the resize filter: cameras of the photos' size, keypoints in
+    their pixels, on the same image features (most within 1.5 full-size px of one COLMAP finds)."""
+    from scipy.spatial import cKDTree
+
+    from nerfpipe.stages import scene
+    from nerfpipe.stages.poses import colmap as sfm
+    from nerfpipe.stages.poses.working import worth_copying
+
+    scene.run(scene.Config(out_dir=tmp_path / "s", kind="photos", size=512, views=2, seed=0))
+    images = tmp_path / "s" / "images"
+    names = sorted(p.name for p in images.iterdir())
+    settings = _settings(200, 2048)
+    assert worth_copying(512, 200) and not worth_copying(1920, 1000)  # the fox keeps COLMAP's own path
+    sfm.extract(tmp_path / "own.db", images, [names], [512], settings)
+    sfm.extract(tmp_path / "copied.db", images, [names], [512], settings, tmp_path / "work")
+    assert sorted(p.name for p in (tmp_path / "work" / "200" / "images").iterdir()) == names
+    own, copied = pycolmap.Database.open(tmp_path / "own.db"), pycolmap.Database.open(tmp_path / "copied.db")
+    try:
+        (cam_own,), (cam_copied,) = own.read_all_cameras(), copied.read_all_cameras()
+        assert (cam_copied.width, cam_copied.height) == (cam_own.width, cam_own.height) == (512, 512)
+        assert cam_copied.principal_point_x == pytest.approx(256) and cam_copied.focal_length == pytest.approx(
+            cam_own.focal_length
+        )
+        for image in own.read_all_images():
+            a = own.read_keypoints(image.image_id)
+            b = copied.read_keypoints(copied.read_image_with_name(image.name).image_id)
+            assert 0.7 < len(b) / len(a) < 1.4 and b[:, :2].min() >= 0 and b[:, :2].max() <= 512
+            distance, _ = cKDTree(a[:, :2]).query(b[:, :2])
+            assert np.median(distance) < 1.5
+            scale_own, scale_copied = np.hypot(a[:, 2], a[:, 4]), np.hypot(b[:, 2], b[:, 4])  # sqrt(a11^2 + a21^2)
+            assert np.median(scale_copied) == pytest.approx(np.median(scale_own), rel=0.25)
+    finally:
+        own.close()
+        copied.close()

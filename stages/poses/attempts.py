@@ -165,7 +165,7 @@ def run_attempts(
                 if attempt.reuse == "features":
                     _copy_features(extracted, db)
                 else:
-                    sfm.extract(db, images, groups, long_sides, s)
+                    sfm.extract(db, images, groups, long_sides, s, build / "working")
                     priors = apply_focal_priors(
                         db,
                         {n: p.focal_px for n, p in state.exif_focal.items()},

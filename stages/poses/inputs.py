@@ -159,7 +159,7 @@ def working_size(
 
     def median_features_at(size: int) -> float:
         t0 = time.perf_counter()
-        median = sfm.count_features(probe_db, images, names, size, settings)
+        median = sfm.count_features(probe_db, images, names, size, settings, long_side, probe_db.parent / "working")
         timed[size] = (time.perf_counter() - t0) / min(sfm.PROBE_IMAGES, len(names))
         return median
 
