@@ -271,7 +271,8 @@ def consistency_checks(
         says = (
             f"{len(folds)} place(s) where consecutive photos that see the same thing are placed far apart "
             f"(over {JUMP_FACTOR:g} x the median step of {median:.1f} deg and {JUMP_MIN_DEG:g} deg): {where}: the "
-            "reconstruction folded onto itself where faces look alike"
+            "reconstruction folded onto itself: faces that look alike were matched to one another, or (the object "
+            "on a turntable) a background that did not turn with it was; mask the background (--masks) if so"
             if folds
             else f"the camera path in capture order has no fold (median step {median:.1f} deg)"
         )
