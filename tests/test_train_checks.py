@@ -195,3 +195,22 @@ def test_an_ok_poses_report_is_no_evidence_against_the_poses(tmp_path):
         )["cause"].value
         == "generalisation"
     )
+
+
+def test_a_short_run_still_climbing_is_named_too_little_training_not_generalisation(tmp_path):
+    """A run cut after 111 steps (the as-shot head on a loaded machine): 4 logged rows, training PSNR 7.9 -> 13.2
+    dB, held-out 12.8. Too few rows for still_improving, but the trend says it was still learning; the poor fit
+    of its own photos is no generalisation failure. Flat at the same level, it is named poses."""
+    rows = [
+        {"step": "25", "seconds": "20.8", "train_psnr": "7.850"},
+        {"step": "50", "seconds": "47.8", "train_psnr": "10.997"},
+        {"step": "75", "seconds": "75.9", "train_psnr": "12.602"},
+        {"step": "100", "seconds": "106.4", "train_psnr": "13.192"},
+        {"step": "111", "seconds": "120.2", "train_psnr": "", "test_psnr": "12.803"},
+    ]
+    bad = _failed(train_checks(rows=rows, test_psnr=12.8, per_view=None, occupied=None, object_box=False, pose=None))
+    assert {"holdout_psnr", "training_fit", "cause"} <= set(bad) and "still_improving" not in bad
+    assert bad["cause"].value == "too little training" and "2.2 dB" in bad["cause"].says
+    flat = [dict(r, train_psnr="13.0") if r.get("train_psnr") else r for r in rows]
+    bad = _failed(train_checks(rows=flat, test_psnr=12.8, per_view=None, occupied=None, object_box=False, pose=None))
+    assert bad["cause"].value == "poses" and "cannot fit its own training photos" in bad["cause"].says

@@ -16,7 +16,7 @@ Each rule, its limit and why (figures from `make bench-real`, docs/BENCH_REAL.md
   back or stopped is reported with its figures.
 - **training_fit**: the training PSNR at the end >= TRAIN_FIT_DB: under it the field cannot reproduce even the
   photos it trains on (issue 53: a folded carton 16.97 dB after 395 steps; the same kind of capture with right
-  poses, the shared head on white, 24.95 dB after 575). Left out of runs that logged too few rows to judge.
+  poses, the shared head on white, 24.95 dB after 575). Left out of runs that logged under LAST_ROWS rows.
 - **cause** (only when another check failed): ONE cause named from the evidence (`diagnose`), in one line, instead
   of a list of possibilities. See `diagnose` for the rules and their order.
 Checks that do not apply (no test split, no refinement, no training PSNR logged: a run shorter than one logging
@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from nerfpipe.data.checks import HOLDOUT_FLOOR_DB, HOLDOUT_GAP_DB, Check
-from nerfpipe.stages.train.diagnosis import RISE_DB, UNEXPLAINED_SHARE, Evidence, diagnose
+from nerfpipe.stages.train.diagnosis import RISE_DB, TRAIN_FIT_DB, UNEXPLAINED_SHARE, Evidence, diagnose
 
 __all__ = ["train_checks", "HOLDOUT_FLOOR_DB", "GAP_DB", "RISE_DB", "TRAIN_FIT_DB"]
 
@@ -40,7 +40,6 @@ GAP_DB = HOLDOUT_GAP_DB
 LAST_ROWS = 4
 RISE_WINDOW = 0.2
 FOG_SHARE = 0.6
-TRAIN_FIT_DB = 20.0
 
 
 def _series(rows: list[dict], key: str) -> list[tuple[float, float]]:
@@ -155,7 +154,7 @@ def train_checks(
                 "off by were pulled back or refinement was stopped",
             )
         )
-    if train_end is not None and rise is not None:
+    if train_end is not None and len(_series(rows, "train_psnr")) >= LAST_ROWS:
         out.append(
             Check.lower(
                 "training_fit",
@@ -171,6 +170,7 @@ def train_checks(
             train_psnr=train_end,
             test_psnr=test_psnr,
             rise=rise,
+            late_rise=_late_rise(rows),
             steps=_last_step(rows),
             per_view=per_view,
             occupied=occupied,
@@ -179,6 +179,16 @@ def train_checks(
         cause, line = diagnose(evidence)
         out.append(Check(name="cause", ok=False, value=cause, limit="none (every other check passes)", says=line))
     return out
+
+
+def _late_rise(rows: list[dict]) -> float | None:
+    """Training PSNR at the last logged row minus at the last row logged before 60 % of the run's time: the trend
+    of a run too short for `_rise` (3+ logged rows); None with fewer."""
+    pts = _series(rows, "train_psnr")
+    if len(pts) < 3:
+        return None
+    before = [p for s, p in pts if s <= 0.6 * pts[-1][0]]
+    return pts[-1][1] - before[-1] if before else None
 
 
 def _last_step(rows: list[dict]) -> int | None:

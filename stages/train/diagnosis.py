@@ -10,15 +10,17 @@ supports:
    `look_alike_matches`) or a camera check. The poses stage's own evidence, independent of the field.
 2. **background rule**: the field fills most of its object box (occupied_share): a fog of density, which is what a
    background rule that keeps the backdrop (or a box that is wrong) trains.
-3. **too little training**: the training PSNR still rose by over RISE_DB in the run's last fifth: the run was cut
-   while learning (more --max-seconds is the cure).
+3. **too little training**: the training PSNR still rose by over RISE_DB in the run's last fifth (a run too short
+   for that measure: over its last 40 %): the run was cut while learning (more --max-seconds is the cure; the poses
+   cannot be judged before the field has fitted its photos).
 4. **poses of some views**: over UNEXPLAINED_SHARE of the training views are far under the median view, the rest
    fit: those photos contradict the others (mis-posed, blurred or exposed differently); the worst are named.
 5. **poses (contradicting photos)**: the field cannot fit its own training photos (training_fit) and has stopped
    improving: the photos contradict one another, across the board. Wrong poses do that; so would a scene that
    moved, which a user knows.
-6. **generalisation**: the training photos are fitted but the held-out ones are not (holdout_gap): the field learned
-   the photos, not the scene: too few views round the object, or held-out photos posed apart from the rest.
+6. **generalisation**: the training photos are fitted (training PSNR >= TRAIN_FIT_DB) but the held-out ones are
+   not (holdout_gap, holdout_psnr): the field learned the photos, not the scene: too few views round the object,
+   or held-out photos posed apart from the rest.
 7. **empty field** / **pose refinement**: the grid is empty; refinement hit its bounds.
 No cure is applied here: the one cheap cure known for wrong poses of this kind (matching restricted to
 neighbours in capture order) is the poses stage's, which applies it itself and records that it did.
@@ -29,10 +31,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["Evidence", "diagnose", "RISE_DB", "UNEXPLAINED_SHARE", "POSE_CHECKS"]
+__all__ = ["Evidence", "diagnose", "RISE_DB", "UNEXPLAINED_SHARE", "TRAIN_FIT_DB", "POSE_CHECKS"]
 
 RISE_DB = 1.0
 UNEXPLAINED_SHARE = 0.2
+TRAIN_FIT_DB = 20.0
+"""A training PSNR under this at the end: the field does not fit its own photos (`checks`' training_fit)."""
 POSE_CHECKS = ("capture_order", "look_alike_matches")
 """poses_report.json checks of the poses against the photos (stages.poses.consistency)."""
 CAMERA_CHECKS = ("focal_vs_exif", "field_of_view", "focal_aspect", "distortion", "principal_point")
@@ -49,13 +53,15 @@ class Evidence:
     """Training PSNR at the end (dB)."""
     test_psnr: float | None
     rise: float | None
-    """Training PSNR rise over the run's last fifth (dB)."""
+    """Training PSNR rise over the run's last fifth (dB; None for a run with under 8 logged rows)."""
     steps: int | None
     per_view: dict[str, Any] | None
     """The manifest's per-view summary (`suspect`, `views_total`, `worst`)."""
     occupied: float | None
     poses_report: dict[str, Any] | None
     """The scene's poses_report.json, if the poses stage made the scene."""
+    late_rise: float | None = None
+    """Training PSNR at the end minus at 60 % of the run's time (dB): the trend of a short run (3+ rows)."""
 
 
 def _db(value: float | None) -> str:
@@ -82,14 +88,17 @@ def diagnose(e: Evidence) -> tuple[str, str]:
             f"background rule: the field fills {e.occupied:.0%} of its object box, a fog rather than an object "
             f"({fit}{held}): the background was learned as density; try --background white (or black), or masks"
         )
+    climbing = e.rise if e.rise is not None else e.late_rise
+    low_fit = e.train_psnr is not None and e.train_psnr < TRAIN_FIT_DB
     if (
-        e.rise is not None
-        and e.rise > RISE_DB
-        and ({"training_fit", "holdout_psnr", "still_improving"} & set(e.failed))
+        climbing is not None
+        and climbing > RISE_DB
+        and (low_fit or {"training_fit", "holdout_psnr", "still_improving"} & set(e.failed))
     ):
+        window = "the run's last fifth" if e.rise is not None else "the run's last 40 %"
         return "too little training", (
-            f"too little training: the training PSNR still rose {e.rise:.1f} dB over the run's last fifth "
-            f"({fit}{held}): give it more --max-seconds"
+            f"too little training: the training PSNR still rose {climbing:.1f} dB over {window} ({fit}{held}): "
+            "give it more --max-seconds (the poses cannot be judged before the field has fitted its photos)"
         )
     views = e.per_view or {}
     total = views.get("views_total") or 0
@@ -101,14 +110,14 @@ def diagnose(e: Evidence) -> tuple[str, str]:
             f"({named}{', ...' if len(suspect) > 4 else ''}), the rest fit ({fit}{held}): those photos contradict "
             "the others (mis-posed, blurred or exposed differently; per_view_worst.png shows them)"
         )
-    if "training_fit" in e.failed:
-        rose = f", +{e.rise:.1f} dB over the last fifth" if e.rise is not None else ""
+    if "training_fit" in e.failed or (low_fit and "holdout_psnr" in e.failed):
+        rose = f", {climbing:+.1f} dB over the run's end" if climbing is not None else ""
         return "poses", (
             f"poses: the field cannot fit its own training photos ({fit}{rose}: it stopped improving) and no view "
             "stands out: the photos contradict one another across the board, which wrong poses do (or a scene "
             "that moved); check the poses against the photos (poses_report.json) or rerun poses"
         )
-    if "holdout_gap" in e.failed or "holdout_psnr" in e.failed:
+    if ("holdout_gap" in e.failed or "holdout_psnr" in e.failed) and not low_fit:
         return "generalisation", (
             f"generalisation: the field fits its training photos ({fit}) but not the held-out ones"
             f"{held.replace(', held-out', ':')}: it learned the photos, not the scene (too few views round the "
