@@ -11,8 +11,9 @@ photos) bounds two things, each from times the stage itself measured:
   poses passing), a retry starts only if its predicted cost fits what is left of the budget. Costs are predicted
   from the first attempt's phases (`AttemptCost`): a new extraction at working size s2 costs its extraction x
   (s2 / s1)^2, matching x (features2 / features1)^2 (exhaustive matching compares every feature of every pair),
-  mapping x features2 / features1; features2 = min(cap2, features1 x (s2 / s1)^2). Re-mapping costs a mapping;
-  re-matching a matching and a mapping. An extraction retry ("more features") that does not fit is shrunk first
+  mapping x features2 / features1; features2 = min(cap2, features1 x (s2 / s1)^2). Re-mapping with the relaxed
+  mapper costs RELAXED_MAPPING mappings; guided re-matching GUIDED_MATCHING matchings and GUIDED_MAPPING mappings
+  (measured, below). An extraction retry ("more features") that does not fit is shrunk first
   (its working size down the candidates to the first attempt's, its cap halved down to the first attempt's
   features): the largest that fits runs; when none does, the retry is left out.
 Without a usable model, every retry runs whatever the budget (the alternative is a failed or a suspect result),
@@ -46,6 +47,14 @@ MIN_SECONDS = 60.0
 """... and never under this: a small set's retries are cheap."""
 FIRST_EXTRACTION_SHARE = 1 / 3
 """The first attempt's extraction may take this share of the budget: matching, mapping and a retry need the rest."""
+RELAXED_MAPPING = 2.0
+GUIDED_MATCHING = 3.0
+GUIDED_MAPPING = 20.0
+"""The retries that reuse features cost more than the first attempt's phases: the relaxed mapper maps 1-1.6 x as
+long (the head, masked: 11.1 s against 11.4 s at 1000 px; 22 photos of 4000 px all round: 11.9 against 7.3 s);
+guided matching matches 3 x as long and its many weak pairs make the relaxed mapper's trials 18 x as long (the
+same 22: 31.6 s against 10.6 s, 134 s against 7.3 s; the prediction before these factors let it start with 20 s
+left and the stage end at 255 s of a 110 s budget)."""
 
 
 def stage_budget(asked: float | None, photos: int) -> float:
@@ -105,10 +114,12 @@ class AttemptCost:
 def predict(first: AttemptCost, size: int, cap: int, reuse: str) -> float:
     """Predicted seconds of a retry after `first` (module doc): `reuse` "nothing" (extract at `size` with `cap`),
     "features" (match and map again), "matches" or "neighbours" (map again)."""
-    if reuse in ("matches", "neighbours"):
+    if reuse == "neighbours":
         return first.mapping
+    if reuse == "matches":
+        return RELAXED_MAPPING * first.mapping
     if reuse == "features":
-        return first.matching + first.mapping
+        return GUIDED_MATCHING * first.matching + GUIDED_MAPPING * first.mapping
     pixels = (size / first.size) ** 2
     features = min(cap, first.features * pixels) if first.features > 0 else cap
     ratio = features / max(first.features, 1.0)
