@@ -171,6 +171,7 @@ def _run(config: Config, progress: Progress, par: DataParallel | None = None) ->
         occupied=None if skip is None else 1.0 - skip,
         object_box=space.object_box if space is not None else False,
         pose=used.get("pose_refinement"),
+        scene_dir=scene_path if scene_path.is_dir() else None,
     )
     inputs = [scene_path / "transforms.json"] if scene_path.is_dir() else [scene_path]
     manifest = write_manifest(
