@@ -48,6 +48,7 @@ from nerfpipe.data.rundir import MetricsLog, config_to_json, sidecar, write_mani
 from nerfpipe.data.splat_ply import SplatData, write_ply, write_splat
 from nerfpipe.model import load_trained, resolve_device, splat_density
 from nerfpipe.model.loop import Budget, Clock, LoopSettings, Schedule, TrainingLoop
+from nerfpipe.model.run import require
 from nerfpipe.model.splat_backends import Backend, choose_backend, kernel_name
 from nerfpipe.model.splat_init import gaussians_from_field
 from nerfpipe.model.splat_views import TrainingPhotos, load_training_photos
@@ -348,6 +349,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     device = resolve_device(config.device)
     backend = choose_backend(config.backend, device)
     trained = load_trained(config.run_dir, device)
+    require(trained, "rays", stage="splat")  # Gaussians are placed where training rays end
     scene = trained.scene
     train_idx = scene.split("train")
     downscale = config.downscale or trained.downscale
