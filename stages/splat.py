@@ -101,7 +101,7 @@ class Config:
     gaussians: int = 50_000
     """Gaussians initialised from the field (fewer when too few training rays hit a surface); densification adds
     more. 50k: within a CPU budget fewer Gaussians take more steps, and on the fox and lego_400 (300 s) 50k scored
-    best of 25k-300k (README, "Gaussian splats")."""
+    best of 25k-300k (docs/SPLATS.md)."""
     frame: Literal["user", "normalized"] = "user"
     """Output frame: user (the source frame before convert, what viewers expect) | normalized (the scene frame)."""
     downscale: float | None = None
@@ -116,7 +116,7 @@ class Config:
     sh_degree: int = 3
     """Spherical-harmonics degree of the colours (0: one colour a Gaussian; 1..3: view-dependent), raised one band at
     a time over the run (SH_AT). 3 against 0, 300 s on CPU: lego_400 33.05 against 31.47 dB, the fox 30.99 against
-    28.77 dB held-out (README, "View-dependent colour")."""
+    28.77 dB held-out (docs/SPLATS.md, "View-dependent colour")."""
     seed: int = 0
     """Seed of the initial rays, the view order and the split Gaussians' centres."""
     device: str = "auto"
