@@ -138,6 +138,11 @@ def test_two_steps_write_every_file(rgba_scene, tmp_path, method, field):
     assert out.manifest.stat().st_mtime_ns >= out.checkpoint.stat().st_mtime_ns
     if field == "fast":
         assert "occupancy_skip_fraction" in manifest["used"]
+    per_view = manifest["used"]["per_view"]
+    if method == "nerf":  # seconds a 24-px view: evenly spaced views within the report's floor, not all nine
+        assert 1 <= per_view["views_rendered"] < per_view["views_total"]
+    else:
+        assert per_view["views_rendered"] == per_view["views_total"]
     # two steps: the self-check says so (held-out PSNR under the floor), with the figure and the rule
     assert manifest["check"] == "suspect"
     failed = {c["name"]: c for c in manifest["checks"] if not c["ok"]}

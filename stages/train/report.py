@@ -3,7 +3,9 @@ the per-image report (`per_view_report`): every training view's PSNR, the worst 
 
 Per-image report (`per_view.json`, `per_view_worst.png`): after training, each training view is rendered at a
 low resolution (the run's images shrunk further so that all of them cost about PER_VIEW_FRACTION of the training
-time at the measured render speed; long side between PER_VIEW_MIN_SIDE and PER_VIEW_MAX_SIDE px) and compared with
+time at the measured render speed; long side between PER_VIEW_MIN_SIDE and PER_VIEW_MAX_SIDE px; where even the
+smallest renders of every view would take over max(that, PER_VIEW_FLOOR_SECONDS), evenly spaced views that fit,
+`views_rendered` of `views_total`) and compared with
 its photo shrunk the same way (area filter; masks and alpha composited on the evaluation colour, like the test
 PSNR). A view far below the others (SUSPECT_DB under the median) is one the field could not explain: blurred,
 occluded, badly exposed or mis-posed. The sheet shows the worst views: photo | render | error (x4), one per row.
@@ -37,7 +39,10 @@ __all__ = ["plot_psnr", "used_and_left_out", "per_view_report", "PER_VIEW_FRACTI
 PER_VIEW_FRACTION = 0.03
 """The per-image report's render budget, as a fraction of the training seconds."""
 PER_VIEW_MIN_SIDE, PER_VIEW_MAX_SIDE = 24, 128
-"""Long side (px) of the per-image report's renders: at least (even over budget), at most."""
+"""Long side (px) of the per-image report's renders: at least, at most."""
+PER_VIEW_FLOOR_SECONDS = 10.0
+"""Seconds the report may take whatever the budget; where every view at the smallest side would take longer (a
+slow method: the paper's NeRF renders a 24-px view in seconds), evenly spaced views that fit are rendered."""
 SUSPECT_DB = 3.0
 """A view this many dB under the median PSNR is listed as suspect."""
 WORST = 6
@@ -148,6 +153,17 @@ def _shrink(scene: Scene, train_idx: tuple[int, ...], downscale: float, rays: fl
     return min(factor, max(downscale, long_side / PER_VIEW_MIN_SIDE))
 
 
+def _affordable(scene: Scene, train_idx: tuple[int, ...], factor: float, rays: float) -> tuple[int, ...]:
+    """Every training view where all of them at downscale `factor` hold at most `rays` pixels; else as many
+    evenly spaced ones as do (at least one)."""
+    pixels = [scene.frame_intrinsics(i).scaled(1 / factor) for i in train_idx]
+    per_view = sum(p.w * p.h for p in pixels) / len(pixels)
+    count = max(1, min(len(train_idx), int(rays // max(per_view, 1.0))))
+    if count == len(train_idx):
+        return train_idx
+    return tuple(train_idx[round(k)] for k in np.linspace(0, len(train_idx) - 1, count))
+
+
 def _label(img: np.ndarray, text: str) -> np.ndarray:
     """uint8 [h, w, 3] RGB with a 14-px caption strip above it."""
     import cv2
@@ -205,9 +221,10 @@ def per_view_report(
         _render(model, first, scene.frames[train_idx[0]].world_from_cam, bg, device)
         rays_per_second = first.w * first.h / max(time.perf_counter() - t, 1e-6)
     factor = _shrink(scene, train_idx, downscale, budget * rays_per_second)
+    picked = _affordable(scene, train_idx, factor, max(budget, PER_VIEW_FLOOR_SECONDS) * rays_per_second)
     views, sheet_rows = [], {}
     bg_np = bg.cpu().numpy()
-    for i in train_idx:
+    for i in picked:
         intr = scene.frame_intrinsics(i).scaled(1 / factor)
         photo = _view_image(scene, i, intr.w, intr.h)
         target = over_background(photo[..., :3], photo[..., 3:], bg_np)
@@ -230,12 +247,15 @@ def per_view_report(
     write_bytes(run_dir / "per_view_worst.png", _contact_sheet([sheet_rows[v["frame"]] for v in shown]))
     seconds = time.perf_counter() - t0
     doc = {
-        "what": "PSNR of each training view rendered at low resolution against its photo (shrunk the same way, "
+        "what": "PSNR of each training view (views_rendered of views_total: evenly spaced where a slow method "
+        "cannot render them all in budget) rendered at low resolution against its photo (shrunk the same way, "
         "masks applied, composited on the evaluation colour); worst first",
         "resolution": {"downscale": round(factor, 3), "example_size": [intr.w, intr.h]},
         "budget_seconds": round(budget, 3),
         "seconds": round(seconds, 3),
         "median_psnr": round(median, 3),
+        "views_rendered": len(picked),
+        "views_total": len(train_idx),
         "suspect": suspect,
         "suspect_rule": f"PSNR more than {SUSPECT_DB:g} dB under the median: blurred, occluded, badly exposed or "
         "mis-posed photos; the sheet per_view_worst.png shows photo | render | error x4",
@@ -248,7 +268,8 @@ def per_view_report(
         "median_psnr": doc["median_psnr"],
         "worst": [[v["file"], v["psnr"]] for v in shown[:3]],
         "suspect": suspect,
-        "views_total": len(views),
+        "views_total": len(train_idx),
+        "views_rendered": len(picked),
         "seconds": doc["seconds"],
         "budget_seconds": doc["budget_seconds"],
         "downscale": round(factor, 3),
