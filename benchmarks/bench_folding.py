@@ -32,6 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.provenance import commit
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
@@ -94,14 +96,6 @@ def case(name: str, out: Path, size: int, views: int, seed: int, threads: int) -
     return row
 
 
-def _git() -> str:
-    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout
-    dirty = subprocess.run(
-        ["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True, text=True
-    ).stdout.strip()
-    return head.strip() + (" (with uncommitted changes)" if dirty else "")
-
-
 def markdown(rows: list[dict], commit: str, load: str, args: argparse.Namespace) -> str:
     lines = [
         "# Objects whose faces look alike: `make bench-folding`",
@@ -144,7 +138,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     (args.out / "results.json").write_text(json.dumps(rows, indent=1))
     old = args.doc.read_text() if args.doc.is_file() else ""
     notes = old[old.index("<!-- notes") :] if "<!-- notes" in old else "<!-- notes: kept when re-measured -->\n"
-    args.doc.write_text(markdown(rows, _git(), load, args) + "\n" + notes)
+    args.doc.write_text(markdown(rows, commit(), load, args) + "\n" + notes)
     print(f"table -> {args.doc}")
     return rows
 

@@ -39,6 +39,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from benchmarks.provenance import commit
+
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
 
@@ -214,15 +216,6 @@ def method_rows(lego_scene: Path, out: Path, smoke: bool) -> list[Row]:
     return rows
 
 
-def _commit() -> str:
-    try:
-        head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
-        dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain"], capture_output=True, text=True)
-        return head.stdout.strip() + (" (uncommitted changes)" if dirty.stdout.strip() else "")
-    except OSError:
-        return "unknown"
-
-
 def table(rows: list[Row], device: str, commit: str) -> str:
     lines = [
         f"bench-gpu at {commit} on {device}",
@@ -304,7 +297,7 @@ def main(argv: list[str] | None = None) -> list[Row]:
         for r in rows:
             r.met, r.notes = None, [*r.notes, "smoke: toy size"]
         device += " (smoke)"
-    text = table(rows, device, _commit()) + f"\nwall {time.perf_counter() - started:.0f} s\n"
+    text = table(rows, device, commit()) + f"\nwall {time.perf_counter() - started:.0f} s\n"
     (args.out / "bench_gpu.md").write_text(text)
     (args.out / "bench_gpu.json").write_text(json.dumps([r.__dict__ for r in rows], indent=1))
     print(text)

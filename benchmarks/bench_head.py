@@ -36,6 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.provenance import commit
+
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "head"
 sys.path.insert(0, str(ROOT))
@@ -126,14 +128,6 @@ def case(name: str, work: Path, out: Path, threads: int) -> dict:
     return row
 
 
-def _git() -> str:
-    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout
-    dirty = subprocess.run(
-        ["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True, text=True
-    ).stdout.strip()
-    return head.strip() + (" (with uncommitted changes)" if dirty else "")
-
-
 def main(argv: list[str] | None = None) -> list[dict]:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, default=ROOT / "runs" / "bench" / "head")
@@ -148,7 +142,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     with tempfile.TemporaryDirectory(prefix="bench_head-") as tmp:
         rows = [case(n, Path(tmp), args.out, args.threads) for n in wanted]
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "results.json").write_text(json.dumps({"commit": _git(), "rows": rows}, indent=1))
+    (args.out / "results.json").write_text(json.dumps({"commit": commit(), "rows": rows}, indent=1))
     print(f"results -> {args.out / 'results.json'}")
     return rows
 

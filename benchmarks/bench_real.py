@@ -29,6 +29,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from benchmarks.provenance import commit
+
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
 sys.path.insert(0, str(ROOT))
@@ -159,14 +161,6 @@ def row(capture: Capture, out: Path, wall: float | None) -> dict:
     }
 
 
-def _git() -> str:
-    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout
-    dirty = subprocess.run(
-        ["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True, text=True
-    ).stdout.strip()
-    return head.strip() + (" (with uncommitted changes)" if dirty else "")
-
-
 def markdown(rows: list[dict], commit: str, load: str) -> str:
     lines = [
         "# Real captures: `make bench-real`",
@@ -226,7 +220,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     (args.out / "results.json").write_text(json.dumps(rows, indent=1))
     old = args.doc.read_text() if args.doc.is_file() else ""
     notes = old[old.index(NOTES) :] if NOTES in old else NOTES + "\n"
-    args.doc.write_text(markdown(rows, _git(), load) + "\n" + notes)
+    args.doc.write_text(markdown(rows, commit(), load) + "\n" + notes)
     print(f"table -> {args.doc}")
     return rows
 
