@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import ast
 import contextlib
+import copy
 import dataclasses
 import functools
 import importlib
@@ -192,7 +193,7 @@ STAGES: dict[str, Stage] = {
 PARSERS: dict[tuple[str, str], tuple[str, str]] = {
     ("render", "outputs"): ("parse_outputs", "<name,...>"),
     ("render", "path"): ("parse_path", "<name|FILE.json>"),
-    ("mesh", "threshold"): ("parse_threshold", "<auto|float>"),
+    ("mesh", "threshold"): ("parse_threshold", "<auto|global|float>"),
     ("mesh", "bbox"): ("parse_bbox", "<auto|x0,y0,z0,x1,y1,z1>"),
     ("xray-export", "iso"): ("parse_iso", "<auto|float>"),
 }
@@ -212,9 +213,13 @@ class Group:
 # (command, Config field) -> how the options group in that field is spelt: train's flags stay flat (`--resolution`,
 # `--refine-poses --refine-focal --camera-lr`) while its Config groups them by mode (`stages.train.config`).
 GROUPS: dict[tuple[str, str], Group] = {
-    ("train", "fast"): Group(),
     ("train", "refine"): Group(switch="refine_poses", names={"focal": "refine_focal"}),
 }
+METHOD_GROUPS: dict[tuple[str, str], str] = {("train", "options"): "method"}
+"""(command, Config field holding a method's options) -> the Config field naming the method. Every registered
+method's options (`model.methods`: each `Method.Options`) are spelt flat in the group's place, one option per name
+(two methods' options of one name share it; their types must agree); each defaults to None, "not given", so that
+only the options given build the chosen method's group, and an option of another method is refused in one line."""
 
 
 # ---------------------------------------------------------------------------------------------- Config -> params
@@ -370,7 +375,9 @@ def _stage_params(command: str) -> tuple[types.ModuleType, tuple[_Param, ...]]:
     hints, docs = typing.get_type_hints(config_cls), _field_docs(config_cls)
     params = []
     for f in dataclasses.fields(config_cls):
-        if (command, f.name) in GROUPS:
+        if (command, f.name) in METHOD_GROUPS:
+            params += _method_params(command, module)
+        elif (command, f.name) in GROUPS:
             params += _group_params(command, module, f, hints[f.name], docs.get(f.name, ""))
         elif f.init and (p := _param(command, module, f, hints[f.name], docs.get(f.name, ""))) is not None:
             params.append(p)
@@ -390,6 +397,38 @@ def _group_params(command: str, module: types.ModuleType, f: dataclasses.Field, 
     return params
 
 
+def _method_params(command: str, module: types.ModuleType) -> list[_Param]:
+    """One option per name over every method's options group (`METHOD_GROUPS`), default None; its help says which
+    methods have it and their defaults."""
+    from nerfpipe.model.methods import methods
+
+    found: dict[str, tuple[_Param, Any, list[str]]] = {}
+    for method in methods():
+        hints, docs = typing.get_type_hints(method.Options), _field_docs(method.Options)
+        for g in dataclasses.fields(method.Options):
+            base, _ = _unwrap_optional(hints[g.name])
+            blank = copy.copy(g)  # the same field, "not given" by default
+            blank.default, blank.default_factory = None, dataclasses.MISSING
+            param = _param(command, module, blank, base | None, docs.get(g.name, ""))
+            if param is None:
+                continue
+            default = _default(g)
+            shown = f"{method.name}: {_as_text(default) if default is not None else 'automatic'}"
+            if g.name in found:
+                first, hint, owners = found[g.name]
+                if hint != base:
+                    raise TypeError(f"option {g.name}: methods {owners[0]} and {method.name} give it different types")
+                owners.append(shown)
+            else:
+                found[g.name] = (param, base, [shown])
+    params = []
+    for param, _, owners in found.values():
+        base, option = get_args(param.annotation)[:2]
+        option.help = f"{option.help} [{'; '.join(owners)}]"
+        params.append(param)
+    return params
+
+
 def skipped_fields(command: str) -> list[str]:
     """Config fields of `command` with no option or argument (they keep their Config default)."""
     module, params = _stage_params(command)
@@ -404,7 +443,26 @@ def _make_config(command: str, values: Mapping[str, Any]) -> Any:
     for (cmd, name), group in GROUPS.items():
         if cmd == command:
             kwargs[name] = _make_group(group, _unwrap_optional(hints[name])[0], kwargs)
+    for (cmd, name), chooser in METHOD_GROUPS.items():
+        if cmd == command:
+            kwargs[name] = _method_group(kwargs, chooser, _method_params(command, module))
     return module.Config(**kwargs)
+
+
+def _method_group(kwargs: dict[str, Any], chooser: str, params: list[_Param]) -> Any:
+    """The chosen method's options from the method options given (taken out of kwargs); None when none was given
+    (the method's defaults); UserError naming an option the chosen method does not have."""
+    from nerfpipe.model.methods import DEFAULT, method_named
+
+    given = {p.name: kwargs.pop(p.name) for p in params if p.name in kwargs}
+    given = {k: v for k, v in given.items() if v is not None}
+    method = method_named(kwargs.get(chooser) or DEFAULT)
+    own = {f.name for f in dataclasses.fields(method.Options)}
+    foreign = [n for n in given if n not in own]
+    if foreign:
+        flags = ", ".join(f"--{n.replace('_', '-')}" for n in foreign)
+        raise UserError(f"{flags}: not an option of method {method.name} (its options: train --method {method.name})")
+    return method.Options(**given) if given else None
 
 
 def _make_group(group: Group, cls: type, kwargs: dict[str, Any]) -> Any:

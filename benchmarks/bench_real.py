@@ -29,8 +29,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
 sys.path.insert(0, str(ROOT))
@@ -48,6 +46,9 @@ class Capture:
     make: tuple[str, ...]
     """make variables (besides OUT)."""
     goal: str
+    reference: str | None = None
+    """The capture's own poses, for the pose error of a photo capture: "transforms:<path>" (a transforms.json) or
+    "llff:<folder>" (poses_bounds.npy in sorted image-name order)."""
 
 
 CAPTURES = (
@@ -68,6 +69,14 @@ CAPTURES = (
         "phone photos, unbounded (contract)",
         (f"PHOTOS={DATA}/fox/images", "TRAIN_ARGS=--max-seconds=300"),
         ">= 26.9 dB, <= 13 min, 50/50 within 0.3 deg",
+        reference=f"transforms:{DATA}/fox/transforms.json",
+    ),
+    Capture(
+        "head",
+        "masked object, turntable (box)",
+        (f"PHOTOS={DATA}/head/images", f"POSES_ARGS=--masks {DATA}/head/masks", "TRAIN_ARGS=--max-seconds=300"),
+        ">= 25 dB held-out, 66/66 within 1 deg, no false suspect",
+        reference=f"llff:{DATA}/head",
     ),
     Capture(
         "lego_400",
@@ -93,20 +102,23 @@ def _read(path: Path) -> dict | None:
         return None
 
 
-def _pose_error(out: Path) -> str:
-    """Median / largest rotation error (deg) of the fox's registered cameras against instant-ngp's poses."""
-    from nerfpipe.data.importers.colmap import read_world_from_cam
-    from nerfpipe.data.transforms import read_scene
-    from nerfpipe.radiance.align import pose_errors
+def _pose_error(out: Path, reference: str | None) -> str:
+    """Median / largest rotation error (deg) of the registered cameras against the capture's own poses, after a
+    similarity alignment ("given" for a posed dataset)."""
+    from benchmarks.pose_reference import compare, from_llff, from_transforms
 
     sparse = out / "scene" / "colmap" / "sparse"
+    if reference is None:
+        return "given"
     if not sparse.is_dir():
         return "-"
-    ref = {Path(f.file_path).name: f.world_from_cam for f in read_scene(DATA / "fox" / "transforms.json").frames}
-    est = read_world_from_cam(sparse)
-    common = sorted(set(est) & set(ref))
-    err = pose_errors(np.stack([est[n] for n in common]), np.stack([ref[n] for n in common]))
-    return f"{err.median_rotation_deg:.2f} / {float(err.rotation_deg.max()):.2f} deg"
+    kind, path = reference.split(":", 1)
+    ref = from_transforms(Path(path)) if kind == "transforms" else from_llff(Path(path))
+    got = compare(sparse, ref, by_stem=True)
+    if "rotation_deg" not in got:
+        return "-"
+    median, largest = got["rotation_deg"]
+    return f"{median:.2f} / {largest:.2f} deg"
 
 
 def row(capture: Capture, out: Path, wall: float | None) -> dict:
@@ -134,7 +146,7 @@ def row(capture: Capture, out: Path, wall: float | None) -> dict:
         "kind": capture.kind,
         "goal": capture.goal,
         "registered": registered,
-        "pose_error": _pose_error(out) if capture.name == "fox" else "given",
+        "pose_error": _pose_error(out, capture.reference),
         "psnr": ev.get("psnr"),
         "ssim": ev.get("ssim"),
         "steps": train.get("used", {}).get("steps"),

@@ -5,7 +5,7 @@ builds from the arguments shown (cli.config_from_args): no hand-made scenes, box
 
 Datasets (../shared/data):
 - `tiny`: lego_100/tiny_lego_100px.npz as is (RGB composited on black, no alpha; tiny-NeRF split: views 0-99
-  train, 100-105 test). Goal: >= 31 dB in 120 s with no options (fast); vanilla reported for the record.
+  train, 100-105 test). Goal: >= 31 dB in 120 s with no options (density); nerf reported for the record.
 - `lego_400`: the NeRF-synthetic Blender folder as is (RGBA); eval on 25 evenly spaced test views.
   Goal: >= 31 dB in 900 s.
 - `small`: a Blender-layout object scene made with `nerfpipe scene --kind blender`, at scale 0.1 and at 1;
@@ -39,12 +39,12 @@ def nerfpipe(command: str, args: str):
 
 
 def _train_eval(scene: Path, run: Path, seconds: float, field: str, eval_views: int | None) -> dict:
-    out = nerfpipe("train", f"{scene} {run} --max-seconds {seconds} --field {field} --overwrite")
+    out = nerfpipe("train", f"{scene} {run} --max-seconds {seconds} --method {field} --overwrite")
     views = f" --views {eval_views}" if eval_views else ""
     ev = nerfpipe("eval", f"{run} {run}/eval.json{views}").result
     used = json.loads(out.manifest.read_text())["used"]
     return {
-        "field": field,
+        "method": field,
         "steps": out.steps,
         "train_seconds": round(out.seconds, 1),
         "eval_psnr": round(ev["psnr"], 3),
@@ -110,9 +110,9 @@ def cli(argv: list[str] | None = None) -> None:
     p.add_argument("--out", type=Path, default=Path("runs/bench/train"))
     p.add_argument("--seconds", type=float, default=120.0)
     p.add_argument("--dataset", choices=("tiny", "lego_400", "small"), default="tiny")
-    p.add_argument("--fields", default="fast", help="comma-separated: fast,vanilla")
+    p.add_argument("--methods", default="density", help="comma-separated: density,nerf")
     a = p.parse_args(argv)
-    main(dataset=a.dataset, seconds=a.seconds, out=a.out, fields=tuple(a.fields.split(",")))
+    main(dataset=a.dataset, seconds=a.seconds, out=a.out, fields=tuple(a.methods.split(",")))
 
 
 if __name__ == "__main__":

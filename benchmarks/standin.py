@@ -2,8 +2,8 @@
 product code): an analytic stand-in for a trained run, and the visibility of points in the synthetic scene
 (`stages.scene`) for fair Chamfer distances.
 
-`StandIn` has the attributes `stages.mesh.extract` reads from a trained run (`model.Trained`): `density`, `color`,
-`aabb`, `occupancy` (None), `scene`, `device`, `space` (a box in the scene frame). The object is a union of a sphere
+`StandIn` is a run (`model.run.Run`) with the capabilities rays, density and colour: `density`, `color`, `aabb`,
+`occupancy` (None), `scene`, `device`, `space` (a box in the scene frame). The object is a union of a sphere
 and a box (optionally plus a small floating ball) given by a signed distance `sdf` in the scene frame; the density
 is
     sigma(x) = sigma_max * sigmoid(-sdf(x) / eps),   sigma_max = 1 / eps,
@@ -50,6 +50,13 @@ class StandIn:
     """Analytic field + scene with the `Trained` attributes (see module doc)."""
 
     has_color = True
+    method = "standin"
+    capabilities = frozenset({"rays", "density", "color"})
+    downscale = 1.0
+    """Trained at full size."""
+    far = math.inf
+    pose_refinement = None
+    appearance = None
 
     def __init__(
         self,
@@ -64,7 +71,6 @@ class StandIn:
         empty: bool = False,
     ):
         self.eps, self.floater, self.empty = eps, floater, empty
-        self.run_config: dict = {}  # a run's config.json: trained at full size (no downscale)
         self.aabb = torch.tensor([[-1.0] * 3, [1.0] * 3])
         self.occupancy = None
         self.device = torch.device("cpu")
@@ -114,6 +120,10 @@ class StandIn:
         if self.empty:
             return torch.zeros(x.shape[0], dtype=x.dtype)
         return torch.sigmoid(-self.sdf(x) / self.eps) / self.eps
+
+    def density_function(self):
+        """The density query meshing uses (`model.run`: capability density)."""
+        return self.density
 
     def color(self, x: Tensor, d: Tensor | None) -> Tensor:
         """x [N, 3] -> rgb [N, 3], view independent (a smooth solid texture)."""

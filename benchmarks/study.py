@@ -531,8 +531,8 @@ def training(ctx: Context) -> Section:
         (
             f"fast {a}-{b}",
             (
-                "--field",
-                "fast",
+                "--method",
+                "density",
                 "--resolution",
                 f"{a},{b}",
                 "--eval-every",
@@ -549,8 +549,8 @@ def training(ctx: Context) -> Section:
         (
             "vanilla",
             (
-                "--field",
-                "vanilla",
+                "--method",
+                "nerf",
                 "--batch-rays",
                 plan.vanilla_batch,
                 "--eval-every",

@@ -24,12 +24,11 @@ from typing import Any
 __all__ = ["Check", "verdict", "check_line", "read_failed", "HOLDOUT_FLOOR_DB", "HOLDOUT_GAP_DB"]
 
 HOLDOUT_FLOOR_DB = 18.0
-"""train's and eval's floor on the held-out PSNR (dB). Every run of the real-capture table (docs/BENCH_REAL.md)
-scores above 22 dB; the wrong runs users reported scored 12-15 dB (a whitened-background carton 15.3, perturbed
-poses 14.0, runaway pose refinement 12.3)."""
+"""train's and eval's floor on the held-out PSNR (dB): between the real-capture table's runs and the wrong runs users
+reported (docs/MEASUREMENTS.md, "Self-checks")."""
 HOLDOUT_GAP_DB = 6.0
-"""train's and eval's bound on the training PSNR minus the held-out PSNR (dB): the real-capture table's gaps are
-1-4 dB."""
+"""train's and eval's bound on the training PSNR minus the held-out PSNR (dB), above the real-capture table's gaps
+(docs/MEASUREMENTS.md, "Self-checks")."""
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -9,7 +9,7 @@ Modes (train --background; the names nerfstudio's `background_color` and instant
 - `plain`: images composited on one plain colour, whose pixels around the object were marked transparent (alpha
   0): the rays the caller marks `random` get a random colour in training (the transparent ones: empty space must
   be empty; with pose refinement also the object's pixels not of the plain colour: the object must be opaque;
-  `stages.train.views.Views.random_behind` marks them), every other ray the plain colour, as the image was made
+  `model.views.Views.random_behind` marks them), every other ray the plain colour, as the image was made
   (a partly covered edge pixel is alpha x object + (1 - alpha) x colour: the field can say so; a random colour
   behind it would force a dark, opaque halo); evaluation on the plain colour.
 Photos with alpha are composited on the same colour the model is (radiance.compositing.over_background).

@@ -37,8 +37,8 @@ Rollback (the training loop, `stages.train.loop`): the field's state is copied a
 has seen only the input cameras until then), and when the guard stops refinement the field goes back to that copy
 (resampled to the grid's resolution of the moment), so what it learned against cameras that were running away does
 not stay in it; `GuardLog.rolled_back_to` records the step of the copy. After a stop, rays skip the corrections (they
-are the input cameras). Without the rollback the refined runs that the guard stopped ended 0.28-1.19 dB under plain
-training in the refine benchmark (4 of 10 cases, 120 s; README "Pose refinement"). A run resumed between the first move
+are the input cameras). Without the rollback the refined runs that the guard stopped ended under plain training
+(docs/MEASUREMENTS.md, "Pose refinement"). A run resumed between the first move
 and the stop has no copy: the stop then keeps the field as it is (`rolled_back_to` None).
 
 Test views: the field learns in the frame the refined cameras define, which may drift from the input frame by a
@@ -117,11 +117,9 @@ class CameraSchedule:
     focal_lr: float = 1e-3
     """Adam learning rate of the log focal scale."""
     delay: float = 0.1
-    """Run-progress fraction before the cameras move (the field first needs a rough shape to register to). At
-    0.02 (before 2026-12) the cameras moved while the field was a fog and walked away from the truth first (posed
-    100 px scene, 1200 steps: median rotation error 2.95 -> 3.6 deg by step 100, camera centres 5 % off at step
-    118); at 0.1 they start from a field of ~18 dB and the error falls from the start (0.95 deg at the end, against
-    1.28)."""
+    """Run-progress fraction before the cameras move (the field first needs a rough shape to register to: earlier,
+    the cameras moved while the field was a fog and walked away from the truth first; docs/MEASUREMENTS.md, "Pose
+    refinement")."""
     warmup: float = 0.05
     """Run-progress fraction over which the learning rate ramps linearly from 0 to `lr` (after `delay`)."""
     decay: float = 0.01
@@ -710,7 +708,7 @@ TEST_POSE_OPT_RULE = (
 
 
 def optimise_test_pose(
-    model: Any,
+    run: Any,
     background: Tensor,
     world_from_cam: np.ndarray,
     intr: Intrinsics,
@@ -724,7 +722,7 @@ def optimise_test_pose(
 ) -> tuple[np.ndarray, dict[str, float]]:
     """One test camera world_from_cam [4, 4] refined against its photo [H, W, 3] (composited on `background`
     [3]) by `steps` Adam steps on a correction of the camera (`CameraOpt`, pivoted at the depth of `centre` [3],
-    the scene centre; None: about the camera centre), the field (`model`, a FieldModel) frozen; each step
+    the scene centre; None: about the camera centre), the run frozen (a `model.run.Run` with `pose_opt`); each step
     renders `batch` random pixels. Returns the refined camera and its correction's size."""
     from nerfpipe.radiance.camera import generate_rays
 
@@ -738,14 +736,14 @@ def optimise_test_pose(
     o_all, d_all = o_all.to(device, torch.float32), d_all.to(device, torch.float32)
     target = torch.from_numpy(np.ascontiguousarray(photo, dtype=np.float32)).reshape(-1, 3).to(device)
     gen = torch.Generator().manual_seed(seed)
-    frozen = [p for p in model.field.parameters() if p.requires_grad]
+    frozen = [p for p in run.parameters() if p.requires_grad]
     for p in frozen:
         p.requires_grad_(False)
     try:
         for k in range(steps):
             idx = torch.randint(o_all.shape[0], (min(batch, o_all.shape[0]),), generator=gen).to(device)
             o, d = cam(o_all[idx], d_all[idx], torch.zeros_like(idx))
-            pred = model.render(o, d, background, train=False, infer=None)["rgb"]  # differentiable in the pose
+            pred = run.render_differentiable(o, d, background)["rgb"]  # differentiable in the pose
             loss = torch.mean((pred - target[idx]) ** 2)
             opt.zero_grad(set_to_none=True)
             loss.backward()

@@ -1,16 +1,16 @@
 """Cameras over a trained run: camera paths (turntable, arc, trajectory, spiral, a split's cameras) and rendering
 one camera.
 
-Cameras are world_from_cam [4, 4] in the scene frame, OpenGL axes (x right, y up, looking down -z);
-`render_view` returns z-depth (along the optical axis) in scene units; a field renders the camera's rays, a
-`CameraRenderable` (splats, `model.splat_run`) rasterises the whole camera itself. Paths come from `radiance.paths`:
-`turntable` orbits the point the training cameras look at, `arc` is the part of that orbit the training cameras
-cover, `trajectory` follows the training cameras (capture order, or azimuth order when the capture order wanders)
-smoothed and resampled, `spiral` is LLFF's forward-facing path, `test` / `train` replay a split's cameras with
-their own intrinsics (distortion included); a `.json` file (`data.camera_path`: recorded by `nerfpipe view`, or
-nerfstudio's camera_path.json) is played back frame by frame with its own size and field of view. `auto` picks
-spiral for a forward-facing capture, turntable when the training cameras go round the object (largest azimuth
-gap <= `MAX_TURNTABLE_GAP_DEG`), trajectory otherwise, and says why in `CameraPath.used`. Synthetic paths use the first
+Cameras are world_from_cam [4, 4] in the scene frame, OpenGL axes (x right, y up, looking down -z); `render_view`
+returns z-depth (along the optical axis) in scene units; a run that renders rays (`model.run`) renders the camera's
+rays, one that renders whole cameras (splats, `model.splat_run`) rasterises the camera itself. Paths come from
+`radiance.paths`: `turntable` orbits the point the training cameras look at, `arc` is the part of that orbit the
+training cameras cover, `trajectory` follows the training cameras (capture order, or azimuth order when the capture
+order wanders) smoothed and resampled, `spiral` is LLFF's forward-facing path, `test` / `train` replay a split's cameras
+with their own intrinsics (distortion included); a `.json` file (`data.camera_path`: recorded by `nerfpipe view`, or
+nerfstudio's camera_path.json) is played back frame by frame with its own size and field of view. `auto` picks spiral
+for a forward-facing capture, turntable when the training cameras go round the object (largest azimuth gap <=
+`MAX_TURNTABLE_GAP_DEG`), trajectory otherwise, and says why in `CameraPath.used`. Synthetic paths use the first
 training camera's intrinsics without distortion, scaled by 1/downscale.
 """
 
@@ -20,7 +20,7 @@ import dataclasses
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import Any
 
 import numpy as np
 import torch
@@ -28,15 +28,13 @@ import torch
 from nerfpipe.data.camera_path import read_camera_path
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.transforms import Scene, is_forward_facing
+from nerfpipe.model.run import can, require
 from nerfpipe.radiance import paths
 from nerfpipe.radiance.camera import Intrinsics, generate_rays
-from nerfpipe.radiance.space import Space
 
 __all__ = [
     "PATHS",
     "OPAQUE",
-    "Renderable",
-    "CameraRenderable",
     "render_view",
     "training_intrinsics",
     "CameraPath",
@@ -56,47 +54,19 @@ OPAQUE = 0.5
 """Pixels with accumulated opacity below this count as background for depth ranges and depth exports."""
 
 
-class Renderable(Protocol):
-    """What the stages use of a trained run (`model.load_trained(...)` -> `model.trained.Trained`; test stand-ins
-    provide the same): its scene (refined cameras for --refine-poses runs), evaluation background, device,
-    resolved config.json, pose-refinement record (or None), appearance codes (or None), scene space
-    (`radiance.space`), and rays rendered in chunks (`Trained.render_rays`)."""
-
-    scene: Scene
-    background: torch.Tensor
-    device: torch.device
-    run_config: dict
-    pose_refinement: dict | None
-
-    @property
-    def appearance(self) -> Any: ...
-
-    @property
-    def space(self) -> Space: ...
-
-    def render_rays(
-        self, rays_o: torch.Tensor, rays_d: torch.Tensor, *, infer: Any = ..., median: bool = True
-    ) -> dict[str, torch.Tensor]: ...
-
-
-@runtime_checkable
-class CameraRenderable(Protocol):
-    """A renderable drawn a whole camera at a time (a rasteriser: `model.splat_run.SplatRun`), not ray by ray."""
-
-    def render_camera(self, intr: Intrinsics, world_from_cam: np.ndarray, *, depth: bool = True) -> dict: ...
-
-
 @torch.no_grad()
 def render_view(
-    trained: Renderable, intr: Intrinsics, world_from_cam: np.ndarray, device: torch.device, *, depth: bool = True
+    trained: Any, intr: Intrinsics, world_from_cam: np.ndarray, device: torch.device, *, depth: bool = True
 ):
-    """Render one camera (scene frame, OpenGL axes). Returns numpy float32 arrays:
+    """Render one camera (scene frame, OpenGL axes) of a run (`model.run.Run`). Returns numpy float32 arrays:
     rgb [H, W, 3], depth [H, W] (z-depth of the expected t, scene units), depth_median [H, W] (z-depth of the
-    median t), acc [H, W]. Memory: `trained.render_rays` works through the rays in chunks.
-    A `CameraRenderable` (splats) renders the whole camera itself; with `depth=False` it may leave depth and
-    depth_median out (a second pass for splats). A field returns them whatever `depth` says."""
-    if isinstance(trained, CameraRenderable):
+    median t), acc [H, W]. Memory: `render_rays` works through the rays in chunks.
+    A run that renders whole cameras (capability `cameras`: splats) renders the camera itself; with `depth=False` it
+    may leave depth and depth_median out (a second pass for splats). A run that renders rays returns them whatever
+    `depth` says."""
+    if can(trained, "cameras"):
         return trained.render_camera(intr, world_from_cam, depth=depth)
+    require(trained, "rays", stage="rendering a camera")
     pose = torch.as_tensor(np.asarray(world_from_cam, dtype=np.float64))
     rays_o, rays_d = generate_rays(intr, pose)  # float64 [R, 3]
     forward = -pose[:3, 2]

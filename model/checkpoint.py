@@ -1,8 +1,10 @@
 """checkpoint.pt: what a trained run saves, and the one reader of it.
 
 The file holds tensors and primitive containers only, so it loads with `torch.load(weights_only=True)`:
-format, field_config (the field's constructor arguments), field (state dict), occupancy (state dict or None),
-space (`radiance.space.Space.to_dict()`: the scene space, its box and bounds), background ({mode, state}:
+format, method (`model.methods`: the method that wrote it; checkpoints from before methods name their field kind in
+field_config instead, `model.methods.registry.method_of_checkpoint`), the method's own entries (`Method.checkpoint`;
+the field methods: field_config (the field's constructor arguments), field (state dict), occupancy (state dict or
+None), space (`radiance.space.Space.to_dict()`: the scene space, its box and bounds)), background ({mode, state}:
 `model.background.Background`), optimizer (state dict), step, seconds, lr_factor, rng,
 nerfpipe_version (the version that wrote it). Checkpoints written before `space` held `ndc` and `contraction`
 (each a dict or None) and took the box and bounds from the scene: `restore_space` reads them so.
@@ -11,7 +13,7 @@ Integrity: `save_checkpoint` serialises into memory, writes the bytes atomically
 line naming the file, the previous checkpoint stays) and returns their sha256, which `train` records in the run's
 manifest.json (`checkpoint_sha256`); `read_checkpoint` refuses a checkpoint whose bytes no longer match it (a
 checkpoint without a manifest, an interrupted run's, has nothing to check against). A checkpoint of another format
-(another nerfpipe version's layout, an X-ray run's) or of an unknown field kind is refused naming what was expected.
+(another nerfpipe version's layout, an X-ray run's) or of an unknown method is refused naming what was expected.
 appearance (`model.appearance.Appearance.to_dict()` or None), camera_opt (`model.camera_opt.CameraOpt.to_dict()`
 or None: the pose corrections of `train --refine-poses`).
 Checkpoints without background (older runs) load as runs on white; without appearance or camera_opt, as runs
@@ -28,13 +30,13 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from torch import Tensor
 
 from nerfpipe.data.atomic import write_bytes
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.rundir import sha256_file, versions
 from nerfpipe.model.appearance import Appearance
 from nerfpipe.model.background import Background
+from nerfpipe.model.methods.registry import method_names, method_of_checkpoint
 from nerfpipe.radiance.contraction import Contraction
 from nerfpipe.radiance.ndc import NDC
 from nerfpipe.radiance.space import Box, Contracted, NDCSpace, Space, space_from_dict
@@ -50,37 +52,36 @@ __all__ = [
 ]
 
 CHECKPOINT_FORMAT = 1
-FIELD_KINDS = ("fast", "vanilla")
 
 
 def save_checkpoint(
     path: Path,
+    *,
+    method: str,
+    entries: dict[str, Any],
     model: Any,
     opt: torch.optim.Optimizer,
-    step: int,
-    seconds: float,
-    lr_factor: float,
-    rng: Tensor,
-    camera_opt: Any = None,
+    progress: dict[str, Any],
+    extra: dict[str, Any] | None = None,
 ) -> str:
-    """Write `model` (a `model.field_model.FieldModel`), the optimiser state and the pose corrections
-    (`camera_opt`: a `model.camera_opt.CameraOpt` or None) atomically to `path`; returns the file's sha256 (hex)."""
+    """Write a run's checkpoint atomically to `path`: the `method`'s `entries` (`Method.checkpoint`), the model's
+    background and appearance codes, the optimiser state, `progress` (step, seconds, lr_factor, rng) and what the
+    loop's hooks add (`extra`: camera_opt, the pose corrections); returns the file's sha256 (hex)."""
     appearance = getattr(model, "appearance", None)
     state = {
         "format": CHECKPOINT_FORMAT,
-        "field_config": model.field.config(),
-        "field": model.field.state_dict(),
-        "occupancy": model.grid.state_dict() if model.grid is not None else None,
-        "space": model.space.to_dict(),
+        "method": method,
+        **entries,
         "background": {"mode": model.background.mode, "state": model.background.state_dict()},
         "optimizer": opt.state_dict(),
-        "step": step,
-        "seconds": seconds,
-        "lr_factor": lr_factor,
-        "rng": rng,
+        "step": progress["step"],
+        "seconds": progress["seconds"],
+        "lr_factor": progress["lr_factor"],
+        "rng": progress["rng"],
         "nerfpipe_version": versions().get("nerfpipe", "unknown"),
         "appearance": appearance.to_dict() if appearance is not None else None,
-        "camera_opt": camera_opt.to_dict() if camera_opt is not None else None,
+        "camera_opt": None,
+        **(extra or {}),
     }
     buf = io.BytesIO()  # torch's own file writer reports a full disk as "unexpected pos"; ours names the errno
     torch.save(state, buf)
@@ -105,9 +106,12 @@ def read_checkpoint(path: Path, device: torch.device | str) -> dict:
         missing="no checkpoint to resume from",
         kind=f"a nerfpipe train checkpoint (format {CHECKPOINT_FORMAT})",
     )
-    kind = state.get("field_config", {}).get("kind") if isinstance(state.get("field_config"), dict) else None
-    if kind not in FIELD_KINDS:
-        raise UserError(f"{path}: checkpoint holds a field of kind {kind!r}; expected one of {', '.join(FIELD_KINDS)}")
+    method = method_of_checkpoint(state)
+    if method not in method_names():
+        cfg = state.get("field_config")
+        kind = cfg.get("kind") if isinstance(cfg, dict) else None
+        what = f"method {method!r}" if method is not None else f"no method nerfpipe knows (a field of kind {kind!r})"
+        raise UserError(f"{path}: checkpoint written by {what}; expected one of {', '.join(method_names())}")
     return state
 
 

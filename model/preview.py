@@ -6,15 +6,16 @@ a `fast` field (box, NDC or contracted) it marches with early ray termination (`
 rays stop once their transmittance is below `MIN_TRANSMITTANCE`, where `render` stops at the dtype's epsilon);
 `coarse=True` also doubles the marching step (`COARSE_STEP`) and colours only the samples carrying at least
 `COARSE_COLOR_KEEP` of a ray's light (and each ray's largest), rescaled to the ray's full weight: what the viewer
-shows while the camera moves. Vanilla runs go through `Trained.render_rays` (the same as `render`).
+shows while the camera moves. A run that ignores `infer` (the nerf method's, a plugin's) renders as `render` does.
 """
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import torch
 
-from nerfpipe.model.cameras import Renderable
 from nerfpipe.model.field_model import Inference
 from nerfpipe.radiance.camera import Intrinsics, generate_rays
 
@@ -25,12 +26,12 @@ MIN_TRANSMITTANCE = 1e-3
 COARSE_STEP = 2.0
 """While the camera moves, march at this many times the run's inference step (its training step)."""
 COARSE_COLOR_KEEP = 1e-2
-"""While the camera moves, colour only samples of at least this weight (`model.field_model.Inference.color_keep`);
-on lego_400 at 256 px the coarse preview is 44.9 dB from the refined one with it, 45.0 dB without, ~30 % faster."""
+"""While the camera moves, colour only samples of at least this weight (`model.field_model.Inference.color_keep`):
+about 30 % faster for an invisible difference (docs/MEASUREMENTS.md, "Viewer")."""
 
 
 @torch.no_grad()
-def preview_rays(trained: Renderable, rays_o: torch.Tensor, rays_d: torch.Tensor, *, coarse: bool = False) -> dict:
+def preview_rays(trained: Any, rays_o: torch.Tensor, rays_d: torch.Tensor, *, coarse: bool = False) -> dict:
     """rays [R, 3] (unit d) -> dict(rgb [R, 3], depth [R] (expected t), acc [R]) on the run's device."""
     infer = Inference(
         min_transmittance=MIN_TRANSMITTANCE,
@@ -40,7 +41,7 @@ def preview_rays(trained: Renderable, rays_o: torch.Tensor, rays_d: torch.Tensor
     return trained.render_rays(rays_o, rays_d, infer=infer, median=False)
 
 
-def render_preview(trained: Renderable, intr: Intrinsics, world_from_cam: np.ndarray, *, coarse: bool = False):
+def render_preview(trained: Any, intr: Intrinsics, world_from_cam: np.ndarray, *, coarse: bool = False):
     """One camera (scene frame, OpenGL axes) -> dict(rgb [H, W, 3], depth [H, W] z-depth, acc [H, W]) numpy."""
     pose = torch.as_tensor(np.asarray(world_from_cam, dtype=np.float64))
     rays_o, rays_d = generate_rays(intr, pose)  # float64 [R, 3]

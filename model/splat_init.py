@@ -9,12 +9,10 @@ taken out: (rgb - (1 - acc) bg) / acc), isotropic, its size INIT_KNN_FRACTION x 
 3 nearest neighbours (scipy cKDTree), at least the pixel footprint t / f of its ray (the local sample spacing),
 opacity INIT_OPACITY, SH degree 0. `count` of those rays are kept at random.
 
-Measured on the fox (bench-real's run; held-out PSNR of the initial Gaussians on its 7 test views, before any
-optimisation): the expected depth puts a ray that meets a floater and then the wall half way between them, and those
-Gaussians cover the other views (14.9 dB: 50k Gaussians, opacity 0.1, the full knn size, the rule before
-2026-11-26); the median depth gives 20.5 dB (300k Gaussians, opacity 0.3, 0.3 x knn); the agreement rule adds 0.2 dB.
-More opaque or larger Gaussians score lower at this count (opacity 0.7: 19.9 dB; 0.6 x knn: 18.6 dB). The stage
-starts from fewer (50k): a weaker start, but more optimisation steps in its budget, and a better end.
+Why the median depth and these sizes: the expected depth puts a ray that meets a floater and then the wall half way
+between them, and those Gaussians cover the other views; more opaque or larger Gaussians scored lower. The stage
+starts from fewer (50k): a weaker start, but more optimisation steps in its budget, and a better end (figures:
+docs/MEASUREMENTS.md, "Splats").
 """
 
 from __future__ import annotations

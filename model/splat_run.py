@@ -7,14 +7,14 @@ frame. `RenderInput.load(device, load_trained)` gives what the stages render: th
 (the run's scene, cameras, evaluation background and device, with the splats mapped back to the scene frame by the
 inverse of `out_from_scene`).
 
-A `SplatRun` renders whole cameras (`model.cameras.CameraRenderable`: rasterisation, `radiance.splats.render`),
-not rays: `model.render_view` calls its `render_camera`. Returns what `render_view` returns for a field, numpy
-float32: rgb [H, W, 3], acc [H, W] (1 - the final transmittance), and with `depth` the z-depth [H, W] of the
-expected Gaussian depth (the same Gaussians composited with their camera z as colour over black, divided by acc:
-a second pass) and depth_median = depth (splats have no per-ray weights to take a median of). Pinhole cameras
-only: distortion coefficients are not applied (as in the splat stage's optimisation). Runs trained with
---refine-poses keep the run's field (`SplatRun.model`) for eval's test-pose optimisation, so the splats are scored
-at the cameras the field is scored at.
+A `SplatRun` is a run (`model.run.Run`) that renders whole cameras (capability `cameras`: rasterisation,
+`radiance.splats.render`), not rays: `model.render_view` calls its `render_camera`. Returns what `render_view` returns
+for a field, numpy float32: rgb [H, W, 3], acc [H, W] (1 - the final transmittance), and with `depth` the z-depth [H, W]
+of the expected Gaussian depth (the same Gaussians composited with their camera z as colour over black, divided by acc:
+a second pass) and depth_median = depth (splats have no per-ray weights to take a median of). Pinhole cameras only:
+distortion coefficients are not applied (as in the splat stage's optimisation). Runs trained with --refine-poses keep
+the run's field (`SplatRun.pose_run`) for eval's test-pose optimisation, so the splats are scored at the cameras the
+field is scored at.
 
 The run is found from the report: `run_from_splat` (the run folder relative to the splat file's folder) when the
 report has it, else `config.run_dir` as recorded (absolute, or relative to where the splat stage ran).
@@ -36,7 +36,6 @@ from nerfpipe.data.confine import read_json
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.rundir import refuse_output_inside, sha256_file, sidecar
 from nerfpipe.data.splat_ply import SplatData, read_ply
-from nerfpipe.model.cameras import Renderable
 from nerfpipe.radiance import splats as sp
 from nerfpipe.radiance.camera import Intrinsics
 
@@ -136,13 +135,13 @@ class RenderInput:
             )
         return splats
 
-    def load(self, device: torch.device, load_trained: Callable[[Path, Any], Any]) -> Renderable:
+    def load(self, device: torch.device, load_trained: Callable[[Path, Any], Any]) -> Any:
         """The run's field (`load_trained(run_dir, device)`), or a `SplatRun` on that run."""
         trained = load_trained(self.run_dir, device)
         if self.splat_file is None:
             return trained
         moved = sp.Splats(*(p.to(trained.device, torch.float32) for p in self.read_splats().parameters()))
-        return SplatRun(run=trained, splats=moved, source=self)
+        return SplatRun.of(trained, moved, self)
 
 
 def _report(path: Path) -> dict:
@@ -222,48 +221,50 @@ def splats_from_data(data: SplatData, out_from_scene: np.ndarray, path: Path | s
 
 @dataclass
 class SplatRun:
-    """Splats rendered as their run would be (module doc): the run's scene, background, device and config; whole
-    cameras rasterised."""
+    """Splats rendered as their run would be (module doc): a `model.run.Run` with the run's scene, background,
+    device and downscale, that rasterises whole cameras (capability `cameras`); where the run it was made from can
+    place a test camera (`pose_opt`: --refine-poses runs), it keeps that run for eval's test-pose optimisation."""
 
-    run: Any
-    """The run the splats were made from (`Trained`, or a test stand-in)."""
     splats: sp.Splats
     """Scene frame, on the run's device, float32."""
     source: RenderInput
+    scene: Any
+    background: torch.Tensor
+    device: torch.device
+    downscale: float
+    pose_refinement: dict | None = None
+    pose_run: Any = None
+    """The run the splats were made from, kept where it can place test cameras (`pose_opt`), else None."""
+    method: str = "splats"
+    far: float = math.inf
+    """Splats draw whatever lies in front of a camera: no far bound."""
     appearance: None = None
     """Splats have no per-image appearance codes."""
 
-    @property
-    def scene(self):
-        return self.run.scene
+    @classmethod
+    def of(cls, run: Any, splats: sp.Splats, source: RenderInput) -> SplatRun:
+        """Splats made from `run` (a `model.run.Run`, or a test stand-in)."""
+        return cls(
+            splats=splats,
+            source=source,
+            scene=run.scene,
+            background=run.background,
+            device=run.device,
+            downscale=float(getattr(run, "downscale", 1.0)),
+            pose_refinement=run.pose_refinement,
+            pose_run=run if "pose_opt" in getattr(run, "capabilities", ()) else None,
+        )
 
     @property
-    def background(self) -> torch.Tensor:
-        return self.run.background
+    def capabilities(self) -> frozenset[str]:
+        return frozenset({"cameras"} | ({"pose_opt"} if self.pose_run is not None else set()))
 
-    @property
-    def device(self) -> torch.device:
-        return self.run.device
+    def render_differentiable(self, o: torch.Tensor, d: torch.Tensor, background: torch.Tensor) -> dict:
+        """The run's differentiable render (eval places a test camera with the run's field, as for the field)."""
+        return self.pose_run.render_differentiable(o, d, background)
 
-    @property
-    def run_config(self) -> dict:
-        return self.run.run_config
-
-    @property
-    def pose_refinement(self) -> dict | None:
-        return self.run.pose_refinement
-
-    @property
-    def space(self):
-        return self.run.space
-
-    @property
-    def model(self):
-        """The run's field model (eval's test-pose optimisation for --refine-poses runs places the cameras)."""
-        return self.run.model
-
-    def render_rays(self, rays_o: torch.Tensor, rays_d: torch.Tensor, **_: Any) -> dict[str, torch.Tensor]:
-        raise TypeError("splats render whole cameras (SplatRun.render_camera, through model.render_view), not rays")
+    def parameters(self):
+        return self.pose_run.parameters()
 
     @torch.no_grad()
     def render_camera(self, intr: Intrinsics, world_from_cam: np.ndarray, *, depth: bool = True) -> dict:
@@ -286,7 +287,7 @@ class SplatRun:
 def load_splats(path: str | Path, device: str | torch.device = "auto") -> SplatRun:
     """A splat file made by the splat stage, ready to render (its run loaded with `model.load_trained`)."""
     from nerfpipe.model.device import resolve_device
-    from nerfpipe.model.trained import load_trained
+    from nerfpipe.model.run import load_trained
 
     source = open_input(path)
     if source.splat_file is None:

@@ -1,8 +1,9 @@
-"""A trained run, ready for rendering and queries: `load_trained(run_dir)` -> `Trained`.
+"""A field method's run (density, nerf), ready for rendering and queries: `load_field_run` -> `Trained`.
 
 Everything outside works in the scene frame (transforms.json's normalised frame): `render_rays` returns world
 distances, `density(x)` takes scene points, `aabb` is the scene's box. The run's scene space (`radiance.space`)
 maps to and from the field's coordinates inside; `occupancy` is None unless the grid lives in the scene frame.
+`Trained` is a `model.run.Run` with the capabilities rays, density, colour (a field with colour) and pose_opt.
 
 A run folder works from anywhere: config.json records the scene folder both as given (resolved when the run was
 trained) and relative to the run folder, and the relative one is tried first, so a run moved together with its
@@ -11,8 +12,7 @@ scene (OUT/run and OUT/scene) still finds it.
 
 from __future__ import annotations
 
-import dataclasses
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,20 +20,19 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from nerfpipe.data.confine import read_json
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.rundir import find_run_scene
 from nerfpipe.data.transforms import Scene, read_scene
 from nerfpipe.model.appearance import Appearance
 from nerfpipe.model.camera_opt import TEST_POSE_RULE, refined_scene
-from nerfpipe.model.checkpoint import read_checkpoint, restore_appearance, restore_background, restore_space
-from nerfpipe.model.device import resolve_device
-from nerfpipe.model.field_model import EXACT, FieldModel, Inference, ModelSettings, build_model, make_space
+from nerfpipe.model.checkpoint import read_checkpoint, restore_appearance
+from nerfpipe.model.field_model import EXACT, FieldModel, Inference
+from nerfpipe.model.methods.base import RunFiles
 from nerfpipe.radiance.fields import Field
 from nerfpipe.radiance.occupancy import OccupancyGrid
 from nerfpipe.radiance.space import Space
 
-__all__ = ["WHITE", "Trained", "load_trained"]
+__all__ = ["WHITE", "Trained", "load_field_run", "read_run_scene"]
 
 WHITE = (1.0, 1.0, 1.0)
 """Evaluation background of runs trained on images with alpha."""
@@ -41,20 +40,49 @@ WHITE = (1.0, 1.0, 1.0)
 
 @dataclass
 class Trained:
-    """A trained run, ready for rendering and queries (no grad, chunked)."""
+    """A field method's run, ready for rendering and queries (no grad, chunked)."""
 
+    method: str
     scene: Scene
-    field: Field
-    occupancy: OccupancyGrid | None
-    aabb: Tensor  # [2, 3] scene frame (NDC runs: the scene's aabb, not the field's NDC box)
-    background: Tensor  # [3] evaluation background
-    device: torch.device
     model: FieldModel
-    run_config: dict = dataclasses.field(default_factory=dict)
-    """The run's resolved config.json (train's Config as JSON)."""
+    device: torch.device
+    background: Tensor  # [3] evaluation background
+    downscale: float = 1.0
+    """The image downscale the run trained at."""
     pose_refinement: dict | None = None
     """Runs trained with --refine-poses: what `model.camera_opt.refined_scene` did to `scene` (whose cameras
     are then the refined ones, test views mapped into the refined frame); None otherwise."""
+
+    @property
+    def capabilities(self) -> frozenset[str]:
+        caps = {"rays", "density", "pose_opt"}
+        return frozenset(caps | {"color"} if self.field.has_color else caps)
+
+    @property
+    def field(self) -> Field:
+        return self.model.field
+
+    @property
+    def space(self) -> Space:
+        """The run's scene space (where its field lives)."""
+        return self.model.space
+
+    @property
+    def far(self) -> float:
+        """How far along its rays the run renders (scene units; inf: unbounded, contracted or NDC)."""
+        return float(self.space.far)
+
+    @property
+    def occupancy(self) -> OccupancyGrid | None:
+        """The run's occupancy grid where it lives in the scene frame (None otherwise, or without one)."""
+        return getattr(self.model, "grid", None) if self.space.scene_frame else None
+
+    @property
+    def aabb(self) -> Tensor:
+        """[2, 3] scene frame (NDC and contracted runs: the scene's aabb, not the field's box)."""
+        if self.space.scene_frame:
+            return self.space.field_box.to(self.device)
+        return torch.as_tensor(self.scene.aabb, dtype=torch.float32, device=self.device).reshape(2, 3)
 
     @property
     def chunk(self) -> int:
@@ -82,7 +110,7 @@ class Trained:
         depth_median [R]).
 
         depth is sum(w t) / acc; depth_median the t where the accumulated weight reaches 0.5 (inf when the
-        ray never reaches it). Missing colour (density-only field) gives rgb = background. `infer`: how a fast
+        ray never reaches it). Missing colour (density-only field) gives rgb = background. `infer`: how a grid
         field stops its rays (`model.field_model.Inference`; the default is exact to float32's epsilon).
         """
         if rays_o.shape != rays_d.shape or rays_o.ndim != 2 or rays_o.shape[-1] != 3:
@@ -99,10 +127,13 @@ class Trained:
                 parts[k].append(out[k])
         return {k: torch.cat(v) if v else torch.zeros(0, device=self.device) for k, v in parts.items()}
 
-    @property
-    def space(self) -> Space:
-        """The run's scene space (where its field lives)."""
-        return self.model.space
+    def render_differentiable(self, o: Tensor, d: Tensor, background: Tensor) -> dict[str, Tensor]:
+        """o, d [R, 3] -> dict(rgb [R, 3], ...) with gradients to the rays (the plain march at the inference step)."""
+        return self.model.render(o, d, background, train=False, infer=None)
+
+    def parameters(self) -> Iterator[torch.nn.Parameter]:
+        """The field's parameters (frozen by eval's test-pose optimisation)."""
+        return self.field.parameters()
 
     @torch.no_grad()
     def density(self, x: Tensor) -> Tensor:
@@ -115,6 +146,11 @@ class Trained:
             sigma = self.field.density(p)
             out.append(sigma if scale is None else sigma * scale)
         return torch.cat(out) if out else x.new_zeros(0)
+
+    def density_function(self) -> Callable[[Tensor], Tensor]:
+        """The fastest density query for large batches of scene points: the field's own where it lives in the scene
+        frame (`density` splits queries into render-sized chunks, several times slower on a CPU), else `density`."""
+        return self.field.density if self.space.scene_frame else self.density
 
     @torch.no_grad()
     def color(self, x: Tensor, d: Tensor | None) -> Tensor:
@@ -140,51 +176,34 @@ class Trained:
         return torch.cat(out) if out else x.new_zeros(0, 3)
 
 
-def load_trained(run_dir: str | Path, device: str | torch.device = "auto") -> Trained:
-    """Load RUN_DIR (config.json + checkpoint.pt) for rendering; UserError when it is not a finished run."""
-    run_dir = Path(run_dir)
-    if not run_dir.is_dir():
-        raise UserError(f"{run_dir}: run directory not found (not a train run directory)")
-    if not (run_dir / "checkpoint.pt").is_file():
-        raise UserError(f"{run_dir}: no checkpoint.pt (not a finished training run?)")
-    cfg_path = run_dir / "config.json"
-    if not cfg_path.is_file():
-        raise UserError(f"{run_dir}: not a train run directory (no config.json)")
-    doc = read_json(cfg_path)
-    dev = resolve_device(device)
-    state = read_checkpoint(run_dir / "checkpoint.pt", dev)
-    settings = ModelSettings.from_config(doc, str(cfg_path))
-    scene = _read_run_scene(run_dir, doc)
-    space = restore_space(state, lambda kind: make_space(kind, scene))
-    model = build_model(settings, space, dev, state["field_config"], restore_background(state, dev))
-    model.appearance = restore_appearance(state, dev)
+ModelLoader = Callable[[dict, dict, Scene, torch.device], FieldModel]
+"""(config.json, checkpoint, scene, device) -> the method's model with its weights (a field method's own)."""
+
+
+def load_field_run(files: RunFiles, device: torch.device, method: str, load_model: ModelLoader) -> Trained:
+    """A field method's run: the checkpoint, the scene, the model (`load_model`), appearance codes and refined
+    cameras; UserError when it is not a finished run."""
+    state = read_checkpoint(files.checkpoint, device)
+    scene = read_run_scene(files.run_dir, files.config)
+    model = load_model(files.config, state, scene, device)
+    model.appearance = restore_appearance(state, device)
     refinement = None  # built from the input scene as in training; below, consumers get the refined cameras
     if state.get("camera_opt") is not None:
         scene, refinement = refined_scene(scene, state["camera_opt"], scene.split("train"))
         refinement["test_poses"] = {"rule": TEST_POSE_RULE, **refinement.get("test_poses", {})}
-    model.field.load_state_dict(state["field"])
-    if model.grid is not None and state["occupancy"] is not None:
-        model.grid.load_state_dict(state["occupancy"])
-    model.field.eval()
-    background = model.background.eval_colour().detach()
-    if space.scene_frame:
-        occupancy, aabb = model.grid, space.field_box.to(dev)
-    else:  # the grid and box are in the field's space; consumers (mesh) work in the scene frame
-        occupancy, aabb = None, torch.as_tensor(scene.aabb, dtype=torch.float32, device=dev).reshape(2, 3)
+    model.train_mode(False)
     return Trained(
+        method=method,
         scene=scene,
-        field=model.field,
-        occupancy=occupancy,
-        aabb=aabb,
-        background=background,
-        device=dev,
         model=model,
-        run_config=doc,
+        device=device,
+        background=model.background.eval_colour().detach(),
+        downscale=files.downscale,
         pose_refinement=refinement,
     )
 
 
-def _read_run_scene(run_dir: Path, doc: dict) -> Scene:
+def read_run_scene(run_dir: Path, doc: dict) -> Scene:
     """The run's scene: config.json's `scene_from_run` (relative to the run folder) when it is there, else its
     `scene_dir` (as recorded: absolute for runs trained since it was resolved, else relative to where train ran)."""
     tried = find_run_scene(run_dir, doc, ("scene_dir",))

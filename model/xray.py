@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -49,6 +50,8 @@ from nerfpipe.radiance.xray import VoxelGrid, XrayGeometry, detector_rays, siddo
 __all__ = [
     "XRAY_CHECKPOINT_FORMAT",
     "XrayRun",
+    "XRAY_FIELDS",
+    "XrayField",
     "attenuation_field",
     "build_field",
     "grid_shape_at",
@@ -66,21 +69,14 @@ MU_INIT_FRACTION = 0.5
 """The field starts at this fraction of `mu_ref` everywhere (softplus(shift) = 0.5)."""
 
 
-def attenuation_field(
-    grid: VoxelGrid, *, kind: str, resolution: int, rank: int = 16, mu_ref: float, init_std: float = 0.1
-) -> Field:
-    """A density-only field over the grid's box, starting near MU_INIT_FRACTION * mu_ref everywhere
-    (mu_ref: a typical attenuation, e.g. twice the scan's mean).
+def _voxel_field(grid: VoxelGrid, resolution: int, rank: int, mu_ref: float, init_std: float) -> Field:
+    """mu = mu_ref * max(theta, 0) on a grid of `resolution` voxels along the longest axis."""
+    shape = grid_shape_at(grid, resolution)
+    return VoxelField(aabb=grid.box.tolist(), shape=shape, mu_scale=float(mu_ref), init=MU_INIT_FRACTION)
 
-    kind "grid": `VoxelField`, mu = mu_ref * max(theta, 0) on a grid of `resolution` voxels along the longest
-    axis (the scene grid's shape at full resolution); kind "tensorf": TensoRF VM with `rank` components per
-    axis, mu = mu_ref * softplus(f + shift)."""
-    if kind == "grid":
-        return VoxelField(
-            aabb=grid.box.tolist(), shape=grid_shape_at(grid, resolution), mu_scale=float(mu_ref), init=MU_INIT_FRACTION
-        )
-    if kind != "tensorf":
-        raise ValueError(f"expected field kind 'grid' or 'tensorf', got {kind!r}")
+
+def _tensorf_field(grid: VoxelGrid, resolution: int, rank: int, mu_ref: float, init_std: float) -> Field:
+    """TensoRF VM with `rank` components per axis, mu = mu_ref * softplus(f + shift)."""
     shift = math.log(math.expm1(MU_INIT_FRACTION))
     return make_field(
         {
@@ -97,6 +93,48 @@ def attenuation_field(
     )
 
 
+@dataclass(frozen=True)
+class XrayField:
+    """One attenuation field xray-train can fit: its name on the command line, the field kind its checkpoint records
+    (`radiance.fields.FIELDS`), how a new one is made and how it is upsampled to `resolution` voxels along the
+    grid's longest axis, and whether SART (linear in the unknowns) can fit it."""
+
+    name: str
+    recorded_as: str
+    make: Callable[[VoxelGrid, int, int, float, float], Field]
+    upsample: Callable[[Field, VoxelGrid, int], None]
+    linear: bool
+
+
+XRAY_FIELDS = {
+    "grid": XrayField(
+        name="grid",
+        recorded_as="voxel",
+        make=_voxel_field,
+        upsample=lambda field, grid, res: field.upsample(grid_shape_at(grid, res)),
+        linear=True,
+    ),
+    "tensorf": XrayField(
+        name="tensorf",
+        recorded_as="fast",
+        make=_tensorf_field,
+        upsample=lambda field, grid, res: field.upsample(res),
+        linear=False,
+    ),
+}
+"""The one table of X-ray fields: `xray-train --field NAME`."""
+
+
+def attenuation_field(
+    grid: VoxelGrid, *, kind: str, resolution: int, rank: int = 16, mu_ref: float, init_std: float = 0.1
+) -> Field:
+    """A density-only field over the grid's box, starting near MU_INIT_FRACTION * mu_ref everywhere
+    (mu_ref: a typical attenuation, e.g. twice the scan's mean); `kind` one of `XRAY_FIELDS`."""
+    if kind not in XRAY_FIELDS:
+        raise ValueError(f"expected field kind one of {', '.join(XRAY_FIELDS)}, got {kind!r}")
+    return XRAY_FIELDS[kind].make(grid, resolution, rank, mu_ref, init_std)
+
+
 def grid_shape_at(grid: VoxelGrid, resolution: int) -> tuple[int, int, int]:
     """The grid's shape scaled so that its longest axis has `resolution` voxels (never above the grid's)."""
     longest = max(grid.shape)
@@ -104,10 +142,7 @@ def grid_shape_at(grid: VoxelGrid, resolution: int) -> tuple[int, int, int]:
 
 
 def build_field(config: dict) -> Field:
-    """Rebuild a field from `Field.config()`: "voxel" here, the others through radiance.fields.make_field."""
-    if config.get("kind") == "voxel":
-        kw = {k: v for k, v in config.items() if k != "kind"}
-        return VoxelField(**kw)
+    """Rebuild a field from `Field.config()` (`radiance.fields.make_field`)."""
     return make_field(config)
 
 

@@ -53,7 +53,19 @@ bench-refine: $(INSTALLED)
 	$(VENV)/bin/python -m benchmarks.bench_refine --out $(BENCH_OUT)/refine
 
 # issue 16: the viewer's 256 px preview (coarse / refined) against render's path, on lego_400's run from bench-train
-VIEW_RUN ?= $(BENCH_OUT)/train/lego_400/fast
+VIEW_RUN ?= $(BENCH_OUT)/train/lego_400/density
 bench-view: $(INSTALLED)
 	@test -f $(VIEW_RUN)/checkpoint.pt || { echo "bench-view: no trained run at $(VIEW_RUN) (make bench-train makes it, or VIEW_RUN=DIR)"; exit 2; }
 	$(VENV)/bin/python -m benchmarks.bench_view $(VIEW_RUN)
+
+# issue 53: printed boxes whose faces look alike (carton, cube), photographed all round on white, through poses
+# against their exact poses: right within 1 deg, or flagged with the right cause (~30 min on 2 cores);
+# docs/BENCH_FOLDING.md
+.PHONY: bench-folding
+bench-folding: $(INSTALLED)
+	$(VENV)/bin/python -m benchmarks.bench_folding --out $(BENCH_OUT)/folding
+
+# issue 53: the shared head through poses (masked, on white, as shot, 22 photos at 4000 px) against its own poses
+.PHONY: bench-head
+bench-head: $(INSTALLED)
+	$(VENV)/bin/python -m benchmarks.bench_head --out $(BENCH_OUT)/head

@@ -211,7 +211,7 @@ def estimate(stage: str, f: Facts, args: dict[str, str]) -> tuple[float | None, 
 
 
 def _train_downscale(size_wh) -> float:
-    """train's default downscale on CPU (stages.train.views.auto_downscale with 800 px)."""
+    """train's default downscale on CPU (model.views.auto_downscale with 800 px)."""
     if not size_wh:
         return 1.0
     factor, side = 1, max(size_wh)

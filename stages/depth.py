@@ -142,7 +142,7 @@ def _global_range(paths: list[Path], max_samples: int = 1_000_000) -> tuple[floa
 def _far_bound(trained: Any) -> float | None:
     """The scene's far bound (scene units) when the run's rays march past it (contracted, NDC), else None."""
     far = float(trained.scene.far)
-    marched = float(trained.space.far)
+    marched = float(trained.far)
     return far if math.isfinite(far) and marched > far * (1 + 1e-6) else None
 
 
@@ -235,7 +235,7 @@ def _run(config: Config, progress: Progress | None = None) -> Outputs:
     scene = trained.scene
     if config.downscale is not None and not config.downscale > 0:
         raise UserError(f"--downscale: expected > 0, got {config.downscale}")
-    downscale = config.downscale or float(trained.run_config.get("downscale") or 1.0)
+    downscale = config.downscale or trained.downscale
     cams = camera_path(scene, config.views, frames=config.frames, downscale=downscale)
     scale = float(scene.applied_scale)
     key = "depth" if config.kind == "expected" else "depth_median"

@@ -152,9 +152,12 @@ def test_no_options_gives_the_config_defaults(name):
 
 @pytest.mark.parametrize("name", COMMANDS)
 def test_only_fields_without_a_command_line_form_are_skipped(name):
-    """Callables and nested dataclasses may be left out; a field of any other type must become an option."""
+    """Callables and nested dataclasses may be left out, and a method's options group (spelt flat through
+    cli.METHOD_GROUPS); a field of any other type must become an option."""
     hints = typing.get_type_hints(_config_cls(name))
     for field_name in cli.skipped_fields(name):
+        if (name, field_name) in cli.METHOD_GROUPS:
+            continue
         hint = hints[field_name]
         members = [a for a in typing.get_args(hint) if a is not type(None)] if _is_union(hint) else [hint]
         assert len(members) == 1, f"{name}: Config.{field_name} ({hint}) has no option: add it to cli.PARSERS"
@@ -175,16 +178,26 @@ def test_positional_arguments_are_the_required_fields():
 
 
 def test_options_reach_the_config():
-    config = cli.config_from_args("train", ["s", "r", "--field", "vanilla", "--lr", "0.01", "--no-view-dependent"])
-    assert (config.field, config.lr, config.view_dependent) == ("vanilla", 0.01, False)
+    config = cli.config_from_args("train", ["s", "r", "--method", "nerf", "--lr", "0.01", "--no-view-dependent"])
+    assert (config.method, config.lr, config.options.view_dependent) == ("nerf", 0.01, False)
     assert cli.config_from_args("convert", ["src", "s", "--downscales", "3,5", "--no-normalize"]).downscales == (3, 5)
     assert cli.config_from_args("convert", ["src", "s", "--downscales", ""]).downscales == ()
-    assert cli.config_from_args("train", ["s", "r", "--resolution", "8, 16"]).fast.resolution == (8, 16)
-    assert cli.config_from_args("train", ["s", "r", "--rank", "16,4,4,48,12,12"]).fast.rank == (16, 4, 4, 48, 12, 12)
+    assert cli.config_from_args("train", ["s", "r", "--resolution", "8, 16"]).options.resolution == (8, 16)
+    assert cli.config_from_args("train", ["s", "r", "--rank", "16,4,4,48,12,12"]).options.rank == (16, 4, 4, 48, 12, 12)
     report = cli.config_from_args("report", ["a", "b", "o", "--levels", "21.5,30", "--labels", "x,y"])
     assert report.levels == (21.5, 30.0) and report.labels == ("x", "y")
     assert cli.config_from_args("render", ["r", "v.mp4", "--outputs", "rgb,depth"]).outputs == ("rgb", "depth")
     assert cli.config_from_args("render", ["r", "v.mp4", "--device", "cuda:1"]).device == "cuda:1"
+
+
+def test_method_options_belong_to_the_method_named(capsys):
+    """Every method's options are flags of `train`; one of another method is refused in one line, and an unknown
+    method names the ones there are."""
+    assert cli.config_from_args("train", ["s", "r"]).options is None  # the method's own defaults
+    with pytest.raises(UserError, match="--tv: not an option of method nerf"):
+        cli.config_from_args("train", ["s", "r", "--method", "nerf", "--tv", "0.1"])
+    code, _, err = _run(capsys, "train", "s", "r", "--method", "bogus")
+    assert code == 2 and err.strip().splitlines() == ["error: unknown method 'bogus': expected one of density, nerf"]
 
 
 def test_mesh_special_fields():
@@ -201,7 +214,7 @@ def test_mesh_special_fields():
 @pytest.mark.parametrize(
     "name, option, good",
     [
-        ("train", "--field", "vanilla"),
+        ("train", "--scene-model", "ndc"),
         ("convert", "--kind", "llff"),
         ("render", "--path", "spiral"),
         ("depth", "--views", "turntable"),

@@ -102,7 +102,7 @@ def test_self_check_leaves_out_the_far_bound_of_a_box_run(sphere_run, tmp_path, 
     run_dir, fake = sphere_run
     near = dataclasses.replace(fake.scene, far=2.0)
     box_run = SphereRun(scene=near)
-    box_run.space = dataclasses.replace(box_run.space, far=near.far)  # rays stop at the far bound: nothing beyond
+    box_run.far = near.far  # rays stop at the far bound: nothing beyond
     doc, checks = _run_with(monkeypatch, run_dir, tmp_path, box_run)
     assert "depth_beyond_far" not in checks and "check depth_beyond_far" in doc["left_out"]
 

@@ -17,6 +17,7 @@ import torch
 
 from nerfpipe.data.errors import UserError
 from nerfpipe.model.distributed import SINGLE, DataParallel, World, world_from_env
+from nerfpipe.model.methods.density import DensityOptions
 from nerfpipe.stages import scene as scene_stage
 from nerfpipe.stages import train
 from tests.ports import free_port
@@ -114,11 +115,11 @@ def test_two_ranks_give_the_parameters_of_one_process(scene_dir, tmp_path):
     ~1e-7 relative); Adam turns a relative gradient error e into about e x lr a step, so after 70 steps at
     lr <= 0.03 the parameters agree to ~1e-6 (measured: 9e-5 at most, the density lines); 5e-4 is a sixtieth of
     one Adam step, while a rank that took other rays or other jitter is off by ~0.1 (measured 0.16)."""
-    fast = train.FastOptions(resolution=(16, 24), occupancy_resolution=16, occupancy_every=4)
+    fast = DensityOptions(resolution=(16, 24), occupancy_resolution=16, occupancy_every=4)
     common = dict(
         batch_rays=255,
         max_steps=70,
-        fast=fast,
+        options=fast,
         refine=train.RefineOptions(),
         appearance=True,
         eval_every=0,

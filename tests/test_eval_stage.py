@@ -16,6 +16,7 @@ import nerfpipe.stages.eval as eval_stage
 from nerfpipe.data.atomic import write_json
 from nerfpipe.data.errors import UserError
 from nerfpipe.model import render_view
+from nerfpipe.model.methods.density import DensityOptions
 
 try:  # the analytic stand-in lives with the render tests
     from test_render_stage import SphereRun, sphere_run  # noqa: F401  (fixture)
@@ -199,7 +200,7 @@ def test_short_training_gives_depth_near_ground_truth(tmp_path):
             max_steps=STEPS,
             max_seconds=600.0,
             batch_rays=512,
-            fast=train.FastOptions(resolution=(24, 48), occupancy_resolution=32),
+            options=DensityOptions(resolution=(24, 48), occupancy_resolution=32),
             log_every=50,
             eval_every=0,
             eval_pixels=256,

@@ -220,7 +220,8 @@ def test_the_point_cloud_is_read_by_three_js_plyloader_as_32_bit_floats(tmp_path
         "const buf = readFileSync(process.argv[2]);\n"
         "const g = new PLYLoader().parse(buf.buffer.slice(buf.byteOffset, buf.byteOffset + buf.byteLength));\n"
         "const p = g.getAttribute('position');\n"
-        "console.log(JSON.stringify({ n: p.count, type: p.array.constructor.name, first: Array.from(p.array.slice(0, 3)),"
+        "console.log(JSON.stringify({ n: p.count, type: p.array.constructor.name,"
+        " first: Array.from(p.array.slice(0, 3)),"
         " colour: g.hasAttribute('color'), normal: g.hasAttribute('normal') }));\n"
     )
     res = subprocess.run([NODE, str(script), str(out.out)], capture_output=True, text=True, check=True, timeout=60)

@@ -20,6 +20,7 @@ import trimesh
 from benchmarks.standin import StandIn
 from nerfpipe import cli
 from nerfpipe.data.errors import UserError
+from nerfpipe.model.methods.density import DensityOptions
 from nerfpipe.model.surface_points import density_normals
 from nerfpipe.radiance.render import StratifiedSampler, render_rays
 from nerfpipe.stages import export_points as ep
@@ -37,7 +38,6 @@ class Rendered(StandIn):
     def __init__(self, root, *, fly: int = 0, size: int = 40, **kw):
         super().__init__(root, size=size, **kw)
         self.background = torch.tensor(BACKGROUND)
-        self.run_config: dict = {}
         self.fly = fly
         self.rays_seen = 0
 
@@ -330,7 +330,7 @@ def test_a_real_training_run_through_the_command_line(tmp_path, capsys):
             max_steps=50,
             max_seconds=120.0,
             batch_rays=256,
-            fast=train.FastOptions(resolution=(16, 24), occupancy_resolution=16),
+            options=DensityOptions(resolution=(16, 24), occupancy_resolution=16),
             eval_every=0,
             final_eval_views=1,
             device="cpu",

@@ -16,6 +16,7 @@ import trimesh
 from benchmarks.mesh_metrics import chamfer_distance, signed_offsets, surface_points, surface_samples
 from benchmarks.standin import StandIn
 from nerfpipe.data.errors import UserError
+from nerfpipe.model.methods.density import DensityOptions
 from nerfpipe.radiance.compositing import median_depth
 from nerfpipe.radiance.paths import look_at
 from nerfpipe.stages import mesh
@@ -349,7 +350,7 @@ def test_short_training_meshes_near_the_ground_truth(tmp_path):
             max_steps=TRAIN_STEPS,
             max_seconds=600.0,
             batch_rays=256,
-            fast=train.FastOptions(resolution=(24, 48), occupancy_resolution=32),
+            options=DensityOptions(resolution=(24, 48), occupancy_resolution=32),
             log_every=50,
             eval_every=0,
             final_eval_views=1,

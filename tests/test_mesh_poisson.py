@@ -32,7 +32,6 @@ class Rendered(StandIn):
     through `MARCH_BOX`, emission-absorption (`radiance.render.render_rays`)."""
 
     background = torch.ones(3)
-    run_config: dict = {}
 
     def render_rays(self, rays_o, rays_d, *, median=True):
         t0, t1 = ray_aabb_segment(rays_o, rays_d, MARCH_BOX.to(rays_o), 0.1, 10.0)

@@ -153,22 +153,26 @@ def test_nan_and_inf_densities_count_as_occupied_not_empty():
 
 
 def test_empty_cells_follow_the_opacity_of_one_training_step(tmp_path):
-    """build_model's grid: a cell is empty when sigma x step < EMPTY_OPACITY, whatever the scene's scale."""
+    """The density method's grid: a cell is empty when sigma x step < EMPTY_OPACITY, whatever the scene's scale."""
     from nerfpipe.data.transforms import read_scene
-    from nerfpipe.model.field_model import EMPTY_OPACITY, ModelSettings, build_model, make_space
+    from nerfpipe.model.field_model import EMPTY_OPACITY
+    from nerfpipe.model.methods.density import DensityOptions, density_model
+    from nerfpipe.model.spaces import make_space
     from nerfpipe.radiance.space import Box
     from nerfpipe.stages import scene as scene_stage
 
     scene_stage.run(scene_stage.Config(out_dir=tmp_path / "s", kind="posed", size=16, views=4, seed=0))
-    settings = ModelSettings(
-        field="fast",
+    options = DensityOptions(
         resolution=(16, 32),
+        rank=(16, 48),
         step_ratio=2.0,
         occupancy_resolution=8,
-        view_dependent=None,
+        view_dependent=True,
+        density_activation="softplus",
+        mlp_width=64,
         render_step_factor=0.5,
     )
-    model = build_model(settings, make_space(Box, read_scene(tmp_path / "s")), torch.device("cpu"), None)
+    model = density_model(options, make_space(Box, read_scene(tmp_path / "s")), torch.device("cpu"), None)
     step = model.step_size
     for opacity, occupied in ((0.5 * EMPTY_OPACITY, False), (2 * EMPTY_OPACITY, True)):
         model.grid.density.fill_(1e3)  # mean density high: the threshold is the opacity rule's
@@ -214,7 +218,7 @@ def test_inference_colours_every_sample_of_a_long_faint_ray(infer):
     """A field model rendering (not training) colours every sample whose weight passes the threshold, however many
     a ray has: a constant colour c in a faint fog crossed in ~600 steps gives rgb = acc c + (1 - acc) bg exactly.
     The training budget of 16 coloured samples a ray darkened such rays (the fern at a fine render step)."""
-    from nerfpipe.model.field_model import FieldModel, Inference
+    from nerfpipe.model.field_model import Inference, MarchedModel
     from nerfpipe.radiance.space import Box
 
     colour = torch.tensor([0.9, 0.6, 0.3])
@@ -233,7 +237,7 @@ def test_inference_colours_every_sample_of_a_long_faint_ray(infer):
     grid = OccupancyGrid([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0], 8)
     grid.binary.fill_(True)
     space = Box(aabb=((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)), near=0.1, far=10.0)
-    model = FieldModel(Fog(), grid, "fast", space, step_size=0.003, render_step_factor=1.0)
+    model = MarchedModel(field=Fog(), space=space, grid=grid, step_size=0.003, render_step_factor=1.0)
     o = torch.tensor([[0.0, 0.0, 3.0], [0.3, -0.2, 3.0], [0.0, 0.0, -3.0]])
     d = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0], [0.0, 0.0, 1.0]])
     bg = torch.tensor([0.1, 0.2, 0.3])

@@ -125,7 +125,11 @@ def test_synthetic_outputs_and_report(synthetic):
     # the model checks itself: no EXIF focal (PNG renders), so the field of view stands in for it
     assert report["check"] == out.check == "ok" and report["attempts"][0]["check"] == "ok"
     names = ["field_of_view", "distortion", "principal_point", "reprojection_error", "track_length"]
-    assert [c["name"] for c in report["checks"]] == [*names, "registered_fraction"]
+    assert [c["name"] for c in report["checks"]] == [*names, "registered_fraction", "capture_order"]
+    # the photos were taken in name order round the scene: the camera path has no fold, and the poses explain
+    # the verified matches (stages.poses.consistency)
+    assert report["consistency"]["order_is_path"] and report["consistency"]["creases"] == []
+    assert report["consistency"]["explained_matches"] > 0.99
     assert report["focal_prior"]["exif"] == "absent" and "absent" in report["focal_prior"]["says"]
     assert report["focal_prior"]["cameras"]["1"]["source"] == "absent"
     assert report["images"]["frame_0000.png"]["exif_focal"] == "absent"

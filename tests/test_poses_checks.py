@@ -17,7 +17,7 @@ from PIL import Image
 
 from nerfpipe.data.checks import verdict
 from nerfpipe.stages.poses import quality
-from nerfpipe.stages.poses.choice import Candidate, candidate, choose, retry_budget, stop_reason
+from nerfpipe.stages.poses.choice import Candidate, candidate, choose, keepable, stop_reason
 from nerfpipe.stages.poses.exif import FILM_DIAGONAL_MM, apply_focal_priors, exif_focal
 from nerfpipe.stages.poses.images import write_upright
 from nerfpipe.stages.poses.report import RunState, focal_prior_record
@@ -190,16 +190,18 @@ def test_choice_when_every_attempt_fails_a_camera_check():
 
 def test_ladder_stops_on_a_good_attempt_not_on_a_bad_one_and_within_its_budget():
     total = 22
-    assert stop_reason([_cand("as configured", 22, True)], total, [30.0]).startswith("'as configured' registered 22/22")
+    assert stop_reason([_cand("as configured", 22, True)], total, 30.0, 110.0).startswith(
+        "'as configured' registered 22/22"
+    )
     # 80 %+ registered but a camera check failed: go on
-    assert stop_reason([_cand("as configured", 22, False)], total, [30.0]) is None
-    # a usable, sane model (15/22) and retries past max(10 x 30 s, 60 s): stop; under it: go on
+    assert stop_reason([_cand("as configured", 22, False)], total, 30.0, 110.0) is None
+    # a usable, sane model (15/22) and the stage past its time budget: stop; under it: go on
     tried = [_cand("as configured", 22, False), _cand("more features", 15, True)]
-    assert stop_reason(tried, total, [30.0, 200.0]) is None
-    assert "budget of 300 s" in stop_reason(tried, total, [30.0, 320.0])
+    assert stop_reason(tried, total, 100.0, 110.0) is None
+    assert "time budget of 110 s" in stop_reason(tried, total, 120.0, 110.0)
     # without a usable, sane model the budget does not stop the ladder (the result would be failed or suspect)
-    assert stop_reason([_cand("a", 22, False), _cand("b", 8, True)], total, [30.0, 900.0]) is None
-    assert retry_budget(2.0) == 60.0 and retry_budget(30.0) == 300.0
+    assert stop_reason([_cand("a", 22, False), _cand("b", 8, True)], total, 900.0, 110.0) is None
+    assert keepable(tried, total).name == "more features" and keepable(tried[:1], total) is None
 
 
 # ---------------------------------------------------------------- EXIF focal prior, sideways photos
@@ -334,7 +336,7 @@ def _run_ladder(tmp_path: Path, monkeypatch, models: list[pycolmap.Reconstructio
     monkeypatch.setattr(sfm, "match", lambda db, s: None)
     monkeypatch.setattr(sfm, "database_stats", lambda db: stats)
     monkeypatch.setattr(sfm, "reconstruct", lambda db, images, out, s: {0: next(made)})
-    monkeypatch.setattr(attempts, "apply_focal_priors", lambda db, priors: {1: {"prior_px": 1280.0}})
+    monkeypatch.setattr(attempts, "apply_focal_priors", lambda db, priors, weak=None: {1: {"prior_px": 1280.0}})
     settings = sfm.SfmSettings(
         max_image_size=1000,
         max_num_features=2048,
@@ -399,3 +401,74 @@ def test_summary_prints_one_warning_per_failed_check():
     assert lines[1].startswith("warning: poses (colmap/sparse): focal_vs_exif = 38.59 (expected <= 25 %)")
     assert "f = 10450 px against the EXIF prior 7540 px (+39%)" in lines[1]
     assert lines[2].startswith("warning: poses (colmap/sparse): distortion = 18.75 (expected <= 15 %)")
+
+
+# ---------------------------------------------------------------- EXIF priors of cropped photos (issue 53)
+
+
+def test_a_square_crop_gets_its_frame_not_its_diagonal(tmp_path):
+    """The shared head's EXIF: 4000 x 4000 px cut from a 6000 x 4000 px APS-C frame, FocalLength 31 mm,
+    FocalLengthIn35mmFilm 46 mm. By the diagonal (COLMAP's rule) 6,014 px; its own cameras say ~7,540 px.
+    As a crop keeping the short side of a 3:2 frame (crop factor 46 / 31 = 1.48 < 1.8): 46 / 43.27 x
+    hypot(6000, 4000) = 7,666 px, +1.7 %. The prior says it is a guess. (Photos 400 px: the same rule in pixels.)"""
+    _photo(tmp_path / "head.jpg", (400, 400), f_mm=31, f35=46)
+    prior = exif_focal(tmp_path / "head.jpg")
+    assert prior.focal_px * 10 == pytest.approx(46 / FILM_DIAGONAL_MM * math.hypot(6000, 4000), rel=1e-6)
+    assert prior.focal_px * 10 == pytest.approx(7666, abs=1) and abs(prior.focal_px * 10 / 7540 - 1) < 0.02
+    assert prior.focal_px * 10 != pytest.approx(6014, abs=50)  # the diagonal rule it replaces
+    assert prior.weak is not None and "crop" in prior.weak and "3:2" in prior.weak and "1.48" in prior.weak
+    # a phone's crop factor (~5) means a 4:3 frame; a 16:9 photo keeps the frame's long side
+    _photo(tmp_path / "phone.jpg", (400, 400), f_mm=4.4, f35=26)
+    assert exif_focal(tmp_path / "phone.jpg").focal_px == pytest.approx(26 / FILM_DIAGONAL_MM * 400 * 5 / 3)
+    _photo(tmp_path / "wide.jpg", (640, 360), f35=30)
+    assert exif_focal(tmp_path / "wide.jpg").focal_px == pytest.approx(
+        30 / FILM_DIAGONAL_MM * math.hypot(640, 640 / 1.5)
+    )
+    # a frame's own aspect (3:2, 4:3) is the whole frame: the diagonal rule, a strong prior
+    _photo(tmp_path / "frame.jpg", (600, 400), f_mm=31, f35=46)
+    frame = exif_focal(tmp_path / "frame.jpg")
+    assert frame.weak is None and frame.focal_px == pytest.approx(46 / FILM_DIAGONAL_MM * math.hypot(600, 400))
+
+
+def test_exif_fields_that_disagree_make_a_weak_prior_from_the_pixel_pitch(tmp_path):
+    # 3:2, f35 50 mm -> 833 px by the diagonal; FocalLength 20 mm x 60 px/mm = 1200 px: 44 % apart
+    _photo(tmp_path / "odd.jpg", (600, 400), f35=50, f_mm=20, plane_res=60, plane_unit=4)
+    prior = exif_focal(tmp_path / "odd.jpg")
+    assert prior.focal_px == pytest.approx(1200) and "disagree" in prior.weak
+    _photo(tmp_path / "even.jpg", (600, 400), f35=50, f_mm=20, plane_res=42, plane_unit=4)  # 840 px: agrees
+    assert exif_focal(tmp_path / "even.jpg").weak is None
+
+
+def test_a_weak_prior_never_decides_the_attempt_and_reaches_colmap_without_has_prior(tmp_path):
+    """Issue 53's 4000 px head: an attempt registering 22/22 with f 30 % off a (wrong) prior was thrown away for
+    one with 14/22. Against a weak prior the focal is reported (focal_vs_weak_exif, 50 %) but is no camera check:
+    the 22/22 model is kept; a strong prior still decides."""
+    cam = _camera(EXIF_F_PX * 1.3)
+    weak = _by_name(quality.camera_checks(cam, EXIF_F_PX, weak="a crop, a guess"))
+    assert set(weak) == {"focal_vs_weak_exif", "field_of_view", "distortion", "principal_point"}
+    assert weak["focal_vs_weak_exif"].ok and weak["focal_vs_weak_exif"].value == pytest.approx(30.0)
+    assert "weak EXIF prior" in weak["focal_vs_weak_exif"].says and "focal_vs_weak_exif" not in quality.CAMERA_CHECKS
+    assert not _by_name(quality.camera_checks(_camera(EXIF_F_PX * 1.6), EXIF_F_PX, weak="guess"))[
+        "focal_vs_weak_exif"
+    ].ok
+    full, partial = _model(frames=10, f=1280 * 1.3, k1=0.0), _deregister(_model(frames=10, f=1280, k1=0.0), keep=6)
+    cands = [
+        candidate("as configured", full, {1: 1280.0}, 10, {1: "a crop"}),
+        candidate("more features", partial, {1: 1280.0}, 10, {1: "a crop"}),
+    ]
+    assert cands[0].sane and choose(cands, total=10).index == 0
+    strong = [candidate("as configured", full, {1: 1280.0}, 10), candidate("more features", partial, {1: 1280.0}, 10)]
+    assert not strong[0].sane and choose(strong, total=10).index == 1
+    # COLMAP gets the value as its starting focal, without has_prior_focal_length
+    _photo(tmp_path / "a.jpg", (300, 300), f_mm=31, f35=46)
+    db = tmp_path / "db.db"
+    pycolmap.extract_features(db, tmp_path, image_names=["a.jpg"], device=pycolmap.Device.cpu)
+    prior = exif_focal(tmp_path / "a.jpg")
+    info = apply_focal_priors(db, {"a.jpg": prior.focal_px}, {"a.jpg": prior.weak})
+    database = pycolmap.Database.open(db)
+    try:
+        (cam,) = database.read_all_cameras()
+    finally:
+        database.close()
+    assert not cam.has_prior_focal_length and cam.focal_length == pytest.approx(prior.focal_px)
+    assert info[cam.camera_id]["weak"] == prior.weak

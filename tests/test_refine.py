@@ -26,6 +26,7 @@ from nerfpipe.model.camera_opt import (
     pivot_depths,
     pivoted_exp,
 )
+from nerfpipe.model.methods.density import DensityOptions
 from nerfpipe.radiance.align import pose_errors
 from nerfpipe.radiance.camera import Intrinsics, generate_rays
 from nerfpipe.radiance.se3 import se3_exp, se3_log, so3_exp, so3_log
@@ -318,7 +319,7 @@ def tiny(tmp_path_factory) -> tuple[Path, Path]:
     return root / "exact", perturb_scene(root / "exact", root / "perturbed", 3.0, 0.03)
 
 
-TINY_GRID = train.FastOptions(resolution=(16, 24), occupancy_resolution=16)
+TINY_GRID = DensityOptions(resolution=(16, 24), occupancy_resolution=16)
 REFINE = train.RefineOptions()
 
 
@@ -330,7 +331,7 @@ def tiny_config(scene_dir: Path, run_dir: Path, **kw) -> train.Config:
         max_steps=3,
         max_seconds=600.0,
         batch_rays=256,
-        fast=TINY_GRID,
+        options=TINY_GRID,
         log_every=1,
         eval_every=0,
         final_eval_views=1,
@@ -362,14 +363,14 @@ def test_off_by_default_and_identity_at_start(tiny, tmp_path):
 def test_refinement_trains_coarse_to_fine_by_default(tiny, tmp_path):
     """--refine-poses starts the grid at a quarter of its final size and upsamples later (BARF's coarse-to-fine in
     grid terms); without it the defaults are as before; asked-for values win."""
-    from nerfpipe.stages.train.defaults import REFINE_UPSAMPLE_AT, UPSAMPLE_AT
+    from nerfpipe.model.methods.density.defaults import REFINE_UPSAMPLE_AT, UPSAMPLE_AT
 
-    auto = train.FastOptions(occupancy_resolution=16)
-    asked = train.FastOptions(upsample_at=(0.1,), resolution=(16, 24), occupancy_resolution=16)
+    auto = DensityOptions(occupancy_resolution=16)
+    asked = DensityOptions(upsample_at=(0.1,), resolution=(16, 24), occupancy_resolution=16)
     configs = {}
-    for name, extra in (("off", {}), ("on", {"refine": REFINE}), ("asked", {"refine": REFINE, "fast": asked})):
-        train.run(tiny_config(tiny[1], tmp_path / name, **{"fast": auto, "max_steps": 1, **extra}))
-        configs[name] = json.loads((tmp_path / name / "config.json").read_text())["fast"]
+    for name, extra in (("off", {}), ("on", {"refine": REFINE}), ("asked", {"refine": REFINE, "options": asked})):
+        train.run(tiny_config(tiny[1], tmp_path / name, **{"options": auto, "max_steps": 1, **extra}))
+        configs[name] = json.loads((tmp_path / name / "config.json").read_text())["options"]
     r1 = configs["off"]["resolution"][1]
     assert configs["off"]["resolution"][0] == 64 and tuple(configs["off"]["upsample_at"]) == UPSAMPLE_AT
     assert configs["on"]["resolution"] == [max(16, round(r1 / 4)), r1]
@@ -449,8 +450,8 @@ def test_a_stopped_refinement_takes_the_field_back_to_before_the_cameras_moved(t
     learned against cameras that ran away does not stay in it), the manifest says so, and later steps use the input
     cameras. Checked against a run without refinement: its field after the step of the first move is the refined
     run's at the stop (the same rays up to then: corrections start at zero)."""
-    grid = train.FastOptions(resolution=(24, 24), upsample_at=(), occupancy_resolution=16)
-    kw = dict(max_steps=STOP_AT, fast=grid, log_every=100)
+    grid = DensityOptions(resolution=(24, 24), upsample_at=(), occupancy_resolution=16)
+    kw = dict(max_steps=STOP_AT, options=grid, log_every=100)
     recorded = _field_after_each_step(monkeypatch)
     train.run(tiny_config(tiny[1], tmp_path / "plain", **kw))
     plain_fields = dict(recorded)  # the refined run records over it

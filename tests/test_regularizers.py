@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from nerfpipe.data.errors import UserError
+from nerfpipe.model.methods.density import DensityOptions
 from nerfpipe.radiance.contraction import Contraction, normalized_distance
 from nerfpipe.radiance.regularizers import distortion_loss, distortion_loss_reference
 
@@ -62,9 +63,9 @@ def test_train_refuses_distortion_outside_contracted_scenes(tmp_path):
     scene_stage.run(scene_stage.Config(out_dir=tmp_path / "s", kind="posed", size=16, views=4, seed=0))
     cfg = dict(scene_dir=tmp_path / "s", run_dir=tmp_path / "r", max_steps=1, device="cpu")
     with pytest.raises(UserError, match="contracted scenes only"):
-        train.run(train.Config(**cfg, fast=train.FastOptions(distortion=0.01)))  # an object with alpha: box
+        train.run(train.Config(**cfg, options=DensityOptions(distortion=0.01)))  # an object with alpha: box
     with pytest.raises(UserError, match="distortion >= 0"):
-        train.run(train.Config(**cfg, fast=train.FastOptions(distortion=-1.0)))
+        train.run(train.Config(**cfg, options=DensityOptions(distortion=-1.0)))
 
 
 def test_depth_nll_prefers_weight_at_the_known_depth_and_matches_a_loop():
@@ -120,9 +121,9 @@ def test_train_uses_colmap_tracks_as_depth_in_contracted_scenes_and_refuses_else
     assert used["scene_model"] == "contract"
     # the fixture's tracks: one training photo sees all 60 points
     assert used["defaults"]["depth_loss"].startswith("0.01 on 60 sparse-point rays")
-    with pytest.raises(UserError, match="fast contracted scenes only"):
+    with pytest.raises(UserError, match="depth_loss: applies to contracted scenes only"):
         train.run(
-            train.Config(**cfg, run_dir=tmp_path / "b", scene_model="box", fast=train.FastOptions(depth_loss=0.01))
+            train.Config(**cfg, run_dir=tmp_path / "b", scene_model="box", options=DensityOptions(depth_loss=0.01))
         )
-    with pytest.raises(UserError, match="depth-loss: expected >= 0"):
-        train.run(train.Config(**cfg, run_dir=tmp_path / "n", fast=train.FastOptions(depth_loss=-1.0)))
+    with pytest.raises(UserError, match="depth_loss: expected >= 0"):
+        train.run(train.Config(**cfg, run_dir=tmp_path / "n", options=DensityOptions(depth_loss=-1.0)))

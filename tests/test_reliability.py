@@ -28,10 +28,11 @@ from nerfpipe.data.lock import LOCK_NAME, FolderBusy, folder_lock
 from nerfpipe.data.transforms import read_scene
 from nerfpipe.model import load_trained
 from nerfpipe.model.checkpoint import read_checkpoint
+from nerfpipe.model.methods.density import DensityOptions
+from nerfpipe.model.views import Views, load_views
 from nerfpipe.radiance.camera import Intrinsics, generate_rays
 from nerfpipe.stages import scene as scene_stage
 from nerfpipe.stages import train
-from nerfpipe.stages.train.views import Views, load_views
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = [
@@ -73,13 +74,15 @@ def _config(scene_dir: Path, run_dir: Path, **kw) -> train.Config:
         max_steps=2,
         max_seconds=60.0,
         batch_rays=256,
-        fast=train.FastOptions(resolution=(16, 24), occupancy_resolution=16),
+        options=DensityOptions(resolution=(16, 24), occupancy_resolution=16),
         eval_every=0,
         final_eval_views=1,
         device="cpu",
         threads=1,
     )
     base.update(kw)
+    if base.get("method", "density") != "density" and "options" not in kw:
+        base["options"] = None  # another method: its own defaults
     return train.Config(**base)
 
 
@@ -372,7 +375,7 @@ def test_checkpoint_that_no_longer_matches_its_manifest_is_refused(finished_run,
         ({"format": 2, "nerfpipe_version": "9.0"}, "found format 2 written by nerfpipe 9.0, this is nerfpipe"),
         (
             {"format": 1, "field_config": {"kind": "gaussians"}},
-            "field of kind 'gaussians'; expected one of fast, vanilla",
+            "written by no method nerfpipe knows \\(a field of kind 'gaussians'\\); expected one of density, nerf",
         ),
     ],
 )

@@ -22,10 +22,10 @@ from nerfpipe.data.errors import UserError
 from nerfpipe.data.transforms import Frame, Scene, write_scene
 from nerfpipe.data.video import to_uint8, write_png
 from nerfpipe.model import camera_path, render_view
+from nerfpipe.model.methods.density import DensityOptions
 from nerfpipe.radiance import paths
 from nerfpipe.radiance.camera import Intrinsics
 from nerfpipe.radiance.metrics import psnr
-from nerfpipe.radiance.space import Box
 
 SPHERE_RADIUS = 0.5  # scene units
 BACKGROUND = (1.0, 1.0, 1.0)
@@ -33,16 +33,19 @@ BACKGROUND = (1.0, 1.0, 1.0)
 
 @dataclass
 class SphereRun:
-    """Duck-typed `Trained`: an opaque sphere at the origin, colour from its normal, miss -> background."""
+    """A run (`model.run.Run`) that renders rays: an opaque sphere at the origin, colour from its normal, miss ->
+    background."""
 
     scene: Scene
     background: torch.Tensor = torch.tensor(BACKGROUND)
     miss_depth: float = 10.0
     device: torch.device = torch.device("cpu")
-    run_config: dict = dataclasses.field(default_factory=dict)
+    downscale: float = 1.0
     pose_refinement: dict | None = None
     appearance: None = None
-    space: Box = Box(aabb=((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)), near=0.0, far=math.inf)  # rays never stop early
+    method: str = "sphere"
+    capabilities: frozenset = frozenset({"rays"})
+    far: float = math.inf  # rays never stop early
 
     def render_rays(self, rays_o, rays_d, *, infer=None, median=True):
         b = (rays_o * rays_d).sum(-1)
@@ -368,7 +371,7 @@ def train_tiny_run(root: Path, kind: str = "posed") -> Path:
             max_steps=2,
             max_seconds=60.0,
             batch_rays=256,
-            fast=train.FastOptions(resolution=(16, 24), occupancy_resolution=16),
+            options=DensityOptions(resolution=(16, 24), occupancy_resolution=16),
             eval_every=0,
             final_eval_views=1,
             device="cpu",

@@ -195,3 +195,40 @@ def test_blender_kind_at_any_scale_round_trips_through_convert(tmp_path):
     lo, hi = corners[:, :3]
     assert (lo <= small_mesh.bounds[0]).all() and (small_mesh.bounds[1] <= hi).all()
     assert np.ptp(small_mesh.bounds, axis=0).max() > 0.6 * (hi - lo).max()
+
+
+# ---------------------------------------------------------------- printed boxes (issue 53's folding objects)
+
+
+def test_printed_box_repeats_its_print_on_look_alike_faces():
+    """carton: the same print on +-x and on +-y (seen from outside, u to the right), different between the pairs;
+    cube: one print on all four sides. The albedo at mirrored points of two faces with the same print is equal."""
+    from nerfpipe.data.synthetic.prints import subject_primitives
+
+    uv = np.random.default_rng(0).uniform(-0.15, 0.15, (500, 2))
+    for subject, same, different in (("carton", [(0, 1), (2, 3)], [(0, 2)]), ("cube", [(0, 1), (0, 2), (0, 3)], [])):
+        (box,) = subject_primitives(subject, seed=0)
+        hx, hy, _ = box.half
+        u, v = uv[:, 0], uv[:, 1] + box.center[2]
+        faces = [  # world points on each side face at face-local (u, v)
+            np.column_stack([np.full_like(u, hx), u, v]),  # +x: u along +y
+            np.column_stack([np.full_like(u, -hx), -u, v]),  # -x: u along -y
+            np.column_stack([-u, np.full_like(u, hy), v]),  # +y: u along -x
+            np.column_stack([u, np.full_like(u, -hy), v]),  # -y: u along +x
+        ]
+        albedo = [box.albedo(p) for p in faces]
+        for a, b in same:
+            np.testing.assert_allclose(albedo[a], albedo[b], atol=1e-12)
+        for a, b in different:
+            assert np.abs(albedo[a] - albedo[b]).mean() > 0.05
+        assert albedo[0].std() > 0.1  # a print with contrast, not a flat colour
+
+
+def test_scene_subject_is_a_printed_box_on_white(tmp_path):
+    out = scene.run(scene.Config(out_dir=tmp_path / "s", kind="posed", subject="carton", size=32, views=4))
+    img = load_image(out.images[0])[..., :3]
+    corners = np.concatenate([img[:3, :3].reshape(-1, 3), img[-3:, -3:].reshape(-1, 3)])
+    assert np.allclose(corners, 1.0)  # white: no slab, no room
+    assert img.min() < 0.5  # the box is drawn
+    with pytest.raises(Exception, match="--subject"):
+        scene.run(scene.Config(out_dir=tmp_path / "t", subject="teapot"))

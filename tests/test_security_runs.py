@@ -23,6 +23,7 @@ from nerfpipe import cli
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.lock import LOCK_NAME, STALE_SECONDS, FolderBusy, folder_lock, sweep_stale
 from nerfpipe.data.rundir import refuse_output_inside
+from nerfpipe.model.methods.density import DensityOptions
 from nerfpipe.stages import depth, eval, poses, report, train
 from nerfpipe.stages import scene as scene_stage
 
@@ -244,10 +245,10 @@ def test_resume_with_other_settings_is_refused_naming_each(scene_dir, finished_r
     _resume_refused(
         scene_dir,
         run_dir,
-        r"fast.resolution: \[16, 24\] -> \[16, 32\]",
-        fast=train.FastOptions(resolution=(16, 32), occupancy_resolution=16),
+        r"options.resolution: \[16, 24\] -> \[16, 32\]",
+        options=DensityOptions(resolution=(16, 32), occupancy_resolution=16),
     )
-    _resume_refused(scene_dir, run_dir, "field: fast -> vanilla", field="vanilla")
+    _resume_refused(scene_dir, run_dir, "method: density -> nerf", method="nerf")
     (run_dir / "config.json").unlink()  # nothing to check the resumed run against
     with pytest.raises(UserError, match=r"config.json: missing; resume needs the config.json the run wrote"):
         train.run(_config(scene_dir, run_dir, resume=True))
@@ -290,13 +291,13 @@ def test_a_run_recorded_before_the_activation_and_width_options_resumes_as_it_wa
     different value given is refused naming it."""
     run_dir = _copy(finished_run, tmp_path)
     stored = json.loads((run_dir / "config.json").read_text())
-    assert stored["fast"].pop("density_activation") == "softplus"  # an object scene: the box rule's
-    assert stored["fast"].pop("mlp_width") == 64
+    assert stored["options"].pop("density_activation") == "softplus"  # an object scene: the box rule's
+    assert stored["options"].pop("mlp_width") == 64
     (run_dir / "config.json").write_text(json.dumps(stored))
-    fast = train.FastOptions(resolution=(16, 24), occupancy_resolution=16, density_activation="relu")
-    _resume_refused(scene_dir, run_dir, "fast.density_activation: softplus -> relu", fast=fast)
-    fast = train.FastOptions(resolution=(16, 24), occupancy_resolution=16, mlp_width=128)
-    _resume_refused(scene_dir, run_dir, "fast.mlp_width: 64 -> 128", fast=fast)
+    fast = DensityOptions(resolution=(16, 24), occupancy_resolution=16, density_activation="relu")
+    _resume_refused(scene_dir, run_dir, "options.density_activation: softplus -> relu", options=fast)
+    fast = DensityOptions(resolution=(16, 24), occupancy_resolution=16, mlp_width=128)
+    _resume_refused(scene_dir, run_dir, "options.mlp_width: 64 -> 128", options=fast)
     train.run(_config(scene_dir, run_dir, resume=True, max_steps=3))
-    resumed = json.loads((run_dir / "config.json").read_text())["fast"]
+    resumed = json.loads((run_dir / "config.json").read_text())["options"]
     assert resumed["density_activation"] == "softplus" and resumed["mlp_width"] == 64

@@ -98,7 +98,7 @@ def test_density_query_maps_scene_points():
 
 def test_a_run_moved_with_its_scene_still_loads(tmp_path, monkeypatch):
     """config.json records the scene relative to the run: OUT/run and OUT/scene moved together load from anywhere."""
-    from nerfpipe.model.trained import load_trained
+    from nerfpipe.model.run import load_trained
     from nerfpipe.stages import scene as scene_stage
     from nerfpipe.stages import train
 

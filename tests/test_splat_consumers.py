@@ -26,7 +26,7 @@ from nerfpipe import cli
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.rundir import sha256_file
 from nerfpipe.data.splat_ply import read_ply, write_ply
-from nerfpipe.model import render_view
+from nerfpipe.model import render_view, require
 from nerfpipe.model.splat_run import SplatRun, open_input
 from nerfpipe.radiance import splats as sp
 from nerfpipe.radiance.camera import Intrinsics
@@ -48,7 +48,7 @@ def sphere_run(root: Path) -> tuple[Path, SphereRun]:
     scene = sphere_scene(root / "scene", views=6, w=24, h=18)
     run_dir = root / "run"
     run_dir.mkdir()
-    (run_dir / "config.json").write_text(json.dumps({"scene_dir": str(root / "scene")}))
+    (run_dir / "config.json").write_text(json.dumps({"method": "sphere", "scene_dir": str(root / "scene")}))
     (run_dir / "checkpoint.pt").write_bytes(b"stand-in")
     return run_dir, SphereRun(scene=scene)
 
@@ -114,7 +114,7 @@ def test_splat_depth_is_the_z_depth_of_what_is_seen(stand_in):
         opacity_logits=torch.full((n,), 6.0),
         sh=torch.zeros(n, 1, 3),
     )
-    run = SplatRun(run=stand_in["fake"], splats=splats, source=open_input(stand_in["user"]))
+    run = SplatRun.of(stand_in["fake"], splats, open_input(stand_in["user"]))
     intr = Intrinsics(w=32, h=24, fx=20.0, fy=20.0, cx=16.0, cy=12.0)
     got = render_view(run, intr, np.eye(4), CPU)
     assert got["acc"].min() > 0.99
@@ -123,8 +123,9 @@ def test_splat_depth_is_the_z_depth_of_what_is_seen(stand_in):
     away = np.abs(cols)[None, :].repeat(24, 0) > 2  # a Gaussian's blur from the seam
     assert np.abs(got["depth"] - want)[away].max() < 1e-3 and np.array_equal(got["depth_median"], got["depth"])
     assert set(render_view(run, intr, np.eye(4), CPU, depth=False)) == {"rgb", "acc"}
-    with pytest.raises(TypeError, match="whole cameras"):
-        run.render_rays(torch.zeros(1, 3), torch.ones(1, 3))
+    assert "cameras" in run.capabilities and "rays" not in run.capabilities  # a rasteriser: no rays to render
+    with pytest.raises(UserError, match="a splats run cannot give a density at points, which export-points needs"):
+        require(run, "density", stage="export-points")
 
 
 def test_render_writes_a_video_from_splats(stand_in, tmp_path):

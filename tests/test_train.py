@@ -15,7 +15,7 @@ import torch
 from nerfpipe import cli
 from nerfpipe.data.errors import UserError
 from nerfpipe.model import load_trained
-from nerfpipe.model.field_model import ModelSettings
+from nerfpipe.model.methods.density import DensityOptions, recorded_options
 from nerfpipe.stages import scene as scene_stage
 from nerfpipe.stages import train
 from nerfpipe.stages.train.loop import make_optimizer
@@ -28,8 +28,8 @@ def rgba_scene(tmp_path_factory) -> Path:
     return out
 
 
-TINY = train.FastOptions(resolution=(16, 24), occupancy_resolution=16)
-SMALL = train.FastOptions(resolution=(24, 48), occupancy_resolution=32)
+TINY = DensityOptions(resolution=(16, 24), occupancy_resolution=16)
+SMALL = DensityOptions(resolution=(24, 48), occupancy_resolution=32)
 
 
 def _config(scene_dir: Path, run_dir: Path, **kw) -> train.Config:
@@ -39,7 +39,7 @@ def _config(scene_dir: Path, run_dir: Path, **kw) -> train.Config:
         max_steps=2,
         max_seconds=60.0,
         batch_rays=256,
-        fast=TINY,
+        options=TINY,
         log_every=1,
         eval_every=2,
         eval_pixels=256,
@@ -47,6 +47,8 @@ def _config(scene_dir: Path, run_dir: Path, **kw) -> train.Config:
         threads=1,
     )
     base.update(kw)
+    if base.get("method", "density") != "density" and "options" not in kw:
+        base["options"] = None  # another method: its own defaults
     return train.Config(**base)
 
 
@@ -63,11 +65,11 @@ def test_asked_for_rank_reaches_the_field_and_its_checkpoint(rgba_scene, tmp_pat
     xy, xz, yz); config.json records it and the trained run loads with them (the rank of a saved field is its own)."""
     from nerfpipe.model import load_trained
 
-    out = train.run(_config(rgba_scene, tmp_path / "run", fast=dataclasses.replace(TINY, rank=rank)))
+    out = train.run(_config(rgba_scene, tmp_path / "run", options=dataclasses.replace(TINY, rank=rank)))
     state = torch.load(out.checkpoint, weights_only=True)
     saved = [state["field_config"]["density_rank"], state["field_config"]["app_rank"]]
     assert saved == ([2, 3] if len(rank) == 2 else [[3, 1, 2], [4, 2, 1]])
-    assert json.loads((tmp_path / "run" / "config.json").read_text())["fast"]["rank"] == list(rank)
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["options"]["rank"] == list(rank)
     field = load_trained(tmp_path / "run", "cpu").model.field
     assert ([p.shape[1] for p in field.density_planes], [p.shape[1] for p in field.app_planes]) == planes
     manifest = json.loads(out.manifest.read_text())
@@ -118,14 +120,14 @@ def test_a_run_saved_with_stacked_factors_resumes_as_it_would_have(rgba_scene, t
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=0)
 
 
-@pytest.mark.parametrize("field", ["fast", "vanilla"])
-def test_two_steps_write_every_file(rgba_scene, tmp_path, field):
-    kw = dict(batch_rays=32, eval_every=0) if field == "vanilla" else {}
-    out = train.run(_config(rgba_scene, tmp_path / "run", field=field, final_eval_views=1, **kw))
+@pytest.mark.parametrize(("method", "field"), [("density", "fast"), ("nerf", "vanilla")])
+def test_two_steps_write_every_file(rgba_scene, tmp_path, method, field):
+    kw = dict(batch_rays=32, eval_every=0) if method == "nerf" else {}
+    out = train.run(_config(rgba_scene, tmp_path / "run", method=method, final_eval_views=1, **kw))
     for name in ("config.json", "checkpoint.pt", "metrics.csv", "psnr_vs_time.png", "manifest.json"):
         assert (tmp_path / "run" / name).is_file(), name
     state = torch.load(out.checkpoint, weights_only=True)
-    assert state["step"] == 2 and state["field_config"]["kind"] == field
+    assert state["step"] == 2 and state["method"] == method and state["field_config"]["kind"] == field
     rows = _rows(out.metrics)
     assert list(rows[0])[:5] == ["step", "seconds", "loss", "train_psnr", "test_psnr"]
     assert [r["step"] for r in rows[:2]] == ["1", "2"] and rows[0]["test_psnr"] == ""
@@ -156,22 +158,27 @@ def test_resume_continues_the_step_count(rgba_scene, tmp_path):
 
 
 def test_config_json_holds_the_resolved_config_in_groups(rgba_scene, tmp_path):
-    """config.json: every automatic default as the run used it (no null), the fast field's options under `fast`,
-    pose refinement's under `refine`; `ModelSettings` reads it, and the flat layout of runs from before too."""
+    """config.json: every automatic default as the run used it (no null), the method and its options under
+    `options`, pose refinement's under `refine`; the density method reads it back, and the layouts of runs from
+    before methods (a `field` kind, the options under `fast` with view_dependent at the top) and from before that
+    grouping (flat) too."""
     out = train.run(_config(rgba_scene, tmp_path / "run", batch_rays=None, threads=None, eval_every=0))
     doc = json.loads((tmp_path / "run" / "config.json").read_text())
-    assert doc["lr"] == 0.03 and doc["batch_rays"] == 1024 and doc["view_dependent"] is True
+    assert doc["method"] == "density" and doc["options"]["view_dependent"] is True
+    assert doc["lr"] == 0.03 and doc["batch_rays"] == 1024
     assert doc["downscale"] == 1.0 and isinstance(doc["threads"], int) and doc["refine"] is None
     assert doc["final_eval_views"] == len(json.loads(out.manifest.read_text())["used"]["test_views_full_eval"])
-    fast = doc["fast"]
-    assert fast["resolution"] == [16, 24] and fast["tv"] == 0.0 and fast["depth_loss"] == 0.0
-    assert fast["upsample_at"] == [0.05, 0.1, 0.2, 0.3] and fast["step_ratio"] == 2.0
+    options = doc["options"]
+    assert options["resolution"] == [16, 24] and options["tv"] == 0.0 and options["depth_loss"] == 0.0
+    assert options["upsample_at"] == [0.05, 0.1, 0.2, 0.3] and options["step_ratio"] == 2.0
     assert not [k for k, v in doc.items() if v is None and k != "refine"], doc
-    new = ModelSettings.from_config(doc, "config.json")
-    flat = {k: v for k, v in doc.items() if k != "fast"} | fast  # a run folder from before the grouping
-    assert ModelSettings.from_config(flat, "config.json") == new and new.resolution == (16, 24)
+    new = recorded_options(doc)
+    top = {k: v for k, v in doc.items() if k not in ("method", "options")}
+    grouped = top | {"field": "fast", "fast": options, "view_dependent": True}  # before methods
+    flat = top | {"field": "fast"} | options  # before the grouping
+    assert recorded_options(grouped) == new == recorded_options(flat) and new.resolution == (16, 24)
     vanilla = train.run(
-        _config(rgba_scene, tmp_path / "v", field="vanilla", batch_rays=32, eval_every=0, final_eval_views=1)
+        _config(rgba_scene, tmp_path / "v", method="nerf", batch_rays=32, eval_every=0, final_eval_views=1)
     )
     assert json.loads((vanilla.run_dir / "config.json").read_text())["lr"] == 5e-4
 
@@ -180,14 +187,14 @@ def test_config_errors_come_before_any_file_is_read(tmp_path):
     """What the config alone can tell is checked first: no scene (here: none at all) is read, no folder made."""
     missing, run_dir = tmp_path / "missing", tmp_path / "run"
     for fast, match in (
-        (train.FastOptions(tv=-1.0), "--tv: expected >= 0"),
-        (train.FastOptions(depth_loss=-1.0), "--depth-loss: expected >= 0"),
-        (train.FastOptions(distortion=-1.0), "distortion >= 0"),
-        (train.FastOptions(upsample_at=(0.5, 0.2)), "upsample_at"),
-        (train.FastOptions(rank=(0, 24)), "expected rank as 2 counts"),
+        (DensityOptions(tv=-1.0), "tv: expected >= 0"),
+        (DensityOptions(depth_loss=-1.0), "depth_loss: expected >= 0"),
+        (DensityOptions(distortion=-1.0), "distortion >= 0"),
+        (DensityOptions(upsample_at=(0.5, 0.2)), "upsample_at"),
+        (DensityOptions(rank=(0, 24)), "expected rank as 2 counts"),
     ):
         with pytest.raises(UserError, match=match):
-            train.run(_config(missing, run_dir, fast=fast))
+            train.run(_config(missing, run_dir, options=fast))
     with pytest.raises(UserError, match="camera_lr > 0"):
         train.run(_config(missing, run_dir, refine=train.RefineOptions(camera_lr=0.0)))
     with pytest.raises(UserError, match="final_eval_views >= 1"):
@@ -198,7 +205,7 @@ def test_config_errors_come_before_any_file_is_read(tmp_path):
 def test_command_line_flags_fill_the_groups():
     """`nerfpipe train` keeps its flat flags; they land in the Config's groups."""
     config = cli.config_from_args("train", ["s", "r", "--tv", "0.1", "--occupancy-resolution", "8"])
-    assert config.fast == train.FastOptions(tv=0.1, occupancy_resolution=8) and config.refine is None
+    assert config.options == DensityOptions(tv=0.1, occupancy_resolution=8) and config.refine is None
     config = cli.config_from_args("train", ["s", "r", "--refine-poses", "--refine-focal", "--camera-lr", "0.02"])
     assert config.refine == train.RefineOptions(focal=True, camera_lr=0.02)
     with pytest.raises(UserError, match="--refine-focal needs --refine-poses"):
@@ -224,12 +231,12 @@ def test_load_trained_renders(rgba_scene, tmp_path):
 def test_user_errors(rgba_scene, tmp_path):
     with pytest.raises(UserError, match="transforms.json"):
         train.run(_config(tmp_path / "missing", tmp_path / "run"))
-    with pytest.raises(UserError, match="field"):
-        train.run(_config(rgba_scene, tmp_path / "run", field="nope"))
+    with pytest.raises(UserError, match="unknown method 'nope': expected one of density, nerf"):
+        train.run(_config(rgba_scene, tmp_path / "run", method="nope"))
     with pytest.raises(UserError, match="scene model"):
         train.run(_config(rgba_scene, tmp_path / "run", scene_model="nope"))
     with pytest.raises(UserError, match="render_step_factor"):
-        train.run(_config(rgba_scene, tmp_path / "run", fast=dataclasses.replace(TINY, render_step_factor=0.0)))
+        train.run(_config(rgba_scene, tmp_path / "run", options=dataclasses.replace(TINY, render_step_factor=0.0)))
     with pytest.raises(UserError, match="no checkpoint"):
         train.run(_config(rgba_scene, tmp_path / "run", resume=True))
     (tmp_path / "bad").mkdir()
@@ -254,7 +261,7 @@ def test_short_training_clears_a_psnr_floor(tmp_path):
             max_steps=STEPS,
             max_seconds=600.0,
             batch_rays=512,
-            fast=SMALL,
+            options=SMALL,
             log_every=50,
             eval_every=0,
         )
@@ -300,7 +307,7 @@ def test_forward_facing_scene_trains_in_ndc_and_depth_maps_back(tmp_path):
 
     scene_dir = tmp_path / "forward"
     scene_stage.run(scene_stage.Config(out_dir=scene_dir, kind="posed", size=48, views=16, seed=0, layout="forward"))
-    kw = dict(max_steps=400, max_seconds=600.0, batch_rays=512, fast=SMALL, log_every=50, eval_every=0)
+    kw = dict(max_steps=400, max_seconds=600.0, batch_rays=512, options=SMALL, log_every=50, eval_every=0)
     out = train.run(_config(scene_dir, tmp_path / "run", **kw))
     used = json.loads(out.manifest.read_text())["used"]
     assert used["scene_model"] == "ndc" and used["space"]["box"][0][2] == -1.0
@@ -335,7 +342,7 @@ def test_forward_facing_scene_trains_in_ndc_and_depth_maps_back(tmp_path):
             max_steps=2,
             scene_model="box",
             final_eval_views=1,
-            fast=dataclasses.replace(TINY, mlp_width=24),
+            options=dataclasses.replace(TINY, mlp_width=24),
         )
     )
     used = json.loads(box.manifest.read_text())["used"]

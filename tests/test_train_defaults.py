@@ -12,11 +12,11 @@ import torch
 
 from nerfpipe.data.transforms import read_scene
 from nerfpipe.model.background import Background
+from nerfpipe.model.views import Views
 from nerfpipe.stages import convert as convert_stage
 from nerfpipe.stages import scene as scene_stage
 from nerfpipe.stages import train
 from nerfpipe.stages.train.background import choose_background, detect_plain_colour
-from nerfpipe.stages.train.views import Views
 
 
 def _views(images: list[np.ndarray]) -> Views:
@@ -128,9 +128,9 @@ def test_room_scene_contraction_beats_the_box(tmp_path):
 def test_each_kind_of_capture_gets_its_own_rules(tmp_path, layout, kind):
     """scene --layout orbit|forward|room: the scene model is chosen first, then that kind's grid, step, TV and
     density activation rules (`RULES`), each reason naming its kind; no rule of one kind applies to another."""
-    from nerfpipe.stages.train.defaults import resolve_defaults
-    from nerfpipe.stages.train.rules import NDC_MIN_STEP_VOXELS, NDC_RANK, NDC_SAMPLES, RULES
-    from nerfpipe.stages.train.views import load_views
+    from nerfpipe.model.methods.density.rules import NDC_MIN_STEP_VOXELS, NDC_RANK, NDC_SAMPLES, RULES
+    from nerfpipe.model.views import load_views
+    from nerfpipe.stages.train.defaults import Photos, resolve_defaults
 
     src, scene_dir = tmp_path / "src", tmp_path / "scene"
     scene_kind = "rgba" if layout == "orbit" else "posed"
@@ -139,13 +139,14 @@ def test_each_kind_of_capture_gets_its_own_rules(tmp_path, layout, kind):
     scene = read_scene(scene_dir)
     idx = scene.split("train")
     config = train.Config(scene_dir=scene_dir, run_dir=tmp_path / "run")
-    found = resolve_defaults(config, scene, load_views(scene, idx), idx, torch.device("cpu"), 1.0)
+    photos = Photos(scene=scene, train=load_views(scene, idx), test=None, train_idx=idx)
+    found = resolve_defaults(config, photos, torch.device("cpu"), 1.0)
     assert found.space.name == kind and found.reasons["scene_model"].startswith(kind)
-    fast = found.config.fast
+    fast = found.config.options
     assert fast.tv == RULES[type(found.space)].tv()[0]
     if kind == "ndc":  # the march takes NDC_SAMPLES steps across z' in [-1, 1], whatever the grid
         assert "z'" in found.reasons["step_ratio"] and "image" in found.reasons["resolution"]
-        from nerfpipe.model.field_model import scene_ndc
+        from nerfpipe.model.spaces import scene_ndc
 
         poses = np.stack([f.world_from_cam for f in scene.frames])
         box = scene_ndc(scene).box(poses, [scene.frame_intrinsics(i) for i in range(len(scene.frames))])

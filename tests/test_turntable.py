@@ -17,7 +17,7 @@ from nerfpipe.data.transforms import read_scene
 from nerfpipe.radiance.align import pose_errors
 from nerfpipe.stages import convert, poses
 from nerfpipe.stages import scene as scene_stage
-from nerfpipe.stages.poses.report import check_static_cameras
+from nerfpipe.stages.poses.static import check_static_cameras
 from nerfpipe.stages.scene.turntable import angles, rot_z
 
 SIZE, VIEWS = 128, 16

@@ -30,6 +30,7 @@ import nerfpipe.stages.view as view
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.video import to_uint8
 from nerfpipe.model import load_trained, render_view
+from nerfpipe.model.methods.density import DensityOptions
 from nerfpipe.radiance.render import Marcher, render_marched
 from nerfpipe.stages import scene as scene_stage
 from nerfpipe.stages import train
@@ -60,7 +61,7 @@ def trained_run(tmp_path_factory) -> Path:
             max_steps=120,
             max_seconds=600.0,
             batch_rays=512,
-            fast=train.FastOptions(resolution=(24, 32), occupancy_resolution=16),
+            options=DensityOptions(resolution=(24, 32), occupancy_resolution=16),
             eval_every=0,
             final_eval_views=1,
             device="cpu",
@@ -205,7 +206,7 @@ def _sphere_run(root: Path, monkeypatch) -> Path:
     scene = sphere_scene(root / "scene", w=64, h=48)
     run_dir = root / "run"
     run_dir.mkdir()
-    (run_dir / "config.json").write_text(json.dumps({"scene_dir": str(root / "scene")}))
+    (run_dir / "config.json").write_text(json.dumps({"method": "sphere", "scene_dir": str(root / "scene")}))
     (run_dir / "checkpoint.pt").write_bytes(b"")
     monkeypatch.setattr(view, "load_trained", lambda run_dir, device: SphereRun(scene=scene))
     return run_dir

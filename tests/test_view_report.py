@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from nerfpipe.data.transforms import read_scene
+from nerfpipe.model.methods.density import DensityOptions
 from nerfpipe.stages import scene as scene_stage
 from nerfpipe.stages import train
 from nerfpipe.stages.train.report import WORST
@@ -31,7 +32,7 @@ def bad_view_run(tmp_path_factory) -> tuple[Path, str]:
             max_steps=150,
             max_seconds=60.0,
             batch_rays=512,
-            fast=train.FastOptions(resolution=(16, 32), occupancy_resolution=16),
+            options=DensityOptions(resolution=(16, 32), occupancy_resolution=16),
             eval_every=0,
             final_eval_views=1,
             device="cpu",

@@ -74,6 +74,10 @@ class Primitive:
     def mesh(self) -> trimesh.Trimesh:
         raise NotImplementedError
 
+    def albedo(self, p: np.ndarray) -> np.ndarray:  # points on the surface [N, 3] -> albedo [N, 3] in [0, 1]
+        """The surface colour before shading: the primitive's solid texture (`prints.PrintedBox`: its prints)."""
+        return solid_texture(p, self.material)
+
     def bounding_sphere(self) -> tuple[np.ndarray, float]:  # centre [3], radius: encloses the primitive
         raise NotImplementedError
 

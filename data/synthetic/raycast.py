@@ -8,7 +8,7 @@ import numpy as np
 import torch
 import trimesh
 
-from nerfpipe.data.synthetic.objects import Primitive, rot_z, shade, solid_texture
+from nerfpipe.data.synthetic.objects import Primitive, rot_z, shade
 from nerfpipe.radiance.camera import Intrinsics, generate_rays, pixel_centers
 
 __all__ = ["SUPERSAMPLE", "render_view", "render_turntable_view", "scene_mesh"]
@@ -54,7 +54,7 @@ def render_view(
         m = which == k
         if m.any():
             p = o[m] + t[m, None] * d[m]
-            rgb[m] = shade(solid_texture(p, prim.material), prim.normal(p))
+            rgb[m] = shade(prim.albedo(p), prim.normal(p))
     hit = (which >= 0).reshape(intr.h, intr.w, s * s)
     alpha = hit.mean(-1)
     colour_sum = rgb.reshape(intr.h, intr.w, s * s, 3).sum(-2)
@@ -102,7 +102,7 @@ def render_turntable_view(
             m = use & (which == k)
             if m.any():
                 p = origin[m] + t[m, None] * direction[m]
-                rgb[m] = shade(solid_texture(p, prim.material), prim.normal(p))
+                rgb[m] = shade(prim.albedo(p), prim.normal(p))
     hw = (intr.h, intr.w, s * s)
     hit, obj = (on_obj | (w_bg >= 0)).reshape(hw), on_obj.reshape(hw)
     rgb = rgb.reshape(*hw, 3)

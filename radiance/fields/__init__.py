@@ -1,21 +1,24 @@
-"""Radiance / attenuation fields behind one interface (`Field`): `fast` (TensoRF VM, default) and
-`vanilla` (the NeRF paper's MLP). `make_field(config)` rebuilds a field from `Field.config()`."""
+"""Radiance / attenuation fields behind one interface (`Field`), registered by the kind their `config()` records:
+`fast` (TensoRF VM), `vanilla` (the NeRF paper's MLP), `voxel` (a dense trilinear grid, X-ray). `make_field(config)`
+rebuilds a field from `Field.config()`."""
 
 from __future__ import annotations
 
 from nerfpipe.radiance.fields.base import Field
 from nerfpipe.radiance.fields.fast import TensoRF
 from nerfpipe.radiance.fields.vanilla import NeRFMLP, VanillaNeRF
+from nerfpipe.radiance.fields.voxel import VoxelField
 
-__all__ = ["Field", "TensoRF", "NeRFMLP", "VanillaNeRF", "make_field"]
+__all__ = ["FIELDS", "Field", "TensoRF", "NeRFMLP", "VanillaNeRF", "VoxelField", "make_field"]
+
+FIELDS: dict[str, type[Field]] = {"fast": TensoRF, "vanilla": VanillaNeRF, "voxel": VoxelField}
+"""Each field class by the kind its `config()` records (checkpoints name it)."""
 
 
 def make_field(config: dict) -> Field:
-    """Build a field from the primitive dict `Field.config()` returned ("kind": "fast" | "vanilla")."""
+    """Build a field from the primitive dict `Field.config()` returned (its "kind" one of `FIELDS`)."""
     kw = dict(config)
     kind = kw.pop("kind", None)
-    if kind == "fast":
-        return TensoRF(**kw)
-    if kind == "vanilla":
-        return VanillaNeRF(**kw)
-    raise ValueError(f"unknown field kind {kind!r}: expected 'fast' or 'vanilla'")
+    if kind not in FIELDS:
+        raise ValueError(f"unknown field kind {kind!r}: expected one of {', '.join(FIELDS)}")
+    return FIELDS[kind](**kw)

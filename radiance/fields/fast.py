@@ -49,11 +49,8 @@ LINE_AXIS = (2, 1, 0)
 
 
 # grid_sample's CPU backward parallelises over the batch only: one plane on 2 threads leaves one idle. Splitting its
-# channels into CHANNEL_SPLIT groups (a batch of 4) balances it; each channel is interpolated exactly as before. Split 2
-# against none, lego_100, 2 CPU cores, final grid: 23-26 -> 28-31 steps/s; bench_train fast 120 s: 1989 -> 3055 steps,
-# 31.42 -> 32.04 dB (with fused Adam; before both: 1599 steps, 31.08 dB). Split 4 against 2, tiny npz, 600 steps,
-# 2 idle cores, twice each: 42.6 and 46.5 s against 52.5 and 50.0 s. (Measured with the three planes stacked in one
-# batch; each plane has its own tensor since per-plane sizes and components.)
+# channels into CHANNEL_SPLIT groups (a batch of 4) balances it; each channel is interpolated exactly as before
+# (docs/MEASUREMENTS.md, "Fields").
 CHANNEL_SPLIT = 4
 
 
@@ -297,9 +294,8 @@ class TensoRF(Field):
         return self._volume[1]
 
     def touch(self) -> None:
-        """The factors changed in place behind their version counters (a fused Adam step): rebuild the volume. Before
-        this, a training run's periodic and final held-out PSNR read the volume of the first evaluation after the
-        last upsampling (lego_400: 30.73 dB at the end of training against 33.17 from the saved checkpoint)."""
+        """The factors changed in place behind their version counters (a fused Adam step): rebuild the volume (without
+        it an evaluation reads a stale volume: docs/MEASUREMENTS.md, "Fields")."""
         self._edits += 1
 
     @torch.no_grad()

@@ -51,7 +51,7 @@ from nerfpipe.data.errors import UserError
 from nerfpipe.data.export_frame import FRAMES, export_frame
 from nerfpipe.data.progress import NO_PROGRESS, Progress
 from nerfpipe.data.rundir import config_to_json, write_manifest
-from nerfpipe.model import camera_path, load_trained
+from nerfpipe.model import camera_path, can, load_trained, require
 from nerfpipe.model.surface_points import Gathered, density_normals, facing_share, gather_points
 from nerfpipe.stages.export_points.geometry import statistical_outliers, to_frame
 from nerfpipe.stages.export_points.ply import ply_properties, write_ply
@@ -193,14 +193,16 @@ def _checks(g: Gathered, outlier_share: float, facing: float) -> list[Check]:
 
 
 def export(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), progress: Progress | None = None) -> Outputs:
-    """Export the points of an already loaded run (anything with the `Trained` attributes the steps use:
-    `render_rays`, `background`, `density`, `scene`, `aabb`, `device`, `run_config`). `run` loads and calls this."""
+    """Export the points of an already loaded run (`model.run.Run` with the capabilities rays and density, and
+    colour for coloured points). `run` loads and calls this."""
     started, t0 = time.time(), time.perf_counter()
     _validate(config)
+    require(trained, "rays", stage="export-points")
+    require(trained, "density", stage="export-points")
     out, scene = Path(config.out), trained.scene
     timing: dict[str, float] = {}
     out_from_scene, frame_info = export_frame(scene.source_from_scene(), config.frame, "points", config.up)
-    downscale = config.downscale or float(trained.run_config.get("downscale") or 1.0)
+    downscale = config.downscale or trained.downscale
     cams = camera_path(scene, "train", downscale=downscale)
     g = gather_points(
         trained,
@@ -303,7 +305,7 @@ def export(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), progr
 
 def _left_out(trained: Any, config: Config, outliers: dict[str, Any]) -> dict[str, str]:
     left_out = {}
-    if not getattr(getattr(trained, "field", trained), "has_color", True):
+    if not can(trained, "color"):
         left_out["colors"] = "the run's field is density-only: every colour is the evaluation background"
     if config.bbox is None:
         left_out["bbox"] = "no bbox given: every point kept"

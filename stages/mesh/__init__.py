@@ -62,6 +62,7 @@ from nerfpipe.data.checks import verdict
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.export_frame import export_frame
 from nerfpipe.data.rundir import config_to_json, write_manifest
+from nerfpipe.model.run import can
 from nerfpipe.stages.mesh.agreement import mesh_agreement
 from nerfpipe.stages.mesh.checks import agreement_checks, mesh_checks
 from nerfpipe.stages.mesh.cleanup import Cleanup, cleanup_mesh, mesh_stats, transform_mesh
@@ -73,10 +74,11 @@ from nerfpipe.stages.mesh.field_access import (
     field_device,
     has_color,
     occupancy_binary,
+    surface_function,
     vertex_colors,
 )
 from nerfpipe.stages.mesh.grid import Grid, make_grid
-from nerfpipe.stages.mesh.surface import choose_level, density_surface
+from nerfpipe.stages.mesh.surface import Level, Region, choose_level, density_surface
 from nerfpipe.stages.mesh.texture import bake_texture
 from nerfpipe.stages.mesh.texture_files import write_glb_textured, write_obj_textured
 from nerfpipe.stages.mesh.texture_views import training_photos, training_views
@@ -116,18 +118,6 @@ def _grid_for(config: Config, trained: Any, out_from_scene: np.ndarray) -> tuple
     return make_grid(lo, hi, config.resolution, stride), how, info, plane
 
 
-def _meshed_region(grid: Grid, plane: Plane | None, keep_beyond: float):
-    """inside(points_scene [N, 3]) -> [N] bool: in the grid's box and, with a support plane, beyond its cut."""
-    grid_from_scene = np.linalg.inv(grid.scene_from_grid)
-
-    def inside(p: np.ndarray) -> np.ndarray:
-        q = p @ grid_from_scene[:3, :3].T + grid_from_scene[:3, 3]
-        ok = ((q >= grid.lo) & (q <= grid.hi)).all(axis=1)
-        return ok & (plane.distance(p) > keep_beyond) if plane is not None else ok
-
-    return inside
-
-
 def _export(path: Path, tmp: Path, verts: np.ndarray, faces: np.ndarray, colors: np.ndarray | None) -> None:
     """Write the mesh to `tmp` in the format `path`'s extension names."""
     import trimesh
@@ -157,16 +147,23 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
     fmt = FORMAT_NAMES[out.suffix.lower()]
     out_from_scene, frame_info = export_frame(scene.source_from_scene(), config.frame, fmt, config.up)
     device = field_device(trained)
-    density = density_function(trained)
+    surface = surface_function(trained)
+    density = surface.values
     aabb = as_np(trained.aabb).reshape(2, 3)
     t = time.perf_counter()
     grid, how, crop_info, plane = _grid_for(config, trained, out_from_scene)
     t = lap("crop", t)
     # the level's rays, marched through the field as it is (before any cut): also the self-check's
-    crossings = march_crossings(density, scene, aabb, n_rays=config.threshold_rays, device=device, chunk=config.chunk)
+    crossings = None  # a run without a density (a signed distance only) has no opacity along rays to compare with
+    if can(trained, "density"):
+        rays_density = density if surface.level is None else density_function(trained)
+        crossings = march_crossings(
+            rays_density, scene, aabb, n_rays=config.threshold_rays, device=device, chunk=config.chunk
+        )
     t = lap("training_rays", t)
 
     keep_beyond = SUPPORT_CLEARANCE * crop_info["support_plane"]["tolerance"] if plane is not None else 0.0
+    region = Region(grid=grid, plane=plane, keep_beyond=keep_beyond, how=how)
     level, method_info, sample_stats = None, {"name": "density"}, {}
     if config.method == "poisson":
         from nerfpipe.stages.mesh.poisson import Poisson, poisson_surface
@@ -176,18 +173,19 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
         )
         t = time.perf_counter()
     else:
-        level = choose_level(config.threshold, density, crossings, aabb)
+        if surface.level is not None:  # a signed distance: its zero, no level rule
+            method_info = {"name": surface.what}
+            rule = {"rule": f"the zero level set of the run's {surface.what}"}
+            level = Level(density, surface.level, surface.level, rule, by_region=False)
+        else:
+            level = choose_level(config.threshold, density, crossings, aabb)
         verts_g, faces_g, sample_stats = density_surface(
             level,
-            grid,
-            plane,
-            keep_beyond,
+            region,
             crossings=crossings,
-            inside=_meshed_region(grid, plane, keep_beyond),
             aabb=aabb,
             run_dir=config.run_dir,
-            given=config.threshold not in ("auto", "global"),
-            how=how,
+            given=surface.level is None and config.threshold not in ("auto", "global"),
             device=device,
             chunk=config.chunk,
         )
@@ -235,7 +233,11 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
     t = lap("colors", t)
 
     voxel = grid.h * float(np.cbrt(abs(np.linalg.det(grid.scene_from_grid[:3, :3]))))  # scene units
-    agreement = mesh_agreement(v_scene, f_scene, crossings, scene, _meshed_region(grid, plane, keep_beyond), voxel)
+    agreement = None
+    if crossings is not None:
+        agreement = mesh_agreement(v_scene, f_scene, crossings, scene, region.inside, voxel)
+    else:
+        left_out["agreement"] = "the run has no density to render the training views' surface with (signed distance)"
     t = lap("check", t)
 
     # the mesh takes its name only after its report is written: a failure in between leaves no OUT that `make`
@@ -281,11 +283,11 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
             **frame_info,
             out_from_scene=out_from_scene.tolist(),
             winding_reversed=bool(np.linalg.det(out_from_grid[:3, :3]) < 0),
-            agreement=agreement.report(),
+            agreement=agreement.report() if agreement is not None else None,
             timing_seconds=timing,
             peak_rss_mb=round(_peak_rss_mb(), 1),
             device=str(device),
-            **verdict(agreement_checks(agreement) + mesh_checks(v_scene, f_scene, aabb)),
+            **verdict((agreement_checks(agreement) if agreement else []) + mesh_checks(v_scene, f_scene, aabb)),
         )
     return Outputs(
         mesh=out,

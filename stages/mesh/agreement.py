@@ -176,6 +176,4 @@ def mesh_agreement(
         missed += int(lacking.sum())
         hits += int(hit.sum())
         extra += int((hit & (empty | (crossed & (t_mesh < t_field - tol)))).sum())
-    return Agreement(
-        field_surface=field_surface, missed=missed, mesh_surface=hits, extra=extra, views=views, tol=tol0
-    )
+    return Agreement(field_surface=field_surface, missed=missed, mesh_surface=hits, extra=extra, views=views, tol=tol0)

@@ -1,17 +1,20 @@
 """Field access for `stages.mesh`: density with empty-space skipping, the box to mesh, vertex colours.
 
-Conventions: the field (anything with the `model.Trained` attributes `density`, `color`, `aabb`, `occupancy`,
-`device`, `ndc`, `field`) lives in the scene (training) frame; points go in as float32 [N, 3] on the field's
-device, densities come back as float32 [N] on the caller's device. Boxes are [2, 3] float64 (min, max).
+Conventions: the run (`model.run.Run` with the capability density, and colour for vertex colours: `density`,
+`density_function`, `color`, `aabb`, `occupancy`, `device`) answers in the scene (training) frame; points go in as
+float32 [N, 3] on the run's device, densities come back as float32 [N] on the caller's device. Boxes are [2, 3]
+float64 (min, max).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import torch
 
+from nerfpipe.model.run import can, require_any
 from nerfpipe.stages.mesh.cleanup import vertex_normals
 from nerfpipe.stages.mesh.grid import DensityFn
 
@@ -21,6 +24,8 @@ __all__ = [
     "has_color",
     "occupancy_binary",
     "density_function",
+    "Surface",
+    "surface_function",
     "occupied_box",
     "vertex_colors",
 ]
@@ -37,8 +42,8 @@ def field_device(trained: Any) -> torch.device:
 
 
 def has_color(trained: Any) -> bool:
-    f = getattr(trained, "field", None)
-    return bool(getattr(f if f is not None else trained, "has_color", True))
+    """Whether the run gives colours at points (capability colour)."""
+    return can(trained, "color")
 
 
 def occupancy_binary(trained: Any) -> tuple[np.ndarray, np.ndarray] | None:
@@ -53,17 +58,10 @@ def occupancy_binary(trained: Any) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def density_function(trained: Any) -> DensityFn:
-    """The field's density, zero without a query in cells the run's occupancy grid marks empty.
-
-    Calls the run's `Field.density` directly when there is one and the field lives in the scene frame:
-    `Trained.density` splits queries into small render-sized chunks, several times slower on a CPU than the
-    large chunks meshing sends. Runs whose field lives in another space (NDC, contracted) go through
-    `Trained.density`, which maps scene points into it (`radiance.space`).
-    """
+    """The run's density (its `density_function`: the fastest query for the large batches meshing sends), zero
+    without a query in cells the run's occupancy grid marks empty."""
     occ = getattr(trained, "occupancy", None)
-    field = getattr(trained, "field", None)
-    direct = isinstance(field, torch.nn.Module) and hasattr(field, "density") and trained.space.scene_frame
-    query = field.density if direct else trained.density
+    query = trained.density_function()
     device = field_device(trained)
 
     @torch.inference_mode()
@@ -82,6 +80,33 @@ def density_function(trained: Any) -> DensityFn:
         return out
 
     return skipping
+
+
+@dataclass(frozen=True)
+class Surface:
+    """What `mesh` thresholds: `values` [N] at scene points (larger inside), and its level where the run fixes it
+    (a signed distance's zero; None: the density's level is chosen by `stages.mesh.threshold`)."""
+
+    values: DensityFn
+    level: float | None
+    what: str
+    """density | signed distance (the manifest's `surface`)."""
+
+
+def surface_function(trained: Any) -> Surface:
+    """The run's surface as `mesh` extracts it: the zero level set of a signed distance (capability sdf, negated so
+    that inside is larger), else the density's level set (capability density); UserError in one line when the run
+    has neither."""
+    kind = require_any(trained, ("sdf", "density"), stage="mesh")
+    if kind == "density":
+        return Surface(values=density_function(trained), level=None, what="density")
+    device = field_device(trained)
+
+    @torch.inference_mode()
+    def inside(x: torch.Tensor) -> torch.Tensor:
+        return -trained.sdf(x.to(device, torch.float32)).reshape(-1).float().to(x.device)
+
+    return Surface(values=inside, level=0.0, what="signed distance")
 
 
 def occupied_box(trained: Any) -> tuple[np.ndarray, np.ndarray, str]:

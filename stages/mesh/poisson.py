@@ -237,7 +237,7 @@ def poisson_surface(
         ok = ((p >= lo) & (p <= hi)).all(axis=1)
         return ok & (plane.distance(points_scene) > keep_beyond) if plane is not None else ok
 
-    downscale = float((getattr(trained, "run_config", None) or {}).get("downscale") or 1.0)
+    downscale = float(getattr(trained, "downscale", 1.0))
     cams = camera_path(trained.scene, "train", downscale=downscale)
     points, normals, points_info = _oriented_points(trained, cams, inside, params, device)
     t = lap("points", t)

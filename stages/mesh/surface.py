@@ -16,6 +16,7 @@ from outside (the side of lower density). Vertices come back in the grid's frame
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -26,10 +27,28 @@ from nerfpipe.stages.mesh.crop import Plane, cut_density
 from nerfpipe.stages.mesh.grid import DensityFn, Grid, sample_volume
 from nerfpipe.stages.mesh.threshold import Crossings, global_level, level_field, local_levels
 
-__all__ = ["Level", "choose_level", "density_surface", "REFINE_BAND"]
+__all__ = ["Region", "Level", "choose_level", "density_surface", "REFINE_BAND"]
 
 REFINE_BAND = 3.0
 """Pass 1 refines the blocks whose coarse samples straddle [1 / REFINE_BAND, REFINE_BAND] of the first levels."""
+
+
+@dataclass(frozen=True)
+class Region:
+    """What is meshed: the grid, the support plane cut away (`keep_beyond` of it kept away; None: no plane), and
+    how the box was found (for messages)."""
+
+    grid: Grid
+    plane: Plane | None
+    keep_beyond: float
+    how: str
+
+    def inside(self, p: np.ndarray) -> np.ndarray:
+        """[N] bool for scene points [N, 3]: in the grid's box and, with a support plane, beyond its cut."""
+        grid_from_scene = np.linalg.inv(self.grid.scene_from_grid)
+        q = p @ grid_from_scene[:3, :3].T + grid_from_scene[:3, 3]
+        ok = ((q >= self.grid.lo) & (q <= self.grid.hi)).all(axis=1)
+        return ok & (self.plane.distance(p) > self.keep_beyond) if self.plane is not None else ok
 
 
 class Level:
@@ -111,27 +130,24 @@ def _relevel(vol: np.ndarray, grid: Grid, crossings: Crossings, inside, aabb: np
 
 def density_surface(
     level: Level,
-    grid: Grid,
-    plane: Plane | None,
-    keep_beyond: float,
+    region: Region,
     *,
-    crossings: Crossings,
-    inside,
+    crossings: Crossings | None,
     aabb: np.ndarray,
     run_dir: Any,
     given: bool,
-    how: str,
     device: torch.device,
     chunk: int,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Marching cubes of `level` on `grid` (the support plane cut first, `keep_beyond` of it kept away; with levels
-    by region the second pass on the crossings in the meshed region, `inside(points_scene) -> mask`) -> (verts
-    [V, 3] grid frame, faces [F, 3] int64, the sampling statistics). UserError where nothing is left to mesh."""
+    """Marching cubes of `level` on the region's grid (its support plane cut first; with levels by region the second
+    pass on the crossings in the meshed region) -> (verts [V, 3] grid frame, faces [F, 3] int64, the sampling
+    statistics). UserError where nothing is left to mesh."""
+    grid, plane, keep_beyond, how = region.grid, region.plane, region.keep_beyond, region.how
     fn = cut_density(level.fn, plane, keep_beyond) if plane is not None else level.fn
     band = REFINE_BAND if level.by_region else 1.0
     vol, stats = sample_volume(fn, grid, level.iso, device=device, chunk=chunk, band=band)
     if level.by_region:
-        level.info.update(_relevel(vol, grid, crossings, inside, aabb))
+        level.info.update(_relevel(vol, grid, crossings, region.inside, aabb))
         inner = vol[1:-1, 1:-1, 1:-1]
         stats.update(min=float(inner.min()), max=float(inner.max()))
     _level_checks(run_dir, given, level, stats, grid, how)

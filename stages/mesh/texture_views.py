@@ -253,7 +253,7 @@ def training_photos(trained: Any, count: int) -> tuple[ViewSource | None, str]:
     picked, of = _picked(trained, count)
     if not picked:
         return None, "no training views (or texture_views 0)"
-    downscale = float(trained.run_config.get("downscale") or 1.0)
+    downscale = trained.downscale
     cameras, photos = [], []
     for i in picked:
         intr = scene.frame_intrinsics(i)
@@ -282,7 +282,7 @@ def training_views(trained: Any, count: int) -> ViewSource | None:
     picked, of = _picked(trained, count)
     if not picked:
         return None
-    downscale = VIEW_DOWNSCALE * float(trained.run_config.get("downscale") or 1.0)
+    downscale = VIEW_DOWNSCALE * trained.downscale
     cameras = []
     for i in picked:
         intr = scene.frame_intrinsics(i)

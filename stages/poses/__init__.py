@@ -6,10 +6,13 @@ length, or the sharpest frame per window of a video -> screening (blur, exposure
 / 3200 px where SIFT finds enough features) -> SIFT, the cameras given the EXIF focal prior (`exif`) ->
 exhaustive or sequential matching -> incremental mapping -> the LARGEST model (most registered images), never
 blindly model 0 -> its cameras and structure checked (`quality`: focal against EXIF or a plausible field of
-view, distortion, principal point, reprojection error, track length) -> under 80 % registered or a camera
-check failed, retries with pycolmap's size and feature cap, then a relaxed mapper, then guided matching,
-within a time budget (`attempts`, `choice`), keeping the attempt that registered most among those whose
-cameras pass the checks (a failing one only when all fail, marked suspect) -> with a shared camera, the last
+view, distortion, principal point, reprojection error, track length) and its poses against the photos
+(`consistency`: a model that folded onto itself where faces look alike reprojects well; the capture order
+catches it) -> a fold is retried at once with the matches restricted to neighbours in capture order; under 80 %
+registered or a camera check failed, retries with pycolmap's size and feature cap, then a relaxed mapper, then
+guided matching, within the stage's time budget (`budget`: 5 s a photo by default, whatever their resolution;
+`attempts`, `choice`), keeping the attempt that registered most among those whose cameras pass the checks and
+whose poses agree with the photos (a failing one only when all fail, marked suspect) -> with a shared camera, the last
 bundle adjustments refine the principal point, then try a second radial term (`lens`: each kept where it
 pays) -> the written model's checks: `check` ("ok" | "suspect") and `checks` in poses_report.json and
 colmap/manifest.json, a warning line per failed check.
@@ -41,15 +44,16 @@ Static camera: a turntable (the object turns, the camera and background stay) gi
 same pixel in every view. After the first attempt's matching, over 30 % of the verified matches doing so stops
 the stage with a one-line error that asks for --masks (the mapper would otherwise fail, after every retry, or
 model the background); a model whose registered cameras all sit at one place is refused the same way
-(`report.check_static_matches`, `report.check_static_cameras`). With --masks the background has no features.
+(`static.check_static_matches`, `static.check_static_cameras`). With --masks the background has no features.
 
 Modules: `config` (the Config, its validation, the Outputs), `inputs` (the images, screening, masks, camera groups
 and working size the attempts start from), `images` (upright copies, screening), `exif` (the EXIF focal prior,
-given to COLMAP's cameras), `video` (frame picking), `colmap` (the pycolmap steps and the working size), `lens`
-(the last bundle adjustments: principal point, second radial term), `attempts` (the retry ladder), `quality` (the
-checks of a model), `choice` (which attempt to keep, when to stop), `report` (run state, registration checks,
-poses_report.json, phase timer), `output` (setting aside an earlier colmap/, writing the kept model, report and
-manifest into place).
+given to COLMAP's cameras; weak for cropped photos), `video` (frame picking), `colmap` (the pycolmap steps and the
+working size), `lens` (the last bundle adjustments: principal point, second radial term), `attempts` (the retry
+ladder), `budget` (the time budget: the first working size, which retries fit), `quality` (the checks of a
+model's cameras and structure), `consistency` (the checks of its poses against the photos' matches), `choice`
+(which attempt to keep, when to stop), `report` (run state, registration checks, poses_report.json, phase timer),
+`output` (setting aside an earlier colmap/, writing the kept model, report and manifest into place).
 """
 
 from __future__ import annotations
@@ -69,7 +73,8 @@ from nerfpipe.data.lock import folder_lock
 from nerfpipe.data.rundir import MetricsLog
 from nerfpipe.stages.poses import colmap as sfm
 from nerfpipe.stages.poses import inputs, lens, output, quality
-from nerfpipe.stages.poses.attempts import ladder, prior_focals, run_attempts
+from nerfpipe.stages.poses.attempts import ladder, prior_focals, run_attempts, weak_priors
+from nerfpipe.stages.poses.budget import stage_budget
 from nerfpipe.stages.poses.colmap import interrupted_by_sigterm
 from nerfpipe.stages.poses.config import CAMERA_MODELS, CameraModel, Config, Outputs, check
 from nerfpipe.stages.poses.inputs import camera_groups as _camera_groups  # tests/test_poses.py reaches it by this name
@@ -81,10 +86,9 @@ from nerfpipe.stages.poses.report import (
     RunState,
     check_features,
     check_registered,
-    check_static_cameras,
-    check_static_matches,
     print_summary,
 )
+from nerfpipe.stages.poses.static import check_static_cameras, check_static_matches
 
 __all__ = [
     "Config",
@@ -147,8 +151,11 @@ def _run(config: Config, kind: str, progress: Progress | None) -> Outputs:
                 inputs.write_masks(Path(config.masks), names, build / "masks", state)
             settings = replace(settings, mask_path=str(build / "masks"))
         long_sides = [max(max(state.sizes[n]) for n in g) for g in groups]
+        budget = stage_budget(config.time_budget, len(names))
         with phase("working_size"):
-            settings = inputs.working_size(config, settings, build / "probe.db", images, names, max(long_sides), state)
+            settings = inputs.working_size(
+                config, settings, build / "probe.db", images, names, max(long_sides), state, budget
+            )
         plan = ladder(settings, config.max_attempts, max(long_sides))
         run_attempts(
             plan,
@@ -159,6 +166,7 @@ def _run(config: Config, kind: str, progress: Progress | None) -> Outputs:
             state,
             phase,
             after_matching=lambda db: check_static_matches(db, masked, state),
+            budget=budget,
         )
         check_features(state.stats)
         check_registered(state, matcher)
@@ -173,7 +181,12 @@ def _run(config: Config, kind: str, progress: Progress | None) -> Outputs:
                     state.model, state.radial_term = lens.add_radial_term(
                         state.model, state.model is not mapped, config.num_threads
                     )
-        state.checks = quality.model_checks(state.model, prior_focals(state.focal_prior), len(state.stats.features))
+        state.checks = [
+            *quality.model_checks(
+                state.model, prior_focals(state.focal_prior), len(state.stats.features), weak_priors(state.focal_prior)
+            ),
+            *state.consistency[0],
+        ]
         report = output.write_model(config, state, build, colmap_dir, report_path, metrics, matcher, groups)
     except BaseException as e:
         shutil.rmtree(build, ignore_errors=True)

@@ -1,8 +1,8 @@
 """The retry ladder of the poses stage: which settings each attempt uses, when it stops, which model it keeps.
 
 Attempt 1 runs the Config as given. Until `choice.stop_reason` says stop (an attempt registered WARN_FRACTION,
-80 %, of the images AND its cameras pass `quality`'s checks; or, with a usable model in hand, the retries spent
-their time budget), the stage tries, cheapest first:
+80 %, of the images AND its cameras pass `quality`'s checks AND its poses agree with the photos; or, with such a
+usable model in hand, the retries spent their time budget), the stage tries, cheapest first:
   2. "more features": pycolmap's defaults: SIFT at 3200 px (or the first attempt's size if larger; never
      above the photos' own size) and a cap of 8192 features (or the first attempt's if larger; doubled when
      that would repeat attempt 1's extraction), plain matching, the default mapper;
@@ -11,9 +11,18 @@ their time budget), the stage tries, cheapest first:
   4. "guided matching": attempt 2's features, matched again with guided matching (more inliers per pair;
      verification also keeps pairs with as few inliers as the relaxed mapper accepts), relaxed mapper.
 Every extraction's cameras get the photos' EXIF focal prior before matching (`exif`). Every attempt's model is
-checked (`quality`), and `choice.choose` keeps the one that registered most among those whose cameras pass the
-checks and that registered at least FAIL_FRACTION (40 %); only when there is none, the most registered, marked
-suspect with a warning. Attempt 2 is pycolmap's own defaults (bar first_octave, see `colmap.SMALL_IMAGE`, and
+checked (`quality`) and compared with the photos' matches (`consistency`); `choice.choose` keeps the one that
+registered most among those whose cameras pass the checks, whose poses agree with the photos and that registered
+at least FAIL_FRACTION (40 %); only when there is none, the most registered, marked suspect with a warning.
+An attempt whose model folded along the capture order (`consistency.creases`: consecutive photos that share
+matches placed far apart) is followed at once by
+  "neighbours in capture order": its features and matches, the verified pairs restricted to photos within
+     `consistency.neighbour_window` places of one another in name order (a face is then matched only with the
+     photos taken next to it, never with a look-alike face on the other side), mapped again (costs a mapping,
+     usually cheaper than the first: fewer, consistent pairs);
+it takes the place of the ladder's last attempt (max_attempts still bounds the count). Each attempt's record
+says how far its rotations between two cameras differ from the kept model's (`consistency.rotation_disagreement`).
+Attempt 2 is pycolmap's own defaults (bar first_octave, see `colmap.SMALL_IMAGE`, and
 the seeds) and is never skipped for time, so a set that ends under 80 % should not end with fewer images than
 pycolmap's defaults register unless their model failed a camera check (a set at 80 %+ with sane cameras after
 attempt 1 is not retried). tests/test_poses.py checks this on a small synthetic set; COLMAP's randomness makes
@@ -22,6 +31,7 @@ it no proof.
 
 from __future__ import annotations
 
+import math
 import os
 import shutil
 import time
@@ -36,17 +46,27 @@ import pycolmap
 from nerfpipe.data.checks import verdict
 from nerfpipe.data.rundir import config_to_json
 from nerfpipe.stages.poses import colmap as sfm
-from nerfpipe.stages.poses.choice import RETRY_BUDGET, RETRY_MIN_SECONDS, candidate, choose, retry_budget, stop_reason
+from nerfpipe.stages.poses.budget import AttemptCost, attempt_cost, fit_retry
+from nerfpipe.stages.poses.choice import Candidate, candidate, choose, keepable, stop_reason
 from nerfpipe.stages.poses.colmap import PYCOLMAP_MAX_IMAGE_SIZE, PYCOLMAP_MAX_NUM_FEATURES, RELAXED_MAPPER, SfmSettings
+from nerfpipe.stages.poses.consistency import (
+    AGREE_DEG,
+    consistency_checks,
+    restrict_to_neighbours,
+    rotation_disagreement,
+)
 from nerfpipe.stages.poses.exif import apply_focal_priors
+from nerfpipe.stages.poses.images import natural_key
 from nerfpipe.stages.poses.report import WARN_FRACTION, PhaseTimer, RunState, textured
 
-__all__ = ["Attempt", "ladder", "describe", "run_attempts", "prior_focals", "LADDER_RULE"]
+__all__ = ["Attempt", "ladder", "describe", "run_attempts", "prior_focals", "weak_priors", "LADDER_RULE"]
 
 LADDER_RULE = (
-    f"stop at an attempt that registers >= {WARN_FRACTION:.0%} of the images and whose cameras pass the checks; "
-    f"once a usable model (cameras passing) exists, start no retry after the retries took max({RETRY_BUDGET:g} x "
-    f"the first attempt's time, {RETRY_MIN_SECONDS:g} s) (retry_budget_s)"
+    f"stop at an attempt that registers >= {WARN_FRACTION:.0%} of the images, whose cameras pass the checks and "
+    "whose poses agree with the photos; a model that folded along the capture order is retried at once with the "
+    "matches restricted to neighbours in capture order; once a usable model (cameras passing, poses consistent) "
+    "exists, start no retry past the stage's time budget (time_budget_s), nor one predicted to end past it (an "
+    "extraction retry is first shrunk to fit)"
 )
 """The ladder's stopping rule, as poses_report.json states it (`choice.stop_reason`)."""
 
@@ -55,9 +75,10 @@ LADDER_RULE = (
 class Attempt:
     name: str
     settings: SfmSettings
-    reuse: Literal["nothing", "features", "matches"] = "nothing"
+    reuse: Literal["nothing", "features", "matches", "neighbours"] = "nothing"
     """What to take from the last attempt that extracted features: its features (match again) or its
-    features and matches (map again)."""
+    features and matches (map again); "neighbours": the database of the attempt just made, its verified pairs
+    restricted to neighbours in capture order (map again)."""
 
 
 def ladder(first: SfmSettings, max_attempts: int, long_side: int) -> list[Attempt]:
@@ -100,29 +121,57 @@ def run_attempts(
     state: RunState,
     phase: PhaseTimer,
     after_matching: Callable[[Path], None] | None = None,
+    budget: float = math.inf,
 ) -> None:
     """Run `plan` until `choice.stop_reason` says stop. Leaves the kept attempt's (`choice.choose`) statistics,
     models and camera priors in `state`, its database at build/database.db, one record per attempt (with its
-    checks) in `state.attempts`, and the choice and the ladder's stop in `state.choice` / `state.ladder`.
+    checks) in `state.attempts`, the kept model's consistency checks and their record in `state.consistency`, and
+    the choice and the ladder's stop in `state.choice` / `state.ladder`.
     Each extraction gets the photos' EXIF focal priors (`exif.apply_focal_priors`, before matching).
-    `after_matching(database)` runs once, after the first attempt's matching (it may raise to stop before mapping)."""
+    `after_matching(database)` runs once, after the first attempt's matching (it may raise to stop before mapping).
+    `budget`: the stage's time budget in seconds from `state.started` (`budget` module: it bounds the retries)."""
+    plan = list(plan)
     total = sum(len(g) for g in groups)
-    results, candidates, seconds = [], [], []  # per attempt: (database, statistics, models, model, priors)
+    order = sorted((n for g in groups for n in g), key=natural_key)
+    results, candidates, records, skipped = [], [], [], []  # per attempt: (database, statistics, models, model, priors)
     db = extracted = build / "database.db"
+    source: SfmSettings = plan[0].settings  # the settings of the last extraction
     priors: dict[int, dict] = {}
+    evidence_db = db  # the database with every pair the photos gave, that the consistency checks read
+    first: AttemptCost | None = None
     stopped = f"every attempt allowed was made (max_attempts {len(plan)})"
-    for k, attempt in enumerate(plan, 1):
-        phase.attempt, t0, s = k, time.perf_counter(), attempt.settings
-        state.model, models = None, {}
-        if attempt.reuse != "matches":
-            db = build / f"database.{k}.db"
+    k = 0
+    while k < len(plan):
+        attempt = plan[k]
+        k += 1
+        if attempt.reuse != "nothing":  # its features come from the last extraction: say so in its settings
+            attempt = replace(attempt, settings=_extracted_with(attempt.settings, source))
+        fitted = _within_budget(attempt, first, candidates, total, state, budget, max(long_sides))
+        if fitted is None:
+            skipped.append(attempt.name)
+            continue
+        attempt, budget_note = fitted
+        phase.attempt, t0, s, before = k, time.perf_counter(), attempt.settings, dict(state.timings)
+        state.model, models, restricted = None, {}, None
+        if attempt.reuse == "neighbours":
+            previous, db = db, build / f"database.{k}.db"
+            with phase("matching"):
+                kept, dropped, window = restrict_to_neighbours(previous, db, order)
+                state.stats = sfm.database_stats(db)
+            restricted = {"window": window, "pairs_kept": kept, "pairs_dropped": dropped}
+        elif attempt.reuse != "matches":
+            db = evidence_db = build / f"database.{k}.db"
             with phase("features"):
                 if attempt.reuse == "features":
                     _copy_features(extracted, db)
                 else:
-                    sfm.extract(db, images, groups, long_sides, s)
-                    priors = apply_focal_priors(db, {n: p.focal_px for n, p in state.exif_focal.items()})
-                    extracted = db
+                    sfm.extract(db, images, groups, long_sides, s, build / "working")
+                    priors = apply_focal_priors(
+                        db,
+                        {n: p.focal_px for n, p in state.exif_focal.items()},
+                        {n: p.weak for n, p in state.exif_focal.items() if p.weak},
+                    )
+                    extracted, source = db, s
                 state.stats = sfm.database_stats(db)
             if textured(state.stats):
                 with phase("matching"):
@@ -135,8 +184,17 @@ def run_attempts(
                 models = sfm.reconstruct(db, images, build / "models" / str(k), s)
                 if models:
                     state.model = max(models.values(), key=lambda m: (m.num_reg_images(), m.num_points3D()))
-        found = candidate(attempt.name, state.model, prior_focals(priors), total)
-        seconds.append(time.perf_counter() - t0)
+        consistency, record = [], None
+        if state.model is not None:
+            with phase("consistency"):
+                consistency, record = consistency_checks(state.model, evidence_db, order)
+        found = candidate(
+            attempt.name, state.model, prior_focals(priors), total, weak_priors(priors), consistency=consistency
+        )
+        seconds = time.perf_counter() - t0
+        if first is None:
+            spent = {p: state.timings.get(p, 0.0) - before.get(p, 0.0) for p in state.timings}
+            first = attempt_cost(s, max(long_sides), list(state.stats.features.values()), spent)
         state.attempts.append(
             {
                 "attempt": k,
@@ -145,38 +203,115 @@ def run_attempts(
                 "total": total,
                 "models_found": sorted((m.num_reg_images() for m in models.values()), reverse=True),
                 "features_median": float(np.median(list(state.stats.features.values()))) if state.stats.features else 0,
-                "seconds": round(seconds[-1], 3),
+                "seconds": round(seconds, 3),
                 "reused": attempt.reuse,
                 "kept": False,
                 "cameras_pass": found.sane,
-                **(verdict(found.checks) if state.model is not None else {"check": None, "checks": []}),
-                "settings": describe(s, max(long_sides)),
+                "poses_consistent": found.consistent if state.model is not None else None,
+                **(
+                    verdict([*found.checks, *consistency]) if state.model is not None else {"check": None, "checks": []}
+                ),
+                "consistency": record,
+                **({"restricted_to_neighbours": restricted} if restricted else {}),
+                **({"budget": budget_note} if budget_note else {}),
+                "settings": describe(s, max(long_sides))
+                + (f", pairs within {restricted['window']} places in capture order" if restricted else ""),
                 "options": config_to_json(s),
             }
         )
         results.append((db, state.stats, models, state.model, priors))
+        records.append(record)
         candidates.append(found)
-        reason = stop_reason(candidates, total, seconds)
+        reason = stop_reason(candidates, total, time.time() - state.started, budget)
         if reason is not None:
             stopped = reason
             break
+        if _folded(found) and k < len(plan) and not any(a.reuse == "neighbours" for a in plan):
+            plan = [*plan[:k], Attempt(name="neighbours in capture order", settings=s, reuse="neighbours"), *plan[k:-1]]
     chosen = choose(candidates, total)
     kept_db, state.stats, state.all_models, state.model, state.focal_prior = results[chosen.index]
     state.attempts[chosen.index]["kept"] = True
     state.models = state.attempts[chosen.index]["models_found"]
-    state.choice = chosen.sentence
+    state.consistency = (list(candidates[chosen.index].consistency), records[chosen.index])
+    state.choice = chosen.sentence + _agreement(state.attempts, results, chosen.index)
     if chosen.warning is not None:
         state.warnings.append(chosen.warning)
-    state.ladder = {"stopped": stopped, "retry_budget_s": round(retry_budget(seconds[0]), 1), "rule": LADDER_RULE}
+    if skipped and stopped.startswith("every attempt"):
+        stopped = f"the retries that fit the time budget were made ({', '.join(skipped)} did not fit)"
+    state.ladder = {
+        "stopped": stopped,
+        "time_budget_s": None if math.isinf(budget) else round(budget, 1),
+        "left_out_for_time": skipped,
+        "rule": LADDER_RULE,
+    }
     phase.attempt = 1
     os.replace(kept_db, build / "database.db")
     for other in build.glob("database.*.db"):
         other.unlink()
 
 
+def _extracted_with(settings: SfmSettings, source: SfmSettings) -> SfmSettings:
+    """`settings` with the extraction of `source` (an attempt that reuses features was not extracted with its own)."""
+    return replace(settings, max_image_size=source.max_image_size, max_num_features=source.max_num_features)
+
+
+def _within_budget(
+    attempt: Attempt,
+    first: AttemptCost | None,
+    candidates: list[Candidate],
+    total: int,
+    state: RunState,
+    budget: float,
+    long_side: int,
+) -> tuple[Attempt, str | None] | None:
+    """`attempt` as it may run within the time budget (an extraction retry possibly shrunk), with a note for its
+    record, or None when it does not fit (`budget` module). Unbounded: the first attempt, the neighbours attempt,
+    and every attempt while no usable model the stage would keep exists."""
+    if first is None or attempt.reuse == "neighbours" or math.isinf(budget) or keepable(candidates, total) is None:
+        return attempt, None
+    left = budget - (time.time() - state.started)
+    fitted, _, why = fit_retry(attempt.settings, attempt.reuse, first, left, long_side)
+    if fitted is None:
+        state.warnings.append(f"retry '{attempt.name}' {why} (poses --time-budget)")
+        return None
+    return replace(attempt, settings=fitted), why
+
+
+def _folded(found: Candidate) -> bool:
+    """The attempt's model folded along the capture order (its capture_order check failed)."""
+    return any(c.name == "capture_order" and not c.ok for c in found.consistency)
+
+
+def _agreement(records: list[dict], results: list[tuple], kept: int) -> str:
+    """Each other attempt's rotation disagreement with the kept model into its record ("rotation_vs_kept_deg":
+    median, largest); a clause for the choice sentence naming those that disagree (over consistency.AGREE_DEG)."""
+    model = results[kept][3]
+    apart = []
+    for i, (record, result) in enumerate(zip(records, results, strict=True)):
+        if i == kept or result[3] is None or model is None:
+            continue
+        median, largest, common = rotation_disagreement(model, result[3])
+        if common >= 2:
+            record["rotation_vs_kept_deg"] = [round(median, 2), round(largest, 2)]
+            if median > AGREE_DEG:
+                apart.append(f"'{record['name']}' by {median:.1f} deg (largest {largest:.0f})")
+    if not apart:
+        return ""
+    return (
+        "; the attempts disagree on the rotation between two cameras (median over pairs): "
+        + ", ".join(apart)
+        + " from the kept model"
+    )
+
+
 def prior_focals(cameras: dict[int, dict]) -> dict[int, float | None]:
     """camera id -> prior focal px (None: absent), from `exif.apply_focal_priors`' record."""
     return {c: info["prior_px"] for c, info in cameras.items()}
+
+
+def weak_priors(cameras: dict[int, dict]) -> dict[int, str | None]:
+    """camera id -> why its prior is only a guess (None: it is not), from `exif.apply_focal_priors`' record."""
+    return {c: info.get("weak") for c, info in cameras.items()}
 
 
 def _copy_features(src: Path, dst: Path) -> None:

@@ -26,6 +26,7 @@ import numpy as np
 import pycolmap
 
 from nerfpipe.data.errors import Interrupted
+from nerfpipe.stages.poses.working import copies, to_full_resolution, worth_copying
 
 __all__ = [
     "SfmSettings",
@@ -171,29 +172,52 @@ def choose_working_size(long_side: int, median_features_at: Callable[[int], floa
     return candidates[-1], counted
 
 
-def count_features(db: Path, image_dir: Path, names: Sequence[str], size: int, s: SfmSettings) -> float:
-    """Median SIFT features of `names` at working size `size` (a scratch database `db`, deleted after)."""
+def count_features(
+    db: Path,
+    image_dir: Path,
+    names: Sequence[str],
+    size: int,
+    s: SfmSettings,
+    long_side: int | None = None,
+    work: Path | None = None,
+) -> float:
+    """Median SIFT features of `names` at working size `size` (a scratch database `db`, deleted after); `long_side`
+    and `work` as `extract`'s (the probe's working copies are kept there for the attempts)."""
     probe_names = [names[round(i * (len(names) - 1) / max(PROBE_IMAGES - 1, 1))] for i in range(PROBE_IMAGES)]
     probe_names = list(dict.fromkeys(probe_names))
     try:
-        extract(db, image_dir, [probe_names], [size], replace(s, max_image_size=size))
+        extract(db, image_dir, [probe_names], [long_side or size], replace(s, max_image_size=size), work)
         counts = database_stats(db).features
     finally:
         db.unlink(missing_ok=True)
     return float(np.median(list(counts.values())))
 
 
-def extract(db: Path, image_dir: Path, groups: list[list[str]], long_sides: list[int], s: SfmSettings) -> None:
+def extract(
+    db: Path,
+    image_dir: Path,
+    groups: list[list[str]],
+    long_sides: list[int],
+    s: SfmSettings,
+    work: Path | None = None,
+) -> None:
     """SIFT features for the images; with `single_camera`, each group (one image size) shares a camera.
 
-    long_sides: the largest image long side of each group (picks first_octave, see SMALL_IMAGE).
+    long_sides: the largest image long side of each group (picks first_octave, see SMALL_IMAGE). `work`: a folder
+    for working copies (`working`): a group of photos at least WORKING_COPY_FACTOR x the working size is read
+    from copies made there at the working size, and the database scaled to the photos' size after.
     """
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = s.camera_model
-    if s.mask_path is not None:
-        reader.mask_path = s.mask_path  # COLMAP: <mask_path>/<image name>.png; no keypoint where it is 0
     mode = pycolmap.CameraMode.SINGLE if s.single_camera else pycolmap.CameraMode.PER_IMAGE
     for names, long_side in zip(groups, long_sides, strict=True):
+        source, mask_path, full = image_dir, s.mask_path, None
+        if work is not None and worth_copying(long_side, s.max_image_size):
+            source, mask_path, full = copies(
+                image_dir, names, s.max_image_size, work / str(s.max_image_size), s.mask_path
+            )
+        if mask_path is not None:
+            reader.mask_path = mask_path  # COLMAP: <mask_path>/<image name>.png; no keypoint where it is 0
         opts = pycolmap.FeatureExtractionOptions()
         opts.max_image_size = s.max_image_size
         opts.num_threads = s.num_threads
@@ -203,13 +227,15 @@ def extract(db: Path, image_dir: Path, groups: list[list[str]], long_sides: list
         )
         pycolmap.extract_features(
             db,
-            image_dir,
+            source,
             image_names=names,
             camera_mode=mode,
             reader_options=reader,
             extraction_options=opts,
             device=pycolmap.Device.cpu,
         )
+        if full is not None:
+            to_full_resolution(db, full)
 
 
 def match(db: Path, s: SfmSettings) -> None:

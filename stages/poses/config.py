@@ -80,6 +80,12 @@ class Config:
     """Seeds COLMAP's RANSAC and mapper (results still vary a little with num_threads > 1)."""
     num_threads: int = -1
     """CPU threads for COLMAP; -1 = all cores."""
+    time_budget: float | None = None
+    """Seconds the stage aims to finish in, wall clock (stages.poses.budget); unset: 5 s a photo, at least 60 s (22
+    photos: 110 s), whatever their resolution; 0: unbounded. It caps the first attempt's SIFT working size where
+    extracting every photo at it would take over a third of the budget (timed on the probe photos), and starts a
+    retry, once a usable model is in hand, only where its predicted cost fits what is left (an extraction retry is
+    shrunk first). Without a usable model every retry runs."""
     masks: Path | None = None
     """A folder with one mask per photo (found by the photo's name: IMG_1.jpg.png, IMG_1.png or IMG_1.jpg; the
     photo's size; white = keep, black = masked out). SIFT keeps no feature on black pixels, and `convert` carries
@@ -120,6 +126,8 @@ def check(config: Config) -> str:
         raise UserError(f"drop_blurry must be a fraction in [0, 1) or a count >= 1, got {config.drop_blurry}")
     if (config.max_image_size is not None and config.max_image_size < 100) or config.max_num_features < 100:
         raise UserError("max_image_size and max_num_features must be at least 100")
+    if config.time_budget is not None and not config.time_budget >= 0:
+        raise UserError(f"time_budget must be >= 0 seconds (0: unbounded), got {config.time_budget}")
     if config.max_attempts < 1:
         raise UserError(f"max_attempts must be at least 1, got {config.max_attempts}")
     src = Path(config.input)

@@ -4,6 +4,7 @@ SIFT working size of the first attempt; and the zoom warning read from the EXIF 
 
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -13,6 +14,7 @@ import numpy as np
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.masks import match_masks, read_mask, write_binary_mask
 from nerfpipe.stages.poses import colmap as sfm
+from nerfpipe.stages.poses.budget import cap_working_size
 from nerfpipe.stages.poses.exif import ZOOM_SPREAD, exif_focal
 from nerfpipe.stages.poses.images import blurriest, list_images, near_duplicates, screen_image, write_upright
 from nerfpipe.stages.poses.report import MIN_REGISTERED, RunState
@@ -146,18 +148,30 @@ def working_size(
     names: list[str],
     long_side: int,
     state: RunState,
+    budget: float,
 ) -> sfm.SfmSettings:
-    """`settings` with the first attempt's SIFT working size: the Config's, or `sfm.choose_working_size`'s."""
+    """`settings` with the first attempt's SIFT working size: the Config's, or `sfm.choose_working_size`'s, capped
+    by the time budget (`budget.cap_working_size`: the probe's extraction is timed)."""
     if config.max_image_size is not None:
         state.working_size = {"size": min(config.max_image_size, long_side), "rule": "max_image_size"}
         return replace(settings, max_image_size=config.max_image_size)
-    size, counted = sfm.choose_working_size(
-        long_side, lambda s: sfm.count_features(probe_db, images, names, s, settings)
-    )
+    timed: dict[int, float] = {}
+
+    def median_features_at(size: int) -> float:
+        t0 = time.perf_counter()
+        median = sfm.count_features(probe_db, images, names, size, settings, long_side, probe_db.parent / "working")
+        timed[size] = (time.perf_counter() - t0) / min(sfm.PROBE_IMAGES, len(names))
+        return median
+
+    size, counted = sfm.choose_working_size(long_side, median_features_at)
+    capped, why = cap_working_size(size, timed, len(names), budget, long_side)
     state.working_size = {
-        "size": size,
+        "size": capped,
         "rule": f"smallest of {list(sfm.WORKING_SIZES)} px (at most the photos' {long_side}) where the probe "
-        f"photos' median SIFT features reach {sfm.ENOUGH_FEATURES}",
+        f"photos' median SIFT features reach {sfm.ENOUGH_FEATURES}, unless extracting every photo there would take "
+        "over a third of the time budget",
         "median_features": {str(k): v for k, v in counted.items()},
+        "probe_seconds_per_photo": {str(k): round(v, 2) for k, v in timed.items()},
+        **({"capped": why} if why else {}),
     }
-    return replace(settings, max_image_size=size)
+    return replace(settings, max_image_size=capped)

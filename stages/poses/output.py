@@ -52,6 +52,7 @@ def write_model(
     (build / "sparse").mkdir()
     state.model.write_binary(str(build / "sparse"))
     shutil.rmtree(build / "models")
+    shutil.rmtree(build / "working", ignore_errors=True)  # working copies of large photos (`working`)
     report = build_report(config, state, "ok", None)
     write_json(build / "names.json", state.names)
     metrics.save()
@@ -84,6 +85,7 @@ def write_model(
                 {k: a[k] for k in ("name", "registered", "total", "kept", "check", "settings")} for a in state.attempts
             ],
             "choice": state.choice,
+            "consistency": state.consistency[1],
             "ladder": state.ladder,
         },
         left_out={**state.skipped, **report["not_registered"]},

@@ -10,10 +10,15 @@ Camera checks and their limits:
                    The EXIF figure is the lens's focal length: focus breathing, in-camera crops and the 35 mm
                    equivalent's rounding move the true one by a few %, a wrong self-calibration by tens of %
                    (the case that motivated this: f = 10,450 px against EXIF 7,540 px, +39 %).
-  field_of_view    FOV_RANGE_DEG (10-140 deg) across the long side, 2 atan(L / 2f), when there is no prior: 10 deg
-                   is a ~200 mm lens on a 35 mm camera, beyond which SfM's geometry is poorly conditioned anyway;
-                   140 deg is beyond any rectilinear lens (a 12 mm full-frame lens gives 113 deg), and these camera
-                   models cannot describe a fisheye.
+  focal_vs_weak_exif  |f / f_EXIF - 1| <= WEAK_FOCAL_TOLERANCE (50 %) when the prior is only a guess (`exif`: a
+                   cropped photo whose camera frame is assumed, or EXIF focal fields that disagree). NOT a camera
+                   check: it marks the result suspect but never decides which attempt is kept (a self-consistent
+                   model is not thrown away against a guess; issue 53's 4000 px head lost 8 of 22 photos so). The
+                   field_of_view check runs beside it as the camera check.
+  field_of_view    FOV_RANGE_DEG (10-140 deg) across the long side, 2 atan(L / 2f), when there is no prior or a
+                   weak one: 10 deg is a ~200 mm lens on a 35 mm camera, beyond which SfM's geometry is poorly
+                   conditioned anyway; 140 deg is beyond any rectilinear lens (a 12 mm full-frame lens gives 113
+                   deg), and these camera models cannot describe a fisheye.
   focal_aspect     |fx / fy - 1| <= ASPECT_TOLERANCE (5 %) for models with two focal lengths (PINHOLE, OPENCV):
                    every current sensor has square pixels, so a larger ratio is a degenerate fit.
   distortion       the largest radial displacement the distortion parameters cause inside the image, as a fraction
@@ -55,6 +60,7 @@ from nerfpipe.stages.poses.report import WARN_FRACTION
 __all__ = [
     "CAMERA_CHECKS",
     "FOCAL_TOLERANCE",
+    "WEAK_FOCAL_TOLERANCE",
     "FOV_RANGE_DEG",
     "ASPECT_TOLERANCE",
     "MAX_DISTORTION",
@@ -69,6 +75,7 @@ __all__ = [
 ]
 
 FOCAL_TOLERANCE = 0.25
+WEAK_FOCAL_TOLERANCE = 0.5
 FOV_RANGE_DEG = (10.0, 140.0)
 ASPECT_TOLERANCE = 0.05
 MAX_DISTORTION = 0.15
@@ -79,14 +86,17 @@ CAMERA_CHECKS = ("focal_vs_exif", "field_of_view", "focal_aspect", "distortion",
 """The checks of a camera's intrinsics: an attempt that fails one is kept only when no attempt passes them all."""
 
 
-def camera_checks(cam: pycolmap.Camera, prior_px: float | None, label: str = "the camera") -> list[Check]:
-    """The intrinsics checks of one camera (see the module docstring); `prior_px` is its EXIF focal or None."""
+def camera_checks(
+    cam: pycolmap.Camera, prior_px: float | None, label: str = "the camera", weak: str | None = None
+) -> list[Check]:
+    """The intrinsics checks of one camera (see the module docstring); `prior_px` is its EXIF focal or None,
+    `weak` why that prior is only a guess (None: it is not)."""
     w, h = cam.width, cam.height
     long_side = max(w, h)
     fx, fy = float(cam.focal_length_x), float(cam.focal_length_y)
     f = (fx + fy) / 2
     checks = []
-    if prior_px is not None:
+    if prior_px is not None and weak is None:
         off = f / prior_px - 1
         checks.append(
             _said(
@@ -96,6 +106,15 @@ def camera_checks(cam: pycolmap.Camera, prior_px: float | None, label: str = "th
             )
         )
     else:
+        if prior_px is not None:
+            off = f / prior_px - 1
+            checks.append(
+                _said(
+                    Check.upper("focal_vs_weak_exif", abs(off) * 100, WEAK_FOCAL_TOLERANCE * 100, unit=" %", says=""),
+                    f"{label}: f = {f:.0f} px against a weak EXIF prior {prior_px:.0f} px ({off:+.0%}; {weak})",
+                    "far even from a guess: check the intrinsics (this check never decides which attempt is kept)",
+                )
+            )
         fov = math.degrees(2 * math.atan(long_side / (2 * f))) if f > 0 else math.nan
         lo, hi = FOV_RANGE_DEG
         checks.append(
@@ -107,8 +126,8 @@ def camera_checks(cam: pycolmap.Camera, prior_px: float | None, label: str = "th
                     limit=f"{lo:g}-{hi:g} deg",
                     says="",
                 ),
-                f"{label}: f = {f:.0f} px gives a {fov:.0f} deg field of view across {long_side} px (no EXIF focal "
-                "length to compare with)",
+                f"{label}: f = {f:.0f} px gives a {fov:.0f} deg field of view across {long_side} px ("
+                + ("no EXIF focal length to compare with)" if prior_px is None else "the EXIF prior is weak)"),
                 "no rectilinear lens has that: a degenerate self-calibration",
             )
         )
@@ -170,15 +189,22 @@ def _extra_params(cam: pycolmap.Camera) -> list[tuple[str, float]]:
     return [(names[i], float(cam.params[i])) for i in cam.extra_params_idxs()]
 
 
-def model_checks(rec: pycolmap.Reconstruction, priors: Mapping[int, float | None], total: int) -> list[Check]:
-    """Camera checks of every camera a registered image uses (`priors`: camera id -> EXIF focal px), then the
-    model checks (reprojection error, track length, registered fraction of `total` images)."""
+def model_checks(
+    rec: pycolmap.Reconstruction,
+    priors: Mapping[int, float | None],
+    total: int,
+    weak: Mapping[int, str | None] | None = None,
+) -> list[Check]:
+    """Camera checks of every camera a registered image uses (`priors`: camera id -> EXIF focal px; `weak`: camera
+    id -> why its prior is only a guess), then the model checks (reprojection error, track length, registered
+    fraction of `total` images)."""
+    weak = weak or {}
     used = sorted({im.camera_id for im in rec.images.values() if im.has_pose})
     checks: list[Check] = []
     for camera_id in used:
         cam = rec.cameras[camera_id]
         label = f"camera {camera_id} ({cam.width}x{cam.height})" if len(used) > 1 else "the camera"
-        checks += camera_checks(cam, priors.get(camera_id), label)
+        checks += camera_checks(cam, priors.get(camera_id), label, weak.get(camera_id))
     if rec.num_points3D() > 0:
         err = float(rec.compute_mean_reprojection_error())
         checks.append(

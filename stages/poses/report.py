@@ -41,11 +41,6 @@ __all__ = [
     "check_registered",
     "build_report",
     "print_summary",
-    "STATIC_FRACTION",
-    "STATIC_SPREAD",
-    "stationary_matches",
-    "check_static_matches",
-    "check_static_cameras",
     "focal_prior_record",
 ]
 
@@ -56,18 +51,6 @@ WARN_FRACTION = 0.8
 """Fewer registered images than this fraction prints a warning, after retrying with other settings."""
 MIN_FEATURES = 100
 """An image with fewer SIFT features than this is reported as texture-less."""
-STATIC_FRACTION = 0.3
-"""More than this fraction of the verified inlier matches staying at the same pixel (`stationary_matches`)
-means the camera did not move relative to much of what it saw: a turntable (object turns, camera and
-background fixed) or a tripod. The mapper then either fails or triangulates the background and puts every
-camera at one place. A normal capture has ~0 (synthetic orbit: 0.0; turntable without masks: see
-tests/test_turntable.py)."""
-STATIC_PIXELS = 1.5
-"""A match 'stays at the same pixel' when it moves less than this many pixels, or 0.2 % of the image's long
-side when that is more (SIFT's localisation error is well under a pixel)."""
-STATIC_SPREAD = 0.01
-"""Registered camera centres whose spread (RMS distance from their mean) is under this fraction of their
-median distance to the model's points are 'all at one place' (`check_static_cameras`)."""
 
 
 @dataclass(kw_only=True)
@@ -98,6 +81,8 @@ class RunState:
     focal_prior: dict[int, dict[str, Any]] = field(default_factory=dict)  # camera id -> prior (exif.apply_...)
     checks: list[Check] | None = None  # stages.poses.quality's checks of the model written; None: no model
     choice: str = ""  # why the kept attempt won (stages.poses.choice)
+    consistency: tuple[list[Check], dict[str, Any] | None] = field(default_factory=lambda: ([], None))
+    """The kept model's consistency checks and their record (stages.poses.consistency)."""
     ladder: dict[str, Any] = field(default_factory=dict)  # why the retry ladder stopped, its time budget
 
 
@@ -181,7 +166,13 @@ def _per_image(state: RunState) -> dict[str, Any]:
             entry["near_duplicate_of"] = state.duplicates[name]
         prior = state.exif_focal.get(name)
         entry["exif_focal"] = (
-            "absent" if prior is None else {"focal_px": round(prior.focal_px, 2), "source": prior.source}
+            "absent"
+            if prior is None
+            else {
+                "focal_px": round(prior.focal_px, 2),
+                "source": prior.source,
+                **({"weak": prior.weak} if prior.weak else {}),
+            }
         )
         if stats is not None and name in stats.features:
             entry.update(
@@ -209,6 +200,7 @@ def build_report(config: Config, state: RunState, status: str, error: str | None
         "error": error,
         **checked,
         "choice": state.choice or None,
+        "consistency": state.consistency[1],
         "input": str(config.input),
         "registered": registered,
         "total": total,
@@ -272,7 +264,13 @@ def focal_prior_record(state: RunState) -> dict[str, Any]:
     """poses_report.json "focal_prior": whether the photos' EXIF gave a focal length, and each camera's prior."""
     values = [p.focal_px for p in state.exif_focal.values()]
     photos = len(state.names)
-    if values:
+    weak = sorted({p.weak for p in state.exif_focal.values() if p.weak})
+    if weak:
+        says = (
+            f"weak: {weak[0]}; COLMAP's cameras start from it without has_prior_focal_length, and the "
+            "focal_vs_weak_exif check compares the model's with it but never decides which attempt is kept"
+        )
+    elif values:
         says = (
             "COLMAP's cameras start from the EXIF focal length (has_prior_focal_length) and the focal_vs_exif "
             "check compares the model's with it"
@@ -285,6 +283,7 @@ def focal_prior_record(state: RunState) -> dict[str, Any]:
         )
     return {
         "exif": f"{len(values)} of {photos} photos" if values else "absent",
+        "strength": ("weak" if weak else "strong") if values else None,
         "focal_px_median": round(float(np.median(values)), 2) if values else None,
         "sources": sorted({p.source for p in state.exif_focal.values()})[:5],
         "says": says,
@@ -329,69 +328,3 @@ class PhaseTimer:
                 return False
 
         return _Phase()
-
-
-def stationary_matches(db_path: Path) -> tuple[float, int]:
-    """(fraction of the verified inlier matches whose keypoint is at the same pixel in both images (within
-    STATIC_PIXELS), number of inlier matches) over the verified pairs of a COLMAP database whose images are at
-    least an eighth of the set (and 2) apart in extraction order: a turntable's background stays put between
-    any two views, while the neighbours of a slowly moving video may still share pixels."""
-    db = pycolmap.Database.open(db_path)
-    try:
-        keypoints, sizes = {}, {}
-        images = sorted(db.read_all_images(), key=lambda im: im.image_id)
-        rank = {im.image_id: k for k, im in enumerate(images)}
-        gap = max(2, len(images) // 8)
-        for im in images:
-            keypoints[im.image_id] = db.read_keypoints(im.image_id)[:, :2]
-            cam = db.read_camera(im.camera_id)
-            sizes[im.image_id] = max(cam.width, cam.height)
-        still = total = 0
-        pair_ids, geometries = db.read_two_view_geometries()
-        for pair_id, geometry in zip(pair_ids, geometries, strict=True):
-            m = np.asarray(geometry.inlier_matches)
-            a, b = pycolmap.pair_id_to_image_pair(pair_id)
-            if m.size == 0 or abs(rank[a] - rank[b]) < gap:
-                continue
-            moved = np.linalg.norm(keypoints[a][m[:, 0]] - keypoints[b][m[:, 1]], axis=1)
-            still += int((moved < max(STATIC_PIXELS, 0.002 * sizes[a])).sum())
-            total += len(m)
-    finally:
-        db.close()
-    return (still / total if total else 0.0), total
-
-
-def check_static_matches(db_path: Path, masked: bool, state: RunState) -> None:
-    """UserError when most verified matches stay at the same pixel (STATIC_FRACTION): the background of a
-    static camera dominates. Records the fraction in the report either way."""
-    fraction, total = stationary_matches(db_path)
-    state.stationary = {"fraction": round(fraction, 4), "inlier_matches": total, "limit": STATIC_FRACTION}
-    if fraction > STATIC_FRACTION:
-        fix = (
-            "the masks leave too much of the static background white; mask it black"
-            if masked
-            else "give --masks DIR (one mask per photo, the object white, the rest black)"
-        )
-        raise UserError(
-            f"static camera: {fraction:.0%} of the {total} verified feature matches stay at the same pixel "
-            f"across views, so the background does not move (a turntable or tripod capture): the poses would be "
-            f"those of the room, not of the object; {fix}"
-        )
-
-
-def check_static_cameras(rec: pycolmap.Reconstruction, masked: bool) -> None:
-    """UserError when the registered cameras all sit at one place (STATIC_SPREAD of their distance to the
-    points): a model of a static camera's background, whatever the matches said."""
-    images = [im for im in rec.images.values() if im.has_pose]
-    if len(images) < MIN_REGISTERED or rec.num_points3D() == 0:
-        return
-    centres = np.stack([im.projection_center() for im in images])
-    points = np.stack([p.xyz for p in rec.points3D.values()])
-    spread = float(np.sqrt(((centres - centres.mean(0)) ** 2).sum(1).mean()))
-    dist = float(np.median(np.linalg.norm(points - centres.mean(0), axis=1)))
-    if spread < STATIC_SPREAD * dist:
-        fix = "the masks leave the static background in" if masked else "give --masks DIR (the object white)"
-        raise UserError(
-            f"static camera: the {len(images)} registered cameras all sit at one place (spread {spread:.3g}, "
-            f"{spread / max(dist, 1e-12):.2%} of the distance to the scene): the model is of what did not move; {fix}"
-        )

@@ -49,6 +49,7 @@ import numpy as np
 from nerfpipe.data.atomic import write_bytes, write_json
 from nerfpipe.data.rundir import config_to_json, output_folder, write_manifest
 from nerfpipe.data.synthetic.objects import backdrop, default_primitives, room
+from nerfpipe.data.synthetic.prints import subject_primitives
 from nerfpipe.data.synthetic.raycast import SUPERSAMPLE, render_turntable_view, render_view, scene_mesh
 from nerfpipe.stages.scene.config import Config, Outputs, check
 from nerfpipe.stages.scene.files import (
@@ -108,7 +109,8 @@ def _run(config: Config) -> Outputs:
     scale = float(config.scale)
     started = time.time()
     out = Path(config.out_dir)
-    prims = default_primitives(config.seed)
+    product = config.subject != "objects"  # a printed box on white: no slab, no room behind a turntable
+    prims = subject_primitives(config.subject, config.seed) if product else default_primitives(config.seed)
     objects = prims
     if config.layout == "forward":
         prims = (*prims, backdrop(config.seed))
@@ -128,7 +130,7 @@ def _run(config: Config) -> Outputs:
     for k, ((rel, stem), w) in enumerate(zip(views, world_from_cam, strict=True)):
         if turntable:
             colour, alpha, obj_colour, mask, z = render_turntable_view(
-                objects, room(config.seed), intr, fixed, float(turntable_angles(config.views)[k])
+                objects, () if product else room(config.seed), intr, fixed, float(turntable_angles(config.views)[k])
             )
             if rgba:
                 colour, alpha = obj_colour, mask

@@ -34,6 +34,11 @@ class Config:
     box, so the room lies beyond it: an unbounded capture). forward: cameras on a
     jittered grid in one plane, all looking the same way at the scene, with a textured wall 4 m behind it (an
     LLFF-style forward-facing capture: content from ~1.5 m to ~7 m)."""
+    subject: Literal["objects", "carton", "cube"] = "objects"
+    """What is photographed. objects: five textured objects on a slab. carton / cube: one printed box on white,
+    with no ground (a product shot; `data.synthetic.prints`): carton, a tall box with one print on front and back
+    and another on both sides; cube, the same print on all four sides. Faces that look alike are what can make
+    a reconstruction fold onto itself (issue 53). With layout turntable the room is left out too (white)."""
     scale: float = 1.0
     """Multiply every length (objects, cameras, depth, mesh) by this; the images do not change."""
     overwrite: bool = False
@@ -71,6 +76,8 @@ def check(config: Config) -> None:
         raise UserError(f"scene: expected --layout orbit|forward|room|turntable, got {config.layout!r}")
     if config.layout == "turntable" and config.kind == "blender":
         raise UserError("scene: --layout turntable writes kinds photos, posed or rgba, not blender")
+    if config.subject not in ("objects", "carton", "cube"):
+        raise UserError(f"scene: expected --subject objects|carton|cube, got {config.subject!r}")
     scale = float(config.scale)
     if not (math.isfinite(scale) and scale > 0):
         raise UserError(f"scene: expected --scale > 0 (finite), got {config.scale!r}")

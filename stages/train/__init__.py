@@ -1,4 +1,5 @@
-"""`train` stage: fit a radiance field to a posed scene (`transforms.json`) and write a run directory.
+"""`train` stage: fit a method's model (`--method`, `model.methods`: a radiance field by default) to a posed scene
+(`transforms.json`) and write a run directory.
 
 Run directory (docs/DESIGN.md "Trained run directory"):
   config.json, checkpoint.pt (`model.checkpoint`: tensors and primitive containers only, loads with
@@ -13,7 +14,7 @@ line; a checkpoint is also written every `checkpoint_seconds`. The manifest reco
 
 The story: `validate` checks the config alone (`stages.train.config`) before anything is read, `setup` reads the
 scene, resolves the defaults (`stages.train.defaults`, in one place: config.json records the result) and builds (or
-resumes) the field model (`stages.train.setup`, `model.field_model`), `Loop.run` optimises it
+resumes) the method's model and its hooks (`stages.train.setup`, `model.methods`), `Loop.run` optimises it
 (`stages.train.loop`), `_final_eval` renders evenly spaced test views in full, and the manifest records what was
 used and left out (`stages.train.report`).
 
@@ -24,9 +25,10 @@ and the reports; the manifest's `used.world_size` records N. Without torchrun no
 
 Conventions: rays in the scene frame, unit directions, t = Euclidean distance (radiance.camera).
 Training draws random rays across all train views (colours held as uint8, rays made per batch from each view's
-camera; `stages.train.views`). RGBA scenes composite a random background per ray during training and white for
-evaluation. Fields: `fast` (TensoRF VM, occupancy-grid marching, coarse-to-fine upsampling) and `vanilla` (the
-NeRF paper: 64 stratified + 128 importance samples, coarse and fine networks).
+camera; `model.views`). RGBA scenes composite a random background per ray during training and white for
+evaluation. Methods: `density` (TensoRF VM, occupancy-grid marching, coarse-to-fine upsampling; the default) and
+`nerf` (the NeRF paper: 64 stratified + 128 importance samples, coarse and fine networks); others register
+(`model.methods.registry`).
 """
 
 from __future__ import annotations
@@ -51,15 +53,16 @@ from nerfpipe.model.appearance import EVAL_RULE as APPEARANCE_EVAL_RULE
 from nerfpipe.model.camera_opt import pose_report, write_refined_transforms
 from nerfpipe.model.device import cpu_threads
 from nerfpipe.model.distributed import DataParallel, joined, rank_device, world_from_env
+from nerfpipe.model.views import evenly_spaced
 from nerfpipe.stages.train.checks import train_checks
-from nerfpipe.stages.train.config import Config, FastOptions, RefineOptions, validate
+from nerfpipe.stages.train.config import Config, RefineOptions, validate
 from nerfpipe.stages.train.defaults import final_eval_views
 from nerfpipe.stages.train.loop import Loop, TrainingDiverged, evaluate_psnr
+from nerfpipe.stages.train.refine import PoseRefinement
 from nerfpipe.stages.train.report import per_view_report, plot_psnr, used_and_left_out
 from nerfpipe.stages.train.setup import setup, write_run_config
-from nerfpipe.stages.train.views import evenly_spaced
 
-__all__ = ["Config", "FastOptions", "RefineOptions", "Outputs", "run", "TrainingDiverged", "evenly_spaced"]
+__all__ = ["Config", "RefineOptions", "Outputs", "run", "TrainingDiverged", "evenly_spaced"]
 
 VERSION = "1"
 
@@ -140,7 +143,7 @@ def _run(config: Config, progress: Progress, par: DataParallel | None = None) ->
     test_psnr, chosen, n_views = _final_eval(config, loop, seconds)
     write_run_config(run_dir, dataclasses.replace(config, final_eval_views=n_views), scene_path)
     plot = run_dir / "psnr_vs_time.png"
-    plot_psnr(plot, loop.metrics.rows, f"train {config.field} on {scene_path.name}")
+    plot_psnr(plot, loop.metrics.rows, f"train {config.method} on {scene_path.name}")
     train_idx, test_idx = scene.split("train"), scene.split("test") or scene.split("val")
     used, left_out = used_and_left_out(
         scene=scene,
@@ -158,13 +161,17 @@ def _run(config: Config, progress: Progress, par: DataParallel | None = None) ->
     )
     outputs += [run_dir / f for f in used["per_view"]["files"]]
     outputs += _refinement_records(loop, scene, train_idx, used, left_out)
+    described = loop.model.describe()
+    skip = described.get("occupancy_skip_fraction")
+    space = loop.model.space
     checks = train_checks(
         rows=loop.metrics.rows,
         test_psnr=test_psnr,
         per_view=used["per_view"],
-        occupied=None if loop.model.grid is None else 1.0 - loop.model.grid.skip_fraction,
-        object_box=loop.model.space.object_box,
+        occupied=None if skip is None else 1.0 - skip,
+        object_box=space.object_box if space is not None else False,
         pose=used.get("pose_refinement"),
+        scene_dir=scene_path if scene_path.is_dir() else None,
     )
     inputs = [scene_path / "transforms.json"] if scene_path.is_dir() else [scene_path]
     manifest = write_manifest(
@@ -201,12 +208,13 @@ def _refinement_records(loop: Loop, scene: Scene, train_idx: tuple[int, ...], us
         }
     else:
         left_out["appearance"] = "off (train --appearance): every image is assumed to share one appearance"
-    if loop.cameras is None:
+    refine = next((h for h in loop.hooks if isinstance(h, PoseRefinement)), None)
+    if refine is None:
         left_out["pose_refinement"] = "off (train --refine-poses): the input cameras are taken as exact"
         return []
-    used["pose_refinement"] = pose_report(loop.cameras, scene, train_idx)
+    used["pose_refinement"] = pose_report(refine.cameras, scene, train_idx)
     path = Path(loop.config.run_dir) / "transforms.json"
-    return [write_refined_transforms(scene, loop.cameras.to_dict(), train_idx, path)]
+    return [write_refined_transforms(scene, refine.cameras.to_dict(), train_idx, path)]
 
 
 def _final_eval(config: Config, loop: Loop, seconds: float) -> tuple[float | None, list[int], int]:
@@ -214,7 +222,7 @@ def _final_eval(config: Config, loop: Loop, seconds: float) -> tuple[float | Non
     final_eval_views resolved for config.json: as given, else what `stages.train.defaults.final_eval_views` chose
     at the render speed of the periodic evaluations (or of one view), 0 without a test split. The PSNR is logged
     to metrics.csv."""
-    loop.model.field.eval()
+    loop.model.train_mode(False)
     test_psnr, chosen, k = None, [], config.final_eval_views or 0
     if loop.test is not None:
         n = len(loop.test.shapes)

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from nerfpipe.model.background import Background
-from nerfpipe.stages.train.views import Views
+from nerfpipe.model.views import Views
 
 __all__ = ["choose_background", "detect_plain_colour", "BORDER", "PLAIN_FRACTION", "PLAIN_TOLERANCE"]
 

@@ -14,25 +14,31 @@ Each rule, its limit and why (figures from `make bench-real`, docs/BENCH_REAL.md
   and > 0 everywhere (an empty field renders nothing).
 - **pose corrections** (--refine-poses): the guard's record (`model.camera_opt.pose_report`): refinement pulled
   back or stopped is reported with its figures.
+- **training_fit**: the training PSNR at the end >= TRAIN_FIT_DB: under it the field cannot reproduce even the
+  photos it trains on (issue 53: a folded carton 16.97 dB after 395 steps; the same kind of capture with right
+  poses, the shared head on white, 24.95 dB after 575). Left out of runs that logged under LAST_ROWS rows.
+- **cause** (only when another check failed): ONE cause named from the evidence (`diagnose`), in one line, instead
+  of a list of possibilities. See `diagnose` for the rules and their order.
 Checks that do not apply (no test split, no refinement, no training PSNR logged: a run shorter than one logging
 interval) are left out.
 """
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from nerfpipe.data.checks import HOLDOUT_FLOOR_DB, HOLDOUT_GAP_DB, Check
+from nerfpipe.stages.train.diagnosis import RISE_DB, TRAIN_FIT_DB, UNEXPLAINED_SHARE, Evidence, diagnose
 
-__all__ = ["train_checks", "HOLDOUT_FLOOR_DB", "GAP_DB", "RISE_DB"]
+__all__ = ["train_checks", "HOLDOUT_FLOOR_DB", "GAP_DB", "RISE_DB", "TRAIN_FIT_DB"]
 
 GAP_DB = HOLDOUT_GAP_DB
 LAST_ROWS = 4
 RISE_WINDOW = 0.2
-RISE_DB = 1.0
-UNEXPLAINED_SHARE = 0.2
 FOG_SHARE = 0.6
 
 
@@ -68,10 +74,12 @@ def train_checks(
     occupied: float | None,
     object_box: bool,
     pose: dict[str, Any] | None,
+    scene_dir: Path | None = None,
 ) -> list[Check]:
     """The run's checks from its metrics rows, final held-out PSNR, per-view report, occupied cell share (None
-    without a grid), whether the field's box is the object's own (`radiance.space.Space.object_box`) and the
-    pose-refinement record (None without refinement)."""
+    without a grid), whether the field's box is the object's own (`radiance.space.Space.object_box`), the
+    pose-refinement record (None without refinement) and the scene folder (where the poses stage's
+    poses_report.json may lie beside transforms.json: evidence for `diagnose`)."""
     out: list[Check] = []
     if test_psnr is not None:
         out.append(
@@ -80,7 +88,7 @@ def train_checks(
                 test_psnr,
                 HOLDOUT_FLOOR_DB,
                 unit=" dB",
-                says="the field reproduces the held-out photos poorly (poses, background rule or too little training)",
+                says="the field reproduces the held-out photos poorly (the cause check names why)",
             )
         )
     train_end = _train_psnr_end(rows)
@@ -146,4 +154,56 @@ def train_checks(
                 "off by were pulled back or refinement was stopped",
             )
         )
+    if train_end is not None and len(_series(rows, "train_psnr")) >= LAST_ROWS:
+        out.append(
+            Check.lower(
+                "training_fit",
+                train_end,
+                TRAIN_FIT_DB,
+                unit=" dB",
+                says="the field cannot reproduce even its own training photos (the cause check names why)",
+            )
+        )
+    if any(not c.ok for c in out):
+        evidence = Evidence(
+            failed={c.name: c.value for c in out if not c.ok},
+            train_psnr=train_end,
+            test_psnr=test_psnr,
+            rise=rise,
+            late_rise=_late_rise(rows),
+            steps=_last_step(rows),
+            per_view=per_view,
+            occupied=occupied,
+            poses_report=_poses_report(scene_dir),
+        )
+        cause, line = diagnose(evidence)
+        out.append(Check(name="cause", ok=False, value=cause, limit="none (every other check passes)", says=line))
     return out
+
+
+def _late_rise(rows: list[dict]) -> float | None:
+    """Training PSNR at the last logged row minus at the last row logged before 60 % of the run's time: the trend
+    of a run too short for `_rise` (3+ logged rows); None with fewer."""
+    pts = _series(rows, "train_psnr")
+    if len(pts) < 3:
+        return None
+    before = [p for s, p in pts if s <= 0.6 * pts[-1][0]]
+    return pts[-1][1] - before[-1] if before else None
+
+
+def _last_step(rows: list[dict]) -> int | None:
+    steps = [int(float(r["step"])) for r in rows if r.get("step") not in (None, "")]
+    return steps[-1] if steps else None
+
+
+def _poses_report(scene_dir: Path | None) -> dict[str, Any] | None:
+    """The poses stage's poses_report.json beside the scene's transforms.json, or None (a posed dataset has none;
+    an unreadable one is no evidence)."""
+    if scene_dir is None:
+        return None
+    path = Path(scene_dir) / "poses_report.json"
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return doc if isinstance(doc, dict) else None

@@ -1,11 +1,15 @@
-"""The optimisation loop of `train`: its step on `model.loop.TrainingLoop` (the one loop every mode shares), the
-coarse-to-fine schedule, evaluation and checkpoints.
+"""The optimisation loop of `train`: its step on `model.loop.TrainingLoop` (the one loop every mode shares), with the
+hooks a method or an option plugs in (`model.methods.hooks.Hook`), evaluation and checkpoints.
+
+`Loop` holds only what every run has: the method's model and its optimiser, the photos, the generator, the metrics,
+the checkpoint, and data-parallel averaging. The rest is hooks: the density field's upsampling, occupancy refresh
+and priors (`model.methods.density.hooks`), pose refinement (`stages.train.refine`).
 
 Progress through the run is the larger of the step and the wall-clock fractions (max_steps, max_seconds), so a
-time budget gets the whole schedule: the learning rate decays exponentially to `lr_decay` over it and the fast
-grid is upsampled at the `upsample_at` fractions. Seconds spent on periodic evaluation are not training time
-(the schedule, the budget and metrics.csv exclude them). A non-finite loss restores the last good state
-(kept every 100 steps and at each upsample) and halves the learning rate; the third time the run stops.
+time budget gets the whole schedule: the learning rate decays exponentially to `lr_decay` over it. Seconds spent on
+periodic evaluation are not training time (the schedule, the budget and metrics.csv exclude them). A non-finite
+loss restores the last good state (kept every 100 steps and whenever a hook replaced the model) and halves the
+learning rate; the third time the run stops.
 
 Checkpoints: every `checkpoint_every` steps, every `checkpoint_seconds` of wall-clock time (so a killed run loses
 at most that), at the end, and when `stop` (`data.stop`: SIGINT/SIGTERM) is raised, after which the loop raises
@@ -13,9 +17,9 @@ at most that), at the end, and when `stop` (`data.stop`: SIGINT/SIGTERM) is rais
 
 Data-parallel (`parallel`, `model.distributed`): every rank draws the step's whole batch and renders its share;
 the loss's per-ray terms are weighted by the share (n_r W / B), the priors and the depth term count alike on every
-rank, and the gradients (field, background, appearance, cameras) are averaged before the TV gradient and the
-optimiser steps. The loss's finiteness and the logged loss are the whole batch's. Rank 0 alone evaluates, logs and
-writes checkpoints; every rank checks at each checkpoint that the parameters and the grid are still the same.
+rank, and the gradients (the optimiser's and the hooks' parameters) are averaged before the hooks' after-backward
+work and the optimiser's step. The loss's finiteness and the logged loss are the whole batch's. Rank 0 alone
+evaluates, logs and writes checkpoints; every rank checks at each checkpoint that the learned state is the same.
 """
 
 from __future__ import annotations
@@ -36,57 +40,28 @@ from torch import Tensor
 from nerfpipe.data.progress import Progress
 from nerfpipe.data.rundir import MetricsLog
 from nerfpipe.data.stop import StopRequest
-from nerfpipe.model.camera_opt import CameraOpt
 from nerfpipe.model.checkpoint import save_checkpoint
 from nerfpipe.model.distributed import DataParallel
-from nerfpipe.model.field_model import FieldModel
 from nerfpipe.model.loop import Budget, Clock, LoopSettings, Schedule, TrainingDiverged, TrainingLoop
+from nerfpipe.model.methods import Batch, Hook, Method, TrainModel
+from nerfpipe.model.views import Views
 from nerfpipe.radiance.compositing import over_background
-from nerfpipe.radiance.fields import Field
 from nerfpipe.radiance.metrics import psnr_from_mse
-from nerfpipe.radiance.regularizers import depth_nll_loss
 from nerfpipe.stages.train.config import Config
-from nerfpipe.stages.train.views import DepthRays, Views
 
-__all__ = ["TrainingDiverged", "Loop", "make_optimizer", "upsample_schedule", "evaluate_psnr"]
-
-DEPTH_RAYS = 256
-"""Sparse-point rays rendered per step for the depth loss (a quarter of the CPU photometric batch)."""
-DEPTH_SIGMA = 0.02
-"""Depth uncertainty of a structure-from-motion point, as a fraction of its distance (DS-NeRF's sigma)."""
+__all__ = ["TrainingDiverged", "Loop", "make_optimizer", "evaluate_psnr"]
 
 
-TV_TEXELS = 4096
-"""Random texels per plane in each step's total-variation estimate (`TensoRF.tv`)."""
-
-
-def make_optimizer(model: FieldModel | Field, lr: float, *, fused: bool = True) -> torch.optim.Adam:
-    """Adam over the field (and a learned background colour, at lr); `fused` (one kernel per group, the
-    same update up to float rounding) is the fast path: the plain per-tensor loop took half of a fast-field
-    step on CPU (lego_100, 2 cores: 14.6 -> 23.4 steps/s at the final grid; 1599 -> 1989 steps in 120 s).
-    fused=False is its plain twin (tests)."""
-    field, extra = (model.field, model.background.params()) if isinstance(model, FieldModel) else (model, [])
-    groups = field.param_groups(lr)
-    if extra:
-        groups.append({"params": extra, "lr": lr, "lr_scale": 1.0})
-    if isinstance(model, FieldModel) and model.appearance is not None:
-        groups += model.appearance.param_groups(lr)
-    return torch.optim.Adam(groups, betas=(0.9, 0.99), fused=fused)
-
-
-def upsample_schedule(resolution: tuple[int, int], upsample_at: tuple[float, ...]) -> list[tuple[float, int]]:
-    """(progress fraction, grid resolution) pairs: geometric steps from resolution[0] to resolution[1]."""
-    r0, r1 = resolution
-    n = len(upsample_at)
-    if n == 0 or r0 == r1:
-        return []
-    res = [round(math.exp(math.log(r0) + (math.log(r1) - math.log(r0)) * (k + 1) / n)) for k in range(n)]
-    return list(zip(upsample_at, res, strict=True))
+def make_optimizer(model: TrainModel, lr: float, *, fused: bool = True) -> torch.optim.Adam:
+    """Adam over the model's parameter groups (`TrainModel.param_groups`); `fused` (one kernel per group, the same
+    update up to float rounding) is the fast path: the plain per-tensor loop took half of a density-field step on
+    CPU (docs/DESIGN.md). fused=False is its plain twin (tests)."""
+    return torch.optim.Adam(model.param_groups(lr), betas=(0.9, 0.99), fused=fused)
 
 
 @torch.no_grad()
 def evaluate_psnr(
-    model: FieldModel, views: Views, idx: Tensor, bg: Tensor, device: torch.device, rays: Callable | None = None
+    model: TrainModel, views: Views, idx: Tensor, bg: Tensor, device: torch.device, rays: Callable | None = None
 ) -> float:
     """PSNR over the rays idx [K] of `views`, photos with alpha composited on bg [3]; `rays` maps (o, d) into
     the frame of refined cameras (`CameraOpt.test_rays`; None: as given)."""
@@ -103,11 +78,12 @@ def evaluate_psnr(
 
 @dataclass
 class Loop:
-    """One training run's mutable state and its step (`model.loop.Stepper`); `run()` steps until the step or time
-    budget is spent."""
+    """One training run's mutable state and its step (`model.loop.Stepper`, `model.methods.hooks.LoopState`);
+    `run()` steps until the step or time budget is spent."""
 
     config: Config  # resolved (stages.train.defaults.resolve_defaults): no None left in it but final_eval_views
-    model: FieldModel
+    method: Method
+    model: TrainModel
     opt: torch.optim.Optimizer
     train: Views
     test: Views | None
@@ -117,32 +93,54 @@ class Loop:
     metrics: MetricsLog
     ckpt_path: Path
     progress: Progress
+    hooks: list[Hook] = field(default_factory=list)
     step: int = 0
     seconds_before: float = 0.0
     lr_factor: float = 1.0
-    samples_per_ray: float = 0.0
-    skip_fraction: float = 0.0
-    eval_rays_per_second: float | None = None
+    parallel: DataParallel | None = None  # data-parallel runs (torchrun; model.distributed); None: one process
     stop: StopRequest | None = None  # polled between steps (data.stop)
     ckpt_sha256: str | None = None  # of the last checkpoint written
+    samples_per_ray: float = 0.0
+    eval_rays_per_second: float | None = None
     _losses: list[float] = field(default_factory=list)
-    cameras: CameraOpt | None = None  # pose refinement (train --refine-poses; model.camera_opt)
-    depth_rays: DepthRays | None = None  # sparse-point depth supervision (train --depth-loss)
-    parallel: DataParallel | None = None  # data-parallel runs (torchrun; model.distributed); None: one process
     _loop: TrainingLoop | None = None  # while run() runs
-    _schedule: list[tuple[float, int]] = field(default_factory=list)  # upsampling still to come
     _task: Any = None  # the progress display's task
-    _before_refine: tuple[int, dict] | None = None  # (step, field state) when the cameras first moved
-    _rolled_back: bool = False  # the field went back to _before_refine (prepare() tells the loop once)
 
     def test_rays(self) -> Callable | None:
-        """The map of test rays into the refined cameras' frame (None without pose refinement)."""
-        return self.cameras.test_rays() if self.cameras is not None else None
+        """The map of held-out rays into the frame the model is trained in (a hook's `eval_rays`: pose refinement's
+        refined cameras), or None."""
+        maps = [m for hook in self.hooks if (m := hook.eval_rays()) is not None]
+        return maps[0] if maps else None
+
+    # ---- LoopState (what hooks use)
+    def fraction(self) -> float:
+        return self._loop.fraction()
 
     def elapsed(self) -> float:
         """Training seconds so far (across resumes, evaluation excluded)."""
         return self._loop.clock() if self._loop is not None else self.seconds_before
 
+    def transform_rays(self, o: Tensor, d: Tensor, view: Tensor) -> tuple[Tensor, Tensor]:
+        for hook in self.hooks:
+            o, d = hook.rays(self, o, d, view)
+        return o, d
+
+    def rebuild_optimizer(self, state: dict | None = None) -> None:
+        self.opt = make_optimizer(self.model, self.config.lr)
+        if state is not None:
+            self.opt.load_state_dict(state)
+
+    def snapshot(self) -> tuple[Any, dict]:
+        """The model's learned state and a copy of the optimiser's."""
+        return self.model.snapshot(), copy.deepcopy(self.opt.state_dict())
+
+    def restore(self, snapshot: tuple[Any, dict]) -> None:
+        """Back to `snapshot`; a new optimiser (its state lost) when the model's shapes changed since."""
+        state, opt_state = snapshot
+        resampled = self.model.restore(state)
+        self.rebuild_optimizer(None if resampled else opt_state)
+
+    # ---- the run
     def settings(self) -> LoopSettings:
         """The shared loop's settings from the train config."""
         cfg = self.config
@@ -156,37 +154,23 @@ class Loop:
         )
 
     def run(self) -> float:
-        """Train until max_steps or max_seconds; refresh the occupancy grid; checkpoint. Returns seconds."""
-        cfg = self.config
-        self._schedule = upsample_schedule(cfg.fast.resolution, cfg.fast.upsample_at)
+        """Train until max_steps or max_seconds; checkpoint. Returns seconds."""
         agree = self.parallel.agree if self.parallel is not None else None
         self._loop = TrainingLoop(self.settings(), self, Clock(self.seconds_before), self.stop, agree)
-        self._task = self.progress.add_task("train", total=cfg.max_seconds)
-        self.model.field.train()
+        self._task = self.progress.add_task("train", total=self.config.max_seconds)
+        self.model.train_mode(True)
         self._check_same("at the start")
         return self._loop.run()
 
     def prepare(self, fraction: float) -> bool:
-        """Fast fields: upsample at the schedule's fractions (a new optimiser), refresh the occupancy grid. True
-        when the grid was upsampled, or the field rolled back since the last call (`_camera_step`)."""
-        rolled_back, self._rolled_back = self._rolled_back, False
-        if self.model.kind != "fast":
-            return rolled_back
-        upsampled = False
-        while self._schedule and fraction >= self._schedule[0][0]:
-            _, res = self._schedule.pop(0)
-            if res > self.model.field.resolution:
-                self.model.field.upsample(res)
-                self.opt = make_optimizer(self.model, self.config.lr)
-                upsampled = True
-        self.model.grid.update(
-            self.model.field.density, self.step, every=self.config.fast.occupancy_every, warmup_steps=64
-        )
-        return upsampled or rolled_back  # the loop keeps a new good state for its non-finite recovery
+        """Every hook's schedule work before a step (upsampling, grid refresh, a rollback to tell); True when one of
+        them replaced the model or the optimiser."""
+        changed = [hook.prepare(self, fraction) for hook in self.hooks]
+        return any(changed)
 
     def train_step(self, lr: float) -> bool:
         """One optimiser step on a random batch of rays; False (and no update) when the loss is not finite."""
-        fast, model, par = self.config.fast, self.model, self.parallel
+        model, par = self.model, self.parallel
         idx = torch.randint(self.train.n_rays, (self.config.batch_rays,), generator=self.gen)
         o, d, rgb, alpha, view, bg, bg_all = self._rays(idx)
         target = over_background(rgb, alpha[:, None], bg.detach())
@@ -199,20 +183,18 @@ class Loop:
             loss = loss + torch.mean((out["rgb_coarse"] - target) ** 2)
         if share != 1.0:
             loss = loss * share
-        if model.kind == "fast" and fast.density_l1 > 0:
-            loss = loss + fast.density_l1 * model.field.density_l1()
-        if fast.distortion:
-            loss = loss + share * fast.distortion * model.distortion(out, o, d)
-        if self.depth_rays is not None and fast.depth_loss:
-            loss = loss + fast.depth_loss * self._depth_term(bg_all)
-        samples = float(out["samples"])
+        batch = Batch(o=o, d=d, view=view, background=bg, background_all=bg_all, share=share)
+        for hook in self.hooks:
+            term = hook.loss(self, batch, out)
+            if term is not None:
+                loss = loss + term
+        samples = float(out["samples"]) if "samples" in out else 0.0
+        self.opt.zero_grad(set_to_none=True)
         if par is None:
             if not math.isfinite(float(loss.detach())):
                 return False
-            self.opt.zero_grad(set_to_none=True)
             loss.backward()
         else:
-            self.opt.zero_grad(set_to_none=True)
             loss.backward()
             weight = o.shape[0] / idx.numel()
             total, mse, samples = par.average(
@@ -220,62 +202,16 @@ class Loop:
             )
             if not math.isfinite(total):
                 return False
-        if model.kind == "fast" and fast.tv > 0:
-            model.field.add_tv_grad_(fast.tv, TV_TEXELS, self.gen)
+        for hook in self.hooks:
+            hook.after_backward(self)
         self.opt.step()
-        model.field.touch()  # fused Adam leaves the version counters: the field's inference caches must know
-        if self.cameras is not None:
-            self._camera_step()
+        model.after_step()
+        for hook in self.hooks:
+            hook.after_step(self)
         self._losses.append(mse)
         per_ray = samples / idx.numel()
         self.samples_per_ray = 0.9 * self.samples_per_ray + 0.1 * per_ray if self.step > 0 else per_ray
-        if model.grid is not None:
-            self.skip_fraction = model.grid.skip_fraction
         return True
-
-    def _camera_step(self) -> None:
-        """The cameras' step after the field's; the field's state is kept at the cameras' first move, and restored
-        when the guard stops refinement (`model.camera_opt` "Rollback")."""
-        cams, frac = self.cameras, self._loop.fraction()
-        if self._before_refine is None and cams.moves(frac):  # the field has only seen the input cameras so far
-            self._before_refine = (self.step + 1, self._field_state())
-        cams.step(frac, step=self.step + 1)  # the guard records the step it acts at
-        if cams.log.stopped_at == self.step + 1 and self._before_refine is not None:
-            kept_at, state = self._before_refine
-            self._restore_field_state(state)
-            cams.log.rolled_back_to = kept_at
-            self._rolled_back = True
-            self._before_refine = None
-
-    def _learned(self) -> dict[str, torch.nn.Module]:
-        """What the field learned, by name: the field, background, appearance codes and occupancy grid (those the
-        model has)."""
-        m = self.model
-        mods = {"field": m.field, "background": m.background, "appearance": m.appearance, "grid": m.grid}
-        return {k: v for k, v in mods.items() if v is not None}
-
-    def _field_state(self) -> dict[str, Any]:
-        """A copy of `_learned`'s states, the field's grid resolution and the optimiser's state."""
-        state = {k: copy.deepcopy(v.state_dict()) for k, v in self._learned().items()}
-        resolution = getattr(self.model.field, "resolution", None)
-        return state | {"resolution": resolution, "opt": copy.deepcopy(self.opt.state_dict())}
-
-    def _restore_field_state(self, state: dict[str, Any]) -> None:
-        """Back to `_field_state`'s copy and its optimiser state; when the grid was upsampled since, the copy is
-        resampled to today's resolution and the optimiser starts afresh (as at an upsampling)."""
-        field = self.model.field
-        now = getattr(field, "resolution", None)
-        resampled = now != state["resolution"]
-        if resampled:
-            field.upsample(state["resolution"])  # the copy's shapes, then its values
-        for key, mod in self._learned().items():
-            mod.load_state_dict(state[key])
-        if resampled:
-            field.upsample(now)
-        self.opt = make_optimizer(self.model, self.config.lr)
-        if not resampled:
-            self.opt.load_state_dict(state["opt"])
-        field.touch()
 
     def _rays(self, idx: Tensor) -> tuple[Tensor, ...]:
         """The batch idx [B] -> this rank's rays o, d [b, 3], rgb [b, 3], alpha [b], view [b] and background
@@ -284,8 +220,7 @@ class Loop:
         if self.parallel is None:
             o, d, rgb, alpha = self.train.batch(idx, self.device)
             view = self.train.view[idx].to(self.device)  # [B] each ray's training view
-            if self._refining():
-                o, d = self.cameras(o, d, view)
+            o, d = self.transform_rays(o, d, view)
             rand = self.train.random_behind(idx, alpha == 0)  # [B]
             bg = self.model.background.train_colour(o.shape[0], self.gen, random=rand)  # [B, 3] or [3]
             return o, d, rgb, alpha, view, bg, bg
@@ -294,52 +229,20 @@ class Loop:
         mine = self.parallel.world.share(idx.numel())
         o, d, rgb, alpha = self.train.batch(idx[mine], self.device)
         view = self.train.view[idx[mine]].to(self.device)
-        if self._refining():
-            o, d = self.cameras(o, d, view)
+        o, d = self.transform_rays(o, d, view)
         return o, d, rgb, alpha, view, (bg_all[mine] if bg_all.ndim == 2 else bg_all), bg_all
 
-    def _refining(self) -> bool:
-        """Whether rays go through the cameras' corrections: with pose refinement, until the guard stops it (then
-        the corrections are zero and the rays are the input cameras', as in a run without refinement)."""
-        return self.cameras is not None and self.cameras.log.stopped_at is None
-
     def _draws(self, total: int):
-        """The renderer's random draws of this rank's rays (`DataParallel.share_draws`; one process: as they come).
-        The fast field draws one jitter a ray; the vanilla field's two draws get rank-distinct places."""
+        """The renderer's random draws of this rank's rays (`DataParallel.share_draws`; one process: as they come)."""
         if self.parallel is None:
             return contextlib.nullcontext()
-        per_ray = 1 if self.model.kind == "fast" else self.model.field.n_coarse + self.model.field.n_fine
-        return self.parallel.share_draws(total, self.parallel.world.share(total), per_ray)
+        share = self.parallel.world.share(total)
+        return self.parallel.share_draws(total, share, self.model.random_draws_per_ray)
 
     def _reduced_params(self) -> list[Tensor]:
-        """Every parameter a step's backward reaches: the optimiser's (field, background, appearance) and the
-        cameras' corrections."""
+        """Every parameter a step's backward reaches: the optimiser's and the hooks' (camera corrections)."""
         params = [p for g in self.opt.param_groups for p in g["params"]]
-        if self.cameras is not None:
-            params += [p for p in self.cameras.parameters() if p.requires_grad]
-        return params
-
-    def _depth_term(self, bg: Tensor) -> Tensor:
-        """DS-NeRF's loss on DEPTH_RAYS random rays through the training cameras' sparse points."""
-        rays = self.depth_rays
-        k = torch.randint(rays.depth.shape[0], (DEPTH_RAYS,), generator=self.gen)
-        o, d, depth, view = (t[k].to(self.device) for t in (rays.o, rays.d, rays.depth, rays.view))
-        if self._refining():
-            o, d = self.cameras(o, d, view)
-        if bg.ndim == 2:  # per-ray colours of the photometric batch, reused (the colour does not enter the loss)
-            bg = bg[torch.arange(o.shape[0], device=bg.device) % bg.shape[0]]
-        out = self.model.render(o, d, bg.detach(), train=True, gen=None, view=view)
-        return depth_nll_loss(
-            out["weights"], out["t_starts"], out["t_ends"], out["ray_indices"], depth, DEPTH_SIGMA * depth
-        )
-
-    def snapshot(self) -> tuple[dict, dict]:
-        return copy.deepcopy(self.model.field.state_dict()), copy.deepcopy(self.opt.state_dict())
-
-    def restore(self, snapshot: tuple[dict, dict]) -> None:
-        field_state, opt_state = snapshot
-        self.model.field.load_state_dict(field_state)
-        self.opt.load_state_dict(opt_state)
+        return params + [p for hook in self.hooks for p in hook.parameters()]
 
     def log(self, lr: float) -> None:
         """A metrics row every log_every steps, with the held-out PSNR every eval_every steps."""
@@ -350,7 +253,7 @@ class Loop:
         evaluate = self.test is not None and cfg.eval_every > 0 and self.step % cfg.eval_every == 0
         if not (self.step % cfg.log_every == 0 or evaluate):
             return
-        self.model.field.eval()
+        self.model.train_mode(False)
         mean_loss = float(np.mean(self._losses))
         row = {
             "step": self.step,
@@ -359,8 +262,9 @@ class Loop:
             "train_psnr": f"{psnr_from_mse(mean_loss):.3f}",
             "lr": f"{lr:.4g}",
             "samples_per_ray": f"{self.samples_per_ray:.2f}",
-            "skip_fraction": f"{self.skip_fraction:.4f}",
         }
+        for hook in self.hooks:
+            row.update(hook.metrics())
         if evaluate:
             with self._loop.clock.paused():
                 t_eval = time.perf_counter()
@@ -369,7 +273,7 @@ class Loop:
                 row["test_psnr"] = f"{psnr:.3f}"
                 spent = time.perf_counter() - t_eval
             self.eval_rays_per_second = self.eval_px.numel() / max(spent, 1e-6)
-        self.model.field.train()
+        self.model.train_mode(True)
         self.metrics.append(**row)
         self._losses = []
         self.progress.update(
@@ -385,27 +289,36 @@ class Loop:
             self.metrics.save()
 
     def finish(self, seconds: float) -> None:
-        """The final occupancy grid and checkpoint."""
-        if self.model.grid is not None:
-            # Every cell once more: the saved grid must match the final field (render and mesh skip by it), not a
-            # partial refresh from before the last steps moved the surface.
-            self.model.grid.update(self.model.field.density, self.step, full=True, points_per_cell=4)
+        """The hooks' final touches (the occupancy grid over every cell) and the final checkpoint."""
+        for hook in self.hooks:
+            hook.finish(self)
         self._save(seconds)
 
     def _check_same(self, where: str) -> None:
-        """Data-parallel: stop when the ranks' parameters or occupancy grids differ (`DataParallel.check_same`)."""
+        """Data-parallel: stop when the ranks' learned states differ (`DataParallel.check_same`)."""
         if self.parallel is not None:
-            named = {f"field.{k}": v for k, v in self.model.field.state_dict().items()}
-            if self.model.grid is not None:
-                named |= {f"occupancy.{k}": v for k, v in self.model.grid.state_dict().items()}
-            if self.cameras is not None:
-                named["cameras"] = self.cameras.raw
+            named = {
+                f"{key}.{name}": value
+                for key, module in self.model.learned().items()
+                for name, value in module.state_dict().items()
+                if isinstance(value, Tensor)
+            }
+            for hook in self.hooks:
+                named |= hook.fingerprint()
             self.parallel.check_same(named, where)
 
     def _save(self, seconds: float) -> None:
         self._check_same(f"at step {self.step}")
         if self.parallel is not None and not self.parallel.writer:  # rank 0 writes
             return
+        extra = {k: v for hook in self.hooks for k, v in hook.checkpoint().items()}
+        progress = {"step": self.step, "seconds": seconds, "lr_factor": self.lr_factor, "rng": self.gen.get_state()}
         self.ckpt_sha256 = save_checkpoint(
-            self.ckpt_path, self.model, self.opt, self.step, seconds, self.lr_factor, self.gen.get_state(), self.cameras
+            self.ckpt_path,
+            method=self.method.name,
+            entries=self.method.checkpoint(self.model),
+            model=self.model,
+            opt=self.opt,
+            progress=progress,
+            extra=extra,
         )

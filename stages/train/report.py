@@ -24,7 +24,7 @@ import torch
 from nerfpipe.data.atomic import atomic_path, write_bytes, write_json
 from nerfpipe.data.masks import load_masked_image
 from nerfpipe.data.transforms import Scene, is_forward_facing
-from nerfpipe.model.field_model import FieldModel
+from nerfpipe.model.methods import TrainModel
 from nerfpipe.radiance.camera import generate_rays
 from nerfpipe.radiance.compositing import over_background
 from nerfpipe.radiance.metrics import psnr_from_mse
@@ -80,9 +80,11 @@ def used_and_left_out(
     model, device, batch_rays, steps = loop.model, loop.device, loop.config.batch_rays, loop.step
     samples_per_ray = loop.samples_per_ray
     peak = torch.cuda.max_memory_allocated() if device.type == "cuda" else None
+    described = model.describe()
     used: dict[str, Any] = {
+        "method": loop.method.name,
         "batch_rays": batch_rays,
-        "field": model.field.config(),
+        **{k: v for k, v in described.items() if k not in ("scene_model", "space")},
         "device": str(device),
         "cpu_threads": torch.get_num_threads() if device.type == "cpu" else None,
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),  # data.cpu_load: PASSIVE when the CPU was busy
@@ -93,27 +95,25 @@ def used_and_left_out(
         "test_psnr_full_images": test_psnr,
         "test_views_full_eval": [test_idx[v] for v in chosen],
         "background": model.background.describe(),
-        "view_dependent": model.field.view_dependent,
         "scene_type": "forward-facing" if is_forward_facing(scene) else "bounded / 360",
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
         "peak_cuda_mb": round(peak / 2**20, 1) if peak is not None else None,
+        "samples_per_ray": round(samples_per_ray, 2),
     }
-    if model.grid is not None:
-        used["occupancy_skip_fraction"] = round(model.grid.skip_fraction, 4)
-        used["samples_per_ray"] = round(samples_per_ray, 2)
-        used["march_step"] = {"train": model.step_size, "render": model.step_size * model.render_step_factor}
-    used["scene_model"] = model.space.name
-    used["space"] = model.space.describe()
+    left_out: dict[str, str] = {}
+    if model.space is not None:
+        used["scene_model"] = model.space.name
+        used["space"] = model.space.describe()
+        left_out |= model.space.left_out(is_forward_facing(scene))
     used["world_size"] = 1 if loop.parallel is None else loop.parallel.world.size
-    left_out = model.space.left_out(is_forward_facing(scene))
     if loop.parallel is not None:
         used["data_parallel"] = loop.parallel.describe()
     else:
         left_out["data_parallel"] = "one process (torchrun --nproc-per-node N ... shares each step's rays among N)"
     if not test_idx:
         left_out["test_psnr"] = "scene has no test or val split"
-    if model.grid is None:
-        left_out["occupancy_grid"] = "vanilla field uses the paper's stratified + hierarchical sampling"
+    if "occupancy_skip_fraction" not in described:
+        left_out["occupancy_grid"] = f"the {loop.method.name} method does not march an occupancy grid"
     return used, left_out
 
 
@@ -128,7 +128,7 @@ def _view_image(scene: Scene, i: int, w: int, h: int) -> np.ndarray:
 
 
 @torch.no_grad()
-def _render(model: FieldModel, intr, world_from_cam: np.ndarray, bg: torch.Tensor, device) -> np.ndarray:
+def _render(model: TrainModel, intr, world_from_cam: np.ndarray, bg: torch.Tensor, device) -> np.ndarray:
     """The field's colour of every pixel of `intr` (rows first): float32 [h, w, 3]."""
     o, d = generate_rays(intr, torch.as_tensor(world_from_cam, dtype=torch.float64))
     o, d = o.float().to(device), d.float().to(device)
@@ -183,7 +183,7 @@ def _contact_sheet(rows: list[tuple[str, float, np.ndarray, np.ndarray]], height
 
 def per_view_report(
     run_dir: Path,
-    model: FieldModel,
+    model: TrainModel,
     scene: Scene,
     train_idx: tuple[int, ...],
     downscale: float,
@@ -196,7 +196,7 @@ def per_view_report(
     (`files` lists the two files). `rays_per_second`: the render speed measured in training (None: measured on
     the first view)."""
     t0 = time.perf_counter()
-    model.field.eval()
+    model.train_mode(False)
     bg = model.background.eval_colour().detach()
     budget = fraction * train_seconds
     first = scene.frame_intrinsics(train_idx[0]).scaled(1 / _shrink(scene, train_idx, downscale, 0))

@@ -2,11 +2,12 @@
 
 config.json records the resolved Config and the scene's identity (`scene_sha256`: the sha256 of its
 transforms.json, written by the run's first start). On resume:
-- automatic defaults left automatic (None: batch_rays, lr, view_dependent, downscale and the fast group's
-  resolution, rank, upsample_at, step_ratio, tv, depth_loss, density_activation, mlp_width) take the run's recorded
-  values (not the values this device or this code version would choose afresh; a run recorded before an option
-  existed had the value `RECORDED_BEFORE` names);
-- every other option that shapes the result (the field, seed, scene model, background, learning-rate decay,
+- automatic defaults left automatic (None: batch_rays, lr, downscale and every option of the method's group whose
+  default is None: the density method's resolution, rank, upsample_at, step_ratio, tv, depth_loss,
+  density_activation, mlp_width, view_dependent) take the run's recorded values (not the values this device or this
+  code version would choose afresh; a run recorded before an option existed had the value its method's
+  `recorded_before` names);
+- every other option that shapes the result (the method, seed, scene model, background, learning-rate decay,
   grid and prior settings, pose refinement, appearance, ...) must equal the recorded one, and so must the scene:
   the same transforms.json content (runs without `scene_sha256`: the same scene folder). A difference is refused
   with one line naming each (`field: recorded -> given`). "Not given" cannot be told from "given the default"
@@ -25,10 +26,10 @@ from typing import Any
 
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.rundir import config_to_json, find_run_scene, sha256_file
-from nerfpipe.radiance.fields.fast import DEFAULT_ACTIVATION, DEFAULT_HIDDEN
-from nerfpipe.stages.train.config import Config, FastOptions
+from nerfpipe.model.methods import Method, method_named, method_of_run
+from nerfpipe.stages.train.config import Config
 
-__all__ = ["BUDGET", "AUTOMATIC", "RECORDED_BEFORE", "scene_sha256", "resume_config"]
+__all__ = ["BUDGET", "AUTOMATIC", "scene_sha256", "resume_config"]
 
 BUDGET = (
     "max_steps",
@@ -44,21 +45,9 @@ BUDGET = (
     "final_eval_fraction",
 )
 """Options that change how long the run goes on and what it logs, not what it fits: may change on resume."""
-AUTOMATIC = ("batch_rays", "lr", "view_dependent", "downscale")
-"""Options whose None means "chosen by the run" (and the fast group's `AUTOMATIC_FAST`): None takes the record."""
-AUTOMATIC_FAST = (
-    "resolution",
-    "rank",
-    "upsample_at",
-    "step_ratio",
-    "tv",
-    "depth_loss",
-    "density_activation",
-    "mlp_width",
-)
-RECORDED_BEFORE = {"density_activation": DEFAULT_ACTIVATION, "mlp_width": DEFAULT_HIDDEN}
-"""What a run recorded before the option existed had (every fast field's density was softplus, its colour MLP
-DEFAULT_HIDDEN wide)."""
+AUTOMATIC = ("batch_rays", "lr", "downscale")
+"""Run options whose None means "chosen by the run" (and the method's options whose default is None): None takes the
+record."""
 _NOT_COMPARED = ("scene_dir", "run_dir", "resume", "overwrite")
 _MISSING = object()
 
@@ -75,7 +64,7 @@ def resume_config(config: Config, run_dir: Path, scene_path: Path) -> tuple[Conf
     path = Path(run_dir) / "config.json"
     stored = _read(path)
     config = _inherit(config, stored)
-    given, recorded = config_to_json(config), _defaults_for_missing(stored)
+    given, recorded = config_to_json(config), _defaults_for_missing(stored, config)
     differ, changed = [], {}
     scene = _scene_difference(stored, Path(run_dir), Path(scene_path))
     if scene:
@@ -114,37 +103,57 @@ def _read(path: Path) -> dict[str, Any]:
     return doc
 
 
-def _stored_fast(stored: dict[str, Any]) -> dict[str, Any]:
-    """The recorded fast group: under `fast`, or flat (run folders from before the grouping)."""
-    fast = stored.get("fast")
-    return fast if isinstance(fast, dict) else {k: stored[k] for k in AUTOMATIC_FAST if k in stored}
+def _stored_options(stored: dict[str, Any], method: Method) -> dict[str, Any]:
+    """The recorded method options: under `options`; runs from before methods kept the density field's under `fast`
+    (or flat, before that grouping) and view_dependent at the top level."""
+    if isinstance(stored.get("options"), dict):
+        return stored["options"]
+    old = stored.get("fast") if isinstance(stored.get("fast"), dict) else stored
+    out = {}
+    for f in dataclasses.fields(method.Options):
+        if f.name in old:
+            out[f.name] = old[f.name]
+        elif f.name in stored:
+            out[f.name] = stored[f.name]
+    return out
+
+
+def _automatic(method: Method) -> list[str]:
+    """The method's options whose default is None (chosen by the run)."""
+    return [f.name for f in dataclasses.fields(method.Options) if f.default is None]
 
 
 def _inherit(config: Config, stored: dict[str, Any]) -> Config:
     """`config` with its automatic options (None) replaced by the recorded values."""
-    fast_doc = _stored_fast(stored)
-    recorded = RECORDED_BEFORE | {k: v for k, v in fast_doc.items() if v is not None}
-    fast = {k: _typed(recorded[k]) for k in AUTOMATIC_FAST if getattr(config.fast, k) is None and k in recorded}
+    method = method_named(config.method)
+    options = method.Options() if config.options is None else config.options
+    recorded = dict(method.recorded_before)
+    recorded |= {k: v for k, v in _stored_options(stored, method).items() if v is not None}
+    inherited = {k: _typed(recorded[k]) for k in _automatic(method) if getattr(options, k) is None and k in recorded}
     top = {k: _typed(stored[k]) for k in AUTOMATIC if getattr(config, k) is None and stored.get(k) is not None}
-    return dataclasses.replace(config, fast=dataclasses.replace(config.fast, **fast), **top)
+    return dataclasses.replace(config, options=dataclasses.replace(options, **inherited), **top)
 
 
 def _typed(value: Any) -> Any:
     return tuple(value) if isinstance(value, list) else value
 
 
-def _defaults_for_missing(stored: dict[str, Any]) -> dict[str, Any]:
-    """The record flattened (`fast.x`); an option the recording version did not have counts as its default (or as
-    `RECORDED_BEFORE` says)."""
-    base = _flat(config_to_json(Config(scene_dir=Path(), run_dir=Path(), fast=FastOptions())))
-    base |= {f"fast.{k}": v for k, v in RECORDED_BEFORE.items()}
-    flat = {k: v for k, v in stored.items() if k != "fast"} | {f"fast.{k}": v for k, v in _stored_fast(stored).items()}
+def _defaults_for_missing(stored: dict[str, Any], config: Config) -> dict[str, Any]:
+    """The record flattened (`options.x`, the method as `method`); an option the recording version did not have
+    counts as its default (or as the method's `recorded_before` says)."""
+    method = method_named(config.method)
+    blank = Config(scene_dir=Path(), run_dir=Path(), method=config.method, options=method.Options())
+    base = _flat(config_to_json(blank)) | {f"options.{k}": v for k, v in method.recorded_before.items()}
+    legacy = {"fast", "field", "options"} | {f.name for f in dataclasses.fields(method.Options)}
+    flat = {k: v for k, v in stored.items() if k not in legacy}
+    flat |= {f"options.{k}": v for k, v in _stored_options(stored, method).items()}
+    flat["method"] = method_of_run(stored, "config.json")
     return {k: flat.get(k, base[k]) for k in base}
 
 
 def _flat(doc: dict[str, Any]) -> dict[str, Any]:
-    out = {k: v for k, v in doc.items() if k != "fast"}
-    out.update({f"fast.{k}": v for k, v in (doc.get("fast") or {}).items()})
+    out = {k: v for k, v in doc.items() if k != "options"}
+    out.update({f"options.{k}": v for k, v in (doc.get("options") or {}).items()})
     return out
 
 

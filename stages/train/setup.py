@@ -1,11 +1,12 @@
-"""train's setup: read the scene and its views, resolve the defaults (`stages.train.defaults`), check what needs
-the scene, build the field model (or restore it with --resume), its optimiser and the cameras' corrections, and
-write the resolved config.json.
+"""train's setup: read the scene and its views, resolve the defaults (`stages.train.defaults`, the method's own
+through `Method.prepare`), build the method's model (or restore it with --resume), its hooks, the cameras'
+corrections and the optimiser, and write the resolved config.json.
 
 config.json: the resolved Config (`Defaults.config`: no None left but final_eval_views, which the end of the run
-writes as the number of views it rendered in full), the fast field's options under `fast`, pose refinement's
-under `refine` (null without it), `scene_dir` resolved (absolute) and `scene_from_run` (the scene folder relative
-to the run folder, tried first by `model.trained.load_trained`: a run moved with its scene still finds it),
+writes as the number of views it rendered in full), `method` and the method's resolved options under `options`,
+pose refinement's under `refine` (null without it), `scene_dir` resolved (absolute) and `scene_from_run` (the scene
+folder relative to the run folder, tried first by `model.run.load_trained`: a run moved with its scene still finds
+it),
 `scene_sha256` (its transforms.json's) and, once resumed, `resumed` (`stages.train.resume`: `--resume` continues
 the same run, with the same scene and the same settings but for budget ones).
 """
@@ -26,16 +27,16 @@ from nerfpipe.data.rundir import MetricsLog, config_to_json, scene_from_run
 from nerfpipe.data.transforms import Scene, read_scene
 from nerfpipe.model.appearance import Appearance
 from nerfpipe.model.camera_opt import CameraOpt, CameraSchedule, pivot_depths
-from nerfpipe.model.checkpoint import read_checkpoint, restore_appearance, restore_background, restore_space
+from nerfpipe.model.checkpoint import read_checkpoint, restore_appearance
 from nerfpipe.model.device import resolve_device
 from nerfpipe.model.distributed import DataParallel
-from nerfpipe.model.field_model import FieldModel, ModelSettings, build_model, make_space
-from nerfpipe.radiance.fields.fast import TensoRF, has_stacked_factors, unstack_adam_state
+from nerfpipe.model.methods import Method, TrainModel, method_named, method_of_checkpoint
+from nerfpipe.model.views import Views, load_views
 from nerfpipe.stages.train.config import Config, RefineOptions
-from nerfpipe.stages.train.defaults import Defaults, resolve_defaults, resolve_downscale
+from nerfpipe.stages.train.defaults import Defaults, Photos, resolve_defaults, resolve_downscale
 from nerfpipe.stages.train.loop import Loop, make_optimizer
+from nerfpipe.stages.train.refine import PoseRefinement
 from nerfpipe.stages.train.resume import resume_config, scene_sha256
-from nerfpipe.stages.train.views import Views, load_views
 
 __all__ = ["setup", "write_run_config", "METRICS"]
 
@@ -58,22 +59,29 @@ def setup(config: Config, progress: Progress, par: DataParallel | None = None) -
         record["resumed"] = [*_recorded(run_dir).get("resumed", []), {"step": int(state["step"]), **resumed}]
     if par is not None:
         par.barrier()  # every rank has read config.json and the checkpoint before rank 0 rewrites them
-    _check_field(config, ckpt_path, state)
+    _check_method(config, ckpt_path, state)
     torch.manual_seed(config.seed)
     gen = torch.Generator().manual_seed(config.seed)
     train_idx, test_idx = scene.split("train"), scene.split("test") or scene.split("val")
     downscale = resolve_downscale(config, scene, train_idx, device)
     train = load_views(scene, train_idx, downscale)
     test = load_views(scene, test_idx, downscale) if test_idx else None
-    found = resolve_defaults(config, scene, train, train_idx, device, downscale)
+    photos = Photos(scene=scene, train=train, test=test, train_idx=train_idx)
+    found = resolve_defaults(config, photos, device, downscale)
     _clear_plain_background(found, train, test)
-    _check_scene(found)
     resolved = found.config
     if par is not None and resolved.batch_rays < par.world.size:
         raise UserError(f"expected batch_rays >= the number of ranks ({par.world.size}), got {resolved.batch_rays}")
-    model = _model(resolved, found, scene, state, device, len(train_idx))
+    method = method_named(resolved.method)
+    model = method.build(found.context, found.prepared, state)
+    if resolved.appearance:
+        restored = restore_appearance(state, device) if state is not None else None
+        model.appearance = restored or Appearance(len(train_idx)).to(device)
+    hooks = method.hooks(found.context, found.prepared, model)
     cameras = _camera_opt(resolved.refine, scene, train_idx, state, device)
-    opt, step, seconds_before, lr_factor = _optimizer(model, resolved.lr, state, gen)
+    if cameras is not None:
+        hooks.append(PoseRefinement(cameras))
+    opt, step, seconds_before, lr_factor = _optimizer(method, model, resolved.lr, state, gen)
     metrics = MetricsLog(run_dir / "metrics.csv", METRICS)
     if config.resume:
         metrics.load()
@@ -83,6 +91,7 @@ def setup(config: Config, progress: Progress, par: DataParallel | None = None) -
         write_run_config(run_dir, resolved, scene_path, record)
     loop = Loop(
         config=resolved,
+        method=method,
         model=model,
         opt=opt,
         train=train,
@@ -93,11 +102,10 @@ def setup(config: Config, progress: Progress, par: DataParallel | None = None) -
         metrics=metrics,
         ckpt_path=ckpt_path,
         progress=progress,
+        hooks=hooks,
         step=step,
         seconds_before=seconds_before,
         lr_factor=lr_factor,
-        cameras=cameras,
-        depth_rays=found.depth_rays,
         parallel=par,
     )
     return loop, scene, scene_path, _record(found, model)
@@ -132,12 +140,10 @@ def _read_scene(scene_path: Path) -> tuple[Path, Scene]:
     return scene_path, read_scene(scene_path)
 
 
-def _check_field(config: Config, ckpt_path: Path, state: dict | None) -> None:
-    """UserError when the checkpoint to resume from holds another field than the config asks for."""
-    if state is not None and state["field_config"]["kind"] != config.field:
-        raise UserError(
-            f"{ckpt_path}: checkpoint holds a {state['field_config']['kind']} field, config asks for {config.field}"
-        )
+def _check_method(config: Config, ckpt_path: Path, state: dict | None) -> None:
+    """UserError when the checkpoint to resume from was written by another method than the config asks for."""
+    if state is not None and (found := method_of_checkpoint(state)) != config.method:
+        raise UserError(f"{ckpt_path}: checkpoint holds a {found} run, config asks for method {config.method}")
 
 
 def _clear_plain_background(found: Defaults, train: Views, test: Views | None) -> None:
@@ -161,45 +167,6 @@ def _clear_plain_background(found: Defaults, train: Views, test: Views | None) -
     )
 
 
-def _check_scene(found: Defaults) -> None:
-    """What the config alone could not tell: a loss the scene's space cannot take (the depth loss's: in
-    `resolve_defaults`, which reads the scene's sparse points)."""
-    if found.config.fast.distortion > 0 and not found.space.distortion_loss:
-        raise UserError(f"--distortion applies to contracted scenes only (this one is {found.reasons['scene_model']})")
-
-
-def _model(
-    config: Config, found: Defaults, scene: Scene, state: dict | None, device: torch.device, n_train: int
-) -> FieldModel:
-    """The field model in its space with its background and appearance codes: new, or restored from `state`
-    (its field's weights: `_optimizer`)."""
-    if state is not None:
-        space = restore_space(state, lambda kind: make_space(kind, scene))
-        background = restore_background(state, device)
-    else:
-        space, background = found.space, found.background
-    model = build_model(_settings(config), space, device, state["field_config"] if state else None, background)
-    if config.appearance:
-        restored = restore_appearance(state, device) if state is not None else None
-        model.appearance = restored or Appearance(n_train).to(device)
-    return model
-
-
-def _settings(config: Config) -> ModelSettings:
-    fast = config.fast
-    return ModelSettings(
-        field=config.field,
-        resolution=fast.resolution,
-        rank=fast.rank,
-        step_ratio=fast.step_ratio,
-        occupancy_resolution=fast.occupancy_resolution,
-        render_step_factor=fast.render_step_factor,
-        view_dependent=config.view_dependent,
-        density_activation=fast.density_activation,
-        mlp_width=fast.mlp_width,
-    )
-
-
 def _camera_opt(
     refine: RefineOptions | None, scene: Scene, train_idx: tuple[int, ...], state: dict | None, device: torch.device
 ) -> CameraOpt | None:
@@ -216,21 +183,14 @@ def _camera_opt(
 
 
 def _optimizer(
-    model: FieldModel, lr: float, state: dict | None, gen: torch.Generator
+    method: Method, model: TrainModel, lr: float, state: dict | None, gen: torch.Generator
 ) -> tuple[torch.optim.Optimizer, int, float, float]:
     """Adam over the model, and the step, training seconds and learning-rate factor to start from: 0 for a new run,
-    the checkpoint's (with the field, occupancy grid, optimiser and ray generator) on resume."""
+    the checkpoint's (with the optimiser and the ray generator; the model's weights: `Method.build`) on resume."""
     opt = make_optimizer(model, lr)
     if state is None:
         return opt, 0, 0.0, 1.0
-    model.field.load_state_dict(state["field"])
-    if model.grid is not None and state["occupancy"] is not None:
-        model.grid.load_state_dict(state["occupancy"])
-    opt = make_optimizer(model, lr)
-    saved = state["optimizer"]
-    if isinstance(model.field, TensoRF) and has_stacked_factors(state["field"]):
-        saved = unstack_adam_state(saved)  # a run from before per-plane factors
-    opt.load_state_dict(saved)
+    opt.load_state_dict(method.optimizer_state(state))
     gen.set_state(state["rng"])
     return opt, int(state["step"]), float(state["seconds"]), float(state["lr_factor"])
 
@@ -246,14 +206,12 @@ def _eval_pixels(config: Config, test: Views | None) -> torch.Tensor | None:
     return torch.randint(n, (config.eval_pixels,), generator=g)
 
 
-def _record(found: Defaults, model: FieldModel) -> dict:
-    """The manifest's `used.defaults`: each default's reason, and the values the run resolved."""
-    fast = found.config.fast
+def _record(found: Defaults, model: TrainModel) -> dict:
+    """The manifest's `used.defaults`: each default's reason, and the values the run resolved (the method's options,
+    the batch and the background)."""
     resolved = {
-        "resolution": list(fast.resolution),
-        "step_ratio": fast.step_ratio,
+        "options": config_to_json(found.config.options),
         "batch_rays": found.config.batch_rays,
         "background": model.background.describe(),
-        "tv": fast.tv,
     }
     return {**found.reasons, "resolved": resolved}

@@ -27,7 +27,6 @@ line, exit code 130 (143). `serve(config)` starts it and returns a `Viewer` (tes
 
 from __future__ import annotations
 
-import json
 import signal
 import threading
 from dataclasses import dataclass, field
@@ -35,9 +34,11 @@ from pathlib import Path
 
 import numpy as np
 
+from nerfpipe.data.confine import read_json
 from nerfpipe.data.errors import Interrupted, UserError
 from nerfpipe.data.transforms import read_scene
 from nerfpipe.model import load_trained, resolve_device
+from nerfpipe.model.methods import method_of_run
 from nerfpipe.stages.view import server as viewer_server
 from nerfpipe.stages.view.gate import Gate
 from nerfpipe.stages.view.recorder import PathRecorder, add_recorder_gui
@@ -110,7 +111,8 @@ class Viewer:
 
 
 def kind_of(target: Path) -> str:
-    """'scene' (transforms.json), 'run' (train run: config.json with scene_dir + checkpoint.pt) or 'xray'."""
+    """'scene' (transforms.json), 'run' (a train run: its config.json names its method, `model.methods`) or 'xray'
+    (an xray-train run: anything else with a config.json and a checkpoint, which the X-ray loader then checks)."""
     target = Path(target)
     if not target.exists():
         raise UserError(f"{target}: not found (expected a scene folder or a run directory)")
@@ -118,8 +120,12 @@ def kind_of(target: Path) -> str:
         return "scene"
     cfg = target / "config.json"
     if cfg.is_file() and (target / "checkpoint.pt").is_file():
-        doc = json.loads(cfg.read_text())
-        return "run" if "scene_dir" in doc else "xray"
+        doc = read_json(cfg)
+        try:
+            method_of_run(doc if isinstance(doc, dict) else {}, str(cfg))
+            return "run"
+        except UserError:
+            return "xray"
     raise UserError(
         f"{target}: neither a scene folder (transforms.json) nor a finished run (config.json, checkpoint.pt)"
     )

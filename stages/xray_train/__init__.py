@@ -48,6 +48,7 @@ from nerfpipe.data.stop import stop_on_signals
 from nerfpipe.data.volumes import write_npy
 from nerfpipe.model.device import cpu_threads, resolve_device
 from nerfpipe.model.loop import TrainingLoop
+from nerfpipe.model.xray import XRAY_FIELDS
 from nerfpipe.stages.xray_train.loop import XraySteps, evaluate
 from nerfpipe.stages.xray_train.report import plot_metrics
 from nerfpipe.stages.xray_train.setup import start
@@ -74,26 +75,23 @@ class Config:
     """Rays per optimizer step."""
     step_ratio: float = 2.0
     """Samples along each ray: the box diagonal cut every `step_ratio` voxels of the current grid (jittered, so
-    the line integral is unbiased). Thorax 128^3, 50 views, 2000 steps: 1.0 -> 25.91 dB in 245 s, 2.0 -> 25.78 dB
-    in 77 s."""
+    the line integral is unbiased; docs/MEASUREMENTS.md, "X-ray")."""
     resolution: tuple[int, int] | None = None
     """Voxels along the longest axis at the start and at the end (None: a quarter of the scene grid's, then
     all of it); upsampled at `upsample_at`."""
     upsample_at: tuple[float, ...] = (0.1, 0.25)
     """Run-progress fractions at which the field is upsampled (geometric steps to the final resolution)."""
     lr: float | None = None
-    """Learning rate (None: Adam 0.02, in units of twice the scan's mean attenuation for grid; sart: 0.5).
-    Thorax 128^3, 50 views, 2000 steps: 0.02 -> 25.91 dB (SSIM 0.810), 0.04 -> 26.05 (0.784), 0.1 (1500 steps)
-    -> 22.6; short runs want more (24^3 phantom, 300 steps: 0.02 -> 22.8 dB, 0.1 -> 31.6)."""
+    """Learning rate (None: Adam 0.02, in units of twice the scan's mean attenuation for grid; sart: 0.5;
+    docs/MEASUREMENTS.md, "X-ray")."""
     lr_decay: float = 0.1
     """Final learning-rate factor (exponential decay over the run)."""
     optimizer: Literal["adam", "sart"] = "adam"
     """adam: Adam on the loss. sart (grid field only): the same loss with SART's per-ray and per-voxel
     normalisation (ordered-subsets SART over random ray batches); `lr` is then its relaxation factor."""
     tv: float = 0.0
-    """grid: weight of the total-variation prior (mean |neighbour difference| of the grid). Thorax, 50 views,
-    2000 steps: 0.1 -> SSIM 0.804 -> 0.858 but PSNR 25.78 -> 25.34 dB and 3.7x the time per step (the prior is
-    taken over the whole grid each step); 1e-4 changes nothing."""
+    """grid: weight of the total-variation prior (mean |neighbour difference| of the grid; it is taken over the
+    whole grid each step: docs/MEASUREMENTS.md, "X-ray")."""
     rank: int = 16
     """tensorf: VM components per axis."""
     eval_every: float = 30.0
@@ -150,7 +148,7 @@ def _validate(config: Config) -> None:
         raise UserError(f"tv: expected >= 0, got {config.tv}")
     if config.resolution is not None and min(config.resolution) < 2:
         raise UserError(f"resolution: expected >= 2 voxels, got {config.resolution}")
-    if config.optimizer == "sart" and config.field != "grid":
+    if config.optimizer == "sart" and not XRAY_FIELDS[config.field].linear:
         raise UserError(f"optimizer: sart needs the grid field (linear in its voxels), got field {config.field!r}")
     if config.threads is not None and config.threads < 1:
         raise UserError(f"threads: expected >= 1, got {config.threads}")

@@ -28,7 +28,7 @@ from nerfpipe.data.progress import Progress
 from nerfpipe.data.projections import ProjectionScene
 from nerfpipe.data.rundir import MetricsLog
 from nerfpipe.model.loop import Budget, Clock, LoopSettings, Schedule
-from nerfpipe.model.xray import field_line_integrals, field_volume, grid_shape_at, samples_for, save_xray_checkpoint
+from nerfpipe.model.xray import XRAY_FIELDS, field_line_integrals, field_volume, samples_for, save_xray_checkpoint
 from nerfpipe.radiance.aabb import ray_aabb_intersect
 from nerfpipe.radiance.ct_metrics import data_range, psnr_3d, psnr_projections, ssim_3d
 from nerfpipe.radiance.fields import Field
@@ -206,10 +206,7 @@ class XraySteps:
         upsampled = False
         while self.level < len(upsample_at) and fraction >= upsample_at[self.level]:
             self.level += 1
-            if self.config.field == "grid":
-                self.model.upsample(grid_shape_at(self.scene.grid, self.schedule[self.level]))
-            else:
-                self.model.upsample(self.schedule[self.level])
+            XRAY_FIELDS[self.config.field].upsample(self.model, self.scene.grid, self.schedule[self.level])
             self.opt = make_optimizer(self.model, self.base_lr)
             upsampled = True
         return upsampled

@@ -14,7 +14,14 @@ import torch
 
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.projections import ProjectionScene
-from nerfpipe.model.xray import attenuation_field, build_field, grid_shape_at, read_xray_checkpoint, samples_for
+from nerfpipe.model.xray import (
+    XRAY_FIELDS,
+    attenuation_field,
+    build_field,
+    grid_shape_at,
+    read_xray_checkpoint,
+    samples_for,
+)
 from nerfpipe.radiance.aabb import ray_aabb_intersect
 from nerfpipe.radiance.fields import Field
 from nerfpipe.radiance.xray import rays_for_pixels
@@ -22,8 +29,6 @@ from nerfpipe.radiance.xray import rays_for_pixels
 __all__ = ["DEFAULT_LR", "Start", "make_optimizer", "mu_ref", "resolution_schedule", "samples_per_level", "start"]
 
 DEFAULT_LR = {("adam", "grid"): 0.02, ("adam", "tensorf"): 0.02, ("sart", "grid"): 0.5}
-FIELD_KINDS = {"grid": "voxel", "tensorf": "fast"}
-"""Config.field -> the kind its checkpoint's field_config records."""
 
 
 @dataclass(kw_only=True)
@@ -100,8 +105,10 @@ def _resumed(
             "train again with --overwrite"
         )
     kind = state["field_config"].get("kind")
-    if kind != FIELD_KINDS[field]:
-        raise UserError(f"{path}: checkpoint holds a {kind!r} field, config asks for {field} ({FIELD_KINDS[field]!r})")
+    if kind != XRAY_FIELDS[field].recorded_as:
+        raise UserError(
+            f"{path}: checkpoint holds a {kind!r} field, config asks for {field} ({XRAY_FIELDS[field].recorded_as!r})"
+        )
     model = build_field(state["field_config"]).to(device)
     model.load_state_dict(state["field"])
     opt = make_optimizer(model, lr)

@@ -46,7 +46,6 @@ already returns (opacity per ray), gathered while the video is written:
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -55,40 +54,49 @@ import numpy as np
 import torch
 
 from nerfpipe.data.camera_path import MAX_PIXELS, MAX_SIDE
-from nerfpipe.data.checks import Check, verdict
+from nerfpipe.data.checks import verdict
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.progress import NO_PROGRESS, Progress
 from nerfpipe.data.rundir import MetricsLog, Stopwatch, config_to_json, sidecar, write_manifest
 from nerfpipe.data.transforms import Scene, load_image
 from nerfpipe.data.video import check_output, colorize, grey, removed_on_failure, to_uint8, video_writer, write_png
-from nerfpipe.model import OPAQUE, PATHS, CameraPath, Renderable, camera_path, load_trained, render_view, resolve_device
+from nerfpipe.model import OPAQUE, PATHS, CameraPath, Run, camera_path, load_trained, render_view, resolve_device
 from nerfpipe.model.cameras import is_path_file
 from nerfpipe.model.splat_run import open_input
 from nerfpipe.radiance.compositing import over_background
 from nerfpipe.radiance.metrics import psnr
+from nerfpipe.stages.render.budget import (
+    MIN_FPS,
+    MIN_FRAMES,
+    MIN_SHORT_SIDE,
+    PREVIEW_RAYS,
+    PREVIEW_VIEWS,
+    depth_range,
+    fit_budget,
+    rays_per_second,
+)
+from nerfpipe.stages.render.checks import EMPTY_ACC, MAX_EMPTY, MAX_STILL, STILL_DIFF, FrameWatch
 
-__all__ = ["Config", "Outputs", "OUTPUT_KINDS", "parse_outputs", "parse_path", "fit_budget", "run"]
+__all__ = [
+    "Config",
+    "Outputs",
+    "OUTPUT_KINDS",
+    "parse_outputs",
+    "parse_path",
+    "fit_budget",
+    "run",
+    "MIN_SHORT_SIDE",
+    "MIN_FRAMES",
+    "MIN_FPS",
+    "PREVIEW_RAYS",
+    "PREVIEW_VIEWS",
+    "EMPTY_ACC",
+    "MAX_EMPTY",
+    "STILL_DIFF",
+    "MAX_STILL",
+]
 
 OUTPUT_KINDS = ("rgb", "depth", "accumulation")
-MIN_SHORT_SIDE = 240
-"""A time budget shrinks frames down to this many pixels on their short side (never up) before dropping frames."""
-MIN_FRAMES = 24
-"""A time budget keeps at least this many frames of a synthetic path (fewer only when fewer were asked for)."""
-MIN_FPS = 8.0
-"""When a time budget drops frames, the frame rate drops with them (the video keeps the length asked for, as a
-slower sequence: 25 of 120 frames at 30 fps would last under a second) but not below this."""
-PREVIEW_RAYS = 16384
-"""Pixels per preview view for the rays/s measurement (two chunks of the fast field)."""
-PREVIEW_VIEWS = 3
-EMPTY_ACC = 0.05
-"""A pixel whose accumulated opacity is below this shows (almost) nothing of the field: background only."""
-MAX_EMPTY = 0.95
-"""Self-check: at most this share of the median frame's pixels may be empty. The test sphere (an object on a white
-background at the training distance) covers a tenth of its frames; a path that misses the object covers ~0."""
-STILL_DIFF = 0.5 / 255
-"""Two consecutive frames whose mean absolute RGB difference is below this look the same in the 8-bit video."""
-MAX_STILL = 0.9
-"""Self-check: at most this share of consecutive frame pairs may look the same."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -161,79 +169,6 @@ def parse_path(text: str) -> str:
     raise ValueError(f"unknown path {text!r}; expected one of {', '.join(PATHS)} or a FILE.json")
 
 
-def _depth_range(trained: Renderable, cams: CameraPath, device: torch.device, scale: float) -> tuple[float, float]:
-    """1st-99th percentile of opaque z-depth (user units) over a 1/8-resolution preview of up to 16 frames."""
-    picks = np.unique(np.linspace(0, len(cams.names) - 1, min(16, len(cams.names))).round().astype(int))
-    vals = []
-    for k in picks:
-        intr = cams.intrinsics[k]
-        small = intr.scaled(max(8 / min(intr.w, intr.h), 1 / 8)) if min(intr.w, intr.h) > 8 else intr
-        view = render_view(trained, small, cams.world_from_cams[k], device)
-        vals.append(view["depth"][view["acc"] >= OPAQUE] / scale)
-    v = np.concatenate(vals) if vals else np.zeros(0)
-    v = v[np.isfinite(v)]
-    if v.size == 0:
-        return 0.0, 1.0
-    lo, hi = (float(x) for x in np.percentile(v, [1, 99]))
-    return (lo, hi) if hi > lo else (lo, lo + 1e-6 + abs(lo) * 1e-3)
-
-
-def _rays_per_second(trained: Renderable, cams: CameraPath, device: torch.device) -> tuple[float, int, float]:
-    """Measured on `PREVIEW_VIEWS` cameras spread along the path, each scaled to about `PREVIEW_RAYS` pixels,
-    after one untimed tiny render (warm-up). Returns (rays/s, rays rendered, seconds)."""
-    n = len(cams.names)
-    picks = np.unique(np.linspace(0, n - 1, min(PREVIEW_VIEWS, n)).round().astype(int))
-    tiny = cams.intrinsics[0].scaled(min(1.0, 8 / max(cams.intrinsics[0].w, cams.intrinsics[0].h)))
-    render_view(trained, tiny, cams.world_from_cams[0], device)
-    rays, seconds = 0, 0.0
-    for k in picks:
-        intr = cams.intrinsics[k]
-        small = intr.scaled(min(1.0, math.sqrt(PREVIEW_RAYS / (intr.w * intr.h))))
-        t0 = time.perf_counter()
-        render_view(trained, small, cams.world_from_cams[k], device)
-        seconds += time.perf_counter() - t0
-        rays += small.w * small.h
-    return rays / max(seconds, 1e-9), rays, seconds
-
-
-def fit_budget(
-    *,
-    seconds: float,
-    rays_per_s: float,
-    rays_per_frame: float,
-    frames: int,
-    short_side: int,
-    drop_frames: bool,
-) -> tuple[float, int, str]:
-    """What fits in `seconds` at `rays_per_s`: (linear image scale <= 1, frames, reason).
-
-    The image shrinks first, to the scale that fits but not below `MIN_SHORT_SIDE` pixels on its short side;
-    then (when `drop_frames`) frames go, down to `MIN_FRAMES` (or `frames` if fewer were asked for). What still
-    does not fit is rendered anyway, and the reason says so.
-    """
-    if not seconds > 0 or not rays_per_s > 0:
-        raise ValueError(f"expected seconds > 0 and rays_per_s > 0, got {seconds}, {rays_per_s}")
-    need = frames * rays_per_frame / rays_per_s
-    if need <= seconds:
-        return 1.0, frames, f"fits: about {need:.0f} s for {seconds:.0f} s"
-    floor = min(1.0, MIN_SHORT_SIDE / max(short_side, 1))
-    scale = max(math.sqrt(seconds / need), floor)
-    per_frame = rays_per_frame * scale * scale / rays_per_s
-    keep = frames
-    if drop_frames and per_frame * frames > seconds * (1 + 1e-9):
-        keep = max(min(frames, MIN_FRAMES), min(frames, int(seconds / per_frame)))
-    shrunk = f"about {need:.0f} s asked for, {seconds:.0f} s budget"
-    if scale == 1:
-        how = f"size kept (short side {short_side} px <= {MIN_SHORT_SIDE})"
-    else:
-        how = f"images scaled by {scale:.3g}" + (f" (short side floor {MIN_SHORT_SIDE} px)" if scale == floor else "")
-    if keep < frames:
-        how += f", {keep} of {frames} frames"
-    over = per_frame * keep - seconds
-    tail = f"; still about {over:.0f} s over (floors reached)" if over > 0.05 * seconds else ""
-    return scale, keep, f"{shrunk}: {how}{tail}"
-
-
 def _photo(scene: Scene, i: int, background: np.ndarray, size: tuple[int, int]) -> np.ndarray | None:
     """The dataset image composited on `background`, or None when its size differs from the render's."""
     img = load_image(scene.image_path(i))
@@ -244,13 +179,13 @@ def _photo(scene: Scene, i: int, background: np.ndarray, size: tuple[int, int]) 
     return img
 
 
-def _within_budget(trained: Renderable, cams: CameraPath, config: Config, device: torch.device, started: float):
+def _within_budget(trained: Run, cams: CameraPath, config: Config, device: torch.device, started: float):
     """The path re-made to fit what is left of `config.max_seconds` (see `fit_budget`) -> (cams, budget record)."""
     total = sum(i.w * i.h for i in cams.intrinsics)
     if total <= PREVIEW_VIEWS * PREVIEW_RAYS:
         reason = "rendered as asked: the whole video has no more pixels than the speed preview would"
         return cams, {"max_seconds": config.max_seconds, "rays": total, "reason": reason}
-    rate, rays, seconds = _rays_per_second(trained, cams, device)
+    rate, rays, seconds = rays_per_second(trained, cams, device)
     left = config.max_seconds - (time.time() - started)
     per_frame = sum(i.w * i.h for i in cams.intrinsics) / len(cams.intrinsics)
     replay = cams.frame_indices is not None or is_path_file(config.path)  # every camera kept
@@ -298,61 +233,6 @@ def _within_budget(trained: Renderable, cams: CameraPath, config: Config, device
     }
 
 
-class _FrameWatch:
-    """The self-check's figures (module doc), gathered frame by frame: one previous frame is kept, nothing more."""
-
-    def __init__(self, shows_depth: bool) -> None:
-        self.shows_depth = shows_depth
-        self.empty: list[float] = []  # per frame: share of pixels with accumulation < EMPTY_ACC
-        self.pairs = self.still = self.non_finite = 0
-        self._last: np.ndarray | None = None
-
-    def add(self, view: dict[str, np.ndarray]) -> None:
-        rgb, acc = view["rgb"], view["acc"]  # [H, W, 3], [H, W]
-        bad = ~np.isfinite(rgb).all(-1) | ~np.isfinite(acc)
-        if self.shows_depth:
-            bad |= (acc >= OPAQUE) & ~np.isfinite(view["depth"])
-        self.non_finite += int(bad.sum())
-        self.empty.append(float(np.mean(~(acc >= EMPTY_ACC))))  # NaN opacity counts as empty
-        rgb = np.clip(np.nan_to_num(rgb, nan=0.0), 0.0, 1.0)
-        if self._last is not None and self._last.shape == rgb.shape:
-            self.pairs += 1
-            self.still += bool(np.abs(rgb - self._last).mean() < STILL_DIFF)
-        self._last = rgb
-
-    def checks(self) -> list[Check]:
-        out = [
-            Check.upper(
-                "empty_frames",
-                float(np.median(self.empty)) if self.empty else math.nan,
-                MAX_EMPTY,
-                f"the median frame shows almost nothing (accumulation < {EMPTY_ACC:g}): the camera path misses the "
-                "object, or the field is empty",
-            )
-        ]
-        if self.pairs:
-            out.append(
-                Check.upper(
-                    "still_frames",
-                    self.still / self.pairs,
-                    MAX_STILL,
-                    "nearly every frame repeats the one before: the camera path does not move, "
-                    "or there is nothing to see",
-                )
-            )
-        out.append(
-            Check.upper(
-                "non_finite",
-                self.non_finite,
-                0,
-                "NaN or inf in the rendered colour, opacity or "
-                "depth (the video shows them as black or white): the field's output is broken "
-                "there",
-            )
-        )
-        return out
-
-
 def run(config: Config, progress: Progress | None = None) -> Outputs:
     started = time.time()
     outputs = parse_outputs(config.outputs)
@@ -397,7 +277,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     if config.max_seconds is not None:
         cams, budget = _within_budget(trained, cams, config, device, started)
     scale = float(scene.applied_scale)
-    lo, hi = _depth_range(trained, cams, device, scale) if "depth" in outputs else (0.0, 1.0)
+    lo, hi = depth_range(trained, cams, device, scale) if "depth" in outputs else (0.0, 1.0)
     background = trained.background.detach().float().cpu().numpy().reshape(3)
 
     metrics = MetricsLog(sidecar(out, "metrics.csv"), ["step", "seconds", "rays_per_s", "psnr"])
@@ -413,7 +293,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
             "reason": f"{len(cams.names)} of {asked_frames} frames: slower, to keep the length asked for "
             f"(at least {min(config.fps, MIN_FPS):g} fps)",
         }
-    watch = _FrameWatch(shows_depth="depth" in outputs)
+    watch = FrameWatch(shows_depth="depth" in outputs)
     # the mp4 is renamed into place when this block ends, after the manifest; on failure the block's files go
     with removed_on_failure(out.parent, config.frames_dir) as written, video_writer(out, fps=fps) as video:
         for k in range(len(cams.names)):

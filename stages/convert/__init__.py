@@ -33,7 +33,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import shutil
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -42,18 +41,16 @@ from typing import Literal
 
 import numpy as np
 
-from nerfpipe.data.atomic import atomic_path, write_bytes
 from nerfpipe.data.errors import UserError
-from nerfpipe.data.images import read_image_file
 from nerfpipe.data.importers import Source, SourceFrame, load_source
 from nerfpipe.data.lock import folder_lock
-from nerfpipe.data.masks import read_mask
 from nerfpipe.data.rundir import config_to_json, write_manifest
 from nerfpipe.data.sparse_depth import FILE as SPARSE_FILE
 from nerfpipe.data.sparse_depth import KEY as SPARSE_KEY
 from nerfpipe.data.sparse_depth import write_sparse_depth
 from nerfpipe.data.transforms import Frame, Scene, cameras_face_forward, read_scene, write_scene
 from nerfpipe.radiance.normalize import Normalization, normalize
+from nerfpipe.stages.convert.files import check_names, copy_aux, copy_mask, mask_names, write_image, write_ply
 
 __all__ = ["Config", "Outputs", "run", "holdout_splits"]
 
@@ -161,82 +158,6 @@ def _source_box(norm: Normalization, scene_from_source: np.ndarray) -> list[list
     return [src.min(0).tolist(), src.max(0).tolist()]
 
 
-def _write_image(frame: SourceFrame, pixels, dest: Path, factors: list[int]) -> None:
-    """Copy / encode one image into images/ and its downscaled copies into images_F/."""
-    import cv2
-
-    intr = frame.intrinsics
-    if pixels is not None:
-        img = pixels
-        img = cv2.cvtColor(img, cv2.COLOR_RGBA2BGRA if img.shape[-1] == 4 else cv2.COLOR_RGB2BGR)
-        _imwrite(dest / "images" / frame.name, img)
-    else:
-        decoded = read_image_file(frame.image)
-        img = decoded.pixels
-        write_bytes(dest / "images" / frame.name, decoded.data)  # the bytes that decoded, byte for byte
-    if img.shape[:2] != (intr.h, intr.w):
-        raise UserError(
-            f"{frame.image or frame.name}: image is {img.shape[1]}x{img.shape[0]} but its camera says {intr.w}x{intr.h}"
-        )
-    for f in factors:
-        small = intr.scaled(1.0 / f)
-        _imwrite(dest / f"images_{f}" / frame.name, cv2.resize(img, (small.w, small.h), interpolation=cv2.INTER_AREA))
-
-
-def _imwrite(path: Path, img: np.ndarray) -> None:
-    import cv2
-
-    params = [cv2.IMWRITE_JPEG_QUALITY, 95] if path.suffix.lower() in (".jpg", ".jpeg") else []
-    ok, buf = cv2.imencode(path.suffix, img, params)
-    if not ok:
-        raise UserError(f"{path}: cannot encode image as {path.suffix}")
-    write_bytes(path, buf.tobytes())
-
-
-def _mask_names(frames: list[SourceFrame]) -> list[str | None]:
-    """Each frame's mask file name under SCENE_DIR/masks/: the image's stem with the mask's suffix
-    (images/a.jpg -> masks/a.png, nerfstudio's layout), or the image's name plus it where stems repeat."""
-    stems = [Path(f.name).stem for f in frames]
-    unique = len(set(stems)) == len(stems)
-    return [
-        None if f.mask is None else (stem if unique else f.name) + (f.mask.suffix.lower() or ".png")
-        for f, stem in zip(frames, stems, strict=True)
-    ]
-
-
-def _copy_mask(frame: SourceFrame, dest: Path) -> None:
-    """Copy a frame's mask byte for byte after checking it decodes and has the image's size (UserError naming
-    the mask file otherwise)."""
-    read_mask(frame.mask, (frame.intrinsics.w, frame.intrinsics.h), image=frame.name)
-    with atomic_path(dest) as tmp:
-        shutil.copyfile(frame.mask, tmp)
-
-
-def _copy_aux(src: Path | None, dest_dir: Path, name: str) -> str | None:
-    if src is None or not src.is_file():
-        return None
-    with atomic_path(dest_dir / name) as tmp:
-        shutil.copyfile(src, tmp)
-    return f"{dest_dir.name}/{name}"
-
-
-def _write_ply(path: Path, points: np.ndarray, colors: np.ndarray | None) -> None:
-    import trimesh
-
-    cloud = trimesh.PointCloud(points, colors=colors if colors is not None and len(colors) else None)
-    write_bytes(path, cloud.export(file_type="ply"))
-
-
-def _check_names(source: Path, names: list[str]) -> None:
-    """Output names are plain file names (an importer's `flat_name`), unique: nothing is written outside images/."""
-    bad = next((n for n in names if not n or "/" in n or "\0" in n or n in (".", "..")), None)
-    if bad is not None:
-        raise UserError(f"{source}: image name {bad!r} is not a plain file name")
-    if len(set(names)) != len(names):
-        dup = next(n for n in names if names.count(n) > 1)
-        raise UserError(f"{source}: two images map to the same output name {dup!r}")
-
-
 def run(config: Config) -> Outputs:
     """Source -> SCENE_DIR (module docstring), holding SCENE_DIR's lock; a SCENE_DIR this call created is removed
     again when it fails leaving it empty."""
@@ -265,7 +186,7 @@ def _run(config: Config, scene_dir: Path) -> Outputs:
         raise UserError(f"{config.source}: none of the {len(source.frames)} images listed exist")
     if missing:
         log.warning("convert: skipped %d of %d frames whose image is missing", missing, len(source.frames))
-    _check_names(config.source, [f.name for f in frames])
+    check_names(config.source, [f.name for f in frames])
 
     left_out = dict(source.left_out)
     if given is not None:  # the region of interest: --aabb, else the source's stated box, else the data's
@@ -301,12 +222,12 @@ def _run(config: Config, scene_dir: Path) -> Outputs:
     factors = sorted(f for f in set(config.downscales) if f > 1 and short / f >= config.min_downscaled_size)
     px = source.pixels
 
-    mask_names = _mask_names(frames)
+    masks = mask_names(frames)
 
     def write_one(i: int) -> None:
-        _write_image(frames[i], px(i) if px is not None else None, scene_dir, factors)
-        if mask_names[i] is not None:
-            _copy_mask(frames[i], scene_dir / "masks" / mask_names[i])
+        write_image(frames[i], px(i) if px is not None else None, scene_dir, factors)
+        if masks[i] is not None:
+            copy_mask(frames[i], scene_dir / "masks" / masks[i])
 
     with ThreadPoolExecutor(max_workers=max(1, min(8, os.cpu_count() or 1))) as pool:
         list(pool.map(write_one, range(len(frames))))
@@ -314,7 +235,7 @@ def _run(config: Config, scene_dir: Path) -> Outputs:
     intrs = [f.intrinsics for f in frames]
     shared = intrs[0] if all(i == intrs[0] for i in intrs) else None
     out_frames = []
-    for f, mask_name in zip(frames, mask_names, strict=True):
+    for f, mask_name in zip(frames, masks, strict=True):
         world_from_cam = scene_from_source @ f.world_from_cam
         world_from_cam[:3, :3] /= norm.applied_scale  # rotation stays orthonormal; the scale moves the centre only
         out_frames.append(
@@ -323,7 +244,7 @@ def _run(config: Config, scene_dir: Path) -> Outputs:
                 world_from_cam=world_from_cam,
                 intrinsics=None if shared is not None else f.intrinsics,
                 mask_path=f"masks/{mask_name}" if mask_name is not None else None,
-                depth_file_path=_copy_aux(f.depth, scene_dir / "depths", f.name),
+                depth_file_path=copy_aux(f.depth, scene_dir / "depths", f.name),
             )
         )
 
@@ -332,7 +253,7 @@ def _run(config: Config, scene_dir: Path) -> Outputs:
     outputs = [scene_dir / "images", *(scene_dir / f"images_{f}" for f in factors)]
     if source.points is not None and len(source.points):
         pts = source.points @ scene_from_source[:3, :3].T + scene_from_source[:3, 3]
-        _write_ply(scene_dir / "sparse_points.ply", pts, source.colors)
+        write_ply(scene_dir / "sparse_points.ply", pts, source.colors)
         extra["sparse_points_path"] = "sparse_points.ply"
         outputs.append(scene_dir / "sparse_points.ply")
         observed = {
@@ -360,7 +281,7 @@ def _run(config: Config, scene_dir: Path) -> Outputs:
     read_scene(transforms)  # what we wrote must parse
     outputs.insert(0, transforms)
 
-    masked = sum(m is not None for m in mask_names)
+    masked = sum(m is not None for m in masks)
     if masked:
         outputs.append(scene_dir / "masks")
     if missing:

@@ -111,19 +111,15 @@ class Views:
         """Pixels within `tolerance` (of 255) of `colour` on every channel AND connected to the image's border through
         such pixels become transparent (alpha 0): the background around the object, not the object's own parts of
         that colour (a white carton on a whitened background keeps its white faces; a rule on colour alone made
-        them transparent: 15.3 dB held-out). Returns the share of pixels made transparent.
+        them transparent). Returns the share of pixels made transparent.
         With `opaque_object` (pose refinement: `stages.train.setup`), only the other pixels of that colour (a hole or
         a face of that colour: either may be empty space) train on the plain colour (`plain_behind`); the object's
         pixels train on a random colour, as an object with alpha does, so they must be opaque (`random_behind`).
         Why only then: on the plain colour a field that misses an object pixel is always off by the object's
         contrast with it, so a camera a few pixels off pulls in density all round its silhouette, and refinement ran
-        away (posed 64 px scene, 3 deg / 3 %, seed 1, 1500 steps, the guard's stop raised to its bound: median
-        rotation error 3.10 -> 7.4 deg by step 390; with a random colour behind the object it converged to 0.21
-        deg; with the plain colour kept behind a 1-pixel ring round the object it still ran away, 6.1 deg).
-        Without refinement the plain colour behind the object's edge pixels is worth keeping: an anti-aliased edge
-        pixel mixes object and plain colour, and a random colour behind it forces an opaque halo (the same scene
-        at its exact poses: 27.56 dB with the plain colour behind every opaque pixel, 27.58 with a 1-pixel ring,
-        27.23 with a random colour behind all of the object)."""
+        away. Without refinement the plain colour behind the object's edge pixels is worth keeping: an anti-aliased
+        edge pixel mixes object and plain colour, and a random colour behind it forces an opaque halo (figures for
+        both: docs/MEASUREMENTS.md, "Backgrounds")."""
         import cv2
 
         c = torch.tensor([round(v * 255) for v in colour], dtype=torch.int16)
