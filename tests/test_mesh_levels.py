@@ -48,7 +48,7 @@ def _ball_faces_share(path, s: StandIn) -> float:
 
 def test_a_faint_object_is_meshed_by_region_and_the_check_says_when_it_is_missing(tmp_path):
     s = _FaintBallOnSlab(tmp_path)
-    kw = dict(run_dir=tmp_path, resolution=64, frame="normalized", colors=False, threshold_rays=4096)
+    kw = dict(run_dir=tmp_path, resolution=64, frame="normalized", colors=False, threshold_rays=2048)
     one = mesh.extract(s, mesh.Config(out=tmp_path / "global.ply", threshold="global", **kw))
     report = json.loads(one.report.read_text())
     checks = {c["name"]: c for c in report["checks"]}
@@ -89,7 +89,7 @@ def test_the_level_field_is_the_mean_less_a_spread_of_the_log_levels_nearby():
 
 def test_upright_frame_puts_the_scenes_up_on_the_formats_axis_and_records_it(tmp_path):
     s = StandIn(tmp_path)  # the user's frame is turned 40 degrees about (1, 2, 3) from the scene's
-    kw = dict(run_dir=tmp_path, resolution=40, threshold=50.0, colors=False)
+    kw = dict(run_dir=tmp_path, resolution=40, threshold=50.0, colors=False, threshold_rays=256)
     user = mesh.extract(s, mesh.Config(out=tmp_path / "u.ply", frame="user", **kw))
     for suffix, axis in ((".glb", [0.0, 1.0, 0.0]), (".obj", [0.0, 1.0, 0.0]), (".ply", [0.0, 0.0, 1.0])):
         out = mesh.extract(s, mesh.Config(out=tmp_path / f"up{suffix}", **kw))

@@ -216,22 +216,17 @@ class LevelField:
     log_level: np.ndarray  # [n0, n1, n2] float64
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
-        """x [N, 3] scene frame -> level [N] (x's dtype and device)."""
-        grid = torch.as_tensor(self.log_level, dtype=torch.float32, device=x.device)
-        n = torch.tensor(self.log_level.shape, device=x.device)
+        """x [N, 3] scene frame -> level [N] (x's dtype and device): trilinear in the log level between cell
+        centres (`grid_sample`, align_corners: its -1 and 1 are the outer centres), clamped beyond them (border)."""
+        grid = torch.as_tensor(self.log_level, dtype=torch.float32, device=x.device)[None, None]  # [1, 1, n0, n1, n2]
+        n = torch.tensor(self.log_level.shape, dtype=torch.float32, device=x.device)
         f = (x.float() - torch.as_tensor(self.lo, dtype=torch.float32, device=x.device)) / self.cell - 0.5
-        f = torch.minimum(f.clamp(min=0), (n - 1).float())  # cell-centre coordinates, clamped to the grid
-        i0 = torch.minimum(f.floor().long(), (n - 2).clamp(min=0))
-        w = f - i0.float()  # in [0, 1]; 0 along an axis of one cell
-        out = torch.zeros(x.shape[0], dtype=torch.float32, device=x.device)
-        for corner in range(8):
-            bits = [(corner >> k) & 1 for k in range(3)]
-            idx = [torch.minimum(i0[:, k] + bits[k], n[k] - 1) for k in range(3)]
-            wk = torch.ones_like(out)
-            for k in range(3):
-                wk = wk * (w[:, k] if bits[k] else 1 - w[:, k])
-            out = out + wk * grid[idx[0], idx[1], idx[2]]
-        return torch.exp(out).to(x.dtype)
+        g = torch.where(n > 1, 2.0 * f / (n - 1).clamp(min=1) - 1.0, torch.zeros_like(f))  # [N, 3] in [-1, 1]
+        # grid_sample's last axis is (x, y, z) = (n2, n1, n0): the volume's axes reversed
+        out = torch.nn.functional.grid_sample(
+            grid, g.flip(-1)[None, :, None, None], mode="bilinear", padding_mode="border", align_corners=True
+        )
+        return torch.exp(out.reshape(-1)).to(x.dtype)
 
     def normalise(self, density: DensityFn) -> DensityFn:
         """The density divided by the level: its iso-surface at 1 is the density's at the local level."""
