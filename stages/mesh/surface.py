@@ -6,10 +6,9 @@ With levels by region, two passes:
    refining coarse blocks that straddle REFINE_BAND around 1 (the final level is not known yet);
 2. the sampled volume is read (trilinearly, as marching cubes reads it) at the crossing points in the meshed region,
    and the same rule on those values gives a second level field, which the volume is divided by. Why: marching
-   cubes sees the grid's interpolation of the density, not the ray's finer samples; on the demo's noisy fields
-   (675 training steps) the grid's values at the crossings spread more (log standard deviation 1.02 against the
-   rays' 0.79), and the mesh from the rays' levels alone lacked 1.9 % of the field's surface where this pass
-   lacks 0.4 % (before cleanup; docs/DESIGN.md, "Mesh level").
+   cubes sees the grid's interpolation of the density, not the ray's finer samples; on a noisy field the grid's
+   values at the crossings spread more than the rays', and the rays' levels alone leave parts of the field's surface
+   unmeshed (docs/MEASUREMENTS.md, "Meshes that keep what the field shows").
 Marching cubes then runs at 1, so the surface lies at each region's own level. Faces wind counter-clockwise seen
 from outside (the side of lower density). Vertices come back in the grid's frame (`stages.mesh.grid`).
 """

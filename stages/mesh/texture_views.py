@@ -62,9 +62,9 @@ VIEW_DOWNSCALE = 2.0
 """The cameras render at 1 / this of the run's training size (the fox: 135x240; 43 views gave a mean gap of 4.85 dB
 at this size and 4.82 dB at the training size, with a quarter of the rays)."""
 VIEW_MAX_SIDE = 480
+"""... and at most this many pixels on their long side (a run that trained at full size: a phone's 1920 px)."""
 PHOTO_MAX_SIDE = 1024
 """Training photos are read at the size the run trained at, and at most this many pixels on their long side."""
-"""... and at most this many pixels on their long side (a run that trained at full size: a phone's 1920 px)."""
 POWER = 1.0
 """A camera's weight at a texel: cos(normal, direction to the camera) ** POWER (module doc: 0, 1, 2, 8, 32)."""
 COS_MIN = 0.1
