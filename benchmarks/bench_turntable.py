@@ -171,7 +171,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--views", type=int, default=24)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--train-seconds", type=float, default=120.0, help="0: skip convert + train")
-    p.add_argument("--threads", type=int, default=2, help="COLMAP threads (train runs on one: see README)")
+    p.add_argument("--threads", type=int, default=2, help="COLMAP threads (train runs on one: see docs/BENCHMARKS.md)")
     args = p.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="bench_turntable_") as tmp:
         out = args.out or Path(tmp)

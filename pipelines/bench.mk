@@ -69,3 +69,17 @@ bench-folding: $(INSTALLED)
 .PHONY: bench-head
 bench-head: $(INSTALLED)
 	$(VENV)/bin/python -m benchmarks.bench_head --out $(BENCH_OUT)/head
+
+# issue 51: every GPU figure in one script, one table (benchmarks/bench_gpu.py); on the device machine, which has no
+# venv of ours: `make bench-gpu-pack` here (copies lego_800 and the fox into the git-ignored .gpu-data/), then carry
+# .gpu-data and run `python -m benchmarks.bench_gpu --data .gpu-data` there. Without CUDA it stops in one line.
+.PHONY: bench-gpu bench-gpu-pack bench-gpu-smoke
+bench-gpu: $(INSTALLED)
+	$(VENV)/bin/python -m benchmarks.bench_gpu --out $(BENCH_OUT)/gpu
+
+bench-gpu-pack: $(INSTALLED)
+	$(VENV)/bin/python -m benchmarks.bench_gpu --pack .gpu-data
+
+# every row at toy sizes on any device (what tests/test_bench_gpu.py runs)
+bench-gpu-smoke: $(INSTALLED)
+	$(VENV)/bin/python -m benchmarks.bench_gpu --smoke --out $(BENCH_OUT)/gpu-smoke

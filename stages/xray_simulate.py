@@ -13,7 +13,7 @@ training angles. The default detector has pixels of one voxel at the isocentre a
 from every angle (radiance.xray.shadow_detector); `--detector NV,NU` fixes the pixel counts (same coverage).
 
 Projector: radiance.xray.siddon_project, exact line integrals through the box-voxel volume (float32; see the
-README for its accuracy against float64 and analytic chords). `--noise I0`: Poisson counts with I0 photons per
+docs/XRAY.md for its accuracy against float64 and analytic chords). `--noise I0`: Poisson counts with I0 photons per
 unobstructed pixel, turned back into line integrals by radiance.xray.line_integral_from_counts (0 counts ->
 half a photon; counts above I0 give negative line integrals, kept). Test views stay noise-free (a reference).
 

@@ -301,3 +301,11 @@ def test_entry_points_plug_methods_in(monkeypatch):
         registry.unregister("sphere")
     with pytest.raises(UserError, match="unknown method 'nope': expected one of density, nerf"):
         registry.method_named("nope")
+
+
+def test_readme_lists_every_built_in_method_with_its_summary():
+    """The README's methods table is written by hand: it names each built-in method with the summary `--help` gives."""
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    for name in registry.BUILTIN:
+        method = registry.method_named(name)
+        assert f"| `{name}`" in readme and method.summary in readme, f"README's methods table misses {name}"

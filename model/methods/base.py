@@ -136,7 +136,7 @@ class Method(ABC):
     name: ClassVar[str]
     """`train --method NAME`; config.json's `method`."""
     summary: ClassVar[str]
-    """One line for `--help` and the README's table."""
+    """One line for `--help` and the README's table (tests/test_methods.py checks the table lists it)."""
     Options: ClassVar[type]
     """The method's options group (frozen kw_only dataclass, a docstring per field)."""
     recorded_before: ClassVar[Mapping[str, Any]] = {}

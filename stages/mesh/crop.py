@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from nerfpipe.model.run import can
 from nerfpipe.radiance.camera import generate_rays
 from nerfpipe.stages.mesh.cleanup import vertex_components
 from nerfpipe.stages.mesh.field_access import as_np, occupied_box
@@ -199,9 +200,9 @@ def default_box(rule: str, trained: Any) -> tuple[np.ndarray, np.ndarray, str, d
     rule `rule` (auto, looked-at, occupied, field; this module's doc) of a loaded run (`Trained` attributes);
     falls back to the occupied box, saying why, where the looked-at rule finds too little."""
     aabb = as_np(trained.aabb).reshape(2, 3)
-    space = getattr(trained, "space", None)
+    space = getattr(trained, "space", None)  # a run without a scene space (not a field) crops to what it occupies
     if rule == "auto":
-        looks = space is not None and not space.object_box and hasattr(trained, "render_rays")
+        looks = space is not None and not space.object_box and can(trained, "rays")
         rule = "looked-at" if looks else "occupied"
         why = (
             f"auto: a real capture (scene model {space.name}: the photos see surroundings)"

@@ -49,6 +49,7 @@ from nerfpipe.data.rundir import MetricsLog, config_to_json, sidecar, write_mani
 from nerfpipe.data.splat_ply import write_ply, write_splat
 from nerfpipe.model import load_trained, resolve_device
 from nerfpipe.model.loop import Budget, Clock, LoopSettings, Schedule, TrainingLoop
+from nerfpipe.model.run import require
 from nerfpipe.model.splat_backends import choose_backend, kernel_name
 from nerfpipe.model.splat_init import gaussians_from_field
 from nerfpipe.model.splat_views import load_training_photos
@@ -90,7 +91,7 @@ class Config:
     gaussians: int = 50_000
     """Gaussians initialised from the field (fewer when too few training rays hit a surface); densification adds
     more. 50k: within a CPU budget fewer Gaussians take more steps, and on the fox and lego_400 (300 s) 50k scored
-    best of 25k-300k (README, "Gaussian splats")."""
+    best of 25k-300k (docs/SPLATS.md)."""
     frame: Literal["upright", "user", "normalized"] = "upright"
     """Output frame: upright (the user's frame turned so that the scene's up is -Y, the 3DGS files' convention that
     splat viewers open upright; `data.export_frame`) | user (the source frame before convert, as it came in) |
@@ -110,7 +111,7 @@ class Config:
     sh_degree: int = 3
     """Spherical-harmonics degree of the colours (0: one colour a Gaussian; 1..3: view-dependent), raised one band at
     a time over the run (SH_AT). 3 against 0, 300 s on CPU: lego_400 33.05 against 31.47 dB, the fox 30.99 against
-    28.77 dB held-out (README, "View-dependent colour")."""
+    28.77 dB held-out (docs/SPLATS.md, "View-dependent colour")."""
     seed: int = 0
     """Seed of the initial rays, the view order and the split Gaussians' centres."""
     device: str = "auto"
@@ -167,6 +168,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     device = resolve_device(config.device)
     backend = choose_backend(config.backend, device)
     trained = load_trained(config.run_dir, device)
+    require(trained, "rays", stage="splat")  # Gaussians are placed where training rays end
     scene = trained.scene
     train_idx = scene.split("train")
     downscale = config.downscale or trained.downscale
