@@ -233,7 +233,7 @@ def test_the_point_cloud_is_read_by_three_js_plyloader_as_32_bit_floats(tmp_path
     """export-points' PLY through three.js' PLYLoader in node: every point, as a Float32Array (what WebGL takes;
     a float64 attribute is refused at upload: "Unsupported buffer data format"), at the file's coordinates."""
     s = _TiltedBall(tmp_path)
-    out = export_points.export(s, export_points.Config(run_dir=tmp_path, out=tmp_path / "p.ply", num_points=500))
+    out = export_points.export(s, export_points.Config(run_dir=tmp_path, out=tmp_path / "p.ply", num_points=100))
     header = (tmp_path / "p.ply").read_bytes()[:400].decode("ascii", "replace")
     assert "property float x" in header and "double" not in header
     script = tmp_path / "read.mjs"
