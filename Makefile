@@ -24,8 +24,8 @@ $(INSTALLED): pyproject.toml
 install: $(INSTALLED)
 
 # ------------------------------------------------------------------------------------------- checks
-.PHONY: test lint format browser
-test: $(INSTALLED) browser
+.PHONY: test lint format browser js
+test: $(INSTALLED) browser js
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/pytest
@@ -38,6 +38,21 @@ browser:
 	  apt-get install -y -q chromium >/dev/null || { apt-get update -q >/dev/null && apt-get install -y -q chromium >/dev/null; } \
 	  || echo "make browser: apt-get could not install chromium; the browser test will skip"; \
 	else echo "make browser: needs root and apt-get to install chromium; the browser test will skip"; fi
+
+# The third-party clients the export tests open our files in (tests/test_export_clients.py): the Khronos glTF
+# validator, three.js and gsplat.js, pinned in tests/js/package-lock.json and installed from the npm registry by
+# `npm ci` (tests only: the product downloads nothing); node and npm from Debian's packages where they are missing
+# (as `browser` does for chromium). Without them, or without the registry, the tests skip, saying why.
+JS_MODULES := tests/js/node_modules/.package-lock.json
+js: $(JS_MODULES)
+$(JS_MODULES): tests/js/package.json tests/js/package-lock.json
+	@if ! command -v npm >/dev/null && [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	  apt-get install -y -q nodejs npm >/dev/null || { apt-get update -q >/dev/null && apt-get install -y -q nodejs npm >/dev/null; } \
+	  || echo "make js: apt-get could not install nodejs and npm"; fi
+	@if command -v npm >/dev/null; then \
+	  (cd tests/js && npm ci --no-audit --no-fund --loglevel=error) \
+	  || echo "make js: npm ci failed; the export client tests will skip"; \
+	else echo "make js: no npm; the export client tests will skip"; fi
 
 lint: $(INSTALLED)
 	$(VENV)/bin/ruff check .

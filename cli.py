@@ -193,7 +193,7 @@ STAGES: dict[str, Stage] = {
 PARSERS: dict[tuple[str, str], tuple[str, str]] = {
     ("render", "outputs"): ("parse_outputs", "<name,...>"),
     ("render", "path"): ("parse_path", "<name|FILE.json>"),
-    ("mesh", "threshold"): ("parse_threshold", "<auto|float>"),
+    ("mesh", "threshold"): ("parse_threshold", "<auto|global|float>"),
     ("mesh", "bbox"): ("parse_bbox", "<auto|x0,y0,z0,x1,y1,z1>"),
     ("xray-export", "iso"): ("parse_iso", "<auto|float>"),
 }

@@ -70,6 +70,8 @@ class Rendered(StandIn):
 
 
 def _export(s: StandIn, tmp_path: Path, name: str = "cloud.ply", **kw) -> tuple[ep.Outputs, dict]:
+    """The stage on the stand-in, in the user's frame as it came in unless `frame` is given."""
+    kw.setdefault("frame", "user")
     config = ep.Config(run_dir=tmp_path, out=tmp_path / name, num_points=kw.pop("num_points", 2500), **kw)
     out = ep.export(s, config)
     return out, json.loads(out.report.read_text())
@@ -152,7 +154,7 @@ def test_ply_loads_in_trimesh_and_pymeshlab_with_the_reported_points_and_colours
     ms.load_new_mesh(str(out.out))
     m = ms.current_mesh()
     assert m.vertex_number() == report["points"]
-    assert np.allclose(m.vertex_matrix(), _xyz(rows), atol=1e-9)
+    assert np.allclose(m.vertex_matrix(), _xyz(rows), atol=1e-6)
     assert np.allclose(m.vertex_normal_matrix(), _xyz(rows, "n"), atol=1e-6)
     assert np.abs(m.vertex_color_matrix()[:, :3] * 255 - rgb).max() < 0.51
 
@@ -166,7 +168,7 @@ def test_user_and_normalized_frames_differ_by_the_recorded_transform(tmp_path):
     assert not np.allclose(m, np.eye(4)) and np.allclose(m, s.scene.source_from_scene())
     a, b = _read_ply(user.out), _read_ply(norm.out)
     assert len(a) == len(b) == user.points
-    assert np.allclose(_xyz(a), _xyz(b) @ m[:3, :3].T + m[:3, 3], atol=1e-9)
+    assert np.allclose(_xyz(a), _xyz(b) @ m[:3, :3].T + m[:3, 3], atol=1e-5)  # float32 coordinates
     n = _xyz(b, "n") @ np.linalg.inv(m[:3, :3])
     assert np.allclose(_xyz(a, "n"), n / np.linalg.norm(n, axis=1, keepdims=True), atol=1e-6)
 
@@ -350,3 +352,19 @@ def test_a_real_training_run_through_the_command_line(tmp_path, capsys):
     ms.load_new_mesh(str(out))
     assert ms.current_mesh().vertex_number() == report["points"]
     assert np.isfinite(_xyz(rows)).all() and np.allclose(np.linalg.norm(_xyz(rows, "n"), axis=1), 1, atol=1e-5)
+
+
+def test_default_is_upright_in_float32_and_double_is_an_option(tmp_path):
+    """The default: the user's frame turned so that the scene's up is +Z (`data.export_frame`), coordinates as
+    32-bit floats (what web clients read); `double=True` writes 64-bit coordinates, the same points."""
+    s = Rendered(tmp_path)  # its user frame is turned 40 degrees about (1, 2, 3) from the scene's
+    up, ru = _export(s, tmp_path, "up.ply", num_points=600, frame="upright")
+    wide, rw = _export(s, tmp_path, "wide.ply", num_points=600, frame="upright", double=True)
+    assert ru["frame"] == "upright" and ru["up"]["format_up"] == "+Z"
+    m = np.asarray(ru["out_from_scene"])
+    assert np.allclose(m[:3, :3] @ [0.0, 0.0, 1.0] / np.linalg.norm(m[:3, :3] @ [0.0, 0.0, 1.0]), [0, 0, 1])
+    assert np.allclose(np.asarray(ru["out_from_source"]) @ s.scene.source_from_scene(), m)
+    a, b = _read_ply(up.out), _read_ply(wide.out)
+    assert a.dtype["x"] == np.float32 and b.dtype["x"] == np.float64
+    assert "x double" in " ".join(rw["ply"]["properties"]) and "x float" in " ".join(ru["ply"]["properties"])
+    assert np.allclose(_xyz(a), _xyz(b), atol=1e-5)

@@ -101,7 +101,9 @@ def test_gathered_points_lie_on_the_surface_with_outward_normals(tmp_path):
 
 def test_poisson_mesh_of_the_standin_is_its_surface_and_says_how(tmp_path):
     s = Rendered(tmp_path, views=16, size=48)
-    out = mesh.extract(s, mesh.Config(run_dir=tmp_path, out=tmp_path / "m.ply", method="poisson", resolution=64))
+    out = mesh.extract(
+        s, mesh.Config(run_dir=tmp_path, out=tmp_path / "m.ply", method="poisson", resolution=64, frame="user")
+    )
     m = trimesh.load(out.mesh, force="mesh", process=False)
     gt = s.scene_to_source(s.surface_points(40_000))
     diag = float(np.linalg.norm(gt.max(0) - gt.min(0)))

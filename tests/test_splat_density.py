@@ -12,6 +12,7 @@ import nerfpipe.stages.splat as splat_stage
 from nerfpipe.data.splat_ply import read_ply
 from nerfpipe.model import splat_density as dens
 from nerfpipe.radiance import splats as sp
+from nerfpipe.stages.splat import steps as splat_steps
 
 try:
     from test_splats import sphere_splat_run  # noqa: F401  (the fixture)
@@ -84,7 +85,7 @@ def test_adam_moments_follow_their_rows_and_new_rows_start_at_zero():
 
 
 def test_the_stage_densifies_on_its_loop_and_writes_what_it_ends_with(sphere_splat_run, tmp_path, monkeypatch):
-    monkeypatch.setattr(splat_stage, "DENSIFY_EVERY", 10)
+    monkeypatch.setattr(splat_steps, "DENSIFY_EVERY", 10)  # read where the step uses it
     run_dir, _ = sphere_splat_run
     out = splat_stage.run(
         splat_stage.Config(

@@ -362,7 +362,13 @@ def test_splat_stage_end_to_end_improves_psnr_and_writes_the_user_frame(sphere_s
     run_dir, fake = sphere_splat_run
     out = splat_stage.run(
         splat_stage.Config(
-            run_dir=run_dir, out=tmp_path / "o" / "s.ply", gaussians=400, max_steps=150, max_seconds=120, device="cpu"
+            run_dir=run_dir,
+            out=tmp_path / "o" / "s.ply",
+            gaussians=400,
+            max_steps=150,
+            max_seconds=120,
+            device="cpu",
+            frame="user",
         )
     )
     assert out.backend == "torch" and out.steps == 150

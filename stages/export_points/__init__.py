@@ -1,9 +1,9 @@
-"""Stage `export-points`: a trained run -> a coloured point cloud with normals (binary PLY), in the user's frame by
-default; what nerfstudio's `ns-export pointcloud` gives.
+"""Stage `export-points`: a trained run -> a coloured point cloud with normals (binary PLY), by default upright in
+the user's frame; what nerfstudio's `ns-export pointcloud` gives.
 
-`nerfpipe export-points RUN_DIR OUT.ply [--num-points 1000000] [--acc-threshold 0.5] [--frame user|normalized]
-[--bbox x0,y0,z0,x1,y1,z1] [--outlier-neighbors 20] [--outlier-std-ratio 2] [--normal-step 0.002]
-[--no-reorient-normals] [--downscale F] [--seed 0]`
+`nerfpipe export-points RUN_DIR OUT.ply [--num-points 1000000] [--acc-threshold 0.5]
+[--frame upright|user|normalized] [--up x,y,z] [--bbox x0,y0,z0,x1,y1,z1] [--outlier-neighbors 20]
+[--outlier-std-ratio 2] [--normal-step 0.002] [--no-reorient-normals] [--double] [--downscale F] [--seed 0]`
 
 Steps:
 1. Rays (`model.surface_points`): the training cameras at the size the run trained at, rendered in passes of
@@ -16,12 +16,14 @@ Steps:
 4. Normals: -grad sigma normalised, by central differences of the density with a step of `normal_step` of the
    scene box's diagonal (why: the geometry module's doc); with `reorient_normals` (default, as nerfstudio) a normal
    that faces away from the camera whose ray gave the point is flipped.
-5. Output frame: `scene.source_from_scene()` for `frame="user"` (the frame `convert` started from, e.g. COLMAP's;
-   `p_scene = applied_scale * (applied_transform @ [p_src; 1])`, docs/DESIGN.md), identity for "normalized" (the
-   scene frame the field was trained in); normals by the inverse transpose. The matrix is the report's
-   `out_from_scene`. As `stages.mesh`'s `frame` and `bbox`.
-6. Written atomically (`stages.export_points.ply`: binary PLY, x y z double, nx ny nz float, red green blue uchar);
-   the PLY takes its name only after `OUT.report.json` next to it (`cloud.ply` -> `cloud.report.json`) is written.
+5. Output frame (`data.export_frame`): "upright" (default) the user's frame (the one `convert` started from, e.g.
+   COLMAP's; `p_scene = applied_scale * (applied_transform @ [p_src; 1])`, docs/DESIGN.md) turned so that the
+   scene's up is +Z, the point-cloud tools' up; "user" that frame as it came in; "normalized" the scene frame the
+   field was trained in; normals by the inverse transpose. The matrices are the report's `out_from_scene` and
+   `out_from_source`. As `stages.mesh`'s `frame`, `up` and `bbox`.
+6. Written atomically (`stages.export_points.ply`: binary PLY, x y z float (double with `double`), nx ny nz float,
+   red green blue uchar); the PLY takes its name only after `OUT.report.json` next to it (`cloud.ply` ->
+   `cloud.report.json`) is written.
 
 Self-check (the report's `check`: ok | suspect, `checks`: `data.checks`):
 - `ray_hit_fraction`: share of the rendered rays that gave a point (opaque enough), at least `MIN_HIT_FRACTION`:
@@ -46,12 +48,13 @@ import numpy as np
 from nerfpipe.data.atomic import atomic_path
 from nerfpipe.data.checks import Check, verdict
 from nerfpipe.data.errors import UserError
+from nerfpipe.data.export_frame import FRAMES, export_frame
 from nerfpipe.data.progress import NO_PROGRESS, Progress
 from nerfpipe.data.rundir import config_to_json, write_manifest
 from nerfpipe.model import camera_path, can, load_trained, require
 from nerfpipe.model.surface_points import Gathered, density_normals, facing_share, gather_points
 from nerfpipe.stages.export_points.geometry import statistical_outliers, to_frame
-from nerfpipe.stages.export_points.ply import PLY_PROPERTIES, write_ply
+from nerfpipe.stages.export_points.ply import ply_properties, write_ply
 
 __all__ = ["Config", "Outputs", "run", "export", "MIN_HIT_FRACTION", "MAX_OUTLIER_FRACTION", "MIN_FACING"]
 
@@ -74,9 +77,13 @@ class Config:
     """Points to gather (nerfstudio's default); outlier removal then takes a few % off."""
     acc_threshold: float = 0.5
     """A ray gives a point when its accumulated opacity is at least this (0 < value <= 1)."""
-    frame: Literal["user", "normalized"] = "user"
-    """Output (and bbox) frame: "user" = the source frame before convert (e.g. COLMAP's); "normalized" = the
-    scene frame the field was trained in."""
+    frame: Literal["upright", "user", "normalized"] = "upright"
+    """Output (and bbox) frame: "upright" = the user's frame turned so that the scene's up is +Z
+    (`data.export_frame`); "user" = the source frame before convert, as it came in (e.g. COLMAP's); "normalized" =
+    the scene frame the field was trained in."""
+    up: tuple[float, float, float] | None = None
+    """With frame "upright": the scene's up as a direction x,y,z in the user's frame; None: the scene frame's +z
+    (convert's choice: the cameras' mean up for COLMAP and LLFF worlds)."""
     bbox: tuple[float, float, float, float, float, float] | None = None
     """Keep only points inside this box, (x0, y0, z0, x1, y1, z1) in the frame chosen by `frame`; None: all."""
     outlier_neighbors: int = 20
@@ -88,6 +95,9 @@ class Config:
     """Central-difference step of the density gradient (normals), as a fraction of the scene box's diagonal."""
     reorient_normals: bool = True
     """Flip normals that face away from the camera whose ray gave the point."""
+    double: bool = False
+    """Write coordinates as 64-bit doubles (a geo-referenced user frame with large coordinates); the default 32-bit
+    floats are what web clients read (three.js refuses 64-bit buffers)."""
     downscale: float | None = None
     """Render the training cameras at 1/downscale of their size (None: the factor the run trained at)."""
     seed: int = 0
@@ -118,8 +128,12 @@ def _validate(config: Config) -> None:
         raise UserError(f"num_points: expected at least 1, got {config.num_points}")
     if not 0 < config.acc_threshold <= 1:
         raise UserError(f"acc_threshold: expected a value in (0, 1], got {config.acc_threshold}")
-    if config.frame not in ("user", "normalized"):
-        raise UserError(f"frame: expected 'user' or 'normalized', got {config.frame!r}")
+    if config.frame not in FRAMES:
+        raise UserError(f"frame: expected one of {', '.join(FRAMES)}, got {config.frame!r}")
+    if config.up is not None:
+        u = np.asarray(config.up, np.float64)
+        if u.shape != (3,) or not np.isfinite(u).all() or not np.linalg.norm(u) > 0:
+            raise UserError(f"up: expected three numbers x,y,z, not all 0, got {config.up}")
     if config.bbox is not None:
         b = np.asarray(config.bbox, np.float64)
         if b.shape != (6,) or not np.isfinite(b).all() or not (b[3:] > b[:3]).all():
@@ -187,7 +201,7 @@ def export(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), progr
     require(trained, "density", stage="export-points")
     out, scene = Path(config.out), trained.scene
     timing: dict[str, float] = {}
-    out_from_scene = scene.source_from_scene() if config.frame == "user" else np.eye(4)
+    out_from_scene, frame_info = export_frame(scene.source_from_scene(), config.frame, "points", config.up)
     downscale = config.downscale or trained.downscale
     cams = camera_path(scene, "train", downscale=downscale)
     g = gather_points(
@@ -241,7 +255,7 @@ def export(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), progr
         },
         "left_out": _left_out(trained, config, outliers),
         "points": len(p_out),
-        "frame": config.frame,
+        **frame_info,
         "out_from_scene": out_from_scene.tolist(),
         "transform": TRANSFORM,
         "rays": {
@@ -262,12 +276,16 @@ def export(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), progr
             "facing_camera_before_reorienting": facing,
         },
         "colors": "rendered colour with the background taken out: (rgb - (1 - acc) * background) / acc, uint8",
-        "ply": {"format": "binary_little_endian 1.0", "properties": [f"{k} {n}" for n, _, k in PLY_PROPERTIES]},
+        "ply": {
+            "format": "binary_little_endian 1.0",
+            "properties": [f"{k} {n}" for n, _, k in ply_properties(config.double)],
+        },
         **verdict(_checks(g, outliers.get("removed", 0) / max(1, gathered), facing)),
     }
     t = time.perf_counter()
     with atomic_path(out) as tmp:  # OUT takes its name only after its report: no OUT that looks complete before
-        write_ply(tmp, p_out, n_out, colors, comments=(f"nerfpipe export-points, frame {config.frame}",))
+        comments = (f"nerfpipe export-points, frame {config.frame}",)
+        write_ply(tmp, p_out, n_out, colors, comments=comments, double=config.double)
         timing["write"] = round(time.perf_counter() - t, 3)
         timing["total"] = round(time.perf_counter() - t0, 3)
         report = write_manifest(

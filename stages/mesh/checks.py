@@ -1,4 +1,12 @@
-"""The mesh's self-check (`OUT.report.json` `check`: ok | suspect, `checks`: `data.checks`): an object, or the box?
+"""The mesh's self-check (`OUT.report.json` `check`: ok | suspect, `checks`: `data.checks`): does the mesh show what
+the field shows, and is it an object, or the box?
+
+- `missed_surface` and `extra_surface` (`agreement_checks`): the mesh against the field from the training cameras
+  (`stages.mesh.agreement`). `missed_surface`: the share of the training rays whose field surface lies in the
+  meshed region where the mesh has none there (no face, or the nearest beyond it), at most `MAX_MISSED`: the
+  objects the field renders but the mesh lacks (a level set by the brightest surface, pieces removed as small).
+  `extra_surface`: the share of the rays hitting the mesh where it lies before the field's surface, or where the
+  field shows none, at most `MAX_EXTRA`: fog, floaters or a fattened surface meshed.
 
 Conventions: vertices [V, 3] and the scene's box `aabb` [2, 3] (min, max) in the scene (training) frame, where the
 box is the region of interest `convert` chose (transforms.json `aabb`; not the occupancy crop, which hugs whatever
@@ -23,9 +31,26 @@ from __future__ import annotations
 import numpy as np
 
 from nerfpipe.data.checks import Check
+from nerfpipe.stages.mesh.agreement import Agreement
 from nerfpipe.stages.mesh.cleanup import vertex_components
 
-__all__ = ["MAX_BOX_FILL", "MAX_LARGE_COMPONENTS", "LARGE_COMPONENT", "box_fill", "component_faces", "mesh_checks"]
+__all__ = [
+    "MAX_BOX_FILL",
+    "MAX_LARGE_COMPONENTS",
+    "LARGE_COMPONENT",
+    "MAX_MISSED",
+    "MAX_EXTRA",
+    "box_fill",
+    "component_faces",
+    "mesh_checks",
+    "agreement_checks",
+]
+
+MAX_MISSED = 0.03
+"""At most this share of the field's surface (seen by the training rays, in the meshed region) missing in the mesh:
+one of the demo's five objects is 3-8 % of the surface its training views see."""
+MAX_EXTRA = 0.2
+"""At most this share of the mesh (seen by the training rays) before the field's surface or where it shows none."""
 
 MAX_BOX_FILL = 0.95
 """A mesh may span at most this share of the scene's box on at least one axis."""
@@ -75,5 +100,26 @@ def mesh_checks(verts: np.ndarray, faces: np.ndarray, aabb: np.ndarray) -> list[
             MAX_LARGE_COMPONENTS,
             f"the surface breaks into {large} sizeable pieces (each >= {LARGE_COMPONENT:.0%} of the faces): fog or "
             "floaters meshed, or an iso-level that cuts the surface apart; try --threshold or a longer training",
+        ),
+    ]
+
+
+def agreement_checks(agreement: Agreement) -> list[Check]:
+    """`missed_surface` and `extra_surface` (module doc)."""
+    return [
+        Check.upper(
+            "missed_surface",
+            round(agreement.missed_share, 4),
+            MAX_MISSED,
+            f"the mesh lacks {agreement.missed_share:.0%} of the surface the field shows to the training cameras "
+            "(objects missing: a level above their density, or pieces removed as small); try --threshold auto, a "
+            "lower --threshold or --no-cleanup",
+        ),
+        Check.upper(
+            "extra_surface",
+            round(agreement.extra_share, 4),
+            MAX_EXTRA,
+            f"{agreement.extra_share:.0%} of the mesh the training cameras see lies before the field's surface or "
+            "where the field shows none: fog, floaters or a fattened surface meshed; try a higher --threshold",
         ),
     ]

@@ -115,9 +115,11 @@ def _coarse(density: DensityFn, grid: Grid, device: torch.device, chunk: int) ->
     return out, ev.evaluated
 
 
-def _refine_blocks(coarse: np.ndarray, level: float) -> np.ndarray:
-    """Blocks [m0, m1, m2] to evaluate in full: corners straddle `level`, or a box-face corner is above it."""
-    inside = coarse > level
+def _refine_blocks(coarse: np.ndarray, level: float, band: float = 1.0) -> np.ndarray:
+    """Blocks [m0, m1, m2] to evaluate in full: corners straddle the band [level / band, level * band] (some above
+    its bottom, not all above its top), or a box-face corner is above its bottom."""
+    inside = coarse > level / band
+    above = coarse > level * band
     boundary = np.zeros_like(inside)
     boundary[[0, -1]] = True
     boundary[:, [0, -1]] = True
@@ -129,7 +131,7 @@ def _refine_blocks(coarse: np.ndarray, level: float) -> np.ndarray:
         return arr[a : arr.shape[0] - 1 + a, b : arr.shape[1] - 1 + b, c : arr.shape[2] - 1 + c]
 
     any_in = np.logical_or.reduce([corner(inside, *o) for o in corners])
-    all_in = np.logical_and.reduce([corner(inside, *o) for o in corners])
+    all_in = np.logical_and.reduce([corner(above, *o) for o in corners])
     any_cap = np.logical_or.reduce([corner(cap, *o) for o in corners])
     selected = (any_in & ~all_in) | any_cap
     return scipy.ndimage.binary_dilation(selected, structure=np.ones((3, 3, 3), bool))
@@ -152,11 +154,18 @@ def _nearest_upsample(coarse: np.ndarray, s: int, n: int, axis: int) -> np.ndarr
 
 
 def sample_volume(
-    density: DensityFn, grid: Grid, level: float | None, *, device: torch.device, chunk: int = 1 << 18
+    density: DensityFn,
+    grid: Grid,
+    level: float | None,
+    *,
+    device: torch.device,
+    chunk: int = 1 << 18,
+    band: float = 1.0,
 ) -> tuple[np.ndarray, dict]:
     """Density on `grid` as a zero-padded float32 volume (see module doc), and sampling statistics.
 
-    `level` drives the coarse-to-fine refinement; with `level=None` or `stride=1` every sample is evaluated.
+    `level` drives the coarse-to-fine refinement (blocks straddling [level / band, level * band]: a band > 1 when
+    the final level is not known yet); with `level=None` or `stride=1` every sample is evaluated.
     Statistics: {evaluated, samples, refined_blocks, blocks, min, max} (min/max over evaluated samples).
     """
     n0, n1, n2 = grid.shape
@@ -165,7 +174,7 @@ def sample_volume(
     evaluated = 0
     if s > 1 and level is not None:
         coarse, evaluated = _coarse(density, grid, device, chunk)
-        blocks = _refine_blocks(coarse, level)
+        blocks = _refine_blocks(coarse, level, band)
     else:
         coarse, blocks = None, None
     ev = _Evaluator(density, grid, device, chunk)

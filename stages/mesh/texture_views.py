@@ -35,6 +35,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from nerfpipe.data.errors import UserError
 from nerfpipe.radiance.camera import Intrinsics, generate_rays, project
 
 __all__ = [
@@ -42,6 +43,8 @@ __all__ = [
     "TEXTURE_VIEWS",
     "VIEW_DOWNSCALE",
     "VIEW_MAX_SIDE",
+    "PHOTO_MAX_SIDE",
+    "training_photos",
     "POWER",
     "COS_MIN",
     "DEPTH_TOL",
@@ -60,6 +63,8 @@ VIEW_DOWNSCALE = 2.0
 at this size and 4.82 dB at the training size, with a quarter of the rays)."""
 VIEW_MAX_SIDE = 480
 """... and at most this many pixels on their long side (a run that trained at full size: a phone's 1920 px)."""
+PHOTO_MAX_SIDE = 1024
+"""Training photos are read at the size the run trained at, and at most this many pixels on their long side."""
 POWER = 1.0
 """A camera's weight at a texel: cos(normal, direction to the camera) ** POWER (module doc: 0, 1, 2, 8, 32)."""
 COS_MIN = 0.1
@@ -74,14 +79,17 @@ changes by up to ~5 % a pixel at the steepest angle kept (COS_MIN, f ~ 200 px), 
 
 @dataclass(frozen=True, kw_only=True)
 class ViewSource:
-    """Cameras to project from and the field's renderer (module doc)."""
+    """Cameras to project from, and what each shows: its photo, or the field's render (module doc)."""
 
     cameras: tuple[tuple[Intrinsics, np.ndarray], ...]
     """(intrinsics, world_from_cam [4, 4] OpenGL, scene frame) per camera."""
-    render: Callable[[Tensor, Tensor], Tensor]
-    """rays_o [R, 3], rays_d [R, 3] float32 -> rgb [R, 3] in [0, 1]."""
+    render: Callable[[Tensor, Tensor], Tensor] | None = None
+    """rays_o [R, 3], rays_d [R, 3] float32 -> rgb [R, 3] in [0, 1]; used where `photos` is None."""
+    photos: tuple[np.ndarray, ...] | None = None
+    """Per camera its photo at the camera's size, float32 [H, W, 4] in [0, 1]: straight colour and alpha (1 for an
+    opaque photo; 0 where a mask or the photo's alpha says the object is not there)."""
     info: dict = field(default_factory=dict)
-    """What the report says about the cameras (which, at what size)."""
+    """What the report says about the cameras (which, at what size, photos or renders)."""
 
 
 def spread_views(world_from_cams: np.ndarray, k: int) -> list[int]:
@@ -130,17 +138,23 @@ def depth_buffer(
     return out.reshape(intr.h, intr.w)
 
 
-def _view_image(source: ViewSource, intr: Intrinsics, world_from_cam: np.ndarray, covered: np.ndarray) -> np.ndarray:
-    """The field's render of the camera's covered pixels, [H, W, 3] float32 (zero elsewhere)."""
+def _view_image(
+    source: ViewSource, k: int, intr: Intrinsics, world_from_cam: np.ndarray, covered: np.ndarray
+) -> np.ndarray:
+    """Camera k's photo, or the field's render of its covered pixels (zero elsewhere), [H, W, 4] float32 (alpha 1
+    for a render)."""
+    if source.photos is not None:
+        return source.photos[k]
     ys, xs = np.nonzero(covered)
-    image = np.zeros((intr.h, intr.w, 3), np.float32)
+    image = np.zeros((intr.h, intr.w, 4), np.float32)
     if len(ys) == 0:
         return image
+    image[ys, xs, 3] = 1.0
     uv = torch.as_tensor(np.stack([xs + 0.5, ys + 0.5], axis=1), dtype=torch.float64)
     rays_o, rays_d = generate_rays(intr, torch.as_tensor(world_from_cam, dtype=torch.float64), uv)
     with torch.inference_mode():
         rgb = source.render(rays_o.float(), rays_d.float())
-    image[ys, xs] = torch.as_tensor(rgb).detach().float().cpu().clamp(0, 1).numpy()
+    image[ys, xs, :3] = torch.as_tensor(rgb).detach().float().cpu().clamp(0, 1).numpy()
     return image
 
 
@@ -155,7 +169,7 @@ def project_views(
     acc = np.zeros((len(points), 3), np.float64)
     wsum = np.zeros(len(points), np.float64)
     skipped = 0
-    for intr, world_from_cam in source.cameras:
+    for k, (intr, world_from_cam) in enumerate(source.cameras):
         to_cam = np.asarray(world_from_cam, np.float64)[:3, 3] - points
         cos = np.einsum("nd,nd->n", to_cam, normals) / np.maximum(np.linalg.norm(to_cam, axis=1), 1e-12)
         ids = np.flatnonzero(cos > COS_MIN)
@@ -168,7 +182,7 @@ def project_views(
         covered = np.isfinite(zbuf)
         if not covered.any():
             continue
-        image = _view_image(source, intr, world_from_cam, covered)
+        image = _view_image(source, k, intr, world_from_cam, covered)
         uv, z = (a.numpy() for a in project(torch.as_tensor(points[ids]), torch.as_tensor(world_from_cam), intr))
         inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= intr.w) & (uv[:, 1] <= intr.h)
         ids, uv, z = ids[inside], uv[inside], z[inside]
@@ -177,7 +191,7 @@ def project_views(
         u0, v0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
         u1, v1 = np.minimum(u0 + 1, intr.w - 1), np.minimum(v0 + 1, intr.h - 1)
         fu, fv = u - u0, v - v0
-        col, depth, cov = np.zeros((len(ids), 3)), np.zeros(len(ids)), np.zeros(len(ids))
+        col, depth, cov, opaque = np.zeros((len(ids), 3)), np.zeros(len(ids)), np.zeros(len(ids)), np.zeros(len(ids))
         for r, c, b in (
             (v0, u0, (1 - fu) * (1 - fv)),
             (v0, u1, fu * (1 - fv)),
@@ -186,28 +200,88 @@ def project_views(
         ):  # bilinear over the pixels that show this surface or one before it
             zt = zbuf[r, c]
             b = np.where(covered[r, c] & (zt <= z * (1.0 + BEHIND_TOL)), b, 0.0)
-            col += image[r, c] * b[:, None]
+            a = b * image[r, c, 3]  # a photo's alpha: its colour counts where it shows the object
+            col += image[r, c, :3] * a[:, None]
+            opaque += a
             depth += np.where(b > 0, zt, 0.0) * b
             cov += b
-        seen = cov > 1e-6
+        seen = (cov > 1e-6) & (opaque > 1e-6)
         seen[seen] = z[seen] <= depth[seen] / cov[seen] * (1.0 + DEPTH_TOL)  # the nearest surface there
         ids = ids[seen]
-        weight = np.clip(cos[ids], 0.0, 1.0) ** POWER
-        acc[ids] += col[seen] / cov[seen, None] * weight[:, None]
+        weight = np.clip(cos[ids], 0.0, 1.0) ** POWER * np.minimum(opaque[seen] / cov[seen], 1.0)
+        acc[ids] += col[seen] / opaque[seen, None] * weight[:, None]
         wsum[ids] += weight
     rgb = np.divide(acc, wsum[:, None], out=np.zeros_like(acc), where=wsum[:, None] > 0)
     return rgb.astype(np.float32), wsum, skipped
+
+
+def _picked(trained: Any, count: int) -> tuple[list[int], int]:
+    """`count` spread-out training frames (indices into scene.frames) and how many training frames there are."""
+    scene = trained.scene
+    train = list(scene.split("train")) if count > 0 else []
+    if not train:
+        return [], 0
+    c2w = np.stack([np.asarray(scene.frames[i].world_from_cam, np.float64) for i in train])
+    return [train[k] for k in spread_views(c2w, count)], len(train)
+
+
+def _photo(scene: Any, i: int, intr: Intrinsics) -> np.ndarray:
+    """Frame i's photo (its mask applied) at `intr`'s size, float32 [H, W, 4] straight colour and alpha."""
+    import cv2
+
+    from nerfpipe.data.masks import load_masked_image
+
+    img = load_masked_image(scene, i)
+    full = scene.frame_intrinsics(i)
+    if img.shape[:2] != (full.h, full.w):
+        raise ValueError(f"{scene.image_path(i)}: image is {img.shape[1]}x{img.shape[0]}, expected {full.w}x{full.h}")
+    if img.shape[-1] == 3:
+        img = np.concatenate([img, np.ones_like(img[..., :1])], axis=-1)
+    if (intr.w, intr.h) != (full.w, full.h):
+        premultiplied = np.concatenate([img[..., :3] * img[..., 3:], img[..., 3:]], axis=-1)  # resize colour x alpha
+        small = cv2.resize(premultiplied, (intr.w, intr.h), interpolation=cv2.INTER_AREA)
+        alpha = small[..., 3:]
+        img = np.concatenate([small[..., :3] / np.maximum(alpha, 1e-6), alpha], axis=-1)
+    return np.clip(img, 0.0, 1.0).astype(np.float32)
+
+
+def training_photos(trained: Any, count: int) -> tuple[ViewSource | None, str]:
+    """`count` of the run's training cameras (spread out) with their photos, at the size the run trained at (at most
+    PHOTO_MAX_SIDE pixels long); (None, why) when count is 0, the run has no training views or a photo cannot be
+    read (the stage then takes the field's renders)."""
+    scene = trained.scene
+    picked, of = _picked(trained, count)
+    if not picked:
+        return None, "no training views (or texture_views 0)"
+    downscale = trained.downscale
+    cameras, photos = [], []
+    for i in picked:
+        intr = scene.frame_intrinsics(i)
+        intr = intr.scaled(min(1.0 / downscale, PHOTO_MAX_SIDE / max(intr.w, intr.h)))
+        try:
+            photos.append(_photo(scene, i, intr))
+        except (OSError, ValueError, UserError) as exc:
+            return None, f"a training photo cannot be read: {exc}"
+        cameras.append((intr, np.asarray(scene.frames[i].world_from_cam, np.float64)))
+    sizes = sorted({(intr.w, intr.h) for intr, _ in cameras})
+    info = {
+        "source": "photos",
+        "views": len(cameras),
+        "of": of,
+        "sizes": [list(wh) for wh in sizes],
+        "weights": f"cos^{POWER:g} x the photo's alpha",
+        "rule": "the training photos of spread-out cameras, projected onto the texels they see",
+    }
+    return ViewSource(cameras=tuple(cameras), photos=tuple(photos), info=info), ""
 
 
 def training_views(trained: Any, count: int) -> ViewSource | None:
     """`count` of the run's training cameras (spread out), at 1 / VIEW_DOWNSCALE of the size the run trained at (at
     most VIEW_MAX_SIDE pixels long), and the run's renderer; None when count is 0 or the run has no training views."""
     scene = trained.scene
-    train = list(scene.split("train")) if count > 0 else []
-    if not train:
+    picked, of = _picked(trained, count)
+    if not picked:
         return None
-    c2w = np.stack([np.asarray(scene.frames[i].world_from_cam, np.float64) for i in train])
-    picked = [train[k] for k in spread_views(c2w, count)]
     downscale = VIEW_DOWNSCALE * trained.downscale
     cameras = []
     for i in picked:
@@ -220,8 +294,9 @@ def training_views(trained: Any, count: int) -> ViewSource | None:
 
     sizes = sorted({(intr.w, intr.h) for intr, _ in cameras})
     info = {
+        "source": "field",
         "views": len(cameras),
-        "of": len(train),
+        "of": of,
         "sizes": [list(wh) for wh in sizes],
         "weights": f"cos^{POWER:g}",
         "rule": "the field's renders of spread-out training cameras, projected onto the texels seen",
