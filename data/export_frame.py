@@ -33,7 +33,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-__all__ = ["FRAMES", "FORMAT_UP", "Frame", "export_frame", "rotation_onto"]
+__all__ = ["FRAMES", "FORMAT_UP", "Frame", "check_frame_options", "export_frame", "rotation_onto"]
 
 Frame = Literal["upright", "user", "normalized"]
 FRAMES: tuple[str, ...] = ("upright", "user", "normalized")
@@ -49,6 +49,19 @@ FORMAT_UP: dict[str, tuple[str, np.ndarray]] = {
     "splat": ("-Y", _MINUS_Y_UP),
 }
 """Format -> (its up axis, the rotation [3, 3] from a z-up frame to the format's axes). Module doc: why each."""
+
+
+def check_frame_options(frame: str, up: Any, *, flag: str = "") -> None:
+    """UserError in one line unless `frame` is one of FRAMES and `up` is None or three finite numbers, not all 0;
+    `flag` prefixes the option names as the caller's users type them ("--" on the command line)."""
+    from nerfpipe.data.errors import UserError
+
+    if frame not in FRAMES:
+        raise UserError(f"{flag}frame: expected one of {', '.join(FRAMES)}, got {frame!r}")
+    if up is not None:
+        u = np.asarray(up, np.float64)
+        if u.shape != (3,) or not np.isfinite(u).all() or not np.linalg.norm(u) > 0:
+            raise UserError(f"{flag}up: expected three numbers x,y,z, not all 0, got {up}")
 
 
 def rotation_onto(u: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -76,3 +76,20 @@ def test_rotation_onto_is_the_smallest_turn_and_handles_opposites():
     for u in ([0.0, 0.0, 1.0], [1.0, 2.0, 3.0]):
         r = rotation_onto(np.array(u), -np.array(u))
         assert np.allclose(r @ np.array(u), -np.array(u), atol=1e-12) and np.isclose(np.linalg.det(r), 1.0)
+
+
+def test_frame_options_are_refused_in_one_line_naming_the_option():
+    from nerfpipe.data.errors import UserError
+    from nerfpipe.data.export_frame import check_frame_options
+
+    check_frame_options("upright", (0.0, 0.0, 1.0))
+    check_frame_options("user", None)
+    for frame, up, flag, says in (
+        ("sideways", None, "--", "--frame: expected one of upright, user, normalized"),
+        ("upright", (0.0, 0.0, 0.0), "", "up: expected three numbers x,y,z, not all 0"),
+        ("upright", (0.0, float("nan"), 1.0), "--", "--up: expected three numbers"),
+        ("upright", (1.0, 2.0), "", "up: expected three numbers"),
+    ):
+        with pytest.raises(UserError, match=says.replace(".", r"\.")) as err:
+            check_frame_options(frame, up, flag=flag)
+        assert "\n" not in str(err.value)

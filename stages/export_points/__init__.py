@@ -48,7 +48,7 @@ import numpy as np
 from nerfpipe.data.atomic import atomic_path
 from nerfpipe.data.checks import Check, verdict
 from nerfpipe.data.errors import UserError
-from nerfpipe.data.export_frame import FRAMES, export_frame
+from nerfpipe.data.export_frame import check_frame_options, export_frame
 from nerfpipe.data.progress import NO_PROGRESS, Progress
 from nerfpipe.data.rundir import config_to_json, write_manifest
 from nerfpipe.model import camera_path, can, load_trained, require
@@ -128,12 +128,7 @@ def _validate(config: Config) -> None:
         raise UserError(f"num_points: expected at least 1, got {config.num_points}")
     if not 0 < config.acc_threshold <= 1:
         raise UserError(f"acc_threshold: expected a value in (0, 1], got {config.acc_threshold}")
-    if config.frame not in FRAMES:
-        raise UserError(f"frame: expected one of {', '.join(FRAMES)}, got {config.frame!r}")
-    if config.up is not None:
-        u = np.asarray(config.up, np.float64)
-        if u.shape != (3,) or not np.isfinite(u).all() or not np.linalg.norm(u) > 0:
-            raise UserError(f"up: expected three numbers x,y,z, not all 0, got {config.up}")
+    check_frame_options(config.frame, config.up)
     if config.bbox is not None:
         b = np.asarray(config.bbox, np.float64)
         if b.shape != (6,) or not np.isfinite(b).all() or not (b[3:] > b[:3]).all():

@@ -10,7 +10,7 @@ from typing import Literal
 import numpy as np
 
 from nerfpipe.data.errors import UserError
-from nerfpipe.data.export_frame import FRAMES
+from nerfpipe.data.export_frame import check_frame_options
 from nerfpipe.stages.mesh.cleanup import Cleanup
 from nerfpipe.stages.mesh.texture_views import TEXTURE_VIEWS
 
@@ -136,12 +136,7 @@ def validate(config: Config) -> None:
         isinstance(config.threshold, str) or not math.isfinite(float(config.threshold))
     ):
         raise UserError(f"--threshold: expected 'auto', 'global' or a finite number, got {config.threshold!r}")
-    if config.frame not in FRAMES:
-        raise UserError(f"--frame: expected one of {', '.join(FRAMES)}, got {config.frame!r}")
-    if config.up is not None:
-        u = np.asarray(config.up, np.float64)
-        if u.shape != (3,) or not np.isfinite(u).all() or not np.linalg.norm(u) > 0:
-            raise UserError(f"--up: expected three numbers x,y,z, not all 0, got {config.up}")
+    check_frame_options(config.frame, config.up, flag="--")
     if config.bbox is not None:
         b = np.asarray(config.bbox, np.float64)
         if b.shape != (6,) or not np.isfinite(b).all() or not (b[3:] > b[:3]).all():

@@ -43,7 +43,7 @@ import torch
 from nerfpipe.data.atomic import atomic_path
 from nerfpipe.data.checks import Check, verdict
 from nerfpipe.data.errors import UserError
-from nerfpipe.data.export_frame import FRAMES, export_frame
+from nerfpipe.data.export_frame import check_frame_options, export_frame
 from nerfpipe.data.progress import NO_PROGRESS, Progress
 from nerfpipe.data.rundir import MetricsLog, config_to_json, sidecar, write_manifest
 from nerfpipe.data.splat_ply import write_ply, write_splat
@@ -151,12 +151,7 @@ def _validate(config: Config) -> str:
         raise UserError(f"sh_degree: expected 0, 1, 2 or 3, got {config.sh_degree}")
     if config.downscale is not None and not config.downscale > 0:
         raise UserError(f"downscale: expected > 0, got {config.downscale}")
-    if config.frame not in FRAMES:
-        raise UserError(f"frame: expected one of {', '.join(FRAMES)}, got {config.frame!r}")
-    if config.up is not None:
-        u = np.asarray(config.up, np.float64)
-        if u.shape != (3,) or not np.isfinite(u).all() or not np.linalg.norm(u) > 0:
-            raise UserError(f"up: expected three numbers x,y,z, not all 0, got {config.up}")
+    check_frame_options(config.frame, config.up)
     return _out_format(config)
 
 
