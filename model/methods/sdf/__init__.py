@@ -65,10 +65,10 @@ class SdfMethod(Method):
         if ctx.space_kind is not Box:
             raise UserError(
                 f"the sdf method models objects in their box (photos with alpha, masks or a plain background); this "
-                f"scene is {ctx.space_kind.name} ({ctx.space_why}): use --method density, or --scene-model box"
+                f"scene is {ctx.space_kind.name} ({ctx.space_why}): use method=density, or scene_model=box"
             )
         if ctx.refine_poses:
-            raise UserError("the sdf method does not refine poses (--refine-poses): use --method density")
+            raise UserError("the sdf method does not refine poses (refine_poses): use method=density")
         reasons["scene_model"] = f"box: {ctx.space_why}"
         resolved = replace(
             options,

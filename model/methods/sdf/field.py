@@ -1,10 +1,11 @@
-"""The signed-distance field: a sphere to start from plus a learned VM grid (the density field's planes and lines,
-`radiance.fields.fast`), a colour network that sees the surface normal, and NeuS's learned sharpness.
+"""The signed-distance field: an ellipsoid inscribed in the box (a sphere in a cube box) to start from plus a
+learned VM grid (the density field's planes and lines, `radiance.fields.fast`), a colour network that sees the
+surface normal, and NeuS's learned sharpness.
 
 Units: the field works in the box's unit coordinates u = (x - centre) / half (half: half the box's longest side),
-so the sphere, the sharpness and the finite-difference step mean the same in every scene; `sdf` answers in scene
+so the starting shape, the sharpness and the finite-difference step mean the same in every scene; `sdf` answers in scene
 units (times half). The grid samples box coordinates xn in [-1, 1]^3 per axis (the VM field's own), clamped at the
-box's faces, where the sphere term carries on (outside the box the distance only grows).
+box's faces, where the starting shape's term carries on (outside the box the distance only grows).
 
 Normals and the Eikonal term come from central differences one grid cell wide (gradient_i = (f(x + h e_i) -
 f(x - h e_i)) / 2h), as Neuralangelo takes its numerical gradient: smooth, no double backward through grid_sample,
@@ -23,6 +24,7 @@ from torch import Tensor, nn
 
 from nerfpipe.radiance.fields.encodings import positional_encoding
 from nerfpipe.radiance.fields.fast import _plane_features
+from nerfpipe.radiance.safe import eps
 
 __all__ = ["SdfField", "AXES"]
 
@@ -41,7 +43,7 @@ def _factors(rank: int, resolution: int, plane_std: float, line_std: float) -> t
 
 
 class SdfField(nn.Module):
-    """Signed distance (sphere + VM grid), colour given the normal, and the sharpness s (module doc)."""
+    """Signed distance (start ellipsoid + VM grid), colour given the normal, and the sharpness s (module doc)."""
 
     def __init__(
         self,
@@ -115,10 +117,24 @@ class SdfField(nn.Module):
         lo, hi = self.to_unit(self.aabb[0]), self.to_unit(self.aabb[1])
         return ((u - lo) * (2.0 / (hi - lo)) - 1.0).clamp(-1, 1)
 
+    @property
+    def semi_axes(self) -> Tensor:
+        """[3] the starting ellipsoid's semi-axes in u: `radius` times the box's half-extents (a sphere in a cube)."""
+        return self.radius * (self.aabb[1] - self.aabb[0]) / (2 * self.half)
+
+    def start(self, u: Tensor) -> Tensor:
+        """u [N, 3] -> the starting shape's signed distance [N]: the ellipsoid inscribed in the box at `radius`, by
+        Quilez's bound k0 (k0 - 1) / k1 (k0 = |u / a|, k1 = |u / a^2|): exact for a sphere, a close bound near the
+        surface of an ellipsoid (a flat box starts as a flat ellipsoid, not a ball poking out of it)."""
+        a = self.semi_axes.to(u)
+        k0 = torch.linalg.vector_norm(u / a, dim=-1)
+        k1 = torch.linalg.vector_norm(u / (a * a), dim=-1)
+        return k0 * (k0 - 1) / k1.clamp_min(eps(u.dtype))
+
     def sdf_unit(self, u: Tensor) -> Tensor:
-        """u [N, 3] -> signed distance [N] in u units (negative inside)."""
+        """u [N, 3] -> signed distance [N] in u units (negative inside): the start plus the grid."""
         grid = sum(p.sum(0) for p in _plane_features(self.planes, self.lines, self._grid_coords(u)))
-        return torch.linalg.vector_norm(u, dim=-1) - self.radius + grid
+        return self.start(u) + grid
 
     def sdf(self, x: Tensor) -> Tensor:
         """Scene points x [N, 3] -> signed distance [N] in scene units (negative inside)."""

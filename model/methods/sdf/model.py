@@ -34,8 +34,9 @@ __all__ = ["SdfModel", "BAND_STEPS", "BAND_SHARPNESS", "COLOR_THRESHOLD"]
 
 BAND_STEPS = 1.0
 """The band holds samples within this many interval lengths of the surface (by their distance, no gradient)..."""
-BAND_SHARPNESS = 10.0
-"""... plus this many logistic widths 1 / s (where Phi_s(f) differs from 0 or 1 by more than e^-10) and a cell."""
+BAND_SHARPNESS = 4.0
+"""... plus this many logistic widths 1 / s (where Phi_s(f) differs from 0 or 1 by more than e^-4: outside it the
+unit-slope opacity is close, only its gradient is dropped) and a cell."""
 COLOR_THRESHOLD = 1e-4
 """Weight above which a sample's colour is evaluated (TensoRF's rule, as the density method's)."""
 

@@ -14,7 +14,7 @@ RESOLUTION = (32, 128)
 UPSAMPLE_AT = (0.1, 0.2, 0.3, 0.4)
 """Run fractions of the grid's growth by default (the density method's steps, a little later: the sphere must
 first move to the object's hull)."""
-SAMPLES = 96
+SAMPLES = 64
 """Intervals a ray is cut into in the box by default."""
 
 
@@ -27,11 +27,11 @@ class SdfOptions:
     upsample_at: tuple[float, ...] | None = None
     """Run-progress fractions at which the grid grows (geometric steps to the final size). None: 0.1,0.2,0.3,0.4."""
     sdf_samples: int | None = None
-    """Intervals each ray is cut into inside the box (training and rendering). None: 96."""
+    """Intervals each ray is cut into inside the box (training and rendering). None: 64."""
     eikonal: float = 0.1
     """Weight of the Eikonal term mean (|grad f| - 1)^2 (NeuS's 0.1), finite differences one grid cell wide."""
     init_radius: float = 0.5
-    """The starting sphere's radius, as a fraction of half the box's longest side."""
+    """The starting shape: the ellipsoid inscribed in the box shrunk by this fraction (a sphere in a cube box)."""
     view_dependent: bool | None = None
     """Colour depends on view direction (None: on for every scene; off suits Lambertian scenes)."""
 
