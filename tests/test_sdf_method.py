@@ -83,6 +83,7 @@ def test_central_difference_gradient_of_the_starting_sphere():
         for p in field.planes:
             p.zero_()
     u = torch.nn.functional.normalize(torch.randn(64, 3, generator=torch.Generator().manual_seed(2)), dim=-1) * 0.7
+    torch.testing.assert_close(field.start(torch.zeros(1, 3)), torch.tensor([-0.5]))  # its limit at the centre
     f, grad = field.sdf_and_gradient(u)
     torch.testing.assert_close(f, torch.full_like(f, 0.2), atol=field.cell**2 / (3 * 0.7) * 1.01, rtol=0)
     torch.testing.assert_close(grad, u / 0.7, atol=field.cell**2 / 0.7**2, rtol=0)

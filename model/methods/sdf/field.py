@@ -129,7 +129,8 @@ class SdfField(nn.Module):
         a = self.semi_axes.to(u)
         k0 = torch.linalg.vector_norm(u / a, dim=-1)
         k1 = torch.linalg.vector_norm(u / (a * a), dim=-1)
-        return k0 * (k0 - 1) / k1.clamp_min(eps(u.dtype))
+        centre = k1 <= eps(u.dtype)  # the limit there is -min(a) (0 / 0 as written)
+        return torch.where(centre, -a.min(), k0 * (k0 - 1) / torch.where(centre, torch.ones_like(k1), k1))
 
     def sdf_unit(self, u: Tensor) -> Tensor:
         """u [N, 3] -> signed distance [N] in u units (negative inside): the start plus the grid."""

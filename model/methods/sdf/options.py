@@ -28,8 +28,9 @@ class SdfOptions:
     """Run-progress fractions at which the grid grows (geometric steps to the final size). None: 0.1,0.2,0.3,0.4."""
     sdf_samples: int | None = None
     """Intervals each ray is cut into inside the box (training and rendering). None: 64."""
-    eikonal: float = 0.1
-    """Weight of the Eikonal term mean (|grad f| - 1)^2 (NeuS's 0.1), finite differences one grid cell wide."""
+    eikonal: float = 0.01
+    """Weight of the Eikonal term mean (|grad f| - 1)^2, finite differences one grid cell wide. NeuS's 0.1 is set
+    against an L1 colour loss; against train's squared error it flattened the grid to nothing (docs/SDF.md)."""
     init_radius: float = 0.5
     """The starting shape: the ellipsoid inscribed in the box shrunk by this fraction (a sphere in a cube box)."""
     view_dependent: bool | None = None
