@@ -25,9 +25,10 @@ from nerfpipe.radiance.camera import Intrinsics, generate_rays
 from nerfpipe.radiance.compositing import render_weights_reference
 from nerfpipe.stages import depth as depth_stage
 from nerfpipe.stages import eval as eval_stage
+from nerfpipe.stages import export_points, train
 from nerfpipe.stages import mesh as mesh_stage
 from nerfpipe.stages import render as render_stage
-from nerfpipe.stages import train
+from nerfpipe.stages.view.run_view import render_camera
 
 CENTRE, RADIUS, COLOUR = np.array([0.1, -0.05, 0.2]), 0.6, (0.8, 0.3, 0.15)
 
@@ -164,6 +165,10 @@ def test_sdf_run_goes_through_mesh_render_eval_depth(tmp_path):
     assert video.n_frames == 2
     dm = depth_stage.run(depth_stage.Config(run_dir=run_dir, out_dir=tmp_path / "depth", device="cpu"))
     assert len(dm.names) == 4
+    image = render_camera(run, (1.0, 0.0, 0.0, 0.0), (0.1, -3.0, 0.2), 0.8, 1.0, 12, coarse=True)  # the viewer
+    assert image.shape == (12, 12, 3) and image.dtype == np.uint8
+    with pytest.raises(UserError, match="a sdf run cannot give a density at points"):  # no density: one line
+        export_points.run(export_points.Config(run_dir=run_dir, out=tmp_path / "p.ply", device="cpu"))
 
 
 def test_sdf_refuses_scenes_outside_a_box_and_bad_options(tmp_path):
