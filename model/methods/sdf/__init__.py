@@ -55,7 +55,7 @@ def _model(options: SdfOptions, space: Box, field_cfg: dict | None, device: torc
 
 class SdfMethod(Method):
     name = "sdf"
-    summary = "signed distance (sphere + VM grid), NeuS opacity, Eikonal term: objects in their box"
+    summary = "signed distance (an ellipsoid start + VM grid), NeuS opacity, Eikonal term: objects in their box"
     Options = SdfOptions
 
     def validate(self, options: SdfOptions) -> None:
