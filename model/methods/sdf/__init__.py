@@ -1,4 +1,4 @@
-"""`train --method sdf`: a signed distance (a sphere plus a learned VM grid of planes and lines), turned into
+"""`train --method sdf`: a signed distance (the ellipsoid inscribed in the box plus a learned VM grid), turned into
 opacity by NeuS's logistic ratio with a learned sharpness, an Eikonal term by finite differences one grid cell wide,
 a colour network that sees the normal, coarse-to-fine growth. Its runs can render rays, give a signed distance
 (`mesh` extracts the zero level set: no threshold) and a colour at points.
