@@ -32,7 +32,7 @@ AXES = torch.cat([torch.eye(3), -torch.eye(3)])
 """The six central-difference offsets (module doc): +x, +y, +z, -x, -y, -z."""
 VIEW_FREQS = 2
 PLANE_STD, LINE_STD = 0.1, 0.02
-"""The geometry factors' initial spread: products ~0.002 a component, so the start is the sphere within ~1 % of
+"""The geometry factors' initial spread: products ~0.002 a component, so the start is the ellipsoid within ~1 % of
 the box."""
 
 

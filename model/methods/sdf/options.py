@@ -12,7 +12,7 @@ __all__ = ["SdfOptions", "validate_options", "RESOLUTION", "UPSAMPLE_AT", "SAMPL
 RESOLUTION = (32, 128)
 """The grid's resolution at the start and at the end (coarse-to-fine) by default."""
 UPSAMPLE_AT = (0.1, 0.2, 0.3, 0.4)
-"""Run fractions of the grid's growth by default (the density method's steps, a little later: the sphere must
+"""Run fractions of the grid's growth by default (the density method's steps, a little later: the start shape must
 first move to the object's hull)."""
 SAMPLES = 64
 """Intervals a ray is cut into in the box by default."""
@@ -20,7 +20,7 @@ SAMPLES = 64
 
 @dataclass(frozen=True, kw_only=True)
 class SdfOptions:
-    """A signed distance (sphere + VM grid), NeuS's logistic opacity with a learned sharpness, Eikonal term."""
+    """A signed distance (ellipsoid start + VM grid), NeuS's logistic opacity with a learned sharpness, Eikonal term."""
 
     resolution: tuple[int, int] | None = None
     """Grid resolution per axis at the start and at the end (coarse-to-fine). None: 32,128."""

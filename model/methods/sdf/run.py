@@ -8,7 +8,7 @@ to a point.
 Self-check (`sdf_checks`, the train manifest's `checks`), on a grid of points over the box:
 - eikonal_residual: mean | |grad f| - 1 | where |f| is within a few cells of the surface: a distance whose
   gradient is far from unit length is not a distance, and its zero level set is unreliable;
-- surface_found: the share of the box inside the surface: 0 means no surface (the sphere vanished), a share near 1
+- surface_found: the share of the box inside the surface: 0 means no surface (the start shape vanished), a share near 1
   means the surface left the box (the object was not isolated);
 - sharpness: NeuS's band 1 / s in grid cells: the opacity still smeared over more than a cell means training
   stopped before the surface converged (an under-trained run).
