@@ -1,7 +1,8 @@
 """Mesh accuracy and speed: resolution -> Chamfer distance -> time -> peak memory.
 
 Run: .venv/bin/python -m benchmarks.bench_mesh --out runs/bench/mesh [--resolutions 128,256,512]
-     [--train-seconds 780] [--run RUN_DIR --scene-src SRC_DIR] [--skip-trained] [--skip-standin]
+     [--train-seconds 780] [--method density|sdf] [--run RUN_DIR --scene-src SRC_DIR] [--skip-trained]
+     [--skip-standin]
 
 Two fields, each meshed by `stages.mesh` at every resolution in a fresh process (so the peak RSS is that
 resolution's), Chamfer measured in the source (user) frame without any re-alignment:
@@ -106,16 +107,17 @@ def _in_subprocess(spec: dict) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def _train(out: Path, seconds: float) -> tuple[Path, Path]:
+def _train(out: Path, seconds: float, method: str = "density") -> tuple[Path, Path]:
     from nerfpipe.stages import convert, scene, train
 
-    src, scene_dir, run_dir = out / "scene_src", out / "scene", out / "run"
+    src, scene_dir = out / "scene_src", out / "scene"
+    run_dir = out / ("run" if method == "density" else f"run_{method}")
     if not (src / "manifest.json").is_file():
         scene.run(scene.Config(out_dir=src, kind="posed", size=128, views=48, seed=0))
     if not (scene_dir / "transforms.json").is_file():
         convert.run(convert.Config(source=src, scene_dir=scene_dir))
     if not (run_dir / "manifest.json").is_file():
-        train.run(train.Config(scene_dir=scene_dir, run_dir=run_dir, max_seconds=seconds))
+        train.run(train.Config(scene_dir=scene_dir, run_dir=run_dir, max_seconds=seconds, method=method))
     return run_dir, src
 
 
@@ -138,6 +140,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--out", type=Path, default=None, help="work folder (default: a temporary one)")
     p.add_argument("--resolutions", default="128,256,512")
     p.add_argument("--train-seconds", type=float, default=780.0)
+    p.add_argument("--method", default="density", help="train --method for the trained field (density, sdf, ...)")
     p.add_argument("--run", type=Path, default=None, help="use this trained run (with --scene-src)")
     p.add_argument("--scene-src", type=Path, default=None, help="the synthetic scene the run was trained on")
     p.add_argument("--skip-trained", action="store_true")
@@ -169,15 +172,15 @@ def main(argv: list[str] | None = None) -> None:
                 p.error("--run needs --scene-src")
         else:
             t0 = time.perf_counter()
-            run_dir, src = _train(out, args.train_seconds)
+            run_dir, src = _train(out, args.train_seconds, args.method)
             print(f"scene + convert + train: {time.perf_counter() - t0:.0f} s", flush=True)
         for res in resolutions:
             spec = {
-                "kind": "trained",
+                "kind": "trained" if args.method == "density" else f"trained-{args.method}",
                 "resolution": res,
                 "run_dir": str(run_dir),
                 "scene_src": str(src),
-                "out": str(out / f"trained_{res}" / "mesh.ply"),
+                "out": str(out / f"trained_{args.method}_{res}" / "mesh.ply"),
             }
             rows.append(_in_subprocess(spec))
             print(json.dumps(rows[-1]), flush=True)

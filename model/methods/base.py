@@ -171,6 +171,11 @@ class Method(ABC):
         """The pieces of training this method plugs into the loop (`model.methods.hooks.Hook`), in call order."""
         return []
 
+    def checks(self, model: TrainModel) -> list:
+        """The method's own self-checks of a finished model (`data.checks.Check`s the train manifest adds to its
+        `checks`; an SDF's Eikonal residual and sharpness). None by default."""
+        return []
+
     @abstractmethod
     def checkpoint(self, model: TrainModel) -> dict[str, Any]:
         """The method's entries in checkpoint.pt (tensors and primitive containers only)."""

@@ -36,6 +36,7 @@ __all__ = [
 BUILTIN = {
     "density": ("nerfpipe.model.methods.density", "DENSITY"),
     "nerf": ("nerfpipe.model.methods.nerf", "NERF"),
+    "sdf": ("nerfpipe.model.methods.sdf", "SDF"),
 }
 """Built-in methods: name -> (module, attribute)."""
 DEFAULT = "density"

@@ -1,0 +1,139 @@
+"""`train --method sdf`: a signed distance (the ellipsoid inscribed in the box plus a learned VM grid), turned into
+opacity by NeuS's logistic ratio with a learned sharpness, an Eikonal term by finite differences one grid cell wide,
+a colour network that sees the normal, coarse-to-fine growth. Its runs can render rays, give a signed distance
+(`mesh` extracts the zero level set: no threshold) and a colour at points.
+
+Objects in their box only (photos with alpha, masks or a plain background); a contracted or forward-facing scene is
+refused in one line. Modules: `options` (the options group), `neus` (the opacity and compositing maths), `field`
+(the signed distance and colour), `model` (the `TrainModel`), `hooks` (Eikonal term, growth), `run` (the run for the
+stages and the self-check).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any
+
+import torch
+
+from nerfpipe.data.checks import Check
+from nerfpipe.data.errors import UserError
+from nerfpipe.model.checkpoint import read_checkpoint, restore_appearance, restore_background, restore_space
+from nerfpipe.model.methods.base import Method, Prepared, RunFiles, TrainContext
+from nerfpipe.model.methods.sdf.field import SdfField
+from nerfpipe.model.methods.sdf.hooks import hooks_for
+from nerfpipe.model.methods.sdf.model import SdfModel
+from nerfpipe.model.methods.sdf.options import RESOLUTION, SAMPLES, UPSAMPLE_AT, SdfOptions, validate_options
+from nerfpipe.model.methods.sdf.run import SdfRun, sdf_checks
+from nerfpipe.model.spaces import make_space
+from nerfpipe.model.trained import read_run_scene
+from nerfpipe.radiance.space import Box
+
+__all__ = ["SDF", "SdfMethod", "SdfOptions"]
+
+LR = 0.02
+"""The grids' learning rate (the colour network's lr / 20, the sharpness's lr / 3: `SdfField.param_groups`)."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class SdfPrepared(Prepared):
+    options: SdfOptions
+    space: Box
+
+
+def _model(options: SdfOptions, space: Box, field_cfg: dict | None, device: torch.device) -> SdfModel:
+    if field_cfg is None:
+        field_cfg = SdfField(
+            aabb=space.field_box,
+            resolution=options.resolution[0],
+            view_dependent=options.view_dependent,
+            radius=options.init_radius,
+        ).config()
+    field = SdfField(**field_cfg).to(device)
+    return SdfModel(field=field, space=space, samples=options.sdf_samples)
+
+
+class SdfMethod(Method):
+    name = "sdf"
+    summary = "signed distance (an ellipsoid start + VM grid), NeuS opacity, Eikonal term: objects in their box"
+    Options = SdfOptions
+
+    def validate(self, options: SdfOptions) -> None:
+        validate_options(options)
+
+    def prepare(self, ctx: TrainContext, options: SdfOptions, reasons: dict[str, str]) -> SdfPrepared:
+        if ctx.space_kind is not Box:
+            raise UserError(
+                f"the sdf method models objects in their box (photos with alpha, masks or a plain background); this "
+                f"scene is {ctx.space_kind.name} ({ctx.space_why}): use method=density, or scene_model=box"
+            )
+        if ctx.refine_poses:
+            raise UserError("the sdf method does not refine poses (refine_poses): use method=density")
+        reasons["scene_model"] = f"box: {ctx.space_why}"
+        resolved = replace(
+            options,
+            resolution=options.resolution or RESOLUTION,
+            upsample_at=options.upsample_at if options.upsample_at is not None else UPSAMPLE_AT,
+            sdf_samples=options.sdf_samples or SAMPLES,
+            view_dependent=True if options.view_dependent is None else options.view_dependent,
+        )
+        for name, why in (
+            ("resolution", "32 to 128 (coarse-to-fine)"),
+            ("upsample_at", "at 10, 20, 30, 40 % of the run"),
+            ("sdf_samples", f"{SAMPLES} intervals a ray in the box"),
+            ("view_dependent", "on for every scene"),
+        ):
+            reasons[name] = "asked for" if getattr(options, name) is not None else why
+        return SdfPrepared(options=resolved, space=make_space(Box, ctx.scene))
+
+    def default_lr(self) -> tuple[float, str]:
+        return LR, f"{LR} for the signed distance's grids (its colour network at lr/20)"
+
+    def build(self, ctx: TrainContext, prepared: SdfPrepared, state: dict | None) -> SdfModel:
+        if state is None:
+            model = _model(prepared.options, prepared.space, None, ctx.device)
+            model.background = ctx.background
+            return model
+        space = restore_space(state, lambda kind: make_space(kind, ctx.scene))
+        model = _model(prepared.options, space, state["sdf_field_config"], ctx.device)
+        model.field.load_state_dict(state["sdf_field"])
+        model.background = restore_background(state, ctx.device)
+        return model
+
+    def hooks(self, ctx: TrainContext, prepared: SdfPrepared, model: SdfModel) -> list:
+        return hooks_for(prepared.options)
+
+    def checkpoint(self, model: SdfModel) -> dict[str, Any]:
+        return {
+            "sdf_field_config": model.field.config(),
+            "sdf_field": model.field.state_dict(),
+            "sdf_samples": model.samples,
+            "space": model.space.to_dict(),
+        }
+
+    def checks(self, model: SdfModel) -> list[Check]:
+        return sdf_checks(model)
+
+    def load(self, run: RunFiles, device: torch.device) -> SdfRun:
+        state = read_checkpoint(run.checkpoint, device)
+        scene = read_run_scene(run.run_dir, run.config)
+        try:
+            space = restore_space(state, lambda kind: make_space(kind, scene))
+            field = SdfField(**state["sdf_field_config"]).to(device)
+            field.load_state_dict(state["sdf_field"])
+            samples = int(state["sdf_samples"])
+        except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+            raise UserError(f"{run.checkpoint}: not an sdf checkpoint this version reads ({exc})") from None
+        model = SdfModel(field=field, space=space, samples=samples, background=restore_background(state, device))
+        model.appearance = restore_appearance(state, device)
+        model.train_mode(False)
+        return SdfRun(
+            scene=scene,
+            model=model,
+            device=device,
+            background=model.background.eval_colour().detach(),
+            downscale=run.downscale,
+        )
+
+
+SDF = SdfMethod()

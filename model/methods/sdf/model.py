@@ -1,0 +1,158 @@
+"""The SDF method's `TrainModel`: rays through the box, NeuS's opacity from the signed distance, colour given the
+normal, composited with transmittance exp(-exclusive_cumsum(tau)) (`model.methods.sdf.neus`).
+
+Each ray is cut into `samples` equal intervals of its segment in the box (`radiance.space.Box.box_segment`),
+jittered while training. The distance at every interval's middle is read without gradient; only the intervals of
+the *band* (where that distance is small enough that the interval may hold the surface: `BAND_STEPS`,
+`BAND_SHARPNESS`) are differentiated: the distances at the interval's two ends (NeuS's section points, read, not
+estimated from a slope), and the interval's opacity NeuS's logistic ratio of them with the learned sharpness s
+(`neus_tau`). Outside the band the opacity is that of a unit-slope entry (0 far outside, opaque deep inside),
+without gradient. Where the weight is above `COLOR_THRESHOLD` the colour network sees the unit normal g / |g| (g by
+central differences one grid cell wide: `SdfField.sdf_and_gradient`). A training render also returns the Eikonal
+residual (|g| - 1)^2 over those samples and one free point a ray in the box (`eikonal`): the hook adds it to the
+loss.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from nerfpipe.model.appearance import Appearance
+from nerfpipe.model.background import Background
+from nerfpipe.model.methods.sdf.field import SdfField
+from nerfpipe.model.methods.sdf.neus import composite_weights, neus_tau, weights_from_tau
+from nerfpipe.radiance.safe import eps
+from nerfpipe.radiance.space import Box
+
+__all__ = ["SdfModel", "BAND_STEPS", "BAND_SHARPNESS", "COLOR_THRESHOLD"]
+
+BAND_STEPS = 1.0
+"""The band holds samples within this many interval lengths of the surface (by their distance, no gradient)..."""
+BAND_SHARPNESS = 4.0
+"""... plus this many logistic widths 1 / s (where Phi_s(f) differs from 0 or 1 by more than e^-4: outside it the
+unit-slope opacity is close, only its gradient is dropped) and a cell."""
+COLOR_THRESHOLD = 1e-4
+"""Weight above which a sample's colour is evaluated (TensoRF's rule, as the density method's)."""
+
+
+@dataclass(eq=False)
+class SdfModel:
+    """A signed-distance field in the scene's box (module doc): a `model.methods.base.TrainModel`."""
+
+    field: SdfField
+    space: Box
+    samples: int
+    """Intervals a ray is cut into, in training and rendering."""
+    background: Background | None = None
+    appearance: Appearance | None = None
+    chunk: int = 1024
+    random_draws_per_ray: int = 4
+    """One jitter and one free point (3 numbers) a ray."""
+    last_eikonal: float = math.nan
+    """The Eikonal residual (|g| - 1)^2 of the last training render (the manifest and the metrics)."""
+
+    def render(
+        self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, view: Tensor | None = None, **_: Any
+    ) -> dict[str, Tensor]:
+        """World rays o, d [R, 3] (unit d) -> dict(rgb [R, 3], acc [R], depth [R], depth_median [R], samples, and
+        while training eikonal (a 0-d tensor)). Keyword arguments of other models (median, infer, gen) are
+        accepted and change nothing: every render here is the same quadrature."""
+        out = self._render(o, d, background, train=train)
+        if self.appearance is not None:
+            out["rgb"] = self.appearance(out["rgb"], out["acc"], background, view)
+        return out
+
+    def _render(self, o: Tensor, d: Tensor, background: Tensor, *, train: bool) -> dict[str, Tensor]:
+        field, n, s = self.field, self.samples, self.field.sharpness
+        t_near, t_far = self.space.box_segment(o, d)  # [R] each, scene units
+        t_far = torch.maximum(t_far, t_near)  # rays that miss the box: an empty segment
+        frac = torch.arange(n, dtype=o.dtype, device=o.device) / n  # [S]
+        r = o.shape[0]
+        jitter = torch.rand(r, 1, dtype=o.dtype, device=o.device) if train else torch.full_like(t_near[:, None], 0.5)
+        span = (t_far - t_near)[:, None]  # [R, 1]
+        t_mid = t_near[:, None] + (frac + jitter / n) * span  # [R, S]
+        delta = (span / n / field.half).expand_as(t_mid).reshape(-1)  # [R S] in u units
+        u = field.to_unit(o[:, None, :] + d[:, None, :] * t_mid[..., None]).reshape(-1, 3)  # [R S, 3]
+        dirs = d[:, None, :].expand(r, n, 3).reshape(-1, 3)
+        with torch.no_grad():  # the band: samples whose interval may hold the surface (module doc)
+            f_all = field.sdf_unit(u)  # [R S]
+            near = f_all.abs() < delta * BAND_STEPS + BAND_SHARPNESS / s.detach() + field.cell
+            tau = neus_tau(f_all + 0.5 * delta, f_all - 0.5 * delta, s.detach())  # elsewhere: a unit-slope entry
+        band = near.nonzero()[:, 0]  # [B]
+        half_step = (0.5 * delta[band])[:, None] * dirs[band]  # [B, 3] u units
+        f_ends = field.sdf_unit(torch.cat([u[band] - half_step, u[band] + half_step]))  # [2 B]
+        tau = tau.index_put((band,), neus_tau(*f_ends.chunk(2), s))
+        weights = weights_from_tau(tau.reshape(r, n))  # [R, S]
+        lit = band[weights.detach().reshape(-1)[band] > COLOR_THRESHOLD]  # band samples worth a colour: [L]
+        _, g = field.sdf_and_gradient(u[lit])  # [L, 3]
+        norm = torch.linalg.vector_norm(g, dim=-1, keepdim=True)  # [L, 1]
+        rgb = torch.zeros(r * n, 3, dtype=o.dtype, device=o.device)
+        if lit.numel():
+            view = dirs[lit] if field.view_dependent else None
+            rgb = rgb.index_put((lit,), field.color(u[lit], g / norm.clamp_min(eps(g.dtype)), view))
+        out = composite_weights(weights, rgb.reshape(r, n, 3), t_mid, background)
+        out["samples"] = torch.tensor(float(band.numel()))
+        if train:
+            lo, hi = field.to_unit(self.space.field_box.to(o))
+            free = lo + torch.rand(r, 3, dtype=o.dtype, device=o.device) * (hi - lo)  # one free point a ray
+            _, g_free = field.sdf_and_gradient(free)
+            norms = torch.cat([norm[:, 0], torch.linalg.vector_norm(g_free, dim=-1)])
+            out["eikonal"] = ((norms - 1) ** 2).mean()
+            self.last_eikonal = float(out["eikonal"].detach())
+        return out
+
+    # ------------------------------------------------------------------------------------------------ TrainModel
+    def param_groups(self, lr: float) -> list[dict]:
+        groups = self.field.param_groups(lr)
+        extra = self.background.params() if self.background is not None else []
+        if extra:
+            groups.append({"params": extra, "lr": lr, "lr_scale": 1.0})
+        if self.appearance is not None:
+            groups += self.appearance.param_groups(lr)
+        return groups
+
+    def train_mode(self, on: bool) -> None:
+        self.field.train(on)
+
+    def after_step(self) -> None:
+        pass
+
+    def learned(self) -> dict[str, torch.nn.Module]:
+        mods = {"field": self.field, "background": self.background, "appearance": self.appearance}
+        return {k: v for k, v in mods.items() if v is not None}
+
+    def snapshot(self) -> dict[str, Any]:
+        state = {k: copy.deepcopy(v.state_dict()) for k, v in self.learned().items()}
+        return state | {"resolution": self.field.resolution}
+
+    def restore(self, snapshot: dict[str, Any]) -> bool:
+        now = self.field.resolution
+        resampled = now != snapshot["resolution"]
+        if resampled:
+            self.field.upsample(snapshot["resolution"])
+        for key, mod in self.learned().items():
+            mod.load_state_dict(snapshot[key])
+        if resampled:
+            self.field.upsample(now)
+        return resampled
+
+    def describe(self) -> dict[str, Any]:
+        """The manifest's record: the field's configuration, its sharpness now, the samples a ray, the space."""
+        return {
+            "field": {"kind": "sdf", **self.field.config()},
+            "view_dependent": self.field.view_dependent,
+            "sdf": {
+                "sharpness": round(float(self.field.sharpness.detach()), 3),
+                "band_in_cells": round(1.0 / (float(self.field.sharpness.detach()) * self.field.cell), 4),
+                "samples_per_ray": self.samples,
+                "last_eikonal": round(self.last_eikonal, 5) if math.isfinite(self.last_eikonal) else None,
+            },
+            "scene_model": self.space.name,
+            "space": self.space.describe(),
+        }

@@ -1,0 +1,52 @@
+"""The SDF method's options group (`train --method sdf`). A field whose default is None is an automatic default
+(`model.methods.sdf.SdfMethod.prepare` resolves it and says why; config.json records the result)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from nerfpipe.data.errors import UserError
+
+__all__ = ["SdfOptions", "validate_options", "RESOLUTION", "UPSAMPLE_AT", "SAMPLES"]
+
+RESOLUTION = (32, 128)
+"""The grid's resolution at the start and at the end (coarse-to-fine) by default."""
+UPSAMPLE_AT = (0.1, 0.2, 0.3, 0.4)
+"""Run fractions of the grid's growth by default (the density method's steps, a little later: the start shape must
+first move to the object's hull)."""
+SAMPLES = 64
+"""Intervals a ray is cut into in the box by default."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class SdfOptions:
+    """A signed distance (ellipsoid start + VM grid), NeuS's logistic opacity with a learned sharpness, Eikonal term."""
+
+    resolution: tuple[int, int] | None = None
+    """Grid resolution per axis at the start and at the end (coarse-to-fine). None: 32,128."""
+    upsample_at: tuple[float, ...] | None = None
+    """Run-progress fractions at which the grid grows (geometric steps to the final size). None: 0.1,0.2,0.3,0.4."""
+    sdf_samples: int | None = None
+    """Intervals each ray is cut into inside the box (training and rendering). None: 64."""
+    eikonal: float = 0.01
+    """Weight of the Eikonal term mean (|grad f| - 1)^2, finite differences one grid cell wide. NeuS's 0.1 is set
+    against an L1 colour loss; against train's squared error it flattened the grid to nothing (docs/SDF.md)."""
+    init_radius: float = 0.5
+    """The starting shape: the ellipsoid inscribed in the box shrunk by this fraction (a sphere in a cube box)."""
+    view_dependent: bool | None = None
+    """Colour depends on view direction (None: on for every scene; off suits Lambertian scenes)."""
+
+
+def validate_options(options: SdfOptions) -> None:
+    """Every check the options alone allow (UserError naming the option)."""
+    if options.resolution is not None and (len(options.resolution) != 2 or min(options.resolution) < 2):
+        raise UserError(f"resolution: expected (start, end) >= 2, got {options.resolution}")
+    at = options.upsample_at
+    if at is not None and (any(not 0 <= a <= 1 for a in at) or list(at) != sorted(at)):
+        raise UserError(f"upsample_at: expected increasing fractions in [0, 1], got {at}")
+    if options.sdf_samples is not None and options.sdf_samples < 2:
+        raise UserError(f"sdf_samples: expected >= 2, got {options.sdf_samples}")
+    if not options.eikonal >= 0:
+        raise UserError(f"eikonal: expected >= 0, got {options.eikonal}")
+    if not 0 < options.init_radius < 1:
+        raise UserError(f"init_radius: expected in (0, 1), got {options.init_radius}")

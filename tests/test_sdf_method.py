@@ -1,0 +1,186 @@
+"""`train --method sdf` (model.methods.sdf, issue 48): NeuS's opacity as an optical depth against its plain twin
+(outputs and gradients, extremes), the finite-difference gradient on an exact distance, a tiny RGBA scene through
+train -> mesh (the zero level set) -> render -> eval -> depth, and the one-line refusals."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from nerfpipe.data.errors import UserError
+from nerfpipe.data.transforms import Frame, Scene, write_scene
+from nerfpipe.data.video import to_uint8, write_png
+from nerfpipe.model import load_trained
+from nerfpipe.model.methods.registry import method_named
+from nerfpipe.model.methods.sdf import SdfOptions
+from nerfpipe.model.methods.sdf.field import SdfField
+from nerfpipe.model.methods.sdf.neus import neus_alpha_reference, neus_tau, weights_from_tau
+from nerfpipe.radiance import paths
+from nerfpipe.radiance.camera import Intrinsics, generate_rays
+from nerfpipe.radiance.compositing import render_weights_reference
+from nerfpipe.stages import depth as depth_stage
+from nerfpipe.stages import eval as eval_stage
+from nerfpipe.stages import export_points, train
+from nerfpipe.stages import mesh as mesh_stage
+from nerfpipe.stages import render as render_stage
+from nerfpipe.stages.view.run_view import render_camera
+
+CENTRE, RADIUS, COLOUR = np.array([0.1, -0.05, 0.2]), 0.6, (0.8, 0.3, 0.15)
+
+
+# ---------------------------------------------------------------------------------------------- the maths
+def test_neus_tau_is_the_plain_ratio_with_its_gradients():
+    g = torch.Generator().manual_seed(0)
+    f0 = (torch.rand(200, generator=g, dtype=torch.float64) - 0.5).requires_grad_()
+    f1 = (f0.detach() + 0.2 * (torch.rand(200, generator=g, dtype=torch.float64) - 0.5)).requires_grad_()
+    s = torch.tensor(7.0, dtype=torch.float64, requires_grad=True)
+    alpha = -torch.expm1(-neus_tau(f0, f1, s))
+    ref = neus_alpha_reference(f0, f1, s)
+    torch.testing.assert_close(alpha, ref, rtol=1e-12, atol=1e-12)
+    inner = ref > 1e-6  # the ratio's clamp at 0 has no gradient; compare where alpha > 0
+    w = torch.rand(200, generator=g, dtype=torch.float64) * inner
+    grads = torch.autograd.grad((alpha * w).sum(), (f0, f1, s))
+    grads_ref = torch.autograd.grad((ref * w).sum(), (f0, f1, s))
+    for a, b in zip(grads, grads_ref, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)
+    assert bool((alpha[~inner] == 0).all())  # leaving the surface (f1 > f0): transparent
+
+
+def test_neus_tau_stays_finite_where_the_ratio_fails():
+    """Deep inside (s f0 << 0) the plain ratio is 0 / 0 in float32; the optical depth is s (f0 - f1) there, and
+    its gradient is finite. Far outside both give alpha -> 0 without a nan."""
+    s = torch.tensor(400.0, requires_grad=True)
+    f0 = torch.tensor([-0.5, -1.0, 2.0, 0.0], requires_grad=True)
+    f1 = torch.tensor([-0.5001, -1.01, 1.999, -0.001], requires_grad=True)
+    tau = neus_tau(f0, f1, s)
+    assert bool(torch.isnan(neus_alpha_reference(f0, f1, s)[:2]).all())  # the twin's 0 / 0
+    torch.testing.assert_close(tau[:2], s.detach() * (f0 - f1).detach()[:2], rtol=1e-3, atol=0)
+    exact = torch.nn.functional.logsigmoid(400.0 * f0.double()) - torch.nn.functional.logsigmoid(400.0 * f1.double())
+    torch.testing.assert_close(tau.double(), exact.clamp_min(0), rtol=1e-4, atol=1e-30)
+    grads = torch.autograd.grad((-torch.expm1(-tau)).sum(), (f0, f1, s))
+    assert all(bool(torch.isfinite(gr).all()) for gr in grads)
+
+
+def test_weights_are_the_compositing_weights_of_the_same_optical_depth():
+    g = torch.Generator().manual_seed(1)
+    tau = torch.rand(3, 9, generator=g, dtype=torch.float64) * 2
+    tau[0, 4] = float("inf")  # an opaque interval: nothing behind it
+    t = torch.arange(10, dtype=torch.float64).expand(3, 10)
+    ref, _, _ = render_weights_reference(tau, t[:, :-1], t[:, 1:])  # sigma = tau over unit intervals
+    torch.testing.assert_close(weights_from_tau(tau), ref)
+    assert float(weights_from_tau(tau)[0, 5:].abs().max()) == 0.0
+
+
+def test_central_difference_gradient_of_the_starting_sphere():
+    """With the grid at zero the field is the sphere |u| - r: the six points' mean is the distance to second
+    order (h^2 lap f / 6 = h^2 / 3|u|), and their central difference the unit radial direction to second order."""
+    field = SdfField(aabb=[[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], resolution=33, radius=0.5)
+    with torch.no_grad():
+        for p in field.planes:
+            p.zero_()
+    u = torch.nn.functional.normalize(torch.randn(64, 3, generator=torch.Generator().manual_seed(2)), dim=-1) * 0.7
+    torch.testing.assert_close(field.start(torch.zeros(1, 3)), torch.tensor([-0.5]))  # its limit at the centre
+    f, grad = field.sdf_and_gradient(u)
+    torch.testing.assert_close(f, torch.full_like(f, 0.2), atol=field.cell**2 / (3 * 0.7) * 1.01, rtol=0)
+    torch.testing.assert_close(grad, u / 0.7, atol=field.cell**2 / 0.7**2, rtol=0)
+
+
+# ---------------------------------------------------------------------------------------------- the chain
+def _rgba_scene(root: Path, views: int = 12, size: int = 24) -> Path:
+    """A coloured sphere on transparent photos (RGBA) from an orbit, every third view a test view."""
+    intr = Intrinsics(w=size, h=size, fx=0.9 * size, fy=0.9 * size, cx=size / 2, cy=size / 2)
+    orbit = paths.Orbit(centre=CENTRE, up=np.array([0.0, 0, 1]), radius=3.0, elevation_deg=25.0, start_azimuth_deg=0.0)
+    frames = tuple(
+        Frame(file_path=f"images/v{i:02d}.png", world_from_cam=p) for i, p in enumerate(paths.turntable(orbit, views))
+    )
+    for frame in frames:
+        o, d = generate_rays(intr, torch.as_tensor(frame.world_from_cam))
+        oc = o.double() - torch.as_tensor(CENTRE)
+        b = (oc * d.double()).sum(-1)
+        hit = (b * b - (oc * oc).sum(-1) + RADIUS**2 > 0) & (b < 0)
+        rgba = torch.cat([torch.tensor(COLOUR).expand(hit.shape[0], 3), hit[:, None].float()], -1)
+        write_png(root / frame.file_path, to_uint8(rgba.reshape(size, size, 4).numpy()))
+    test = tuple(range(0, views, 3))
+    scene = Scene(
+        root=root,
+        frames=frames,
+        intrinsics=intr,
+        splits={"train": tuple(i for i in range(views) if i not in test), "test": test},
+        aabb=np.stack([CENTRE - 1.0, CENTRE + 1.0]),
+        near=0.5,
+        far=6.0,
+    )
+    write_scene(scene)
+    return root
+
+
+TINY = SdfOptions(resolution=(12, 16), upsample_at=(0.5,), sdf_samples=16)
+
+
+def test_sdf_run_goes_through_mesh_render_eval_depth(tmp_path):
+    scene_dir = _rgba_scene(tmp_path / "scene", size=16)
+    run_dir = tmp_path / "run"
+    out = train.run(
+        train.Config(
+            scene_dir=scene_dir,
+            run_dir=run_dir,
+            method="sdf",
+            options=TINY,
+            max_steps=20,
+            batch_rays=128,
+            eval_every=0,
+            device="cpu",
+        )
+    )
+    manifest = json.loads(out.manifest.read_text())
+    assert manifest["used"]["method"] == "sdf" and manifest["used"]["scene_model"] == "box"
+    checks = {c["name"]: c for c in manifest["checks"]}
+    assert {"eikonal_residual", "surface_found", "sharpness_band"} <= set(checks)
+    assert 0 < checks["surface_found"]["value"] < 0.5  # the sphere is inside the box, and the box not full
+    assert out.test_psnr is not None and out.test_psnr > 13  # an orange disc on white after 20 steps
+
+    run = load_trained(run_dir, "cpu")
+    assert run.method == "sdf" and run.capabilities == {"rays", "sdf", "color"}
+    mesh = mesh_stage.run(
+        mesh_stage.Config(run_dir=run_dir, out=tmp_path / "m.ply", frame="normalized", resolution=32, device="cpu")
+    )
+    report = json.loads(mesh.report.read_text())
+    assert report["method"]["name"] == "signed distance"
+    verts = np.asarray(trimesh.load(mesh.mesh).vertices)
+    on_surface = run.sdf(torch.as_tensor(verts, dtype=torch.float32)).abs()
+    assert float(on_surface.max()) < 0.5 * float(run.model.field.cell * run.model.field.half)  # the zero level set
+    radii = np.linalg.norm(verts - CENTRE, axis=1)  # one closed surface round the object (its accuracy: benchmarks)
+    assert mesh.watertight and 0.3 < float(radii.min()) and float(radii.max()) < 0.8
+
+    ev = eval_stage.run(eval_stage.Config(run_dir=run_dir, out=tmp_path / "eval.json", device="cpu"))
+    assert ev.result["n_views"] == 4 and abs(ev.result["psnr"] - out.test_psnr) < 0.5
+    video = render_stage.run(
+        render_stage.Config(run_dir=run_dir, out=tmp_path / "t.mp4", path="turntable", frames=2, device="cpu")
+    )
+    assert video.n_frames == 2
+    dm = depth_stage.run(depth_stage.Config(run_dir=run_dir, out_dir=tmp_path / "depth", device="cpu"))
+    assert len(dm.names) == 4
+    image = render_camera(run, (1.0, 0.0, 0.0, 0.0), (0.1, -3.0, 0.2), 0.8, 1.0, 12, coarse=True)  # the viewer
+    assert image.shape == (12, 12, 3) and image.dtype == np.uint8
+    with pytest.raises(UserError, match="a sdf run cannot give a density at points"):  # no density: one line
+        export_points.run(export_points.Config(run_dir=run_dir, out=tmp_path / "p.ply", device="cpu"))
+
+
+def test_sdf_refuses_scenes_outside_a_box_and_bad_options(tmp_path):
+    scene_dir = _rgba_scene(tmp_path / "scene", views=6, size=8)
+    with pytest.raises(UserError, match="the sdf method models objects in their box"):
+        train.run(
+            train.Config(
+                scene_dir=scene_dir, run_dir=tmp_path / "r", method="sdf", scene_model="contract", device="cpu"
+            )
+        )
+    assert not (tmp_path / "r" / "checkpoint.pt").exists()
+    with pytest.raises(UserError, match="sdf_samples: expected >= 2"):
+        method_named("sdf").validate(SdfOptions(sdf_samples=1))
+    with pytest.raises(UserError, match="init_radius"):
+        method_named("sdf").validate(SdfOptions(init_radius=1.5))
