@@ -28,7 +28,16 @@ from nerfpipe.radiance.render import ColourRule, Marcher, StratifiedSampler, ren
 from nerfpipe.radiance.safe import eps
 from nerfpipe.radiance.space import Space
 
-__all__ = ["Inference", "EXACT", "FieldModel", "MarchedModel", "HierarchicalModel", "EMPTY_OPACITY", "grid_step"]
+__all__ = [
+    "Inference",
+    "EXACT",
+    "FieldModel",
+    "MarchedModel",
+    "HierarchicalModel",
+    "EMPTY_OPACITY",
+    "grid_step",
+    "param_groups",
+]
 
 COLOR_THRESHOLD = 1e-4
 """Weight above which a sample's colour is evaluated (TensoRF's rule), in training and inference."""
@@ -219,14 +228,8 @@ class FieldModel:
         raise NotImplementedError
 
     def param_groups(self, lr: float) -> list[dict]:
-        """Adam's groups: the field's, a learned background colour's (at lr) and the appearance codes'."""
-        groups = self.field.param_groups(lr)
-        extra = self.background.params()
-        if extra:
-            groups.append({"params": extra, "lr": lr, "lr_scale": 1.0})
-        if self.appearance is not None:
-            groups += self.appearance.param_groups(lr)
-        return groups
+        """Adam's groups (`param_groups`)."""
+        return param_groups(self.field.param_groups(lr), self.background, self.appearance, lr)
 
     def train_mode(self, on: bool) -> None:
         self.field.train(on)
@@ -336,3 +339,17 @@ def grid_step(aabb: Tensor, resolution: int, ratio: float) -> float:
 EMPTY_OPACITY = 0.003
 """Opacity of one training step below which an occupancy cell counts as empty (a higher one empties cells of
 forward-facing scenes before their far wall is learned: docs/MEASUREMENTS.md, "Rendering")."""
+
+
+def param_groups(
+    field_groups: list[dict], background: Background | None, appearance: Appearance | None, lr: float
+) -> list[dict]:
+    """Adam's groups of a field model: its field's `field_groups`, a learned background colour's (at lr) and the
+    appearance codes'."""
+    groups = list(field_groups)
+    extra = background.params() if background is not None else []
+    if extra:
+        groups.append({"params": extra, "lr": lr, "lr_scale": 1.0})
+    if appearance is not None:
+        groups += appearance.param_groups(lr)
+    return groups

@@ -25,6 +25,7 @@ from torch import Tensor
 
 from nerfpipe.model.appearance import Appearance
 from nerfpipe.model.background import Background
+from nerfpipe.model.field_model import param_groups
 from nerfpipe.model.methods.sdf.field import SdfField
 from nerfpipe.model.methods.sdf.neus import composite_weights, neus_tau, weights_from_tau
 from nerfpipe.radiance.safe import eps
@@ -109,13 +110,7 @@ class SdfModel:
 
     # ------------------------------------------------------------------------------------------------ TrainModel
     def param_groups(self, lr: float) -> list[dict]:
-        groups = self.field.param_groups(lr)
-        extra = self.background.params() if self.background is not None else []
-        if extra:
-            groups.append({"params": extra, "lr": lr, "lr_scale": 1.0})
-        if self.appearance is not None:
-            groups += self.appearance.param_groups(lr)
-        return groups
+        return param_groups(self.field.param_groups(lr), self.background, self.appearance, lr)
 
     def train_mode(self, on: bool) -> None:
         self.field.train(on)
