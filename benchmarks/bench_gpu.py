@@ -36,6 +36,7 @@ import shutil
 import subprocess
 import sys
 import time
+import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -349,6 +350,7 @@ def main(argv: list[str] | None = None) -> list[Row]:
             except Exception as e:  # noqa: BLE001 - recorded in the table, the rest still measured
                 if args.smoke:
                     raise
+                traceback.print_exc()
                 rows.append(Row(figure, f"failed: {type(e).__name__}: {e}"[:300], "-", time.perf_counter() - t0, False))
         _write(args, rows, device, started)
 

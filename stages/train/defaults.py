@@ -93,6 +93,7 @@ def resolve_defaults(config: Config, photos: Photos, device: torch.device, downs
     scene, views = photos.scene, photos.train
     has_alpha = scene.has_alpha or views.any_transparent()
     background, plain, bg_reason = choose_background(config.background, views, has_alpha)
+    background = background.to(device)  # every method's model holds it: its colours join the batch's device
     why = " (asked for)" if config.downscale else f": long side <= {_max_side(device)} px"
     reasons = {"background": bg_reason, "downscale": f"{downscale:g}{why}"}
     kind, kind_why = choose_space(config.scene_model, scene, plain_background=plain)
