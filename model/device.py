@@ -9,7 +9,7 @@ import torch
 
 from nerfpipe.data.errors import UserError
 
-__all__ = ["resolve_device", "cpu_threads"]
+__all__ = ["resolve_device", "cpu_threads", "rays_per_chunk", "CUDA_CHUNK_FACTOR"]
 
 
 def resolve_device(name: str | torch.device) -> torch.device:
@@ -27,6 +27,17 @@ def resolve_device(name: str | torch.device) -> torch.device:
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise UserError(f"device: {name} requested but torch sees no CUDA device")
     return dev
+
+
+CUDA_CHUNK_FACTOR = 32
+"""On CUDA an inference chunk holds this many times a model's CPU chunk (8192 -> 262,144 rays for the grid fields):
+the early-stopping march runs one round of small kernels and host syncs per slab of every chunk, so 8192-ray chunks
+left an H200 launch-bound (lego_800: 0.36 M rays/s in eval, 0.8 frames/s in the viewer at 800x800; docs/GPU.md)."""
+
+
+def rays_per_chunk(cpu_chunk: int, device: torch.device) -> int:
+    """Rays per inference chunk on `device`, from a model's CPU chunk (sized to CPU caches and memory)."""
+    return cpu_chunk * CUDA_CHUNK_FACTOR if device.type == "cuda" else cpu_chunk
 
 
 @contextlib.contextmanager

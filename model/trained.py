@@ -26,6 +26,7 @@ from nerfpipe.data.transforms import Scene, read_scene
 from nerfpipe.model.appearance import Appearance
 from nerfpipe.model.camera_opt import TEST_POSE_RULE, refined_scene
 from nerfpipe.model.checkpoint import read_checkpoint, restore_appearance
+from nerfpipe.model.device import rays_per_chunk
 from nerfpipe.model.field_model import EXACT, FieldModel, Inference
 from nerfpipe.model.methods.base import RunFiles
 from nerfpipe.radiance.fields import Field
@@ -86,7 +87,7 @@ class Trained:
 
     @property
     def chunk(self) -> int:
-        return self.model.chunk
+        return rays_per_chunk(self.model.chunk, self.device)
 
     @property
     def appearance(self) -> Appearance | None:

@@ -443,7 +443,9 @@ def _gather_rows(xyz: tuple[Tensor, Tensor, Tensor], flat: Tensor) -> Tensor:
 COLOUR_BATCH = 8192
 """Samples per colour call of the early-stopping march. The colour of a chunk's samples (up to 16 a ray, 131k for
 8192 rays) in one call builds [3, C, N] feature tensors far beyond the caches; in batches of 8192 the same values
-cost 1.3 instead of 2.4-3.4 us a sample (fox, 150 s run, one thread; 4096: 1.3-1.7, 16384: 1.3-2.2)."""
+cost 1.3 instead of 2.4-3.4 us a sample (fox, 150 s run, one thread; 4096: 1.3-1.7, 16384: 1.3-2.2). On CUDA
+`COLOUR_BATCH_CUDA`: there a call costs a launch per layer, not cache misses."""
+COLOUR_BATCH_CUDA = 1 << 20
 
 
 def _in_batches(fn: RgbFn, x: Tensor, d: Tensor) -> Tensor:
@@ -451,9 +453,10 @@ def _in_batches(fn: RgbFn, x: Tensor, d: Tensor) -> Tensor:
     on its own, so the values are one call's (bit for bit with the fields' colour at 8192, a multiple of every SIMD
     width, which keeps each sample in the same vectorised loop; another size may move a sample to torch's scalar
     loop: float32 rounding)."""
-    if x.shape[0] <= COLOUR_BATCH:
+    size = COLOUR_BATCH_CUDA if x.device.type == "cuda" else COLOUR_BATCH
+    if x.shape[0] <= size:
         return fn(x, d)
-    return torch.cat([fn(x[i : i + COLOUR_BATCH], d[i : i + COLOUR_BATCH]) for i in range(0, x.shape[0], COLOUR_BATCH)])
+    return torch.cat([fn(x[i : i + size], d[i : i + size]) for i in range(0, x.shape[0], size)])
 
 
 def _shade_packed(

@@ -79,3 +79,24 @@ def test_terminating_march_equals_its_twin_in_float64(kind):
     assert exact["samples"] == plain["ray_indices"].numel() > 0
     for key in ("rgb", "acc", "depth", "depth_median"):
         torch.testing.assert_close(exact[key], plain[key], atol=1e-9, rtol=0, equal_nan=True)
+
+
+@pytest.mark.parametrize("kind", ["contract", "box"])
+def test_inference_is_the_same_in_any_chunk_size(kind):
+    """On CUDA inference chunks are CUDA_CHUNK_FACTOR times the CPU's (`model.device.rays_per_chunk`): that is safe
+    only because inference colours every sample above the threshold (no per-batch budget), so a ray's outputs do not
+    depend on the rays rendered with it."""
+    from nerfpipe.model.device import CUDA_CHUNK_FACTOR, rays_per_chunk
+    from nerfpipe.model.field_model import COLOR_THRESHOLD, INFER_COLOR_PER_RAY
+
+    assert rays_per_chunk(8192, torch.device("cpu")) == 8192
+    assert rays_per_chunk(8192, torch.device("cuda")) == 8192 * CUDA_CHUNK_FACTOR
+    marcher, sigma = _scene(kind)
+    colour = render.ColourRule(threshold=COLOR_THRESHOLD, per_ray=INFER_COLOR_PER_RAY)
+    kw = dict(marcher=marcher, sigma_fn=sigma, rgb_fn=lambda x, d: torch.sigmoid(3 * x + d), with_median=True)
+    kw |= dict(min_transmittance=1e-4, colour=colour)
+    o, d = _rays(96, torch.float32)
+    whole = render_marched(o, d, **kw)
+    parts = [render_marched(o[i : i + 7], d[i : i + 7], **kw) for i in range(0, 96, 7)]
+    for key in ("rgb", "acc", "depth", "depth_median"):
+        torch.testing.assert_close(torch.cat([p[key] for p in parts]), whole[key], atol=1e-6, rtol=0, msg=key)

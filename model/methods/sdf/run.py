@@ -25,6 +25,7 @@ from torch import Tensor
 from nerfpipe.data.checks import Check
 from nerfpipe.data.transforms import Scene
 from nerfpipe.model.appearance import Appearance
+from nerfpipe.model.device import rays_per_chunk
 from nerfpipe.model.methods.sdf.model import SdfModel
 from nerfpipe.radiance.safe import eps
 
@@ -63,7 +64,7 @@ class SdfRun:
 
     @property
     def chunk(self) -> int:
-        return self.model.chunk
+        return rays_per_chunk(self.model.chunk, self.device)
 
     @property
     def appearance(self) -> Appearance | None:
