@@ -90,7 +90,7 @@ def _convert(out: Any) -> str:
 
 
 def _train(out: Any) -> str:
-    psnr = "n/a" if out.test_psnr is None else f"{out.test_psnr:.2f} dB"
+    psnr = "n/a" if out.test_psnr is None else f"{out.test_psnr:.2f} dB ({out.test_scored})"
     return f"{out.steps} steps in {out.seconds:.1f} s, test PSNR {psnr} -> {out.run_dir}"
 
 

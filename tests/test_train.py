@@ -172,7 +172,8 @@ def test_config_json_holds_the_resolved_config_in_groups(rgba_scene, tmp_path):
     assert doc["method"] == "density" and doc["options"]["view_dependent"] is True
     assert doc["lr"] == 0.03 and doc["batch_rays"] == 1024
     assert doc["downscale"] == 1.0 and isinstance(doc["threads"], int) and doc["refine"] is None
-    assert doc["final_eval_views"] == len(json.loads(out.manifest.read_text())["used"]["test_views_full_eval"])
+    used = json.loads(out.manifest.read_text())["used"]
+    assert doc["final_eval_views"] == len(used["test_views_scored"]) == used["test_psnr_scored"]["of"]
     options = doc["options"]
     assert options["resolution"] == [16, 24] and options["tv"] == 0.0 and options["depth_loss"] == 0.0
     assert options["upsample_at"] == [0.05, 0.1, 0.2, 0.3] and options["step_ratio"] == 2.0
@@ -352,3 +353,26 @@ def test_forward_facing_scene_trains_in_ndc_and_depth_maps_back(tmp_path):
     )
     used = json.loads(box.manifest.read_text())["used"]
     assert used["scene_model"] == "box" and used["field"]["hidden"] == 24  # --mlp-width reaches the field
+
+
+def test_end_of_run_psnr_scores_every_test_view_on_a_stride_that_fits():
+    """Default end-of-run PSNR: all test views, on every stride-th pixel; the stride fits the budget and keeps at
+    least MIN_SCORED_PIXELS a view; whole images when they fit (issue 54: one hand-picked view said 30.5 dB where
+    the 23 views said 23.98)."""
+    from nerfpipe.stages.train.defaults import MIN_SCORED_PIXELS, final_eval_stride
+
+    cfg = train.Config(scene_dir=Path("s"), run_dir=Path("r"), max_seconds=100.0, final_eval_fraction=0.1)
+    assert final_eval_stride(cfg, 23, rays_per_second=1e7, pixels_per_view=1e5) == 1  # 2.3 M rays fit in 1e8
+    assert final_eval_stride(cfg, 23, rays_per_second=1e4, pixels_per_view=1e5) == 23  # 1e5 rays fit: 1/23 each
+    assert final_eval_stride(cfg, 23, rays_per_second=1.0, pixels_per_view=1e5) == int(1e5 // MIN_SCORED_PIXELS)
+    assert final_eval_stride(cfg, 3, rays_per_second=1.0, pixels_per_view=100.0) == 1  # tiny views: whole
+
+
+def test_train_line_names_what_its_psnr_scored(rgba_scene, tmp_path):
+    out = train.run(_config(rgba_scene, tmp_path / "run", max_steps=2, eval_every=0))
+    used = json.loads(out.manifest.read_text())["used"]
+    n = used["test_views"]
+    assert out.test_scored.startswith(f"{n} of {n} test views") and used["test_psnr_scored"]["views"] == n
+    from nerfpipe import cli
+
+    assert f"({out.test_scored})" in cli._train(out)

@@ -56,7 +56,7 @@ from nerfpipe.model.distributed import DataParallel, joined, rank_device, world_
 from nerfpipe.model.views import evenly_spaced
 from nerfpipe.stages.train.checks import train_checks
 from nerfpipe.stages.train.config import Config, RefineOptions, validate
-from nerfpipe.stages.train.defaults import final_eval_views
+from nerfpipe.stages.train.defaults import final_eval_stride
 from nerfpipe.stages.train.loop import Loop, TrainingDiverged, evaluate_psnr
 from nerfpipe.stages.train.refine import PoseRefinement
 from nerfpipe.stages.train.report import per_view_report, plot_psnr, used_and_left_out
@@ -77,7 +77,9 @@ class Outputs:
     steps: int
     seconds: float
     test_psnr: float | None
-    """Mean PSNR over the full test images at the end (None when the scene has no test split)."""
+    """Mean PSNR over the test views scored at the end (None when the scene has no test split)."""
+    test_scored: str = ""
+    """What test_psnr scored, in words: "7 of 7 test views, every 3rd pixel" ("" without a test split)."""
 
 
 def run(config: Config, progress: Progress | None = None) -> Outputs:
@@ -140,7 +142,7 @@ def _run(config: Config, progress: Progress, par: DataParallel | None = None) ->
             seconds=seconds,
             test_psnr=None,
         )
-    test_psnr, chosen, n_views = _final_eval(config, loop, seconds)
+    test_psnr, chosen, n_views, stride = _final_eval(config, loop, seconds)
     write_run_config(run_dir, dataclasses.replace(config, final_eval_views=n_views), scene_path)
     plot = run_dir / "psnr_vs_time.png"
     plot_psnr(plot, loop.metrics.rows, f"train {config.method} on {scene_path.name}")
@@ -152,6 +154,7 @@ def _run(config: Config, progress: Progress, par: DataParallel | None = None) ->
         train_idx=train_idx,
         test_idx=test_idx,
         chosen=chosen,
+        stride=stride,
         test_psnr=test_psnr,
     )
     used["defaults"] = record
@@ -196,6 +199,7 @@ def _run(config: Config, progress: Progress, par: DataParallel | None = None) ->
         steps=loop.step,
         seconds=seconds,
         test_psnr=test_psnr,
+        test_scored=used.get("test_psnr_scored", {}).get("words", ""),
     )
 
 
@@ -218,27 +222,31 @@ def _refinement_records(loop: Loop, scene: Scene, train_idx: tuple[int, ...], us
     return [write_refined_transforms(scene, refine.cameras.to_dict(), train_idx, path)]
 
 
-def _final_eval(config: Config, loop: Loop, seconds: float) -> tuple[float | None, list[int], int]:
-    """Mean PSNR over evenly spaced full test images (None without a test split), the views rendered and
-    final_eval_views resolved for config.json: as given, else what `stages.train.defaults.final_eval_views` chose
-    at the render speed of the periodic evaluations (or of one view), 0 without a test split. The PSNR is logged
-    to metrics.csv."""
+def _final_eval(config: Config, loop: Loop, seconds: float) -> tuple[float | None, list[int], int, int]:
+    """Mean PSNR over the test views (None without a test split), the views scored, final_eval_views resolved for
+    config.json, and the pixel stride. final_eval_views given: that many evenly spaced views, whole. Else every test
+    view on every stride-th pixel, the stride `stages.train.defaults.final_eval_stride` fits in the budget at the
+    render speed of the periodic evaluations (or of a few rays). The PSNR is logged to metrics.csv."""
     loop.model.train_mode(False)
-    test_psnr, chosen, k = None, [], config.final_eval_views or 0
+    test_psnr, chosen, stride = None, [], 1
     if loop.test is not None:
         n = len(loop.test.shapes)
         bg = loop.model.background.eval_colour().detach()
-        k = config.final_eval_views
-        if k is None:
+        if config.final_eval_views is not None:
+            chosen = evenly_spaced(n, config.final_eval_views)
+        else:
+            chosen = list(range(n))
             rate = loop.eval_rays_per_second or _rays_per_second(loop, bg)
-            k = final_eval_views(config, n, rate, float(np.mean([h * w for h, w in loop.test.shapes])))
-        chosen = evenly_spaced(n, k)
+            stride = final_eval_stride(config, n, rate, float(np.mean([h * w for h, w in loop.test.shapes])))
         rays = loop.test_rays()
-        psnrs = [evaluate_psnr(loop.model, loop.test, loop.test.pixels_of(v), bg, loop.device, rays) for v in chosen]
+        psnrs = [
+            evaluate_psnr(loop.model, loop.test, loop.test.pixels_of(v)[::stride], bg, loop.device, rays)
+            for v in chosen
+        ]
         test_psnr = float(np.mean(psnrs))
         loop.metrics.append(step=loop.step, seconds=round(seconds, 3), test_psnr=f"{test_psnr:.3f}")
     loop.metrics.save()
-    return test_psnr, chosen, k
+    return test_psnr, chosen, len(chosen), stride
 
 
 def _rays_per_second(loop: Loop, bg: torch.Tensor) -> float:

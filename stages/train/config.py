@@ -88,15 +88,15 @@ class Config:
     options: Any = None
     """The method's options group (its `Method.Options`; None: its defaults), on the command line its own flags."""
     final_eval_views: int | None = None
-    """Test views rendered in full at the end, evenly spaced over the test split (None: as many as fit in
-    `final_eval_fraction` of max_seconds at the measured render speed, at least 1; `eval` scores them all).
-    Evenly spaced: the NeRF Blender test views follow a path, so the first k views are one arc."""
+    """Test views scored in full at the end, evenly spaced over the test split (the NeRF Blender test views follow
+    a path: the first k views are one arc). None: every test view, on every stride-th pixel, the stride that fits
+    `final_eval_fraction` of max_seconds at the measured render speed (`defaults.final_eval_stride`)."""
     downscale: float | None = None
     """Train and evaluate on images shrunk by this factor (area filter). None: the smallest power of two that
     brings the long side to <= 800 px on CPU, <= 1600 px on CUDA (nerfstudio's auto downscale; a phone's
     1080x1920 trains at 270x480 on CPU, where the grid could not use more pixels in the time)."""
     final_eval_fraction: float = 0.1
-    """Budget of the final full-image evaluation, as a fraction of max_seconds (when final_eval_views is None)."""
+    """Budget of the end-of-run PSNR, as a fraction of max_seconds (when final_eval_views is None)."""
     threads: int | None = None
     """CPU: torch intra-op threads during the run (None: torch's default). On a shared or oversubscribed CPU,
     1 can be many times faster than 2 (measured 0.16 s vs 2.0 s per step on the 2-core dev machine)."""

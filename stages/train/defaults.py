@@ -25,6 +25,7 @@ loop reads; final_eval_views joins it at the end), with the reason of each in th
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -39,7 +40,7 @@ from nerfpipe.radiance.space import Space
 from nerfpipe.stages.train.background import choose_background
 from nerfpipe.stages.train.config import Config, method_options
 
-__all__ = ["Defaults", "Photos", "resolve_defaults", "resolve_downscale", "final_eval_views"]
+__all__ = ["Defaults", "Photos", "resolve_defaults", "resolve_downscale", "final_eval_stride"]
 
 
 @dataclass(frozen=True)
@@ -138,8 +139,16 @@ def _run_options(config: Config, method: Method, cuda: bool, reasons: dict[str, 
     return {"batch_rays": batch, "lr": lr, "threads": threads}
 
 
-def final_eval_views(config: Config, n_views: int, rays_per_second: float, pixels_per_view: float) -> int:
-    """How many test views the end of the run renders in full when `Config.final_eval_views` is None: as many as
-    fit in final_eval_fraction x max_seconds at the render speed measured, at least 1, at most n_views."""
-    fit = int(config.final_eval_fraction * config.max_seconds * rays_per_second / pixels_per_view)
-    return max(1, min(n_views, fit))
+MIN_SCORED_PIXELS = 4096
+"""Pixels of a test view the end-of-run PSNR scores at least (a stride never leaves fewer): about 0.1 dB of
+sampling spread for a view's PSNR."""
+
+
+def final_eval_stride(config: Config, n_views: int, rays_per_second: float, pixels_per_view: float) -> int:
+    """The pixel stride of the end-of-run PSNR when `Config.final_eval_views` is None: every test view is scored
+    (a few hand-picked ones told a phone capture's user 30.5 dB where `eval` over its 23 views said 23.98), on every
+    stride-th pixel of each, the stride that fits final_eval_fraction x max_seconds at the render speed measured;
+    1 (whole images) when they all fit, never so large that a view keeps fewer than MIN_SCORED_PIXELS."""
+    fit = config.final_eval_fraction * config.max_seconds * rays_per_second
+    stride = max(1, math.ceil(n_views * pixels_per_view / max(fit, 1.0)))
+    return max(1, min(stride, int(pixels_per_view // MIN_SCORED_PIXELS)))

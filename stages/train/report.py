@@ -79,6 +79,7 @@ def used_and_left_out(
     train_idx: tuple[int, ...],
     test_idx: tuple[int, ...],
     chosen: list[int],
+    stride: int,
     test_psnr: float | None,
 ) -> tuple[dict[str, Any], dict[str, str]]:
     """The manifest's record of what the finished `loop` used and what it left out (and why)."""
@@ -97,8 +98,8 @@ def used_and_left_out(
         "train_seconds": round(seconds, 3),
         "train_views": len(train_idx),
         "test_views": len(test_idx),
-        "test_psnr_full_images": test_psnr,
-        "test_views_full_eval": [test_idx[v] for v in chosen],
+        "test_psnr": test_psnr,
+        "test_views_scored": [test_idx[v] for v in chosen],
         "background": model.background.describe(),
         "scene_type": "forward-facing" if is_forward_facing(scene) else "bounded / 360",
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
@@ -117,9 +118,25 @@ def used_and_left_out(
         left_out["data_parallel"] = "one process (torchrun --nproc-per-node N ... shares each step's rays among N)"
     if not test_idx:
         left_out["test_psnr"] = "scene has no test or val split"
+    else:
+        pixels = "whole images" if stride == 1 else f"every {_ordinal(stride)} pixel"
+        used["test_psnr_scored"] = {
+            "views": len(chosen),
+            "of": len(test_idx),
+            "pixel_stride": stride,
+            "words": f"{len(chosen)} of {len(test_idx)} test views, {pixels}",
+        }
+        if len(chosen) < len(test_idx):
+            left_out["test_views"] = (
+                f"test PSNR on {len(chosen)} of {len(test_idx)} views (final_eval_views): `eval` scores them all"
+            )
     if "occupancy_skip_fraction" not in described:
         left_out["occupancy_grid"] = f"the {loop.method.name} method does not march an occupancy grid"
     return used, left_out
+
+
+def _ordinal(k: int) -> str:
+    return f"{k}{'th' if 10 <= k % 100 <= 20 else {1: 'st', 2: 'nd', 3: 'rd'}.get(k % 10, 'th')}"
 
 
 def _view_image(scene: Scene, i: int, w: int, h: int) -> np.ndarray:
