@@ -46,7 +46,9 @@ $(OUT)/video.mp4: $(RUN_DIR)/manifest.json $(call stage_code,render) | $(INSTALL
 	$(call show_plan,render)
 	$(NERFPIPE) render $(RUN_DIR) $@ --path auto --max-seconds $$($(PLAN) render-seconds $(RUN_DIR)) $(RENDER_ARGS)
 
-$(OUT)/depth/manifest.json: $(RUN_DIR)/manifest.json $(call stage_code,depth) | $(INSTALLED)
+# depth after eval (order only: a new eval.json does not make the depth maps stale): eval keeps the test views'
+# depth in the run's render cache (model/view_cache.py) and depth takes them from there instead of rendering again.
+$(OUT)/depth/manifest.json: $(RUN_DIR)/manifest.json $(call stage_code,depth) | $(OUT)/eval.json $(INSTALLED)
 	$(call show_plan,depth)
 	$(NERFPIPE) depth $(RUN_DIR) $(OUT)/depth --overwrite $(DEPTH_ARGS)
 

@@ -56,6 +56,7 @@ from nerfpipe.data.rundir import (
 )
 from nerfpipe.data.video import colorize, depth_legend_png, to_uint8, video_writer, write_png
 from nerfpipe.model import camera_path, load_trained, render_view, resolve_device
+from nerfpipe.model.view_cache import open_view_cache
 from nerfpipe.radiance.camera import Intrinsics, generate_rays
 
 __all__ = ["Config", "Outputs", "VIEWS", "KINDS", "run", "depth_mm"]
@@ -247,10 +248,15 @@ def _run(config: Config, progress: Progress | None = None) -> Outputs:
     progress = progress or NO_PROGRESS
     task = progress.add_task(f"depth {config.views}", total=2 * len(cams.names))
     watch = _DepthWatch(_far_bound(trained))
+    cache = open_view_cache(Path(config.run_dir)) if Path(config.run_dir).is_dir() else None
+    cached = 0  # views taken from the run's render cache (eval's renders of the test views)
     for k, name in enumerate(cams.names):
         intr, pose = cams.intrinsics[k], cams.world_from_cams[k]
         t0 = time.perf_counter()
-        view = render_view(trained, intr, pose, device)
+        view = cache.get(intr, pose) if cache is not None else None
+        cached += view is not None
+        if view is None:
+            view = render_view(trained, intr, pose, device)
         seconds = time.perf_counter() - t0
         opaque = view["acc"] >= config.acc_threshold
         valid = opaque & np.isfinite(view[key]) & (view[key] > 0)
@@ -326,6 +332,9 @@ def _run(config: Config, progress: Progress | None = None) -> Outputs:
             "downscale": downscale,
             "device": str(device),
             "views": len(cams.names),
+            "views_from_render_cache": cached,
+            "render_cache": "the run's renders/ folder (model.view_cache): views `eval` rendered are not rendered "
+            "again",
             "units": "user (source) units: scene depth / applied_scale",
             "applied_scale": scale,
             "background": f"accumulation < {config.acc_threshold} -> depth 0",

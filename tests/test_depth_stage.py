@@ -169,3 +169,44 @@ def test_depth_from_a_real_training_run(tmp_path):
     mm = cv2.imread(str(out.depth_mm[0]), cv2.IMREAD_UNCHANGED)
     assert depth.shape == mm.shape == (24, 24) and np.isfinite(depth).all() and (depth >= 0).all()
     assert np.abs(mm.astype(np.float64) - np.minimum(depth * 1000, 65535)).max() <= 0.5 + 1e-3
+
+
+def test_depth_takes_the_test_views_eval_rendered_from_the_run_cache(sphere_run, tmp_path, monkeypatch):
+    """eval keeps each test view's depth in RUN/renders (model.view_cache); depth then renders none of them again
+    and writes the same maps as a depth that renders them (issue 54: the phone capture's 23 test views were
+    rendered twice, 325 + 359 s)."""
+    import nerfpipe.stages.eval as eval_stage
+
+    run_dir, fake = sphere_run
+    (run_dir / "manifest.json").write_text(json.dumps({"checkpoint_sha256": "ab" * 32}))
+    eval_stage.run(eval_stage.Config(run_dir=run_dir, out=tmp_path / "eval.json"))
+    n = len(fake.scene.split("test"))
+    assert len(list((run_dir / "renders").glob("*.npz"))) == n
+    calls = []
+    monkeypatch.setattr(depth_stage, "render_view", lambda *a, **k: calls.append(1) or render_view(*a, **k))
+    cached = depth_stage.run(depth_stage.Config(run_dir=run_dir, out_dir=tmp_path / "cached"))
+    assert calls == [] and json.loads(cached.manifest.read_text())["used"]["views_from_render_cache"] == n
+    (run_dir / "manifest.json").write_text(json.dumps({"checkpoint_sha256": "cd" * 32}))  # retrained: a miss
+    fresh = depth_stage.run(depth_stage.Config(run_dir=run_dir, out_dir=tmp_path / "fresh"))
+    assert len(calls) == n and json.loads(fresh.manifest.read_text())["used"]["views_from_render_cache"] == 0
+    for a, b in zip(cached.depth, fresh.depth, strict=True):
+        assert np.array_equal(np.load(a), np.load(b))
+
+
+def test_view_cache_keys_on_checkpoint_and_camera(tmp_path):
+    from nerfpipe.model.view_cache import ViewCache
+    from nerfpipe.radiance.camera import Intrinsics
+
+    intr, pose = Intrinsics(w=4, h=3, fx=5.0, fy=5.0, cx=2.0, cy=1.5), np.eye(4)
+    view = {k: np.full((3, 4), v, np.float32) for k, v in (("depth", 2.0), ("depth_median", 2.5), ("acc", 1.0))}
+    cache = ViewCache(tmp_path / "r", "a" * 64)
+    assert cache.get(intr, pose) is None and cache.put(intr, pose, view)
+    assert np.array_equal(cache.get(intr, pose)["depth_median"], view["depth_median"])
+    moved = pose.copy()
+    moved[0, 3] = 1e-3
+    assert cache.get(intr, moved) is None and ViewCache(tmp_path / "r", "b" * 64).get(intr, pose) is None
+    assert cache.get(dataclasses.replace(intr, w=5, cx=2.5), pose) is None
+    with pytest.raises(ValueError, match="missing acc"):
+        cache.put(intr, pose, {"depth": view["depth"], "depth_median": view["depth"]})
+    (tmp_path / "file").write_text("")
+    assert not ViewCache(tmp_path / "file" / "r", "a" * 64).put(intr, pose, view)  # cannot be written: False

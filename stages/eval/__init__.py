@@ -61,6 +61,7 @@ from nerfpipe.model.appearance import EVAL_RULES as APPEARANCE_RULES
 from nerfpipe.model.appearance import apply_transform, fit_code
 from nerfpipe.model.camera_opt import TEST_POSE_OPT_RULE, optimise_test_pose, test_pose_placement
 from nerfpipe.model.splat_run import open_input
+from nerfpipe.model.view_cache import KEPT, open_view_cache
 from nerfpipe.radiance.compositing import over_background
 from nerfpipe.radiance.metrics import psnr
 from nerfpipe.stages.eval.checks import MAX_GAP_DB, MIN_PSNR, self_checks, train_psnr
@@ -176,6 +177,8 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     test_pose_moves: list[dict[str, float]] = []
     centre = np.asarray(scene.aabb, dtype=np.float64).mean(0)  # test-pose corrections turn about its depth
     has_appearance = trained.appearance is not None
+    cache = open_view_cache(Path(source.run_dir)) if source.splat_file is None else None
+    kept = 0  # views whose depth went into the run's render cache (model.view_cache) for `depth`
     for k, i in enumerate(idx):
         photo = load_masked_image(scene, i)  # masked-out pixels transparent, as in training (data.masks)
         if downscale != 1.0:
@@ -197,6 +200,8 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         view = _render_scored(trained, intr, pose, device, photo, half, background, depth=gt is not None)
         render_seconds += time.perf_counter() - t0
         rendered_px += w * h
+        if cache is not None and not pose_steps and all(key in view for key in KEPT):
+            kept += cache.put(intr, pose, view)
         pred = np.clip(view["rgb"], 0.0, 1.0)
         p_s, g_s = (pred[:, w // 2 :], photo[:, w // 2 :]) if half else (pred, photo)
         row: dict[str, Any] = {
@@ -269,6 +274,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
             "ssim": "skimage structural_similarity, 7x7, data_range 1",
             "test_poses": result["test_poses"],
             "appearance": result["appearance"],
+            "render_cache": _cache_record(cache, kept, len(views)),
         },
         left_out={
             **({"lpips": lpips_reason} if lpips_reason else {}),
@@ -279,6 +285,15 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     )
     write_json(out, result)  # last: OUT (make's target) appears only after its manifest, so a failure leaves none
     return Outputs(out=out, metrics=metrics.path, manifest=manifest, result=result)
+
+
+def _cache_record(cache, kept: int, views: int) -> str:
+    """What the run's render cache received (`model.view_cache`: `depth` reads it instead of rendering again)."""
+    if cache is None:
+        return "none: not a train run folder with a finished manifest"
+    if kept < views:
+        return f"{kept} of {views} views kept in {cache.folder} (test-pose optimisation, or the folder is read-only)"
+    return f"{kept} views' depth kept in {cache.folder} for `depth`"
 
 
 def _render_scored(
