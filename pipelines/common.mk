@@ -39,16 +39,18 @@ $(RUN_DIR)/manifest.json: $(SCENE_DIR)/transforms.json $(call stage_code,train) 
 	$(call show_plan,train)
 	$(NERFPIPE) train $(SCENE_DIR) $(RUN_DIR) --overwrite $(TRAIN_ARGS)
 
-# The default video costs about what training did: --max-seconds is the training run's time (its manifest's
-# used.train_seconds, at least 60 s); render shrinks, then thins, the frames to fit. RENDER_ARGS come after it,
+# The default video costs about half what training did: --max-seconds is half the training run's time (its
+# manifest's used.train_seconds, at least 60 s; pipelines/plan.py RENDER_SHARE); render shrinks, then thins, the
+# frames to fit. RENDER_ARGS come after it,
 # so RENDER_ARGS='--max-seconds 3600' (or --frames, --downscale) asks for more.
 $(OUT)/video.mp4: $(RUN_DIR)/manifest.json $(call stage_code,render) | $(INSTALLED)
 	$(call show_plan,render)
 	$(NERFPIPE) render $(RUN_DIR) $@ --path auto --max-seconds $$($(PLAN) render-seconds $(RUN_DIR)) $(RENDER_ARGS)
 
-# depth after eval (order only: a new eval.json does not make the depth maps stale): eval keeps the test views'
-# depth in the run's render cache (model/view_cache.py) and depth takes them from there instead of rendering again.
-$(OUT)/depth/manifest.json: $(RUN_DIR)/manifest.json $(call stage_code,depth) | $(OUT)/eval.json $(INSTALLED)
+# depth reads the run through what eval leaves: eval keeps the test views' depth in the run's render cache
+# (model/view_cache.py) and depth takes them from there instead of rendering again (a new eval.json, which a new run
+# makes, remakes the maps: seconds). One prerequisite read, as pipelines/Snakefile's READS says.
+$(OUT)/depth/manifest.json: $(OUT)/eval.json $(call stage_code,depth) | $(INSTALLED)
 	$(call show_plan,depth)
 	$(NERFPIPE) depth $(RUN_DIR) $(OUT)/depth --overwrite $(DEPTH_ARGS)
 

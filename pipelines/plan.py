@@ -13,10 +13,12 @@ stage after it. Figures (rough, for a laptop-class CPU; a CUDA GPU makes every s
   a frame for sequential video matching): the fox's 50 phone photos took 45 s on an idle 2-core machine;
 - convert: about 0.3 s a photo (copies and the downscaled copies);
 - train: its `--max-seconds`, 900 unless TRAIN_ARGS says otherwise (it may stop sooner at `--max-steps`);
-- render: its `--max-seconds`, which the Makefile sets to the training run's time (`render-seconds`: the run's
-  `used.train_seconds`, at least `MIN_RENDER_SECONDS`) unless RENDER_ARGS says otherwise;
-- depth, eval: the test views (every 8th photo) at the size train works at (its default downscale: the long side
+- render: its `--max-seconds`, which the Makefile sets to half the training run's time (`render-seconds`:
+  `RENDER_SHARE` of the run's `used.train_seconds`, at least `MIN_RENDER_SECONDS`) unless RENDER_ARGS says otherwise;
+- eval: the test views (every 8th photo) at the size train works at (its default downscale: the long side
   brought to <= 800 px by a power of two) at `CPU_RAYS_PER_S` (render speed measured on the fox on CPU);
+- depth: after eval, the test views' depth from eval's renders (the run's render cache): seconds; other views
+  (DEPTH_ARGS --views train|turntable, another --downscale) rendered as eval's are;
 - mesh: `resolution`^3 density queries at `CPU_POINTS_PER_S` plus colours, or about a minute.
 Stdlib only (Pillow for photo sizes when it is there). Never fails the build: a problem prints one line.
 """
@@ -41,6 +43,9 @@ CHAIN = ("poses", "convert", "train", "render", "depth", "eval", "mesh")
 TRAIN_SECONDS = 900.0
 """train's default --max-seconds."""
 MIN_RENDER_SECONDS = 60.0
+RENDER_SHARE = 0.5
+"""render's default budget as a share of the training time: the video, eval, depth (from eval's renders) and mesh
+together within the training's time (issue 54); the other half is eval's and mesh's."""
 CPU_RAYS_PER_S = 13_000.0
 CPU_POINTS_PER_S = 1_000_000.0
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"}
@@ -69,14 +74,14 @@ def _number(args: str, name: str, default: float) -> float:
 
 
 def render_seconds(run_dir: Path) -> float:
-    """Render's default budget: the training run's wall time (manifest `used.train_seconds`), at least
-    `MIN_RENDER_SECONDS`; train's default budget when the manifest cannot be read."""
+    """Render's default budget: `RENDER_SHARE` of the training run's wall time (manifest `used.train_seconds`), at
+    least `MIN_RENDER_SECONDS`; of train's default budget when the manifest cannot be read."""
     try:
         doc = json.loads((Path(run_dir) / "manifest.json").read_text())
         seconds = float(doc.get("used", {}).get("train_seconds") or doc["wall_seconds"])
     except (OSError, ValueError, KeyError, TypeError):
         seconds = TRAIN_SECONDS
-    return float(max(MIN_RENDER_SECONDS, math.ceil(seconds)))
+    return float(max(MIN_RENDER_SECONDS, math.ceil(RENDER_SHARE * seconds)))
 
 
 @dataclass(frozen=True)
@@ -186,11 +191,14 @@ def estimate(stage: str, f: Facts, args: dict[str, str]) -> tuple[float | None, 
         mine = option(args["render"], "--max-seconds")
         if mine:
             return _number(args["render"], "--max-seconds", train), "<=", "--max-seconds from RENDER_ARGS"
-        return max(train, MIN_RENDER_SECONDS), "<=", "--max-seconds = the training run's time (RENDER_ARGS for more)"
+        why = f"--max-seconds = {RENDER_SHARE:g} x the training run's time (RENDER_ARGS for more)"
+        return max(RENDER_SHARE * train, MIN_RENDER_SECONDS), "<=", why
     if stage in ("depth", "eval"):
         views, down = f.test_views, _train_downscale(f.size_wh)
         if stage == "depth":
             kind = option(args["depth"], "--views", "test")
+            if kind == "test" and option(args["depth"], "--downscale") is None:
+                return 5.0, "~", "the test views' depth from eval's renders (the run's render cache)"
             down = _number(args["depth"], "--downscale", down)
             if kind == "train" and n and views:
                 views = n - views

@@ -106,8 +106,8 @@ def test_all_ends_with_the_self_check_summary_and_it_never_fails_the_build(tmp_p
         "scene/transforms.json": {},
         "run/manifest.json": {},
         "video.mp4": None,
-        "depth/manifest.json": {},
         "eval.json": {},
+        "depth/manifest.json": {},  # after eval.json: depth reads eval's renders
         "mesh.ply": None,
     }
     for k, (rel, doc) in enumerate(records.items(), start=1):
@@ -132,12 +132,12 @@ def test_plan_reads_options_and_the_render_budget(tmp_path):
     assert plan.option("--max-steps 5 --max-seconds 120", "--max-seconds") == "120"
     assert plan.option("--max-seconds=30 --max-seconds 40", "--max-seconds") == "40"  # the last one wins
     assert plan.option("", "--max-seconds", "900") == "900"
-    assert plan.render_seconds(tmp_path) == plan.TRAIN_SECONDS  # no run yet: train's default budget
+    assert plan.render_seconds(tmp_path) == plan.RENDER_SHARE * plan.TRAIN_SECONDS  # no run yet: train's default
     (tmp_path / "manifest.json").write_text(json.dumps({"wall_seconds": 20, "used": {"train_seconds": 412.3}}))
-    assert plan.render_seconds(tmp_path) == 413
+    assert plan.render_seconds(tmp_path) == 207  # half the training time (issue 54), rounded up
     (tmp_path / "manifest.json").write_text(json.dumps({"wall_seconds": 20, "used": {"train_seconds": 2.0}}))
     assert plan.render_seconds(tmp_path) == plan.MIN_RENDER_SECONDS
     fox = plan.Facts(photos=50, size_wh=(1080, 1920), test_views=7, source="50 photos")
     args = {"poses": "", "train": "--max-seconds 300", "render": "", "depth": "", "mesh": ""}
-    assert plan.estimate("train", fox, args)[0] == 300 and plan.estimate("render", fox, args)[:2] == (300, "<=")
+    assert plan.estimate("train", fox, args)[0] == 300 and plan.estimate("render", fox, args)[:2] == (150, "<=")
     assert 40 < plan.estimate("eval", fox, args)[0] < 150  # 7 x 270 x 480 rays (train's downscale 4) at ~13k/s
