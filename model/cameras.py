@@ -56,14 +56,21 @@ OPAQUE = 0.5
 
 @torch.no_grad()
 def render_view(
-    trained: Any, intr: Intrinsics, world_from_cam: np.ndarray, device: torch.device, *, depth: bool = True
+    trained: Any,
+    intr: Intrinsics,
+    world_from_cam: np.ndarray,
+    device: torch.device,
+    *,
+    depth: bool = True,
+    infer: Any = None,
 ):
     """Render one camera (scene frame, OpenGL axes) of a run (`model.run.Run`). Returns numpy float32 arrays:
     rgb [H, W, 3], depth [H, W] (z-depth of the expected t, scene units), depth_median [H, W] (z-depth of the
     median t), acc [H, W]. Memory: `render_rays` works through the rays in chunks.
     A run that renders whole cameras (capability `cameras`: splats) renders the camera itself; with `depth=False` it
     may leave depth and depth_median out (a second pass for splats). A run that renders rays returns them whatever
-    `depth` says."""
+    `depth` says. `infer`: how a ray run's grid field stops its rays (`model.field_model.Inference`; None: the run's
+    exact default)."""
     if can(trained, "cameras"):
         return trained.render_camera(intr, world_from_cam, depth=depth)
     require(trained, "rays", stage="rendering a camera")
@@ -71,7 +78,8 @@ def render_view(
     rays_o, rays_d = generate_rays(intr, pose)  # float64 [R, 3]
     forward = -pose[:3, 2]
     cos = (rays_d @ forward).to(torch.float32)  # t -> z-depth factor
-    out = trained.render_rays(rays_o.to(device, torch.float32), rays_d.to(device, torch.float32))
+    extra = {} if infer is None else {"infer": infer}
+    out = trained.render_rays(rays_o.to(device, torch.float32), rays_d.to(device, torch.float32), **extra)
     h, w = intr.h, intr.w
 
     def grab(key: str, shape: tuple[int, ...]) -> np.ndarray:

@@ -334,3 +334,26 @@ def test_llff_image_folder_found_in_the_dataset(tmp_path):
         scene_dir=tmp_path / "s3",
         images=Path("no_such_folder"),
     )
+
+
+def test_look_at_box_follows_the_narrower_field_of_view():
+    """A ring of upright phone photos (portrait: 53 degrees across, 90 up): the box is what each camera sees
+    across its narrower side at the target's distance (half side d tan(theta_narrow)); the wider side made the
+    posed fox's box 2.3x too large (docs/GPU.md)."""
+    from nerfpipe.radiance.camera import Intrinsics
+    from nerfpipe.radiance.normalize import normalize
+
+    poses = []
+    for a in np.linspace(0, 2 * np.pi, 8, endpoint=False):
+        c = np.array([4 * np.cos(a), 4 * np.sin(a), 0.5])
+        back = c / np.linalg.norm(c)
+        right = np.cross([0.0, 0.0, 1.0], back)
+        right /= np.linalg.norm(right)
+        m = np.eye(4)
+        m[:3, :3] = np.stack([right, np.cross(back, right), back], axis=1)
+        m[:3, 3] = c
+        poses.append(m)
+    portrait = Intrinsics(w=100, h=200, fx=100.0, fy=100.0, cx=50.0, cy=100.0)  # tan: 0.5 across, 1.0 up
+    norm = normalize(np.stack(poses), [portrait] * 8, up="keep")
+    d = float(np.linalg.norm(poses[0][:3, 3]))  # the axes meet at the origin
+    assert norm.applied_scale == pytest.approx(1.0 / (d * 0.5), rel=1e-6)
