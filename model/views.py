@@ -36,7 +36,7 @@ class RayViews:
         self.offsets = offsets  # [V + 1] int64
 
     def __getitem__(self, idx: Tensor) -> Tensor:
-        return (torch.searchsorted(self.offsets, idx.long(), right=True) - 1).to(torch.int32)
+        return (torch.searchsorted(self.offsets, idx.long().contiguous(), right=True) - 1).to(torch.int32)
 
 
 @dataclass(frozen=True)

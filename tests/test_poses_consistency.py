@@ -267,3 +267,14 @@ def test_choice_names_the_deciding_check_when_the_kept_attempt_also_registered_m
     chosen = choose([fewer, right], total=40)
     assert chosen.index == 1 and "the most registered" in chosen.sentence
     assert "passed over: 'as configured' (38/40) failed capture_order = 2" in chosen.sentence
+
+
+def test_a_step_across_a_gap_in_the_frame_numbers_is_no_jump():
+    """The fox's photos go by 2 frame numbers with some left out: 0097.jpg -> 0103.jpg spans 3 typical steps, and 28
+    deg there is no fold (it was flagged as one); the same step between neighbouring numbers is one."""
+    steps = [(f"{i:04d}.jpg", f"{i + 2:04d}.jpg", 5.4) for i in range(1, 90, 2)]
+    across = [*steps, ("0091.jpg", "0097.jpg", 28.0)]
+    assert consistency.frame_spans([(a, b) for a, b, _ in across])[-1] == 3.0
+    assert consistency.jumps(across)[0] == []
+    assert consistency.jumps([*steps, ("0091.jpg", "0093.jpg", 28.0)])[0] == [("0091.jpg", "0093.jpg", 28.0)]
+    assert consistency.frame_spans([("a.jpg", "b.jpg"), ("IMG_1.jpg", "DSC_2.jpg")]) == [1.0, 1.0]  # no numbering

@@ -195,3 +195,21 @@ def test_with_pose_refinement_the_object_trains_on_a_random_colour_but_its_plain
     red = torch.zeros(20, 24, dtype=torch.bool)
     red[4:16, 6:18], red[7:13, 9:15] = True, False
     assert rand[red].all() and rand[:4].all() and rand[:, :6].all()  # the object and the background: random
+
+
+def test_the_background_joins_the_training_device(tmp_path):
+    """Every CUDA training failed at its first step (bench-gpu on an H200: the background colours stayed on the CPU
+    while the batch was on the GPU): the resolved background lives on the device it is resolved for. The meta
+    device stands in for CUDA here."""
+    from nerfpipe.model.views import load_views
+    from nerfpipe.stages.train.defaults import Photos, resolve_defaults
+
+    src, scene_dir = tmp_path / "src", tmp_path / "scene"
+    scene_stage.run(scene_stage.Config(out_dir=src, kind="rgba", size=24, views=6, seed=0))
+    convert_stage.run(convert_stage.Config(source=src, scene_dir=scene_dir, downscales=()))
+    scene = read_scene(scene_dir)
+    idx = scene.split("train")
+    photos = Photos(scene=scene, train=load_views(scene, idx), test=None, train_idx=idx)
+    config = train.Config(scene_dir=scene_dir, run_dir=tmp_path / "run")
+    found = resolve_defaults(config, photos, torch.device("meta"), 1.0)
+    assert found.context.background.fixed.device.type == "meta"

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import re
 import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -49,6 +50,7 @@ __all__ = [
     "order_is_path",
     "order_steps",
     "jumps",
+    "frame_spans",
     "rotation_disagreement",
     "neighbour_pairs",
     "neighbour_window",
@@ -176,12 +178,31 @@ def order_steps(rec: pycolmap.Reconstruction, names: Sequence[str]) -> list[tupl
 
 
 def jumps(steps: Sequence[tuple[str, str, float]]) -> tuple[list[tuple[str, str, float]], float]:
-    """(the steps that are jumps, the median step in degrees)."""
+    """(the steps that are jumps, the median step in degrees). A step across a gap in the photos' frame numbers
+    (`frame_spans`: 0097.jpg -> 0103.jpg where the others go by 2) may be as many median steps longer: the fox's
+    photos are every other frame of a walk with some left out, and a 28 deg step over 6 frames is no fold."""
     if not steps:
         return [], math.nan
     median = float(np.median([s for _, _, s in steps]))
-    limit = max(JUMP_FACTOR * median, JUMP_MIN_DEG)
-    return [s for s in steps if s[2] > limit], median
+    spans = frame_spans([(a, b) for a, b, _ in steps])
+    return [s for s, k in zip(steps, spans, strict=True) if s[2] > max(JUMP_FACTOR * median * k, JUMP_MIN_DEG)], median
+
+
+_FRAME_NUMBER = re.compile(r"^(.*?)(\d+)\D*$")
+
+
+def frame_spans(pairs: Sequence[tuple[str, str]]) -> list[float]:
+    """How many typical steps each consecutive pair of photo names spans, from the frame number in their names
+    (the last digits of the stem): the pair's number gap over the median gap, at least 1. All 1 when a name has
+    no number or the prefixes differ (no frame numbering to read)."""
+    parsed = [(_FRAME_NUMBER.match(Path(a).stem), _FRAME_NUMBER.match(Path(b).stem)) for a, b in pairs]
+    if not parsed or any(x is None or y is None or x.group(1) != y.group(1) for x, y in parsed):
+        return [1.0] * len(pairs)
+    gaps = [abs(int(y.group(2)) - int(x.group(2))) for x, y in parsed]
+    typical = float(np.median(gaps))
+    if typical <= 0:
+        return [1.0] * len(pairs)
+    return [max(1.0, g / typical) for g in gaps]
 
 
 def rotation_disagreement(a: pycolmap.Reconstruction, b: pycolmap.Reconstruction) -> tuple[float, float, int]:
