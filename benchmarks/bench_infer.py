@@ -33,6 +33,11 @@ PRESETS = {
     "keep3e-3": Inference(color_keep=3e-3),
     "t1e-4+keep1e-3": Inference(min_transmittance=1e-4, color_keep=1e-3),
     "t1e-3+keep3e-3": Inference(min_transmittance=1e-3, color_keep=3e-3),
+    "t1e-2+keep1e-2": Inference(min_transmittance=1e-2, color_keep=1e-2),
+    "t1e-3+keep3e-3+step1.5": Inference(min_transmittance=1e-3, color_keep=3e-3, step_scale=1.5),
+    "t1e-3+keep3e-3+step2": Inference(min_transmittance=1e-3, color_keep=3e-3, step_scale=2.0),
+    "t1e-2+keep1e-2+step1.5": Inference(min_transmittance=1e-2, color_keep=1e-2, step_scale=1.5),
+    "t1e-2+keep1e-2+step2": Inference(min_transmittance=1e-2, color_keep=1e-2, step_scale=2.0),
 }
 
 
@@ -41,7 +46,7 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float("inf") if mse == 0 else -10.0 * float(np.log10(mse))
 
 
-def bench(run_dir: Path, views: int | None, device) -> list[dict]:
+def bench(run_dir: Path, views: int | None, device, presets: list[str] | None = None) -> list[dict]:
     import cv2
 
     trained = load_trained(run_dir, device)
@@ -58,7 +63,8 @@ def bench(run_dir: Path, views: int | None, device) -> list[dict]:
         photos.append(over_background(photo[..., :3], photo[..., 3:], bg) if photo.shape[2] == 4 else photo)
     render_view(trained, cams.intrinsics[picks[0]].scaled(0.25), cams.world_from_cams[picks[0]], device)  # warm-up
     rows, exact = [], None
-    for name, infer in PRESETS.items():
+    for name in ["exact", *[p for p in (presets or PRESETS) if p != "exact"]]:  # exact first: the reference
+        infer = PRESETS[name]
         renders, seconds, rays = [], 0.0, 0
         for k in picks:
             intr = cams.intrinsics[k]
@@ -91,10 +97,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--device", default="auto")
     ap.add_argument("--json", type=Path, default=None, help="append the rows to this file")
+    ap.add_argument("--presets", nargs="*", choices=sorted(PRESETS), default=None, help="default: every preset")
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
-    rows = bench(args.run_dir, args.views, resolve_device(args.device))
+    rows = bench(args.run_dir, args.views, resolve_device(args.device), args.presets)
     if args.json:
         with args.json.open("a") as f:
             f.writelines(json.dumps(r) + "\n" for r in rows)

@@ -130,7 +130,7 @@ class StandIn:
         phase = torch.tensor([0.0, 2.0, 4.0], dtype=x.dtype)
         return 0.5 + 0.4 * torch.sin(3.0 * x.sum(dim=-1, keepdim=True) + phase)
 
-    def render_rays(self, rays_o: Tensor, rays_d: Tensor, *, median: bool = True) -> dict[str, Tensor]:
+    def render_rays(self, rays_o: Tensor, rays_d: Tensor, *, infer=None, median: bool = True) -> dict[str, Tensor]:
         """The analytic field rendered along rays [R, 3] (scene frame, unit directions): 384 samples over the
         cameras' range of depths through the box (t in [1, 5]), emission-absorption over black."""
         from nerfpipe.radiance.render import StratifiedSampler, render_rays

@@ -3,10 +3,10 @@
 `eval` renders every test view in full (colour, depth, opacity) to score it; `depth` needs the same rays' depth and
 opacity. `eval` puts what `depth` needs into `RUN_DIR/renders/KEY.npz` (float32 `depth`, `depth_median`, `acc`
 [H, W], as `model.cameras.render_view` returns them), and `depth` takes them from there instead of rendering again;
-`make`'s chain runs eval before depth for that. KEY is a hash of the checkpoint's sha256 and the camera (its
-intrinsics and world_from_cam, rounded to 1e-6): a retrained run, another resolution or another pose misses and is
-rendered. The folder is a cache: deleting it costs only time. Colour is not kept (12 bytes a pixel that no other
-stage reads back: eval scores its own render).
+`make`'s chain runs eval before depth for that. KEY is a hash of the checkpoint's sha256, the camera (its
+intrinsics and world_from_cam, rounded to 1e-6) and the inference settings: a retrained run, another resolution,
+another pose or `--exact` on one side only misses and is rendered. The folder is a cache: deleting it costs only
+time. Colour is not kept (12 bytes a pixel that no other stage reads back: eval scores its own render).
 
 A run folder that cannot be written (read-only, full) leaves the cache out: `put` returns False and the stage says
 so in its manifest; nothing fails for it.
@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -38,15 +39,16 @@ class ViewCache:
             raise ValueError("expected a checkpoint identity (its sha256), got an empty string")
         self.folder, self.identity = Path(folder), identity
 
-    def key(self, intr: Intrinsics, world_from_cam: np.ndarray) -> str:
+    def key(self, intr: Intrinsics, world_from_cam: np.ndarray, infer: Any = None) -> str:
         cam = [intr.w, intr.h, intr.fx, intr.fy, intr.cx, intr.cy, intr.k1, intr.k2, intr.k3, intr.p1, intr.p2]
         pose = np.asarray(world_from_cam, dtype=np.float64).reshape(-1)[:12]
-        doc = {"checkpoint": self.identity, "camera": [round(float(v), 6) for v in [*cam, *pose]]}
+        doc = {"checkpoint": self.identity, "camera": [round(float(v), 6) for v in [*cam, *pose]], "infer": repr(infer)}
         return hashlib.sha256(json.dumps(doc).encode()).hexdigest()[:32]
 
-    def get(self, intr: Intrinsics, world_from_cam: np.ndarray) -> dict[str, np.ndarray] | None:
-        """The kept render of this camera, or None (never stored, unreadable, or of another size)."""
-        path = self.folder / f"{self.key(intr, world_from_cam)}.npz"
+    def get(self, intr: Intrinsics, world_from_cam: np.ndarray, infer: Any = None) -> dict[str, np.ndarray] | None:
+        """The kept render of this camera at `infer` (`model.field_model.Inference`), or None (never stored,
+        unreadable, or of another size)."""
+        path = self.folder / f"{self.key(intr, world_from_cam, infer)}.npz"
         if not path.is_file():
             return None
         try:
@@ -58,14 +60,15 @@ class ViewCache:
             return None
         return out
 
-    def put(self, intr: Intrinsics, world_from_cam: np.ndarray, view: dict[str, np.ndarray]) -> bool:
-        """Keep `view`'s depth outputs for this camera; False when the folder cannot be written."""
+    def put(self, intr: Intrinsics, world_from_cam: np.ndarray, view: dict[str, np.ndarray], infer: Any = None) -> bool:
+        """Keep `view`'s depth outputs for this camera rendered at `infer`; False when the folder cannot be
+        written."""
         missing = [k for k in KEPT if k not in view]
         if missing:
             raise ValueError(f"expected a render with {', '.join(KEPT)}, missing {', '.join(missing)}")
         try:
             self.folder.mkdir(parents=True, exist_ok=True)
-            with atomic_path(self.folder / f"{self.key(intr, world_from_cam)}.npz", suffix=".npz") as tmp:
+            with atomic_path(self.folder / f"{self.key(intr, world_from_cam, infer)}.npz", suffix=".npz") as tmp:
                 np.savez(tmp, **{k: np.asarray(view[k], dtype=np.float32) for k in KEPT})
         except OSError:
             return False

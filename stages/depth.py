@@ -56,6 +56,7 @@ from nerfpipe.data.rundir import (
 )
 from nerfpipe.data.video import colorize, depth_legend_png, to_uint8, video_writer, write_png
 from nerfpipe.model import camera_path, load_trained, render_view, resolve_device
+from nerfpipe.model.field_model import EXACT, FAST, inference_record
 from nerfpipe.model.view_cache import open_view_cache
 from nerfpipe.radiance.camera import Intrinsics, generate_rays
 
@@ -92,6 +93,9 @@ class Config:
     """Frames per second of depth.mp4."""
     device: str = "auto"
     """torch device: auto, cpu, cuda, cuda:N."""
+    exact: bool = False
+    """Render with rays stopped at float32's epsilon of light (`model.field_model.EXACT`); default: `FAST`, as eval
+    renders the test views (their depth then comes from eval's renders: the run's render cache)."""
     overwrite: bool = False
     """Replace an earlier output in out_dir (set aside in OUT_DIR.previous/ until this one is written)."""
 
@@ -250,13 +254,14 @@ def _run(config: Config, progress: Progress | None = None) -> Outputs:
     watch = _DepthWatch(_far_bound(trained))
     cache = open_view_cache(Path(config.run_dir)) if Path(config.run_dir).is_dir() else None
     cached = 0  # views taken from the run's render cache (eval's renders of the test views)
+    infer = EXACT if config.exact else FAST
     for k, name in enumerate(cams.names):
         intr, pose = cams.intrinsics[k], cams.world_from_cams[k]
         t0 = time.perf_counter()
-        view = cache.get(intr, pose) if cache is not None else None
+        view = cache.get(intr, pose, infer) if cache is not None else None
         cached += view is not None
         if view is None:
-            view = render_view(trained, intr, pose, device)
+            view = render_view(trained, intr, pose, device, infer=infer)
         seconds = time.perf_counter() - t0
         opaque = view["acc"] >= config.acc_threshold
         valid = opaque & np.isfinite(view[key]) & (view[key] > 0)
@@ -333,6 +338,7 @@ def _run(config: Config, progress: Progress | None = None) -> Outputs:
             "device": str(device),
             "views": len(cams.names),
             "views_from_render_cache": cached,
+            "inference": inference_record(infer),
             "render_cache": "the run's renders/ folder (model.view_cache): views `eval` rendered are not rendered "
             "again",
             "units": "user (source) units: scene depth / applied_scale",

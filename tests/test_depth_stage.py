@@ -111,7 +111,7 @@ def test_self_check_leaves_out_the_far_bound_of_a_box_run(sphere_run, tmp_path, 
 class _EmptyRun(SphereRun):
     """A field with nothing in it: every ray misses."""
 
-    def render_rays(self, rays_o, rays_d):
+    def render_rays(self, rays_o, rays_d, *, infer=None):
         out = super().render_rays(rays_o, rays_d)
         return {**out, "rgb": self.background.expand_as(out["rgb"]), "acc": torch.zeros_like(out["acc"])}
 
@@ -120,7 +120,7 @@ class _EmptyRun(SphereRun):
 class _NaNDepthRun(SphereRun):
     """The sphere with NaN depth where it is hit on its left half (a broken field)."""
 
-    def render_rays(self, rays_o, rays_d):
+    def render_rays(self, rays_o, rays_d, *, infer=None):
         out = super().render_rays(rays_o, rays_d)
         bad = (rays_o + 3 * rays_d)[:, 0] < 0
         return {**out, "depth": torch.where(bad, torch.nan, out["depth"])}
@@ -186,6 +186,10 @@ def test_depth_takes_the_test_views_eval_rendered_from_the_run_cache(sphere_run,
     monkeypatch.setattr(depth_stage, "render_view", lambda *a, **k: calls.append(1) or render_view(*a, **k))
     cached = depth_stage.run(depth_stage.Config(run_dir=run_dir, out_dir=tmp_path / "cached"))
     assert calls == [] and json.loads(cached.manifest.read_text())["used"]["views_from_render_cache"] == n
+    assert json.loads((tmp_path / "eval.json").read_text())["inference"]["name"] == "fast"
+    exact = depth_stage.run(depth_stage.Config(run_dir=run_dir, out_dir=tmp_path / "exact", exact=True))
+    assert len(calls) == n and json.loads(exact.manifest.read_text())["used"]["inference"]["name"] == "exact"
+    calls.clear()  # eval rendered FAST: an exact depth misses the cache
     (run_dir / "manifest.json").write_text(json.dumps({"checkpoint_sha256": "cd" * 32}))  # retrained: a miss
     fresh = depth_stage.run(depth_stage.Config(run_dir=run_dir, out_dir=tmp_path / "fresh"))
     assert len(calls) == n and json.loads(fresh.manifest.read_text())["used"]["views_from_render_cache"] == 0

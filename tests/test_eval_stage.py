@@ -161,7 +161,7 @@ def test_self_check_flags_a_held_out_psnr_far_under_the_train_psnr(sphere_run, t
 class _BlackRun(SphereRun):
     """Renders black everywhere: nothing like the (mostly white) photos."""
 
-    def render_rays(self, rays_o, rays_d):
+    def render_rays(self, rays_o, rays_d, *, infer=None):
         out = super().render_rays(rays_o, rays_d)
         return {**out, "rgb": torch.zeros_like(out["rgb"])}
 

@@ -198,7 +198,7 @@ def test_self_check_flags_a_camera_path_that_stands_still(sphere_run, tmp_path):
 class _NaNSphere(SphereRun):
     """The sphere with NaN colour on its left half (a broken field)."""
 
-    def render_rays(self, rays_o, rays_d):
+    def render_rays(self, rays_o, rays_d, *, infer=None):
         out = super().render_rays(rays_o, rays_d)
         out["rgb"] = torch.where((rays_o + 3 * rays_d)[:, :1] < 0, torch.nan, out["rgb"])
         return out

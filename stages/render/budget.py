@@ -60,19 +60,20 @@ def depth_range(trained: Run, cams: CameraPath, device: torch.device, scale: flo
     return (lo, hi) if hi > lo else (lo, lo + 1e-6 + abs(lo) * 1e-3)
 
 
-def rays_per_second(trained: Run, cams: CameraPath, device: torch.device) -> tuple[float, int, float]:
+def rays_per_second(trained: Run, cams: CameraPath, device: torch.device, infer=None) -> tuple[float, int, float]:
     """Measured on `PREVIEW_VIEWS` cameras spread along the path, each scaled to about `PREVIEW_RAYS` pixels,
-    after one untimed tiny render (warm-up). Returns (rays/s, rays rendered, seconds)."""
+    after one untimed tiny render (warm-up), at the video's inference settings `infer` (None: the run's default).
+    Returns (rays/s, rays rendered, seconds)."""
     n = len(cams.names)
     picks = np.unique(np.linspace(0, n - 1, min(PREVIEW_VIEWS, n)).round().astype(int))
     tiny = cams.intrinsics[0].scaled(min(1.0, 8 / max(cams.intrinsics[0].w, cams.intrinsics[0].h)))
-    render_view(trained, tiny, cams.world_from_cams[0], device)
+    render_view(trained, tiny, cams.world_from_cams[0], device, infer=infer)
     rays, seconds = 0, 0.0
     for k in picks:
         intr = cams.intrinsics[k]
         small = intr.scaled(min(1.0, math.sqrt(PREVIEW_RAYS / (intr.w * intr.h))))
         t0 = time.perf_counter()
-        render_view(trained, small, cams.world_from_cams[k], device)
+        render_view(trained, small, cams.world_from_cams[k], device, infer=infer)
         seconds += time.perf_counter() - t0
         rays += small.w * small.h
     return rays / max(seconds, 1e-9), rays, seconds
