@@ -38,6 +38,8 @@ PRESETS = {
     "t1e-3+keep3e-3+step2": Inference(min_transmittance=1e-3, color_keep=3e-3, step_scale=2.0),
     "t1e-2+keep1e-2+step1.5": Inference(min_transmittance=1e-2, color_keep=1e-2, step_scale=1.5),
     "t1e-2+keep1e-2+step2": Inference(min_transmittance=1e-2, color_keep=1e-2, step_scale=2.0),
+    "t3e-2+keep3e-2+step1.5": Inference(min_transmittance=3e-2, color_keep=3e-2, step_scale=1.5),
+    "t1e-2+keep1e-2+step1.75": Inference(min_transmittance=1e-2, color_keep=1e-2, step_scale=1.75),
 }
 
 
