@@ -14,7 +14,7 @@ from benchmarks import bench_gpu
 def test_smoke_runs_every_row_and_writes_one_table(tmp_path):
     rows = bench_gpu.main(["--smoke", "--out", str(tmp_path)])
     figures = [r.figure for r in rows]
-    assert figures[0].startswith("lego_800 field") and figures[1].startswith("fox, POSED chain")
+    assert figures[0].startswith("lego_800 field") and any(f.startswith("fox, POSED chain") for f in figures)
     assert any(f.startswith("lego splats") for f in figures) and any(f.startswith("splats at 64x64") for f in figures)
     assert sum(f.startswith("viewer at 64x64") for f in figures) == 2
     assert all(r.met is None for r in rows), "toy sizes judge no goal"
