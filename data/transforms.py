@@ -34,6 +34,7 @@ __all__ = [
     "Scene",
     "read_scene",
     "write_scene",
+    "intrinsics_dict",
     "load_image",
     "is_forward_facing",
     "cameras_face_forward",
@@ -402,7 +403,8 @@ def _default_aabb(doc: dict, frames: list[Frame]) -> np.ndarray:
     return np.array([[-s] * 3, [s] * 3], dtype=np.float64)
 
 
-def _intrinsics_dict(intr: Intrinsics) -> dict[str, Any]:
+def intrinsics_dict(intr: Intrinsics, angles: bool = True) -> dict[str, Any]:
+    """An Intrinsics as transforms.json spells it (nerfstudio's keys); `angles`: with camera_angle_x / _y."""
     d: dict[str, Any] = {
         "w": intr.w,
         "h": intr.h,
@@ -415,9 +417,10 @@ def _intrinsics_dict(intr: Intrinsics) -> dict[str, Any]:
         "k3": intr.k3,
         "p1": intr.p1,
         "p2": intr.p2,
-        "camera_angle_x": 2 * math.atan(0.5 * intr.w / intr.fx),
-        "camera_angle_y": 2 * math.atan(0.5 * intr.h / intr.fy),
     }
+    if angles:
+        d["camera_angle_x"] = 2 * math.atan(0.5 * intr.w / intr.fx)
+        d["camera_angle_y"] = 2 * math.atan(0.5 * intr.h / intr.fy)
     return d
 
 
@@ -431,7 +434,7 @@ def write_scene(scene: Scene, path: str | os.PathLike | None = None) -> Path:
     )
     doc["camera_model"] = "OPENCV" if any_distortion else "PINHOLE"
     if scene.intrinsics is not None:
-        doc.update(_intrinsics_dict(scene.intrinsics))
+        doc.update(intrinsics_dict(scene.intrinsics))
     frames = []
     for i, f in enumerate(scene.frames):
         if f.intrinsics is None and scene.intrinsics is None:
@@ -440,7 +443,7 @@ def write_scene(scene: Scene, path: str | os.PathLike | None = None) -> Path:
             raise ValueError(f"frame {i}: expected a finite [4, 4] world_from_cam, got {f.world_from_cam.shape}")
         fr: dict[str, Any] = {"file_path": f.file_path, "transform_matrix": f.world_from_cam.tolist()}
         if f.intrinsics is not None:
-            fr.update(_intrinsics_dict(f.intrinsics))
+            fr.update(intrinsics_dict(f.intrinsics))
         if f.mask_path is not None:
             fr["mask_path"] = f.mask_path
         if f.depth_file_path is not None:

@@ -54,6 +54,7 @@ from nerfpipe.data.rundir import (
     refuse_output_inside,
     write_manifest,
 )
+from nerfpipe.data.transforms import intrinsics_dict
 from nerfpipe.data.video import colorize, depth_legend_png, to_uint8, video_writer, write_png
 from nerfpipe.model import camera_path, load_trained, render_view, resolve_device
 from nerfpipe.model.field_model import EXACT, FAST, inference_record
@@ -272,17 +273,7 @@ def _run(config: Config, progress: Progress | None = None) -> Outputs:
         files["accumulation"].append(write_png(out_dir / "accumulation" / f"{name}.png", to_uint8(view["acc"])))
         cameras_doc[name] = {
             "world_from_cam": scene.source_world_from_cam(pose).tolist(),
-            "w": intr.w,
-            "h": intr.h,
-            "fl_x": intr.fx,
-            "fl_y": intr.fy,
-            "cx": intr.cx,
-            "cy": intr.cy,
-            "k1": intr.k1,
-            "k2": intr.k2,
-            "k3": intr.k3,
-            "p1": intr.p1,
-            "p2": intr.p2,
+            **intrinsics_dict(intr, angles=False),
         }
         metrics.append(
             step=k,
