@@ -32,6 +32,7 @@ __all__ = [
     "Inference",
     "EXACT",
     "FAST",
+    "inference",
     "inference_record",
     "FieldModel",
     "MarchedModel",
@@ -77,6 +78,11 @@ FAST = Inference(min_transmittance=1e-2, color_keep=1e-2, step_scale=1.5)
 colour only samples of weight >= 1 % (and each ray's largest, rescaled), at 1.5 x the inference step. Measured
 against EXACT on the test views (`benchmarks/bench_infer.py`, docs/TRAINING.md "Inference"): the fox 2.65 x the
 rays/s at -0.02 dB, lego_400 2.2 x at -0.05 dB."""
+
+
+def inference(exact: bool) -> Inference:
+    """The stages' choice (`render`, `eval`, `depth`): EXACT when asked `--exact`, else FAST."""
+    return EXACT if exact else FAST
 
 
 def inference_record(infer: Inference) -> dict:

@@ -57,7 +57,7 @@ from nerfpipe.data.rundir import (
 from nerfpipe.data.transforms import intrinsics_dict
 from nerfpipe.data.video import colorize, depth_legend_png, to_uint8, video_writer, write_png
 from nerfpipe.model import camera_path, load_trained, render_view, resolve_device
-from nerfpipe.model.field_model import EXACT, FAST, inference_record
+from nerfpipe.model.field_model import inference, inference_record
 from nerfpipe.model.view_cache import open_view_cache
 from nerfpipe.radiance.camera import Intrinsics, generate_rays
 
@@ -255,7 +255,7 @@ def _run(config: Config, progress: Progress | None = None) -> Outputs:
     watch = _DepthWatch(_far_bound(trained))
     cache = open_view_cache(Path(config.run_dir)) if Path(config.run_dir).is_dir() else None
     cached = 0  # views taken from the run's render cache (eval's renders of the test views)
-    infer = EXACT if config.exact else FAST
+    infer = inference(config.exact)
     for k, name in enumerate(cams.names):
         intr, pose = cams.intrinsics[k], cams.world_from_cams[k]
         t0 = time.perf_counter()

@@ -60,7 +60,7 @@ from nerfpipe.model import load_trained, render_view, require, resolve_device
 from nerfpipe.model.appearance import EVAL_RULES as APPEARANCE_RULES
 from nerfpipe.model.appearance import apply_transform, fit_code
 from nerfpipe.model.camera_opt import TEST_POSE_OPT_RULE, optimise_test_pose, test_pose_placement
-from nerfpipe.model.field_model import EXACT, FAST, inference_record
+from nerfpipe.model.field_model import inference, inference_record
 from nerfpipe.model.splat_run import open_input
 from nerfpipe.model.view_cache import KEPT, open_view_cache
 from nerfpipe.radiance.compositing import over_background
@@ -183,7 +183,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     centre = np.asarray(scene.aabb, dtype=np.float64).mean(0)  # test-pose corrections turn about its depth
     has_appearance = trained.appearance is not None
     cache = open_view_cache(Path(source.run_dir)) if source.splat_file is None else None
-    infer = EXACT if config.exact else FAST
+    infer = inference(config.exact)
     kept = 0  # views whose depth went into the run's render cache (model.view_cache) for `depth`
     for k, i in enumerate(idx):
         photo = load_masked_image(scene, i)  # masked-out pixels transparent, as in training (data.masks)

@@ -62,7 +62,7 @@ from nerfpipe.data.transforms import Scene, load_image
 from nerfpipe.data.video import check_output, colorize, grey, removed_on_failure, to_uint8, video_writer, write_png
 from nerfpipe.model import OPAQUE, PATHS, CameraPath, Run, camera_path, load_trained, render_view, resolve_device
 from nerfpipe.model.cameras import is_path_file
-from nerfpipe.model.field_model import EXACT, FAST, Inference, inference_record
+from nerfpipe.model.field_model import inference, inference_record
 from nerfpipe.model.splat_run import open_input
 from nerfpipe.radiance.compositing import over_background
 from nerfpipe.radiance.metrics import psnr
@@ -183,17 +183,13 @@ def _photo(scene: Scene, i: int, background: np.ndarray, size: tuple[int, int]) 
     return img
 
 
-def _infer(config: Config) -> Inference:
-    return EXACT if config.exact else FAST
-
-
 def _within_budget(trained: Run, cams: CameraPath, config: Config, device: torch.device, started: float):
     """The path re-made to fit what is left of `config.max_seconds` (see `fit_budget`) -> (cams, budget record)."""
     total = sum(i.w * i.h for i in cams.intrinsics)
     if total <= PREVIEW_VIEWS * PREVIEW_RAYS:
         reason = "rendered as asked: the whole video has no more pixels than the speed preview would"
         return cams, {"max_seconds": config.max_seconds, "rays": total, "reason": reason}
-    rate, rays, seconds = rays_per_second(trained, cams, device, _infer(config))
+    rate, rays, seconds = rays_per_second(trained, cams, device, inference(config.exact))
     left = config.max_seconds - (time.time() - started)
     per_frame = sum(i.w * i.h for i in cams.intrinsics) / len(cams.intrinsics)
     replay = cams.frame_indices is not None or is_path_file(config.path)  # every camera kept
@@ -301,13 +297,13 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
             "reason": f"{len(cams.names)} of {asked_frames} frames: slower, to keep the length asked for "
             f"(at least {min(config.fps, MIN_FPS):g} fps)",
         }
-    watch = FrameWatch(shows_depth="depth" in outputs)
+    watch, infer = FrameWatch(shows_depth="depth" in outputs), inference(config.exact)
     # the mp4 is renamed into place when this block ends, after the manifest; on failure the block's files go
     with removed_on_failure(out.parent, config.frames_dir) as written, video_writer(out, fps=fps) as video:
         for k in range(len(cams.names)):
             t0 = time.perf_counter()
             intr, pose = cams.intrinsics[k], cams.world_from_cams[k]
-            view = render_view(trained, intr, pose, device, depth=watch.shows_depth, infer=_infer(config))
+            view = render_view(trained, intr, pose, device, depth=watch.shows_depth, infer=infer)
             seconds = time.perf_counter() - t0
             watch.add(view)
             panels = []
@@ -345,7 +341,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
                     **cams.used,
                     "input": source.record(),
                     "budget": budget,
-                    "inference": inference_record(_infer(config)),
+                    "inference": inference_record(infer),
                     "outputs": list(outputs),
                     "device": str(device),
                     "frames": len(cams.names),
