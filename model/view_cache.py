@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from nerfpipe.data.atomic import atomic_path
+from nerfpipe.data.errors import WriteFailed
 from nerfpipe.radiance.camera import Intrinsics
 
 __all__ = ["CACHE_DIR", "KEPT", "ViewCache", "open_view_cache"]
@@ -66,11 +67,10 @@ class ViewCache:
         missing = [k for k in KEPT if k not in view]
         if missing:
             raise ValueError(f"expected a render with {', '.join(KEPT)}, missing {', '.join(missing)}")
-        try:
-            self.folder.mkdir(parents=True, exist_ok=True)
+        try:  # atomic_path makes the folder; a full disk or a read-only folder comes back as WriteFailed
             with atomic_path(self.folder / f"{self.key(intr, world_from_cam, infer)}.npz", suffix=".npz") as tmp:
                 np.savez(tmp, **{k: np.asarray(view[k], dtype=np.float32) for k in KEPT})
-        except OSError:
+        except (OSError, WriteFailed):
             return False
         return True
 

@@ -214,3 +214,20 @@ def test_view_cache_keys_on_checkpoint_and_camera(tmp_path):
         cache.put(intr, pose, {"depth": view["depth"], "depth_median": view["depth"]})
     (tmp_path / "file").write_text("")
     assert not ViewCache(tmp_path / "file" / "r", "a" * 64).put(intr, pose, view)  # cannot be written: False
+
+
+def test_view_cache_on_a_full_disk_is_left_out(tmp_path, monkeypatch):
+    """A full disk while keeping a render (atomic_path raises WriteFailed, not an OSError): put says False and
+    leaves no file; eval goes on without the cache."""
+    import errno
+
+    from nerfpipe.model import view_cache
+    from nerfpipe.radiance.camera import Intrinsics
+
+    def full(path, **arrays):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(view_cache.np, "savez", full)
+    intr, view = Intrinsics(w=2, h=2, fx=2.0, fy=2.0, cx=1.0, cy=1.0), {k: np.ones((2, 2)) for k in view_cache.KEPT}
+    cache = view_cache.ViewCache(tmp_path / "renders", "a" * 64)
+    assert not cache.put(intr, np.eye(4), view) and not any((tmp_path / "renders").iterdir())
