@@ -24,6 +24,7 @@ from nerfpipe.data.masks import load_masked_image
 from nerfpipe.model import camera_path, load_trained, render_view, resolve_device
 from nerfpipe.model.field_model import EXACT, Inference
 from nerfpipe.radiance.compositing import over_background
+from nerfpipe.radiance.metrics import psnr
 
 PRESETS = {
     "exact": EXACT,
@@ -41,11 +42,6 @@ PRESETS = {
     "t3e-2+keep3e-2+step1.5": Inference(min_transmittance=3e-2, color_keep=3e-2, step_scale=1.5),
     "t1e-2+keep1e-2+step1.75": Inference(min_transmittance=1e-2, color_keep=1e-2, step_scale=1.75),
 }
-
-
-def _psnr(a: np.ndarray, b: np.ndarray) -> float:
-    mse = float(np.mean((a.astype(np.float64) - b) ** 2))
-    return float("inf") if mse == 0 else -10.0 * float(np.log10(mse))
 
 
 def bench(run_dir: Path, views: int | None, device, presets: list[str] | None = None) -> list[dict]:
@@ -83,8 +79,8 @@ def bench(run_dir: Path, views: int | None, device, presets: list[str] | None = 
             "preset": name,
             "views": len(picks),
             "rays_per_s": round(rays / seconds),
-            "psnr_vs_photos": round(float(np.mean([_psnr(r, p) for r, p in zip(renders, photos, strict=True)])), 3),
-            "psnr_vs_exact": round(min(_psnr(r, e) for r, e in pairs), 2),
+            "psnr_vs_photos": round(float(np.mean([psnr(r, p) for r, p in zip(renders, photos, strict=True)])), 3),
+            "psnr_vs_exact": round(min(psnr(r, e) for r, e in pairs), 2),
             "largest_rgb_difference": round(max(float(np.abs(r - e).max()) for r, e in pairs), 4),
         }
         print(json.dumps(row), flush=True)
