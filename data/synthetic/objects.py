@@ -5,7 +5,7 @@ Conventions:
 - Rays: origins `o [R, 3]` and unit directions `d [R, 3]` (float64); `t` is the Euclidean distance along the
   ray; `intersect` returns `t [R]` of the first hit in front of the origin, `inf` for a miss.
 - Textures are *solid* (functions of the 3-D world point only), so every view sees the same colour at a surface
-  point; shading is Lambertian with fixed lights (no specular), hence view-consistent.
+  point; shading is Lambertian with lights fixed in the world (`Lights`; no specular), hence view-consistent.
 - Each primitive's `mesh()` is the same surface as a triangle mesh, tessellated finely enough that it deviates
   from the analytic surface by well under 0.1 mm (flat faces exactly).
 """
@@ -13,7 +13,7 @@ Conventions:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import trimesh
@@ -25,6 +25,8 @@ __all__ = [
     "Cylinder",
     "Material",
     "solid_texture",
+    "Lights",
+    "DEFAULT_LIGHTS",
     "shade",
     "default_primitives",
     "backdrop",
@@ -299,21 +301,55 @@ def solid_texture(p: np.ndarray, mat: Material) -> np.ndarray:
     return np.clip(colour * level[:, None] * noise[:, None], 0.0, 1.0)
 
 
-_LIGHTS = (  # (unit direction towards the light, intensity); plus ambient
-    (np.array([0.45, 0.3, 0.84]) / np.linalg.norm([0.45, 0.3, 0.84]), 0.62),
-    (np.array([-0.6, -0.5, 0.62]) / np.linalg.norm([-0.6, -0.5, 0.62]), 0.25),
+@dataclass(frozen=True, kw_only=True)
+class Lights:
+    """What `shade` lights a surface with: directional lights (fixed in the world, no shadows) plus ambient, all
+    of one colour. `DEFAULT_LIGHTS` lights every fixed scene; `random_scene` draws others per seed."""
+
+    directions: np.ndarray
+    """[L, 3] unit vectors from a surface towards each light, world frame."""
+    intensities: np.ndarray
+    """[L] intensity of each light: a surface facing it gets this much light on top of `ambient`."""
+    ambient: float
+    """Light that reaches every surface whatever its normal."""
+    tint: np.ndarray = field(default_factory=lambda: np.ones(3))
+    """[3] RGB colour of all the light, multiplying the shaded colour ((1, 1, 1): white, today's scenes)."""
+
+    def __post_init__(self) -> None:
+        d, i, t = np.asarray(self.directions), np.asarray(self.intensities), np.asarray(self.tint)
+        if d.ndim != 2 or d.shape[1] != 3 or i.shape != (len(d),):
+            raise ValueError(f"expected directions [L, 3] and intensities [L], got {d.shape} and {i.shape}")
+        if not np.allclose(np.linalg.norm(d, axis=-1), 1.0, atol=1e-9):
+            raise ValueError(f"expected unit light directions, got norms {np.linalg.norm(d, axis=-1).tolist()}")
+        if (i < 0).any() or self.ambient < 0 or t.shape != (3,) or (t < 0).any():
+            raise ValueError(
+                f"expected intensities >= 0, ambient >= 0 and tint [3] >= 0, got {i.tolist()}, {self.ambient}, "
+                f"{t.tolist()}"
+            )
+
+
+DEFAULT_LIGHTS = Lights(
+    directions=np.stack(
+        [
+            np.array([0.45, 0.3, 0.84]) / np.linalg.norm([0.45, 0.3, 0.84]),
+            np.array([-0.6, -0.5, 0.62]) / np.linalg.norm([-0.6, -0.5, 0.62]),
+        ]
+    ),
+    intensities=np.array([0.62, 0.25]),
+    ambient=0.3,
 )
-_AMBIENT = 0.3
+"""The lights of every fixed scene (the objects, the printed boxes, the room and wall): a key light, a fill."""
 
 
-def shade(albedo: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """Lambertian shading with two fixed directional lights and ambient (no specular, no shadows)."""
-    light = np.full(len(n), _AMBIENT)
-    for direction, intensity in _LIGHTS:
+def shade(albedo: np.ndarray, n: np.ndarray, lights: Lights = DEFAULT_LIGHTS) -> np.ndarray:
+    """Lambertian shading: albedo [N, 3] at unit normals n [N, 3] -> colour [N, 3] in [0, 1] (no specular, no
+    shadows)."""
+    light = np.full(len(n), lights.ambient)
+    for direction, intensity in zip(lights.directions, lights.intensities, strict=True):
         light += intensity * np.clip(
             n[:, 0] * direction[0] + n[:, 1] * direction[1] + n[:, 2] * direction[2], 0.0, None
         )
-    return np.clip(albedo * light[:, None], 0.0, 1.0)
+    return np.clip(albedo * light[:, None] * lights.tint, 0.0, 1.0)  # a tint of 1.0 changes no bit
 
 
 # ---------------------------------------------------------------- the scene

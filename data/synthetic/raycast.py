@@ -8,7 +8,7 @@ import numpy as np
 import torch
 import trimesh
 
-from nerfpipe.data.synthetic.objects import Primitive, rot_z, shade
+from nerfpipe.data.synthetic.objects import DEFAULT_LIGHTS, Lights, Primitive, rot_z, shade
 from nerfpipe.radiance.camera import Intrinsics, generate_rays, pixel_centers
 
 __all__ = ["SUPERSAMPLE", "render_view", "render_turntable_view", "scene_mesh"]
@@ -40,10 +40,10 @@ def _cast(prims: tuple[Primitive, ...], o: np.ndarray, d: np.ndarray) -> tuple[n
 
 
 def render_view(
-    prims: tuple[Primitive, ...], intr: Intrinsics, world_from_cam: np.ndarray
+    prims: tuple[Primitive, ...], intr: Intrinsics, world_from_cam: np.ndarray, lights: Lights = DEFAULT_LIGHTS
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One view: straight colour [H, W, 3] (mean over covered rays; 0 where none), coverage alpha [H, W]
-    and z-depth [H, W] of the pixel-centre ray (0 = background), all float64."""
+    and z-depth [H, W] of the pixel-centre ray (0 = background), all float64; shaded under `lights`."""
     s = SUPERSAMPLE
     grid = (np.arange(s) + 0.5) / s
     offsets = np.stack(np.meshgrid(grid, grid, indexing="xy"), axis=-1).reshape(-1, 2)  # [S, 2]
@@ -54,7 +54,7 @@ def render_view(
         m = which == k
         if m.any():
             p = o[m] + t[m, None] * d[m]
-            rgb[m] = shade(prim.albedo(p), prim.normal(p))
+            rgb[m] = shade(prim.albedo(p), prim.normal(p), lights)
     hit = (which >= 0).reshape(intr.h, intr.w, s * s)
     alpha = hit.mean(-1)
     colour_sum = rgb.reshape(intr.h, intr.w, s * s, 3).sum(-2)
@@ -75,10 +75,12 @@ def render_turntable_view(
     intr: Intrinsics,
     fixed: np.ndarray,
     theta: float,
+    lights: Lights = DEFAULT_LIGHTS,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One turntable view (the `scene` stage's turntable layout): the camera `fixed` (room frame), the objects turned by
-    `theta`. Returns straight colour of everything [H, W, 3], its coverage [H, W], the object's straight colour
-    [H, W, 3] and coverage (the mask) [H, W], and the object's z-depth [H, W] (0 = not the object), float64."""
+    `theta`; `lights` turn with the objects (and light the room fixed in it). Returns straight colour of everything
+    [H, W, 3], its coverage [H, W], the object's straight colour [H, W, 3] and coverage (the mask) [H, W], and the
+    object's z-depth [H, W] (0 = not the object), float64."""
     s = SUPERSAMPLE
     grid = (np.arange(s) + 0.5) / s
     offsets = np.stack(np.meshgrid(grid, grid, indexing="xy"), axis=-1).reshape(-1, 2)  # [S, 2]
@@ -102,7 +104,7 @@ def render_turntable_view(
             m = use & (which == k)
             if m.any():
                 p = origin[m] + t[m, None] * direction[m]
-                rgb[m] = shade(prim.albedo(p), prim.normal(p))
+                rgb[m] = shade(prim.albedo(p), prim.normal(p), lights)
     hw = (intr.h, intr.w, s * s)
     hit, obj = (on_obj | (w_bg >= 0)).reshape(hw), on_obj.reshape(hw)
     rgb = rgb.reshape(*hw, 3)
