@@ -2,7 +2,9 @@
 
 The project's fixture for every later stage and its built-in demo. A textured ground slab and five
 high-texture objects (spheres, boxes, a cylinder; `data.synthetic.objects`) are ray cast exactly from cameras on
-a hemisphere around them.
+a hemisphere around them. Other subjects (`Config.subject`): a printed box on white (carton, cube), or a scene
+the seed draws (random: 1-8 objects of random shape, size, pose and texture, random lights and surroundings;
+`data.synthetic.random_scene`, manifest.json's `used.random_subject` says what was drawn).
 
 Conventions (docs/DESIGN.md):
 - World frame = scene frame: metres times `scale` (every length: objects, cameras, depth, mesh, aabb, near,
@@ -34,9 +36,10 @@ No scene bounds are stated (as in NeRF synthetic). Views i % 8 == 0 are test, i 
 split without views gets no file. Ground truth is keyed by the name `convert` gives each image (`train_r_0`),
 so `eval --ground-truth` finds it after conversion.
 
-Modules: `config` (the Config, its validation, the Outputs), `rig` (the cameras per layout), `turntable` (the
-turntable's cameras and angles), `files` (PNG, depth, mesh, transforms.json and Blender-layout writers); the
-primitives and the exact renderer are `data.synthetic`'s.
+Modules: `config` (the Config, its validation, the Outputs), `subject` (what is photographed, what surrounds it in
+the layout, the lights), `rig` (the cameras per layout), `turntable` (the turntable's cameras and angles), `files`
+(PNG, depth, mesh, transforms.json and Blender-layout writers); the primitives and the exact renderer are
+`data.synthetic`'s.
 """
 
 from __future__ import annotations
@@ -48,8 +51,6 @@ import numpy as np
 
 from nerfpipe.data.atomic import write_bytes, write_json
 from nerfpipe.data.rundir import config_to_json, output_folder, write_manifest
-from nerfpipe.data.synthetic.objects import backdrop, default_primitives, room
-from nerfpipe.data.synthetic.prints import subject_primitives
 from nerfpipe.data.synthetic.raycast import SUPERSAMPLE, render_turntable_view, render_view, scene_mesh
 from nerfpipe.stages.scene.config import Config, Outputs, check
 from nerfpipe.stages.scene.files import (
@@ -76,6 +77,7 @@ from nerfpipe.stages.scene.rig import (
     cameras,
     intrinsics,
 )
+from nerfpipe.stages.scene.subject import subject
 from nerfpipe.stages.scene.turntable import angles as turntable_angles
 from nerfpipe.stages.scene.turntable import room_from_cam
 
@@ -109,14 +111,10 @@ def _run(config: Config) -> Outputs:
     scale = float(config.scale)
     started = time.time()
     out = Path(config.out_dir)
-    product = config.subject != "objects"  # a printed box on white: no slab, no room behind a turntable
-    prims = subject_primitives(config.subject, config.seed) if product else default_primitives(config.seed)
-    objects = prims
-    if config.layout == "forward":
-        prims = (*prims, backdrop(config.seed))
-    elif config.layout == "room":
-        prims = (*prims, *room(config.seed))
+    subj = subject(config)
+    objects = subj.objects
     turntable = config.layout == "turntable"
+    prims = objects if turntable else (*objects, *subj.surroundings)
     intr = intrinsics(config.size)
     world_from_cam = cameras(config.views, config.seed, config.layout)  # rendered at scale 1
     scaled_from_cam = world_from_cam.copy()
@@ -130,13 +128,13 @@ def _run(config: Config) -> Outputs:
     for k, ((rel, stem), w) in enumerate(zip(views, world_from_cam, strict=True)):
         if turntable:
             colour, alpha, obj_colour, mask, z = render_turntable_view(
-                objects, () if product else room(config.seed), intr, fixed, float(turntable_angles(config.views)[k])
+                objects, subj.surroundings, intr, fixed, float(turntable_angles(config.views)[k]), subj.lights
             )
             if rgba:
                 colour, alpha = obj_colour, mask
             masks.append(write_bytes(out / "masks" / f"{stem}.png", grey_png(mask)))
         else:
-            colour, alpha, z = render_view(prims, intr, w)
+            colour, alpha, z = render_view(prims, intr, w, subj.lights)
         z_min = min(z_min, float(z[z > 0].min(initial=np.inf)))
         if not rgba:
             colour = alpha[..., None] * colour + (1 - alpha[..., None]) * bg
@@ -146,7 +144,9 @@ def _run(config: Config) -> Outputs:
         depths.append(depth_path)
 
     mesh = scene_mesh(prims)
-    aabb = (mesh if config.layout != "room" else scene_mesh(objects)).bounds + np.array([[-0.05], [0.05]])
+    # Surroundings lie beyond the aabb (an unbounded capture), except a forward rig's (its far content, for NDC).
+    aabb_of_all = config.layout == "forward" or len(prims) == len(objects)
+    aabb = (mesh if aabb_of_all else scene_mesh(objects)).bounds + np.array([[-0.05], [0.05]])
     dist = np.linalg.norm(world_from_cam[:, :3, 3] - LOOK_AT, axis=-1)
     r_bound = float(np.max(np.linalg.norm(mesh.vertices - LOOK_AT, axis=-1)))
     near, far = float(max(0.05, 0.9 * (dist.min() - r_bound))), float(1.1 * (dist.max() + r_bound))
@@ -205,6 +205,7 @@ def _run(config: Config) -> Outputs:
             "layout": config.layout,
             "test_split": f"every {TEST_EVERY}th view"
             + (f", val every {TEST_EVERY}th from {TEST_EVERY // 2}" if config.kind == "blender" else ""),
+            **({"random_subject": subj.drawn} if subj.drawn is not None else {}),
             **(
                 {"turntable": "the objects turn, camera and room fixed; poses object-relative; masks/ = object"}
                 if turntable

@@ -24,7 +24,8 @@ class Config:
     views: int = 24
     """Number of cameras."""
     seed: int = 0
-    """Picks the textures and the camera jitter; same seed, byte-identical output."""
+    """Picks the textures and the camera jitter (subject random: the whole scene); same seed, byte-identical
+    output."""
     layout: Literal["orbit", "forward", "room", "turntable"] = "orbit"
     """orbit, forward, room or turntable. orbit: cameras all round the scene on a hemisphere (a 360-degree capture).
     turntable: the objects turn on their slab in front of a fixed camera and a fixed room (one full turn over the
@@ -34,11 +35,15 @@ class Config:
     box, so the room lies beyond it: an unbounded capture). forward: cameras on a
     jittered grid in one plane, all looking the same way at the scene, with a textured wall 4 m behind it (an
     LLFF-style forward-facing capture: content from ~1.5 m to ~7 m)."""
-    subject: Literal["objects", "carton", "cube"] = "objects"
+    subject: Literal["objects", "carton", "cube", "random"] = "objects"
     """What is photographed. objects: five textured objects on a slab. carton / cube: one printed box on white,
     with no ground (a product shot; `data.synthetic.prints`): carton, a tall box with one print on front and back
     and another on both sides; cube, the same print on all four sides. Faces that look alike are what can make
-    a reconstruction fold onto itself (issue 53). With layout turntable the room is left out too (white)."""
+    a reconstruction fold onto itself (issue 53). With layout turntable the room is left out too (white).
+    random: the seed draws the scene (`data.synthetic.random_scene`): 1-8 spheres, boxes and cylinders of
+    0.1-0.6 m on or above the slab, none touching, each with a noise or photo texture, the slab's texture, the
+    lights, and (layout orbit) nothing, a far wall or a room around; manifest.json's `random_subject` says what
+    was drawn. Pretraining data for a cross-scene model: the layouts differ from seed to seed."""
     scale: float = 1.0
     """Multiply every length (objects, cameras, depth, mesh) by this; the images do not change."""
     overwrite: bool = False
@@ -76,8 +81,10 @@ def check(config: Config) -> None:
         raise UserError(f"scene: expected --layout orbit|forward|room|turntable, got {config.layout!r}")
     if config.layout == "turntable" and config.kind == "blender":
         raise UserError("scene: --layout turntable writes kinds photos, posed or rgba, not blender")
-    if config.subject not in ("objects", "carton", "cube"):
-        raise UserError(f"scene: expected --subject objects|carton|cube, got {config.subject!r}")
+    if config.subject not in ("objects", "carton", "cube", "random"):
+        raise UserError(f"scene: expected --subject objects|carton|cube|random, got {config.subject!r}")
+    if config.subject == "random" and config.seed < 0:
+        raise UserError(f"scene: --subject random draws from a seed >= 0, got --seed {config.seed}")
     scale = float(config.scale)
     if not (math.isfinite(scale) and scale > 0):
         raise UserError(f"scene: expected --scale > 0 (finite), got {config.scale!r}")

@@ -1,0 +1,59 @@
+"""What the scene stage photographs, decided once per run: the objects, what surrounds them in this layout, the
+lights, and (random subject) a record of what the seed drew."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from nerfpipe.data.synthetic.objects import DEFAULT_LIGHTS, Lights, Primitive, backdrop, default_primitives, room
+from nerfpipe.data.synthetic.prints import subject_primitives
+from nerfpipe.data.synthetic.random_scene import random_scene
+from nerfpipe.stages.scene.config import Config
+
+__all__ = ["Subject", "subject"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class Subject:
+    """What one run of the stage renders, and under which lights."""
+
+    objects: tuple[Primitive, ...]
+    """What is photographed: the bounded scene (aabb), what a turntable turns."""
+    surroundings: tuple[Primitive, ...]
+    """Around or behind it in this layout (a turntable: the fixed room); beyond the aabb except for `forward`."""
+    lights: Lights
+    """What everything is shaded with."""
+    drawn: dict[str, Any] | None
+    """subject=random: what the seed drew (`RandomScene.describe`) and the surroundings used; None otherwise."""
+
+
+def subject(config: Config) -> Subject:
+    """The subject of `config` (its subject, layout and seed)."""
+    seed, layout = config.seed, config.layout
+    if config.subject == "random":
+        drawn = random_scene(seed)
+        around = _around(layout, drawn.surround)
+        surroundings = room(seed) if around == "room" else (backdrop(seed),) if around == "wall" else ()
+        record = {**drawn.describe(), "surroundings": around}
+        return Subject(objects=drawn.primitives(), surroundings=surroundings, lights=drawn.lights, drawn=record)
+    product = config.subject != "objects"  # a printed box on white: no slab, no room behind a turntable
+    objects = subject_primitives(config.subject, seed) if product else default_primitives(seed)
+    if layout == "forward":
+        surroundings = (backdrop(seed),)
+    elif layout == "room" or (layout == "turntable" and not product):
+        surroundings = room(seed)
+    else:
+        surroundings = ()
+    return Subject(objects=objects, surroundings=surroundings, lights=DEFAULT_LIGHTS, drawn=None)
+
+
+def _around(layout: str, drawn: str) -> str:
+    """subject=random: the surroundings used ('none', 'wall' or 'room'). The layout's own win (forward: a far
+    wall; room and turntable: the room); an orbit shows what the seed `drawn`, a forward rig the drawn room
+    instead of its wall."""
+    if layout == "orbit":
+        return drawn
+    if layout == "forward":
+        return "room" if drawn == "room" else "wall"
+    return "room"
