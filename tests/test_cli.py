@@ -198,7 +198,7 @@ def test_method_options_belong_to_the_method_named(capsys):
         cli.config_from_args("train", ["s", "r", "--method", "nerf", "--tv", "0.1"])
     code, _, err = _run(capsys, "train", "s", "r", "--method", "bogus")
     assert code == 2 and err.strip().splitlines() == [
-        "error: unknown method 'bogus': expected one of density, nerf, sdf"
+        "error: unknown method 'bogus': expected one of density, nerf, sdf, gnt"
     ]
 
 

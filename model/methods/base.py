@@ -162,6 +162,11 @@ class Method(ABC):
     def default_lr(self) -> tuple[float, str]:
         """The base learning rate when none is given, and why."""
 
+    def default_batch(self, cuda: bool) -> tuple[int, str] | None:
+        """Rays a step when none is given, and why; None: train's rule for every method (1024 on CPU, 8192 on
+        CUDA)."""
+        return None
+
     @abstractmethod
     def build(self, ctx: TrainContext, prepared: Prepared, state: dict | None) -> TrainModel:
         """A new model (state None) or the one a checkpoint holds (its entries, `checkpoint`); the background is

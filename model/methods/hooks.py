@@ -7,7 +7,8 @@ density field's grid upsampling, occupancy refresh and priors (`model.methods.de
 every other call does nothing.
 
 Order within a step (the loop calls every hook in list order at each point):
-  prepare(fraction) -> rays(o, d, view) -> render -> loss(batch, out) -> backward -> after_backward ->
+  prepare(fraction) -> draw(n) (the first hook that returns a batch draws it) -> rays(o, d, view) -> render ->
+  loss(batch, out) -> backward -> after_backward ->
   optimiser step -> model.after_step -> after_step
 and finish() once the budget is spent, before the last checkpoint.
 """
@@ -79,6 +80,11 @@ class Hook:
         """Before a step at run progress `fraction`; True when the model or the optimiser was replaced (the loop
         keeps a new good state for its recovery)."""
         return False
+
+    def draw(self, loop: LoopState, n: int) -> Tensor | None:
+        """The step's n rays as flat indices [n] into the training photos' pixels (`model.views.Views`), drawn with
+        loop.gen; None: another hook's, or the loop's own (uniform over every pixel of every photo)."""
+        return None
 
     def rays(self, loop: LoopState, o: Tensor, d: Tensor, view: Tensor) -> tuple[Tensor, Tensor]:
         """The batch's rays o, d [R, 3] of training views view [R] as the step renders them."""

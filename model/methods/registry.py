@@ -37,6 +37,7 @@ BUILTIN = {
     "density": ("nerfpipe.model.methods.density", "DENSITY"),
     "nerf": ("nerfpipe.model.methods.nerf", "NERF"),
     "sdf": ("nerfpipe.model.methods.sdf", "SDF"),
+    "gnt": ("nerfpipe.model.methods.gnt", "GNT"),
 }
 """Built-in methods: name -> (module, attribute)."""
 DEFAULT = "density"

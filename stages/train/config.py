@@ -58,7 +58,7 @@ class Config:
     """Replace the run already in run_dir (set aside in RUN_DIR.previous/ until this run succeeds); without it,
     or --resume, train refuses a folder that holds a run."""
     batch_rays: int | None = None
-    """Rays per optimizer step (None: 1024 on CPU, 8192 on CUDA; stages.train.defaults)."""
+    """Rays per optimizer step (None: the method's, else 1024 on CPU, 8192 on CUDA; stages.train.defaults)."""
     lr: float | None = None
     """Base learning rate (None: the method's: 0.03 for the density field's grids (its MLP at lr/20), 5e-4 for
     nerf)."""

@@ -131,6 +131,8 @@ def _run_options(config: Config, method: Method, cuda: bool, reasons: dict[str, 
     """Batch, learning rate and threads: as given, else the device's and the method's rules."""
     if config.batch_rays is not None:
         batch, reasons["batch_rays"] = int(config.batch_rays), "asked for"
+    elif (own := method.default_batch(cuda)) is not None:
+        batch, reasons["batch_rays"] = own
     else:
         batch = 8192 if cuda else 1024
         reasons["batch_rays"] = "8192 on CUDA, 1024 on CPU (more small steps in a fixed time)"

@@ -171,7 +171,7 @@ class Loop:
     def train_step(self, lr: float) -> bool:
         """One optimiser step on a random batch of rays; False (and no update) when the loss is not finite."""
         model, par = self.model, self.parallel
-        idx = torch.randint(self.train.n_rays, (self.config.batch_rays,), generator=self.gen)
+        idx = self._draw(self.config.batch_rays)
         o, d, rgb, alpha, view, bg, bg_all = self._rays(idx)
         target = over_background(rgb, alpha[:, None], bg.detach())
         with self._draws(idx.numel()):
@@ -212,6 +212,15 @@ class Loop:
         per_ray = samples / idx.numel()
         self.samples_per_ray = 0.9 * self.samples_per_ray + 0.1 * per_ray if self.step > 0 else per_ray
         return True
+
+    def _draw(self, n: int) -> Tensor:
+        """The step's n ray indices [n]: the first hook's that draws them (`Hook.draw`), else uniform over every
+        training pixel."""
+        for hook in self.hooks:
+            idx = hook.draw(self, n)
+            if idx is not None:
+                return idx
+        return torch.randint(self.train.n_rays, (n,), generator=self.gen)
 
     def _rays(self, idx: Tensor) -> tuple[Tensor, ...]:
         """The batch idx [B] -> this rank's rays o, d [b, 3], rgb [b, 3], alpha [b], view [b] and background

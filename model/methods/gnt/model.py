@@ -1,0 +1,193 @@
+"""GNT's `TrainModel`: rays -> samples -> the K nearest source photos' features at each sample -> the network
+(`model.methods.gnt.net`) -> colour, coverage and depth.
+
+Samples: S a ray, stratified (jittered while training, at interval middles otherwise) over the ray's range
+(`RayRange`): uniform in depth through the object's box for a box scene, uniform in inverse depth from the near plane
+to the far one (or to infinity) otherwise, as IBRNet and GNT sample LLFF scenes.
+Sources: the training photos (`model.methods.gnt.sources`); each ray reads the `k` whose view of its range's middle
+is closest in angle to the ray, never its own photo while training. While training, features are computed with
+gradients for the photos a batch reads (the loop draws a step's rays from a few photos: `hooks.GntBatches`); at
+inference for every photo once, kept until the weights change.
+Output: rgb = alpha c + (1 - alpha) background, acc = alpha, depth = sum_s w_s t_s, depth_median where the read-out
+weights reach 0.5 (weights: the read-out's softmax over the ray).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from nerfpipe.model.appearance import Appearance
+from nerfpipe.model.background import Background
+from nerfpipe.model.field_model import param_groups
+from nerfpipe.model.methods.gnt.net import GntNet
+from nerfpipe.model.methods.gnt.sources import Sources, gather
+from nerfpipe.radiance.aabb import ray_aabb_segment
+
+__all__ = ["RayRange", "GntModel"]
+
+
+@dataclass(frozen=True)
+class RayRange:
+    """Where a ray's samples lie: through `aabb` (box scenes: uniform in depth) or, without one, from near to far
+    (inf allowed) uniform in inverse depth."""
+
+    near: float
+    far: float
+    aabb: tuple[tuple[float, ...], tuple[float, ...]] | None = None
+
+    def segment(self, o: Tensor, d: Tensor) -> tuple[Tensor, Tensor]:
+        """Each ray's [t_near, t_far] [R] (a ray that misses the box: an empty segment at its entry)."""
+        if self.aabb is None:
+            return torch.full_like(o[:, 0], self.near), torch.full_like(o[:, 0], self.far)
+        t0, t1 = ray_aabb_segment(o, d, torch.tensor(self.aabb, dtype=o.dtype, device=o.device), self.near, self.far)
+        return t0, torch.maximum(t0, t1)
+
+    def samples(self, o: Tensor, d: Tensor, n: int, jitter: Tensor | None) -> tuple[Tensor, Tensor]:
+        """t [R, n] along each ray and its position in the range t01 [R, n] in [0, 1]; jitter [R, n] in [0, 1) or
+        None (interval middles)."""
+        r = o.shape[0]
+        s = (torch.arange(n, dtype=o.dtype, device=o.device) + 0.5) / n  # [n]
+        s = s.expand(r, n) if jitter is None else (torch.arange(n, dtype=o.dtype, device=o.device) + jitter) / n
+        t0, t1 = self.segment(o, d)
+        if self.aabb is not None:
+            return t0[:, None] + s * (t1 - t0)[:, None], s
+        inv = (1 - s) / t0[:, None] + s / t1[:, None]  # inverse depth, 1 / inf = 0
+        return 1.0 / inv, s
+
+    def middle(self, o: Tensor, d: Tensor) -> Tensor:
+        """The point [R, 3] the sources are chosen for: the middle of the box segment, or twice the near plane."""
+        t0, t1 = self.segment(o, d)
+        t = 0.5 * (t0 + t1) if self.aabb is not None else 2.0 * t0
+        return o + d * t[:, None]
+
+    def to_dict(self) -> dict:
+        return {"near": self.near, "far": self.far if math.isfinite(self.far) else "inf", "aabb": self.aabb}
+
+    @staticmethod
+    def from_dict(doc: dict) -> RayRange:
+        aabb = doc.get("aabb")
+        far = math.inf if doc["far"] == "inf" else float(doc["far"])
+        return RayRange(float(doc["near"]), far, None if aabb is None else tuple(tuple(map(float, a)) for a in aabb))
+
+
+@dataclass(eq=False)
+class GntModel:
+    """GNT over one scene's source photos (module doc): a `model.methods.base.TrainModel`."""
+
+    net: GntNet
+    sources: Sources
+    range: RayRange
+    samples: int
+    k: int
+    background: Background | None = None
+    appearance: Appearance | None = None
+    chunk: int = 512
+    random_draws_per_ray: int = 0
+    """The jitter is drawn per ray from torch's generator: data-parallel gnt runs are not supported."""
+    space: Any = None
+    _maps: Tensor | None = field(default=None, repr=False)
+
+    def render(
+        self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, view: Tensor | None = None, **_: Any
+    ) -> dict[str, Tensor]:
+        """Rays o, d [R, 3] (unit d), background [R, 3] or [3] -> dict(rgb [R, 3], acc [R], depth [R],
+        depth_median [R], samples). `view` [R]: each ray's training photo (excluded from its sources while
+        training)."""
+        r, n = o.shape[0], self.samples
+        jitter = torch.rand(r, n, dtype=o.dtype, device=o.device) if train else None
+        t, t01 = self.range.samples(o, d, n, jitter)  # [R, S]
+        x = o[:, None, :] + d[:, None, :] * t[..., None]  # [R, S, 3]
+        exclude = view.long() if (train and view is not None) else None
+        chosen = self.sources.select(self.range.middle(o, d), d, self.k, exclude)  # [R, K]
+        uv, seen = self.sources.project(x, chosen)  # [R, S, K, 2], [R, S, K]
+        maps, local = self._feature_maps(chosen, train)
+        k = chosen.shape[1]
+        flat_uv = uv.reshape(-1, 2)
+        h, w = self.sources.size
+        hf, wf = maps.shape[-2:]
+        map_uv = flat_uv * torch.tensor([wf / w, hf / h], dtype=uv.dtype, device=uv.device)
+        view_of = local[:, None, :].expand(r, n, k).reshape(-1)
+        feats = gather(maps, view_of, map_uv)  # [R S K, C]
+        pixels = gather(self.sources.images, chosen[:, None, :].expand(r, n, k).reshape(-1), flat_uv)  # [R S K, 4]
+        views = torch.cat([feats, pixels], dim=-1).reshape(r, n, k, -1)
+        src_dirs = self.sources.directions(x, chosen)  # [R, S, K, 3]
+        diff = d[:, None, None, :] - src_dirs
+        ray_diff = torch.cat([diff, (d[:, None, None, :] * src_dirs).sum(-1, keepdim=True)], dim=-1)
+        out = self.net(views, ray_diff, seen, t01)
+        w_ = out["weights"]
+        alpha = out["alpha"]
+        rgb = alpha[:, None] * out["rgb"] + (1 - alpha[:, None]) * background
+        depth = (w_ * t).sum(1)
+        cum = w_.detach().cumsum(1)
+        median_idx = (cum < 0.5).sum(1).clamp(max=n - 1)
+        result = {
+            "rgb": rgb,
+            "acc": alpha,
+            "depth": depth,
+            "depth_median": t.gather(1, median_idx[:, None])[:, 0],
+            "samples": torch.tensor(float(r * n)),
+        }
+        if self.appearance is not None:
+            result["rgb"] = self.appearance(result["rgb"], result["acc"], background, view)
+        return result
+
+    def _feature_maps(self, chosen: Tensor, train: bool) -> tuple[Tensor, Tensor]:
+        """Feature maps [U, C, h, w] and each chosen source's row in them, local [R, K]: while training only the
+        sources chosen (with gradients), otherwise every source's, computed once."""
+        if train or torch.is_grad_enabled():
+            used, local = chosen.unique(return_inverse=True)
+            return self.net.features(self.sources.images[used]), local
+        if self._maps is None:
+            with torch.no_grad():
+                self._maps = torch.cat(
+                    [self.net.features(self.sources.images[i : i + 16]) for i in range(0, self.sources.n, 16)]
+                )
+        return self._maps, chosen
+
+    def forget_features(self) -> None:
+        """The weights changed: the cached feature maps are stale."""
+        self._maps = None
+
+    # ------------------------------------------------------------------------------------------------ TrainModel
+    def param_groups(self, lr: float) -> list[dict]:
+        return param_groups([{"params": list(self.net.parameters()), "lr": lr}], self.background, self.appearance, lr)
+
+    def train_mode(self, on: bool) -> None:
+        self.net.train(on)
+        self.forget_features()
+
+    def after_step(self) -> None:
+        self.forget_features()
+
+    def learned(self) -> dict[str, torch.nn.Module]:
+        mods = {"net": self.net, "background": self.background, "appearance": self.appearance}
+        return {k: v for k, v in mods.items() if v is not None}
+
+    def snapshot(self) -> dict[str, Any]:
+        return {k: copy.deepcopy(v.state_dict()) for k, v in self.learned().items()}
+
+    def restore(self, snapshot: dict[str, Any]) -> bool:
+        for key, mod in self.learned().items():
+            mod.load_state_dict(snapshot[key])
+        self.forget_features()
+        return False
+
+    def describe(self) -> dict[str, Any]:
+        """The manifest's record: the network's configuration, sources, samples and the rays' range."""
+        return {
+            "net": self.net.config(),
+            "parameters": sum(p.numel() for p in self.net.parameters()),
+            "gnt": {
+                "source_views": self.k,
+                "sources": self.sources.n,
+                "source_size": list(self.sources.size),
+                "samples_per_ray": self.samples,
+                "range": self.range.to_dict(),
+            },
+        }

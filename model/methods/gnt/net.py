@@ -1,0 +1,128 @@
+"""GNT's network (Wang et al., ICLR 2023), cut to CPU size: a view transformer over each sample's K source views, a
+ray transformer over each ray's samples, and an attention read-out in place of the volume-rendering sum.
+
+Shapes: R rays, S samples a ray, K source views a ray, C feature channels (+4: the source pixel's premultiplied
+rgb and alpha), D the token width.
+- View transformer (per sample, across its K views): GNT's subtraction attention. Each view's key and value come
+  from its features, a positional code of the ray difference (the target direction minus the source's, and their
+  dot product) is added to both; the weights softmax(MLP(q - k + pos)) are per channel and per view, over the views
+  that see the sample only (`seen`). The first block's query is the masked max over views of the features; later
+  blocks' queries are the tokens.
+- Ray transformer (per ray, across its S samples): pre-norm multi-head self-attention plus a feed-forward, with a
+  sinusoidal code of each sample's position along the ray (0 at the ray's near end, 1 at its far end).
+- Read-out: one logit a sample, softmax over the ray: rgb and coverage (alpha) from the weighted token; the same
+  weights give the depth (GNT reads depth from the ray transformer's attention the same way).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+from nerfpipe.model.methods.gnt.features import make_extractor
+
+__all__ = ["GntNet", "masked_softmax"]
+
+
+def masked_softmax(logits: Tensor, mask: Tensor, dim: int) -> Tensor:
+    """softmax of logits over `dim` among mask's True entries (broadcast); 0 where a slice has none."""
+    finfo = torch.finfo(logits.dtype)
+    w = torch.softmax(logits.masked_fill(~mask, finfo.min), dim=dim) * mask
+    return w / w.sum(dim=dim, keepdim=True).clamp_min(finfo.tiny)
+
+
+def _mlp(d_in: int, d_hidden: int, d_out: int) -> nn.Sequential:
+    return nn.Sequential(nn.Linear(d_in, d_hidden), nn.ReLU(), nn.Linear(d_hidden, d_out))
+
+
+class _ViewBlock(nn.Module):
+    def __init__(self, d: int):
+        super().__init__()
+        self.key, self.value, self.query = nn.Linear(d, d), nn.Linear(d, d), nn.Linear(d, d)
+        self.attn = _mlp(d, d, d)
+        self.out = nn.Linear(d, d)
+        self.norm = nn.LayerNorm(d)
+        self.ff = _mlp(d, 2 * d, d)
+
+    def forward(self, token: Tensor, views: Tensor, pos: Tensor, seen: Tensor) -> Tensor:
+        """token [R, S, D], views [R, S, K, D], pos [R, S, K, D], seen [R, S, K] -> token [R, S, D]."""
+        q = self.query(token)[:, :, None]
+        w = masked_softmax(self.attn(q - self.key(views) + pos), seen[..., None], dim=2)  # [R, S, K, D]
+        token = token + self.out((w * (self.value(views) + pos)).sum(2))
+        return token + self.ff(self.norm(token))
+
+
+class _RayBlock(nn.Module):
+    def __init__(self, d: int, heads: int):
+        super().__init__()
+        self.norm_a, self.norm_b = nn.LayerNorm(d), nn.LayerNorm(d)
+        self.attn = nn.MultiheadAttention(d, heads, batch_first=True)
+        self.ff = _mlp(d, 2 * d, d)
+
+    def forward(self, token: Tensor) -> Tensor:  # [R, S, D]
+        x = self.norm_a(token)
+        token = token + self.attn(x, x, x, need_weights=False)[0]
+        return token + self.ff(self.norm_b(token))
+
+
+class GntNet(nn.Module):
+    """Extractor + view and ray transformers + read-out (module doc). `config()` rebuilds it."""
+
+    def __init__(
+        self,
+        *,
+        extractor: str = "shallow",
+        channels: int = 32,
+        width: int = 32,
+        blocks: int = 2,
+        heads: int = 4,
+        frequencies: int = 6,
+    ):
+        super().__init__()
+        self._config = dict(
+            extractor=extractor, channels=channels, width=width, blocks=blocks, heads=heads, frequencies=frequencies
+        )
+        self.extractor = make_extractor(extractor, channels)
+        self.stride = self.extractor.stride
+        self.frequencies = frequencies
+        self.embed = nn.Linear(channels + 4, width)
+        self.pos = _mlp(4, width, width)
+        self.ray_pos = nn.Linear(2 * frequencies + 1, width)
+        self.view_blocks = nn.ModuleList([_ViewBlock(width) for _ in range(blocks)])
+        self.ray_blocks = nn.ModuleList([_RayBlock(width, heads) for _ in range(blocks)])
+        self.norm = nn.LayerNorm(width)
+        self.logit = nn.Linear(width, 1)
+        self.rgb = _mlp(width, width, 3)
+        self.alpha = nn.Linear(width, 1)
+
+    def config(self) -> dict:
+        return dict(self._config)
+
+    def features(self, images: Tensor) -> Tensor:
+        """Source images [V, 4, H, W] -> feature maps [V, C, H / stride, W / stride]."""
+        return self.extractor(images)
+
+    def forward(self, views: Tensor, ray_diff: Tensor, seen: Tensor, t01: Tensor) -> dict[str, Tensor]:
+        """views [R, S, K, C + 4] (features, then the source pixel's rgba), ray_diff [R, S, K, 4], seen [R, S, K]
+        (bool), t01 [R, S] (position along the ray in [0, 1]) -> dict(rgb [R, 3], alpha [R], weights [R, S])."""
+        x = self.embed(views)  # [R, S, K, D]
+        pos = self.pos(ray_diff)
+        m = seen[..., None]
+        token = x.masked_fill(~m, torch.finfo(x.dtype).min).amax(2)  # masked max over the views: [R, S, D]
+        token = torch.where(seen.any(2, keepdim=True), token, torch.zeros_like(token))
+        freq = (2.0 ** torch.arange(self.frequencies, device=t01.device, dtype=t01.dtype)) * math.pi
+        code = torch.cat([t01[..., None], torch.sin(t01[..., None] * freq), torch.cos(t01[..., None] * freq)], -1)
+        ray_code = self.ray_pos(code)  # [R, S, D]
+        for view_block, ray_block in zip(self.view_blocks, self.ray_blocks, strict=True):
+            token = view_block(token, x, pos, seen)
+            token = ray_block(token + ray_code)
+        token = self.norm(token)
+        weights = torch.softmax(self.logit(token)[..., 0], dim=1)  # [R, S]
+        pooled = (weights[..., None] * token).sum(1)  # [R, D]
+        return {
+            "rgb": torch.sigmoid(self.rgb(pooled)),
+            "alpha": torch.sigmoid(self.alpha(pooled))[..., 0],
+            "weights": weights,
+        }
