@@ -74,6 +74,7 @@ include pipelines/demo.mk
 include pipelines/bench.mk
 include pipelines/study.mk
 include pipelines/xray.mk
+include pipelines/pretrain.mk
 
 .PHONY: all
 all: $(INSTALLED)

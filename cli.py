@@ -74,7 +74,13 @@ __all__ = ["GROUPS", "PARSERS", "STAGES", "Group", "Stage", "app", "config_from_
 
 
 # ---------------------------------------------------------------------------------------------- summaries
+def _pretrain(out: Any) -> str:
+    return f"{out.steps} steps in {out.seconds:.1f} s, loss {out.loss_start:.4g} -> {out.loss_end:.4g} -> {out.weights}"
+
+
 def _scene(out: Any) -> str:
+    if out.scenes:
+        return f"{len(out.scenes)} scenes of {len(out.images)} images, ground truth and manifests -> {out.out_dir}"
     return f"{len(out.images)} images, ground truth and manifest -> {out.out_dir}"
 
 
@@ -186,6 +192,11 @@ STAGES: dict[str, Stage] = {
     "xray-eval": Stage(S + "xray_eval", "3-D PSNR/SSIM, projection PSNR/SSIM, FDK baseline, to JSON.", _xray),
     "view": Stage(S + "view", "Browse a scene or a run in the browser (viser); record camera paths.", _view),
     "splat": Stage(S + "splat", "Gaussian splats from a run, optimised on its photos -> INRIA .ply / .splat.", _splat),
+    "pretrain-gnt": Stage(
+        S + "pretrain_gnt",
+        "Train GNT across a folder of scenes (the weights train --method gnt --init uses).",
+        _pretrain,
+    ),
     "xray-export": Stage(S + "xray_export", "Slice montages, a rotating DRR/MIP video and an iso-surface mesh."),
 }
 

@@ -190,3 +190,34 @@ def test_a_run_of_given_weights_and_no_step_renders_what_their_run_renders(tiny)
                 options=GntOptions(init=str(root / "scene" / "transforms.json")),
             )
         )
+
+
+def test_pretraining_across_scenes_writes_weights_a_run_starts_from(tmp_path):
+    from nerfpipe.stages import pretrain_gnt
+
+    data = scene_stage.run(
+        scene_stage.Config(out_dir=tmp_path / "scenes", subject="random", kind="rgba", size=16, views=5, count=2)
+    )
+    assert [p.name for p in data.scenes] == ["000000", "000001"]
+    out = pretrain_gnt.run(
+        pretrain_gnt.Config(
+            scenes=tmp_path / "scenes", out_dir=tmp_path / "pre", max_steps=30, batch_rays=64, gnt_samples=8
+        )
+    )
+    manifest = json.loads(out.manifest.read_text())
+    assert out.steps == 30 and manifest["used"]["scene_count"] == 2 and manifest["used"]["photos"] == 10
+    assert out.loss_end < out.loss_start  # it learns across scenes
+    assert not (tmp_path / "pre" / "weights.partial.pt").exists()
+    run = train.run(
+        train.Config(
+            scene_dir=tmp_path / "scenes" / "000001",
+            run_dir=tmp_path / "zero",
+            method="gnt",
+            max_steps=0,
+            device="cpu",
+            options=GntOptions(init=str(out.weights), gnt_samples=8),
+        )
+    )
+    assert run.steps == 0 and run.test_psnr is not None
+    with pytest.raises(UserError, match="no scene folders"):
+        pretrain_gnt.run(pretrain_gnt.Config(scenes=tmp_path / "pre", out_dir=tmp_path / "pre2", max_steps=1))

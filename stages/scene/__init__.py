@@ -45,6 +45,7 @@ the layout, the lights), `rig` (the cameras per layout), `turntable` (the turnta
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -104,7 +105,23 @@ def run(config: Config) -> Outputs:
     """Render the scene described by `config` into `config.out_dir`; see the module docstring for the files."""
     check(config)
     with output_folder(config.out_dir, overwrite=config.overwrite):
-        return _run(config)
+        return _run(config) if config.count == 1 else _run_many(config)
+
+
+def _run_many(config: Config) -> Outputs:
+    """count > 1: one scene a seed in out_dir/<seed>, then the dataset's manifest (written last)."""
+    started, out = time.time(), Path(config.out_dir)
+    seeds = range(config.seed, config.seed + config.count)
+    scenes = [_run(replace(config, out_dir=out / f"{s:06d}", seed=s, count=1)) for s in seeds]
+    manifest = write_manifest(
+        out,
+        stage="scene",
+        started=started,
+        outputs=[s.manifest.relative_to(out) for s in scenes],
+        used={"count": config.count, "seeds": [seeds[0], seeds[-1]], "scene_folders": "<seed>, six digits"},
+        config=config_to_json(config),
+    )
+    return replace(scenes[0], out_dir=out, manifest=manifest, scenes=tuple(s.out_dir for s in scenes))
 
 
 def _run(config: Config) -> Outputs:

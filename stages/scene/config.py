@@ -44,6 +44,10 @@ class Config:
     0.1-0.6 m on or above the slab, none touching, each with a noise or photo texture, the slab's texture, the
     lights, and (layout orbit) nothing, a far wall or a room around; manifest.json's `random_subject` says what
     was drawn. Pretraining data for a cross-scene model: the layouts differ from seed to seed."""
+    count: int = 1
+    """Scenes to write: 1 writes out_dir itself; N > 1 writes out_dir/<seed> (six digits) for the seeds seed,
+    seed + 1, ..., seed + N - 1, each a whole scene, and a manifest over them (a dataset of scenes: with --subject
+    random no two share a layout; `make pretrain-gnt` trains on one)."""
     scale: float = 1.0
     """Multiply every length (objects, cameras, depth, mesh) by this; the images do not change."""
     overwrite: bool = False
@@ -70,9 +74,14 @@ class Outputs:
     """ground_truth/mesh.ply."""
     manifest: Path
     """manifest.json (written last)."""
+    scenes: tuple[Path, ...] = ()
+    """count > 1: every scene's folder, in seed order (the fields above then describe the first scene, but for
+    out_dir and manifest, the dataset's); empty for one scene."""
 
 
 def check(config: Config) -> None:
+    if config.count < 1:
+        raise UserError(f"scene: expected --count >= 1, got {config.count}")
     if config.size < 8 or config.views < 1:
         raise UserError(f"scene: expected --size >= 8 and --views >= 1, got size={config.size}, views={config.views}")
     if config.kind not in ("photos", "posed", "rgba", "blender"):

@@ -40,9 +40,9 @@ def read_weights(init: str, device: torch.device) -> tuple[dict, dict, dict]:
     return dict(state["gnt_net_config"]), state["gnt_net"], dict(state.get("provenance") or {})
 
 
-def write_weights(path: Path, config: dict, state: dict, provenance: dict) -> None:
+def write_weights(path: Path, config: dict, state: dict, provenance: dict) -> Path:
     """Write a weights file atomically (float32 tensors on the CPU)."""
     buf = io.BytesIO()
     cpu = {k: v.detach().to("cpu", torch.float32) for k, v in state.items()}
     torch.save({"format": WEIGHTS_FORMAT, "gnt_net_config": config, "gnt_net": cpu, "provenance": provenance}, buf)
-    write_bytes(path, buf.getvalue())
+    return write_bytes(path, buf.getvalue())

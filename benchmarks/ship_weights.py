@@ -1,0 +1,62 @@
+"""Copy a pretrain-gnt output's weights into the package, with their provenance (`make pretrain-gnt`).
+
+    python -m benchmarks.ship_weights PRETRAIN_OUT WEIGHTS_DIR --command "make pretrain-gnt ..."
+
+Writes WEIGHTS_DIR/pretrained.pt (the weights file as pretrain-gnt wrote it) and WEIGHTS_DIR/pretrained.json: the
+command, the commit the code was at (and whether the tree had changes), the data recipe (each scene set's scene
+manifest: subject, layout, kind, count, seeds, size, views), and the figures of the run (steps, seconds, loss at
+the start and the end, parameters, the sha256 of the weights).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+from pathlib import Path
+
+from nerfpipe.data.atomic import write_json
+from nerfpipe.data.rundir import sha256_file
+
+
+def _git(*args: str) -> str:
+    return subprocess.run(["git", *args], capture_output=True, text=True, check=False).stdout.strip()
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("pretrain_out", type=Path)
+    ap.add_argument("weights_dir", type=Path)
+    ap.add_argument("--command", required=True)
+    args = ap.parse_args(argv)
+    manifest = json.loads((args.pretrain_out / "manifest.json").read_text())
+    config = json.loads((args.pretrain_out / "config.json").read_text())
+    scenes_root = Path(config["scenes"])
+    recipe = []
+    for m in sorted(scenes_root.glob("*/manifest.json")):
+        doc = json.loads(m.read_text())
+        cfg = doc.get("config", {})
+        keep = ("subject", "layout", "kind", "count", "seed", "size", "views")
+        recipe.append({"folder": m.parent.name, **{k: cfg.get(k) for k in keep}})
+    args.weights_dir.mkdir(parents=True, exist_ok=True)
+    target = args.weights_dir / "pretrained.pt"
+    shutil.copyfile(args.pretrain_out / "weights.pt", target)
+    write_json(
+        args.weights_dir / "pretrained.json",
+        {
+            "command": args.command,
+            "commit": _git("rev-parse", "HEAD"),
+            "tree_changed": bool(_git("status", "--porcelain", "--untracked-files=no")),
+            "recipe": recipe,
+            "pretrain_config": config,
+            "figures": manifest.get("used", {}),
+            "sha256": sha256_file(target),
+        },
+    )
+    print(f"{target} ({target.stat().st_size / 1e6:.2f} MB) and pretrained.json")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
