@@ -20,8 +20,10 @@ from nerfpipe.radiance.camera import Intrinsics, project
 from nerfpipe.stages import depth as depth_stage
 from nerfpipe.stages import eval as eval_stage
 from nerfpipe.stages import mesh as mesh_stage
+from nerfpipe.stages import render as render_stage
 from nerfpipe.stages import scene as scene_stage
 from nerfpipe.stages import train
+from nerfpipe.stages.view.run_view import render_camera
 
 
 def test_gather_matches_grid_sample_in_values_and_gradients():
@@ -161,6 +163,16 @@ def test_a_tiny_scene_trains_and_goes_through_eval_render_and_depth(tiny):
     assert ev.result["psnr"] == pytest.approx(out.test_psnr, abs=0.3)
     dm = depth_stage.run(depth_stage.Config(run_dir=root / "run", out_dir=root / "depth", device="cpu"))
     assert len(dm.names) == ev.result["n_views"]
+    video = render_stage.run(
+        render_stage.Config(run_dir=root / "run", out=root / "turn.mp4", path="turntable", frames=2, device="cpu")
+    )
+    assert video.n_frames == 2
+    from nerfpipe.model import load_trained
+
+    image = render_camera(
+        load_trained(root / "run", "cpu"), (1.0, 0.0, 0.0, 0.0), (0.1, -3.0, 0.2), 0.8, 1.0, 16, coarse=True
+    )
+    assert image.shape == (16, 16, 3) and image.dtype == np.uint8  # what `view` shows
     with pytest.raises(UserError, match="a gnt run cannot give a signed distance at points or give a density"):
         mesh_stage.run(mesh_stage.Config(run_dir=root / "run", out=root / "m.ply", device="cpu"))
 
