@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import torch
+from torch import Tensor
 
 from nerfpipe.data.errors import UserError
 
-__all__ = ["resolve_device", "cpu_threads", "rays_per_chunk", "CUDA_CHUNK_FACTOR"]
+__all__ = ["resolve_device", "cpu_threads", "rays_per_chunk", "render_in_chunks", "CUDA_CHUNK_FACTOR"]
 
 
 def resolve_device(name: str | torch.device) -> torch.device:
@@ -50,3 +51,25 @@ def cpu_threads(n: int | None) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(before)
+
+
+def render_in_chunks(
+    render: Callable[[Tensor, Tensor], dict[str, Tensor]],
+    rays_o: Tensor,  # [R, 3]
+    rays_d: Tensor,  # [R, 3] unit
+    chunk: int,
+    device: torch.device,
+    *,
+    median: bool = True,
+) -> dict[str, Tensor]:
+    """A run's `render_rays` in chunks of `chunk` rays moved to `device` as float32: `render(o, d)` -> dict with at
+    least rgb, depth, acc (and depth_median when `median`) -> those keys [R, ...] concatenated."""
+    if rays_o.shape != rays_d.shape or rays_o.ndim != 2 or rays_o.shape[-1] != 3:
+        raise ValueError(f"expected rays_o, rays_d [R, 3], got {tuple(rays_o.shape)}, {tuple(rays_d.shape)}")
+    keys = ("rgb", "depth", "depth_median", "acc") if median else ("rgb", "depth", "acc")
+    parts: dict[str, list[Tensor]] = {k: [] for k in keys}
+    for i in range(0, rays_o.shape[0], chunk):
+        out = render(rays_o[i : i + chunk].to(device, torch.float32), rays_d[i : i + chunk].to(device, torch.float32))
+        for k in parts:
+            parts[k].append(out[k])
+    return {k: torch.cat(v) if v else torch.zeros(0, device=device) for k, v in parts.items()}

@@ -28,3 +28,9 @@ pretrain-gnt: pretrain-gnt-scenes
 		--device $(PRETRAIN_DEVICE) --threads $(PRETRAIN_THREADS) --overwrite
 	$(VENV)/bin/python -m benchmarks.ship_weights $(PRETRAIN_OUT)/model $(GNT_WEIGHTS) \
 		--command "make pretrain-gnt PRETRAIN_SECONDS=$(PRETRAIN_SECONDS) PRETRAIN_SCENES=$(PRETRAIN_SCENES) PRETRAIN_SIZE=$(PRETRAIN_SIZE) PRETRAIN_VIEWS=$(PRETRAIN_VIEWS) PRETRAIN_DEVICE=$(PRETRAIN_DEVICE)"
+
+# issue 49: GNT zero-shot on held-out generated scenes (3, 6, 10 photos) against the density method on the same
+# photos, zero-shot on lego_400 and the fern, per-scene against density (docs/GNT.md has the table and the commit).
+.PHONY: bench-gnt
+bench-gnt: $(INSTALLED)
+	$(VENV)/bin/python -m benchmarks.bench_gnt --out $(BENCH_OUT)/gnt

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import partial
 
 import torch
 from torch import Tensor
@@ -25,7 +26,7 @@ from torch import Tensor
 from nerfpipe.data.checks import Check
 from nerfpipe.data.transforms import Scene
 from nerfpipe.model.appearance import Appearance
-from nerfpipe.model.device import rays_per_chunk
+from nerfpipe.model.device import rays_per_chunk, render_in_chunks
 from nerfpipe.model.methods.sdf.model import SdfModel
 from nerfpipe.radiance.safe import eps
 
@@ -73,17 +74,8 @@ class SdfRun:
     @torch.no_grad()
     def render_rays(self, rays_o: Tensor, rays_d: Tensor, *, infer=None, median: bool = True) -> dict[str, Tensor]:
         """rays_o, rays_d [R, 3] (unit) -> dict(rgb [R, 3], depth [R], acc [R], and with `median` depth_median [R])."""
-        if rays_o.shape != rays_d.shape or rays_o.ndim != 2 or rays_o.shape[-1] != 3:
-            raise ValueError(f"expected rays_o, rays_d [R, 3], got {tuple(rays_o.shape)}, {tuple(rays_d.shape)}")
-        keys = ("rgb", "depth", "depth_median", "acc") if median else ("rgb", "depth", "acc")
-        parts: dict[str, list[Tensor]] = {k: [] for k in keys}
-        for i in range(0, rays_o.shape[0], self.chunk):
-            o = rays_o[i : i + self.chunk].to(self.device, torch.float32)
-            d = rays_d[i : i + self.chunk].to(self.device, torch.float32)
-            out = self.model.render(o, d, self.background, train=False)
-            for k in parts:
-                parts[k].append(out[k])
-        return {k: torch.cat(v) if v else torch.zeros(0, device=self.device) for k, v in parts.items()}
+        render = partial(self.model.render, background=self.background, train=False)
+        return render_in_chunks(render, rays_o, rays_d, self.chunk, self.device, median=median)
 
     @torch.no_grad()
     def sdf(self, x: Tensor) -> Tensor:
