@@ -4,7 +4,8 @@
 
 Writes WEIGHTS_DIR/pretrained.pt (the weights file as pretrain-gnt wrote it) and WEIGHTS_DIR/pretrained.json: the
 command, the commit the code was at (and whether the tree had changes), the data recipe (each scene set's scene
-manifest: subject, layout, kind, count, seeds, size, views), and the figures of the run (steps, seconds, loss at
+manifest: subject, layout, kind, count, seeds, size, views), the last commit that changed the code pretraining
+runs (`code_commit`), and the figures of the run (steps, seconds, loss at
 the start and the end, parameters, the sha256 of the weights).
 """
 
@@ -18,6 +19,9 @@ from pathlib import Path
 
 from nerfpipe.data.atomic import write_json
 from nerfpipe.data.rundir import sha256_file
+
+CODE = ("model", "stages/pretrain_gnt", "stages/scene", "data/synthetic", "radiance")
+"""What pretraining runs: the last commit that changed it is `code_commit` (the weights' own commits left out)."""
 
 
 def _git(*args: str) -> str:
@@ -47,6 +51,8 @@ def main(argv: list[str] | None = None) -> int:
         {
             "command": args.command,
             "commit": _git("rev-parse", "HEAD"),
+            "code_commit": _git("log", "-1", "--format=%H", "--", *CODE, ":!model/methods/gnt/weights", ":!*.md"),
+            "pretrain_started": manifest.get("started"),
             "tree_changed": bool(_git("status", "--porcelain", "--untracked-files=no")),
             "recipe": recipe,
             "pretrain_config": config,
