@@ -113,9 +113,9 @@ def _real_scenes(out: Path) -> dict[str, tuple[Path, float, int | None]]:
     scenes = {}
     lego, fern = out / "lego_400", out / "fern"
     if not (lego / "transforms.json").is_file():
-        convert.run(convert.Config(source=DATA / "lego_400", out_dir=lego, overwrite=True))
+        convert.run(convert.Config(source=DATA / "lego_400", scene_dir=lego))
     if not (fern / "transforms.json").is_file():
-        convert.run(convert.Config(source=DATA / "fern", out_dir=fern, images="images_8", overwrite=True))
+        convert.run(convert.Config(source=DATA / "fern", scene_dir=fern, images=Path("images_8")))
     scenes["lego_400 at 128 px"] = (lego, 3.125, 25)
     scenes["fern at 126x94"] = (fern, 4.0, None)
     return scenes
