@@ -233,3 +233,25 @@ def test_pretraining_across_scenes_writes_weights_a_run_starts_from(tmp_path):
     assert run.steps == 0 and run.test_psnr is not None
     with pytest.raises(UserError, match="no scene folders"):
         pretrain_gnt.run(pretrain_gnt.Config(scenes=tmp_path / "pre", out_dir=tmp_path / "pre2", max_steps=1))
+
+
+def test_a_training_ray_reads_every_photo_but_its_own_and_a_new_view_reads_them_all():
+    from nerfpipe.model.methods.gnt.model import GntModel
+
+    src, _ = _sources()
+    model = GntModel(
+        net=GntNet(channels=8, width=8, blocks=1, heads=2),
+        sources=src,
+        range=RayRange(0.5, 6.0, ((-1.0,) * 3, (1.0,) * 3)),
+        samples=4,
+        k=4,
+    )
+    picked = []
+    select = src.select
+    src.select = lambda *a, **kw: picked.append(select(*a, **kw)) or picked[-1]
+    o = src.centres[[1, 2]]
+    d = -o / torch.linalg.vector_norm(o, dim=-1, keepdim=True)
+    model.render(o, d, torch.ones(3), train=True, view=torch.tensor([1, 2]))
+    model.render(o, d, torch.ones(3), train=False)
+    assert picked[0].shape == (2, 3) and 1 not in picked[0][0].tolist() and 2 not in picked[0][1].tolist()
+    assert picked[1].shape == (2, 4)

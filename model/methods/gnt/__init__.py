@@ -111,7 +111,7 @@ class GntMethod(Method):
         resolved = replace(
             options,
             extractor=extractor,
-            source_views=min(options.source_views or SOURCE_VIEWS, n - 1),
+            source_views=min(options.source_views or SOURCE_VIEWS, n),
             gnt_samples=options.gnt_samples or (2 * SAMPLES if ctx.cuda else SAMPLES),
             source_side=options.source_side or min(side, cap),
         )
@@ -119,7 +119,7 @@ class GntMethod(Method):
         reasons["scene_model"] = f"{ctx.space_kind.name}: {ctx.space_why}; rays {why}"
         for name, default in (
             ("extractor", "shallow" if not init else "the initial weights'"),
-            ("source_views", f"{SOURCE_VIEWS}, at most the training photos but one"),
+            ("source_views", f"{SOURCE_VIEWS}, at most the training photos (a training ray: but its own)"),
             ("gnt_samples", f"{SAMPLES} a ray on CPU, {2 * SAMPLES} on CUDA"),
             ("source_side", f"{cap} px on this device, or the photos' size when smaller"),
         ):

@@ -104,10 +104,11 @@ class GntModel:
         t, t01 = self.range.samples(o, d, n, jitter)  # [R, S]
         x = o[:, None, :] + d[:, None, :] * t[..., None]  # [R, S, 3]
         exclude = view.long() if (train and view is not None) else None
-        chosen = self.sources.select(self.range.middle(o, d), d, self.k, exclude)  # [R, K]
+        k = min(self.k, self.sources.n - 1) if exclude is not None else self.k  # a ray's own photo left out
+        chosen = self.sources.select(self.range.middle(o, d), d, k, exclude)  # [R, K]
         uv, seen = self.sources.project(x, chosen)  # [R, S, K, 2], [R, S, K]
         maps, local = self._feature_maps(chosen, train)
-        k = chosen.shape[1]
+        k = chosen.shape[1]  # at most the sources there are
         flat_uv = uv.reshape(-1, 2)
         h, w = self.sources.size
         hf, wf = maps.shape[-2:]

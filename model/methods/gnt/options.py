@@ -32,8 +32,8 @@ class GntOptions:
     """Image features: shallow (three convolutions) or resunet (a residual encoder-decoder). None: shallow, or the
     initial weights' kind."""
     source_views: int | None = None
-    """Source photos each ray reads (the nearest in viewing angle). None: 8, or every training photo but one when
-    there are fewer."""
+    """Source photos each ray reads (the nearest in viewing angle). None: 8, or every training photo when there are
+    fewer (a training ray never reads its own photo: one fewer then)."""
     gnt_samples: int | None = None
     """Samples a ray (uniform in depth through an object's box, in inverse depth otherwise). None: 32 on CPU, 64 on
     CUDA."""
