@@ -6,8 +6,9 @@ rgb and alpha), D the token width.
 - View transformer (per sample, across its K views): GNT's subtraction attention. Each view's key and value come
   from its features, a positional code of the ray difference (the target direction minus the source's, and their
   dot product) is added to both; the weights softmax(MLP(q - k + pos)) are per channel and per view, over the views
-  that see the sample only (`seen`). The first block's query is the masked max over views of the features; later
-  blocks' queries are the tokens.
+  that see the sample only (`seen`). The first block's query is the masked max over views of the features plus an
+  MLP of their mean and variance (IBRNet's explicit cue: views that agree at a sample suggest a surface there; added
+  because our pretraining is thousands of steps, not GNT's 250k); later blocks' queries are the tokens.
 - Ray transformer (per ray, across its S samples): pre-norm multi-head self-attention plus a feed-forward, with a
   sinusoidal code of each sample's position along the ray (0 at the ray's near end, 1 at its far end).
 - Read-out: one logit a sample, softmax over the ray: rgb and coverage (alpha) from the weighted token; the same
@@ -88,6 +89,7 @@ class GntNet(nn.Module):
         self.stride = self.extractor.stride
         self.frequencies = frequencies
         self.embed = nn.Linear(channels + 4, width)
+        self.stats = _mlp(2 * width, width, width)
         self.pos = _mlp(4, width, width)
         self.ray_pos = nn.Linear(2 * frequencies + 1, width)
         self.view_blocks = nn.ModuleList([_ViewBlock(width) for _ in range(blocks)])
@@ -112,6 +114,10 @@ class GntNet(nn.Module):
         m = seen[..., None]
         token = x.masked_fill(~m, torch.finfo(x.dtype).min).amax(2)  # masked max over the views: [R, S, D]
         token = torch.where(seen.any(2, keepdim=True), token, torch.zeros_like(token))
+        count = m.sum(2).clamp_min(1)  # [R, S, 1]
+        mean = (x * m).sum(2) / count
+        var = (((x - mean[:, :, None]) * m) ** 2).sum(2) / count  # the views' agreement (IBRNet's cue for a surface)
+        token = token + self.stats(torch.cat([mean, var], dim=-1))
         freq = (2.0 ** torch.arange(self.frequencies, device=t01.device, dtype=t01.dtype)) * math.pi
         code = torch.cat([t01[..., None], torch.sin(t01[..., None] * freq), torch.cos(t01[..., None] * freq)], -1)
         ray_code = self.ray_pos(code)  # [R, S, D]
