@@ -87,7 +87,9 @@ class GntModel:
     k: int
     background: Background | None = None
     appearance: Appearance | None = None
-    chunk: int = 512
+    chunk: int = 256
+    """Rays a render chunk on CPU (x 32 on CUDA, `model.device.rays_per_chunk`): 8,192 rays x 64 samples x 8 views
+    x 32 channels is 0.5 GB a tensor of the view transformer."""
     random_draws_per_ray: int = 0
     """The jitter is drawn per ray from torch's generator: data-parallel gnt runs are not supported."""
     space: Any = None
