@@ -91,9 +91,12 @@ class GntModel:
     """Rays a render chunk on CPU (x 32 on CUDA, `model.device.rays_per_chunk`): 8,192 rays x 64 samples x 8 views
     x 32 channels is 0.5 GB a tensor of the view transformer."""
     random_draws_per_ray: int = 0
-    """The jitter is drawn per ray from torch's generator: data-parallel gnt runs are not supported."""
+    """One jitter a sample (set to `samples`: data-parallel runs place a rank's draws by it)."""
     space: Any = None
     _maps: Tensor | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        self.random_draws_per_ray = self.samples
 
     def render(
         self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, view: Tensor | None = None, **_: Any
