@@ -86,6 +86,23 @@ def test_sources_are_chosen_by_angle_and_a_ray_never_reads_its_own_photo():
     assert set(picked[0].tolist()) == {0, 2}  # the neighbours on the circle, not the opposite camera (3)
 
 
+def test_masked_softmax_matches_its_plain_twin_in_values_and_gradients():
+    g = torch.Generator().manual_seed(0)
+    logits = (torch.randn(40, 7, 3, generator=g, dtype=torch.float64) * 30).requires_grad_()
+    mask = torch.rand(40, 7, 1, generator=g) > 0.6  # some slices with no entry at all
+
+    def plain(x):
+        w = torch.softmax(x.masked_fill(~mask, -torch.inf), dim=1)  # nan where a slice has no entry
+        return torch.where(mask.any(dim=1, keepdim=True), w, torch.zeros_like(w))
+
+    weights = torch.randn(40, 7, 3, generator=g, dtype=torch.float64)
+    fast, slow = masked_softmax(logits, mask, dim=1), plain(logits)
+    torch.testing.assert_close(fast, slow, atol=1e-15, rtol=0)
+    (a,) = torch.autograd.grad((fast * weights).sum(), logits)
+    (b,) = torch.autograd.grad((slow * weights).sum(), logits)
+    torch.testing.assert_close(a, b, atol=1e-12, rtol=0)
+
+
 def test_masked_softmax_is_zero_without_entries_and_finite_at_extremes():
     logits = torch.tensor([[1e30, -1e30, 0.0], [5.0, 6.0, 7.0]], requires_grad=True)
     mask = torch.tensor([[True, True, False], [False, False, False]])

@@ -28,10 +28,11 @@ __all__ = ["GntNet", "masked_softmax"]
 
 
 def masked_softmax(logits: Tensor, mask: Tensor, dim: int) -> Tensor:
-    """softmax of logits over `dim` among mask's True entries (broadcast); 0 where a slice has none."""
-    finfo = torch.finfo(logits.dtype)
-    w = torch.softmax(logits.masked_fill(~mask, finfo.min), dim=dim) * mask
-    return w / w.sum(dim=dim, keepdim=True).clamp_min(finfo.tiny)
+    """softmax of logits over `dim` among mask's True entries (broadcast); 0 where a slice has none.
+    A masked entry's exp(finfo.min - max) is exactly 0 beside any unmasked one, so only the slices without one
+    (uniform weights) need zeroing: a multiply by `mask.any(dim)`, not by the whole mask and a renormalisation."""
+    w = torch.softmax(logits.masked_fill(~mask, torch.finfo(logits.dtype).min), dim=dim)
+    return w * mask.any(dim=dim, keepdim=True)
 
 
 def _mlp(d_in: int, d_hidden: int, d_out: int) -> nn.Sequential:
