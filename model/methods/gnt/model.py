@@ -26,7 +26,7 @@ from nerfpipe.model.appearance import Appearance
 from nerfpipe.model.background import Background
 from nerfpipe.model.field_model import param_groups
 from nerfpipe.model.methods.gnt.net import GntNet
-from nerfpipe.model.methods.gnt.sources import Sources, gather
+from nerfpipe.model.methods.gnt.sources import Sources, gather_texels, texels
 from nerfpipe.radiance.aabb import ray_aabb_segment
 
 __all__ = ["RayRange", "GntModel"]
@@ -93,7 +93,7 @@ class GntModel:
     random_draws_per_ray: int = 0
     """One jitter a sample (set to `samples`: data-parallel runs place a rank's draws by it)."""
     space: Any = None
-    _maps: Tensor | None = field(default=None, repr=False)
+    _maps: tuple[Tensor, tuple[int, int]] | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         self.random_draws_per_ray = self.samples
@@ -112,15 +112,15 @@ class GntModel:
         k = min(self.k, self.sources.n - 1) if exclude is not None else self.k  # a ray's own photo left out
         chosen = self.sources.select(self.range.middle(o, d), d, k, exclude)  # [R, K]
         uv, seen = self.sources.project(x, chosen)  # [R, S, K, 2], [R, S, K]
-        maps, local = self._feature_maps(chosen, train)
+        (maps, (hf, wf)), local = self._feature_maps(chosen, train)  # texels [U hf wf, C]
         k = chosen.shape[1]  # at most the sources there are
         flat_uv = uv.reshape(-1, 2)
         h, w = self.sources.size
-        hf, wf = maps.shape[-2:]
         map_uv = flat_uv * torch.tensor([wf / w, hf / h], dtype=uv.dtype, device=uv.device)
         view_of = local[:, None, :].expand(r, n, k).reshape(-1)
-        feats = gather(maps, view_of, map_uv)  # [R S K, C]
-        pixels = gather(self.sources.images, chosen[:, None, :].expand(r, n, k).reshape(-1), flat_uv)  # [R S K, 4]
+        feats = gather_texels(maps, (hf, wf), view_of, map_uv)  # [R S K, C]
+        src_of = chosen[:, None, :].expand(r, n, k).reshape(-1)
+        pixels = gather_texels(self.sources.pixels, (h, w), src_of, flat_uv)  # [R S K, 4]
         views = torch.cat([feats, pixels], dim=-1).reshape(r, n, k, -1)
         src_dirs = self.sources.directions(x, chosen)  # [R, S, K, 3]
         diff = d[:, None, None, :] - src_dirs
@@ -143,17 +143,19 @@ class GntModel:
             result["rgb"] = self.appearance(result["rgb"], result["acc"], background, view)
         return result
 
-    def _feature_maps(self, chosen: Tensor, train: bool) -> tuple[Tensor, Tensor]:
-        """Feature maps [U, C, h, w] and each chosen source's row in them, local [R, K]: while training only the
-        sources chosen (with gradients), otherwise every source's, computed once."""
+    def _feature_maps(self, chosen: Tensor, train: bool) -> tuple[tuple[Tensor, tuple[int, int]], Tensor]:
+        """The feature maps as texels [U h w, C] with their size (h, w), and each chosen source's map, local [R, K]:
+        while training only the sources chosen (with gradients), otherwise every source's, computed once."""
         if train or torch.is_grad_enabled():
             used, local = chosen.unique(return_inverse=True)
-            return self.net.features(self.sources.images[used]), local
+            maps = self.net.features(self.sources.images[used])
+            return (texels(maps), tuple(maps.shape[-2:])), local
         if self._maps is None:
             with torch.no_grad():
-                self._maps = torch.cat(
+                maps = torch.cat(
                     [self.net.features(self.sources.images[i : i + 16]) for i in range(0, self.sources.n, 16)]
                 )
+                self._maps = (texels(maps), tuple(maps.shape[-2:]))
         return self._maps, chosen
 
     def forget_features(self) -> None:

@@ -25,7 +25,7 @@ from nerfpipe.data.errors import UserError
 from nerfpipe.model.views import Views
 from nerfpipe.radiance.camera import OPENGL_FROM_OPENCV
 
-__all__ = ["Sources", "sources_from_views", "gather", "gather_plain"]
+__all__ = ["Sources", "sources_from_views", "texels", "gather", "gather_texels", "gather_plain"]
 
 
 @dataclass
@@ -48,6 +48,7 @@ class Sources:
         cv = self.world_from_cams @ OPENGL_FROM_OPENCV.to(self.world_from_cams)
         self.cam_from_world = torch.linalg.inv(cv)[:, :3, :]  # [V, 3, 4] OpenCV axes
         self.centres = self.world_from_cams[:, :3, 3]  # [V, 3]
+        self.pixels = texels(self.images)  # [V H W, 4] what a sample reads of the photos (`gather_texels`)
         self.distorted = bool((self.intrinsics[:, 4:] != 0).any())
 
     @property
@@ -118,11 +119,22 @@ def sources_from_views(views: Views, max_side: int) -> Sources:
     return Sources(rgba.contiguous(), views.world_from_cams.float(), intr)
 
 
+def texels(maps: Tensor) -> Tensor:
+    """maps [U, C, h, w] -> their texels [U h w, C], channels last (what `gather_texels` reads; a copy: keep it
+    where the maps are read many times)."""
+    u_, c, h, w = maps.shape
+    return maps.permute(0, 2, 3, 1).reshape(u_ * h * w, c)
+
+
 def gather(maps: Tensor, view: Tensor, uv: Tensor) -> Tensor:
     """Bilinear samples of maps [U, C, h, w] at uv [N, 2] (pixels of the maps, centres at +0.5, clamped to the
     border) in map view [N] (long) -> [N, C]: one flat index over every texel, four corners a sample."""
-    u_, c, h, w = maps.shape
-    flat = maps.permute(0, 2, 3, 1).reshape(u_ * h * w, c)  # [U h w, C]
+    return gather_texels(texels(maps), maps.shape[-2:], view, uv)
+
+
+def gather_texels(flat: Tensor, size: tuple[int, int], view: Tensor, uv: Tensor) -> Tensor:
+    """`gather` from texels [U h w, C] (`texels`) of maps of size (h, w)."""
+    h, w = int(size[0]), int(size[1])
     x = (uv[:, 0] - 0.5).clamp(0, w - 1)
     y = (uv[:, 1] - 0.5).clamp(0, h - 1)
     x0, y0 = x.floor().clamp(max=w - 2 if w > 1 else 0), y.floor().clamp(max=h - 2 if h > 1 else 0)
