@@ -8,7 +8,7 @@ Sources: the training photos (`model.methods.gnt.sources`); each ray reads the `
 is closest in angle to the ray, never its own photo while training. While training, features are computed with
 gradients for the photos a batch reads (the loop draws a step's rays from a few photos: `hooks.GntBatches`); at
 inference for every photo once, kept until the weights change.
-Output: rgb = alpha c + (1 - alpha) background, acc = alpha, depth = sum_s w_s t_s, depth_median where the read-out
+Output: rgb = alpha c + (1 - alpha) background, acc = alpha (0 for a ray that misses the box: its range is empty), depth = sum_s w_s t_s, depth_median where the read-out
 weights reach 0.5 (weights: the read-out's softmax over the ray).
 """
 
@@ -127,7 +127,7 @@ class GntModel:
         ray_diff = torch.cat([diff, (d[:, None, None, :] * src_dirs).sum(-1, keepdim=True)], dim=-1)
         out = self.net(views, ray_diff, seen, t01)
         w_ = out["weights"]
-        alpha = out["alpha"]
+        alpha = out["alpha"] * (t[:, -1] > t[:, 0])  # a ray that misses the box covers nothing
         rgb = alpha[:, None] * out["rgb"] + (1 - alpha[:, None]) * background
         depth = (w_ * t).sum(1)
         cum = w_.detach().cumsum(1)
