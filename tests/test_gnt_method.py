@@ -272,3 +272,35 @@ def test_a_training_ray_reads_every_photo_but_its_own_and_a_new_view_reads_them_
     model.render(o, d, torch.ones(3), train=False)
     assert picked[0].shape == (2, 3) and 1 not in picked[0][0].tolist() and 2 not in picked[0][1].tolist()
     assert picked[1].shape == (2, 4)
+
+
+def test_the_shipped_weights_render_a_scene_they_never_saw_better_than_its_background(tmp_path):
+    """A fresh clone renders zero-shot: `--init pretrained --max-steps 0` on a generated scene of a seed the
+    pretraining never drew (it drew 100000-399999), scored against the best constant colour (the test photos' mean)."""
+    from nerfpipe.model.methods.gnt.weights import PRETRAINED, read_weights
+
+    provenance = read_weights("pretrained", torch.device("cpu"))[2]
+    assert PRETRAINED.stat().st_size < 10e6 and provenance["stage"] == "pretrain-gnt" and provenance["steps"] > 0
+    scene_stage.run(
+        scene_stage.Config(out_dir=tmp_path / "s", subject="random", kind="rgba", size=64, views=12, seed=990001)
+    )
+    out = train.run(
+        train.Config(
+            scene_dir=tmp_path / "s",
+            run_dir=tmp_path / "zero",
+            method="gnt",
+            max_steps=0,
+            device="cpu",
+            options=GntOptions(init="pretrained"),
+        )
+    )
+    from nerfpipe.model import load_trained
+    from nerfpipe.model.views import load_views
+
+    run = load_trained(tmp_path / "zero", "cpu")
+    test = load_views(run.scene, run.scene.split("test"))
+    rgba = test.rgba.float() / 255
+    white = rgba[:, :3] * rgba[:, 3:] + (1 - rgba[:, 3:])  # the photos on the white evaluation background
+    constant_psnr = float(-10 * torch.log10(((white - white.mean(0)) ** 2).mean()))
+    print(f"zero-shot {out.test_psnr:.2f} dB, the best constant colour {constant_psnr:.2f} dB")
+    assert out.test_psnr > constant_psnr + 1.0

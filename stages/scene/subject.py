@@ -33,7 +33,7 @@ def subject(config: Config) -> Subject:
     seed, layout = config.seed, config.layout
     if config.subject == "random":
         drawn = random_scene(seed)
-        around = _around(layout, drawn.surround)
+        around = _around(layout, drawn.surround, config.kind)
         surroundings = room(seed) if around == "room" else (backdrop(seed),) if around == "wall" else ()
         record = {**drawn.describe(), "surroundings": around}
         return Subject(objects=drawn.primitives(), surroundings=surroundings, lights=drawn.lights, drawn=record)
@@ -48,12 +48,13 @@ def subject(config: Config) -> Subject:
     return Subject(objects=objects, surroundings=surroundings, lights=DEFAULT_LIGHTS, drawn=None)
 
 
-def _around(layout: str, drawn: str) -> str:
+def _around(layout: str, drawn: str, kind: str) -> str:
     """subject=random: the surroundings used ('none', 'wall' or 'room'). The layout's own win (forward: a far
-    wall; room and turntable: the room); an orbit shows what the seed `drawn`, a forward rig the drawn room
-    instead of its wall."""
+    wall; room and turntable: the room); an orbit shows what the seed `drawn` (none with alpha: an object on a
+    transparent background, whose aabb is the whole scene; a drawn room there made opaque photos of a scene whose
+    box left the room out), a forward rig the drawn room instead of its wall."""
     if layout == "orbit":
-        return drawn
+        return "none" if kind in ("rgba", "blender") else drawn
     if layout == "forward":
         return "room" if drawn == "room" else "wall"
     return "room"
