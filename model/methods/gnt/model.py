@@ -8,8 +8,9 @@ Sources: the training photos (`model.methods.gnt.sources`); each ray reads the `
 is closest in angle to the ray, never its own photo while training. While training, features are computed with
 gradients for the photos a batch reads (the loop draws a step's rays from a few photos: `hooks.GntBatches`); at
 inference for every photo once, kept until the weights change.
-Output: rgb = alpha c + (1 - alpha) background, acc = alpha (0 for a ray that misses the box: its range is empty), depth = sum_s w_s t_s, depth_median where the read-out
-weights reach 0.5 (weights: the read-out's softmax over the ray).
+Output: rgb = alpha c + (1 - alpha) background, acc = alpha (0 for a ray that misses the box: its range is
+empty), depth = sum_s w_s t_s, depth_median where the read-out weights reach 0.5 (weights: the read-out's softmax
+over the ray).
 """
 
 from __future__ import annotations
