@@ -50,7 +50,7 @@ def scene_folders(root: Path) -> list[Path]:
         raise UserError(f"{root}: not a folder of scenes (expected folders that each hold a transforms.json)")
     found = sorted(p.parent for p in root.glob("**/transforms.json"))
     if not found:
-        raise UserError(f"{root}: no scene folders (expected .../<scene>/transforms.json: nerfpipe scene --count N)")
+        raise UserError(f"{root}: no scene folders (expected .../<scene>/transforms.json: the scene stage, count > 1)")
     return found
 
 
