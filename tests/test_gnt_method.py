@@ -274,7 +274,7 @@ def test_a_training_ray_reads_every_photo_but_its_own_and_a_new_view_reads_them_
     assert picked[1].shape == (2, 4)
 
 
-def test_the_shipped_weights_render_a_scene_they_never_saw_better_than_its_background(tmp_path):
+def test_the_shipped_weights_render_a_scene_they_never_saw_better_than_a_constant_colour(tmp_path):
     """A fresh clone renders zero-shot: `--init pretrained --max-steps 0` on a generated scene of a seed the
     pretraining never drew (it drew 100000-399999), scored against the best constant colour (the test photos' mean)."""
     from nerfpipe.model.methods.gnt.weights import PRETRAINED, read_weights
