@@ -16,18 +16,16 @@ choice per ray, the bilinear gather), `model` (the `TrainModel`), `hooks` (a ste
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
 
 from nerfpipe.data.errors import UserError
-from nerfpipe.data.transforms import Scene
 from nerfpipe.model.checkpoint import read_checkpoint, restore_appearance, restore_background
 from nerfpipe.model.methods.base import Method, Prepared, RunFiles, TrainContext
 from nerfpipe.model.methods.gnt.hooks import GntBatches
-from nerfpipe.model.methods.gnt.model import GntModel, RayRange
+from nerfpipe.model.methods.gnt.model import GntModel, RayRange, ray_range
 from nerfpipe.model.methods.gnt.net import GntNet
 from nerfpipe.model.methods.gnt.options import (
     SAMPLES,
@@ -43,15 +41,12 @@ from nerfpipe.model.trained import read_run_scene
 from nerfpipe.model.views import load_views
 from nerfpipe.radiance.space import Box
 
-__all__ = ["GNT", "GntMethod", "GntOptions", "ray_range"]
+__all__ = ["GNT", "GntMethod", "GntOptions"]
 
 LR = 5e-4
 """Adam's learning rate (GNT's)."""
 BATCH = (512, 4096)
 """Rays a step by default: CPU, CUDA (a step reads every source's features of its few photos: `hooks.GntBatches`)."""
-NEAR_FRACTION = 0.05
-"""Without a near plane in transforms.json, rays start at this fraction of the cameras' median distance to the
-scene's centre."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -60,22 +55,6 @@ class GntPrepared(Prepared):
     range: RayRange
     init: tuple[dict, dict, dict] | None
     """The initial weights (net config, state, provenance), or None."""
-
-
-def ray_range(scene: Scene, box: bool) -> tuple[RayRange, str]:
-    """Where a scene's rays are sampled, and why: through its aabb (objects in their box), else from the near plane
-    (transforms.json's, or `NEAR_FRACTION` of the cameras' distance) to the far one, in inverse depth."""
-    aabb = tuple(tuple(float(v) for v in row) for row in scene.aabb)
-    if box:
-        return RayRange(scene.near, scene.far, aabb), "through the scene's aabb, uniform in depth"
-    near, why = scene.near, "transforms.json's near plane"
-    if not near > 0:
-        centre = (torch.tensor(scene.aabb[0]) + torch.tensor(scene.aabb[1])) / 2
-        dist = torch.stack([torch.as_tensor(f.world_from_cam[:3, 3]) for f in scene.frames]).float() - centre.float()
-        near = NEAR_FRACTION * float(torch.linalg.vector_norm(dist, dim=-1).median())
-        why = f"{NEAR_FRACTION} x the cameras' median distance to the scene's centre"
-    far = scene.far if scene.far > near else math.inf
-    return RayRange(near, far, None), f"from {near:.3g} ({why}) to {far:.3g}, uniform in inverse depth"
 
 
 def _net(config: dict, state: dict | None, device: torch.device) -> GntNet:

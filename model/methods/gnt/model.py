@@ -23,6 +23,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from nerfpipe.data.transforms import Scene
 from nerfpipe.model.appearance import Appearance
 from nerfpipe.model.background import Background
 from nerfpipe.model.field_model import param_groups
@@ -30,7 +31,11 @@ from nerfpipe.model.methods.gnt.net import GntNet
 from nerfpipe.model.methods.gnt.sources import Sources, gather_texels, texels
 from nerfpipe.radiance.aabb import ray_aabb_segment
 
-__all__ = ["RayRange", "GntModel"]
+__all__ = ["RayRange", "ray_range", "GntModel", "NEAR_FRACTION"]
+
+NEAR_FRACTION = 0.05
+"""Without a near plane in transforms.json, rays start at this fraction of the cameras' median distance to the
+scene's centre."""
 
 
 @dataclass(frozen=True)
@@ -75,6 +80,22 @@ class RayRange:
         aabb = doc.get("aabb")
         far = math.inf if doc["far"] == "inf" else float(doc["far"])
         return RayRange(float(doc["near"]), far, None if aabb is None else tuple(tuple(map(float, a)) for a in aabb))
+
+
+def ray_range(scene: Scene, box: bool) -> tuple[RayRange, str]:
+    """Where a scene's rays are sampled, and why: through its aabb (objects in their box), else from the near plane
+    (transforms.json's, or `NEAR_FRACTION` of the cameras' distance) to the far one, in inverse depth."""
+    aabb = tuple(tuple(float(v) for v in row) for row in scene.aabb)
+    if box:
+        return RayRange(scene.near, scene.far, aabb), "through the scene's aabb, uniform in depth"
+    near, why = scene.near, "transforms.json's near plane"
+    if not near > 0:
+        centre = (torch.tensor(scene.aabb[0]) + torch.tensor(scene.aabb[1])) / 2
+        dist = torch.stack([torch.as_tensor(f.world_from_cam[:3, 3]) for f in scene.frames]).float() - centre.float()
+        near = NEAR_FRACTION * float(torch.linalg.vector_norm(dist, dim=-1).median())
+        why = f"{NEAR_FRACTION} x the cameras' median distance to the scene's centre"
+    far = scene.far if scene.far > near else math.inf
+    return RayRange(near, far, None), f"from {near:.3g} ({why}) to {far:.3g}, uniform in inverse depth"
 
 
 @dataclass(eq=False)

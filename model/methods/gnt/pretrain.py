@@ -16,11 +16,10 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from torch import Tensor
 
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.transforms import Scene, read_scene
-from nerfpipe.model.methods.gnt.model import GntModel, RayRange
+from nerfpipe.model.methods.gnt.model import GntModel, RayRange, ray_range
 from nerfpipe.model.methods.gnt.net import GntNet
 from nerfpipe.model.methods.gnt.sources import Sources, sources_from_views
 from nerfpipe.model.spaces import choose_space
@@ -55,9 +54,7 @@ def scene_folders(root: Path) -> list[Path]:
 
 
 def scene_range(scene: Scene) -> RayRange:
-    """Where `train --method gnt` samples this scene's rays (`model.methods.gnt.ray_range`)."""
-    from nerfpipe.model.methods.gnt import ray_range  # the method's rule; imported here to avoid a cycle
-
+    """Where `train --method gnt` samples this scene's rays (`model.methods.gnt.model.ray_range`)."""
     kind, _ = choose_space("auto", scene, plain_background=scene.has_alpha)
     return ray_range(scene, kind is Box)[0]
 
@@ -136,16 +133,3 @@ class CrossScene:
 
     def finish(self, seconds: float) -> None:
         pass
-
-
-def render_view(model: GntModel, views: Views, v: int, background: Tensor, chunk: int = 1024) -> dict[str, Tensor]:
-    """Photo v of `views` rendered by `model` (no grad): rgb [h w, 3], acc [h w], and its target composited on
-    `background` [3]: target [h w, 3]."""
-    pixels = views.pixels_of(v)
-    rgb, acc, target = [], [], []
-    with torch.no_grad():
-        for i in range(0, pixels.numel(), chunk):
-            o, d, c, a = views.batch(pixels[i : i + chunk], background.device)
-            out = model.render(o, d, background, train=False)
-            rgb.append(out["rgb"]), acc.append(out["acc"]), target.append(over_background(c, a[:, None], background))
-    return {"rgb": torch.cat(rgb), "acc": torch.cat(acc), "target": torch.cat(target)}
