@@ -78,6 +78,14 @@ def _pretrain(out: Any) -> str:
     return f"{out.steps} steps in {out.seconds:.1f} s, loss {out.loss_start:.4g} -> {out.loss_end:.4g} -> {out.weights}"
 
 
+def _shapes(out: Any) -> str:
+    return f"{out.examples} photos with their occupancy in {out.seconds:.1f} s -> {out.shapes}"
+
+
+def _voxels(out: Any) -> str:
+    return f"{out.photos} photo(s) -> {out.occupancy}, {out.mesh} ({out.occupied} cells >= {out.level})"
+
+
 def _scene(out: Any) -> str:
     if out.scenes:
         return f"{len(out.scenes)} scenes of {len(out.images)} images, ground truth and manifests -> {out.out_dir}"
@@ -196,6 +204,15 @@ STAGES: dict[str, Stage] = {
         S + "pretrain_gnt",
         "Train GNT across a folder of scenes (the weights train --method gnt --init uses).",
         _pretrain,
+    ),
+    "shapes": Stage(
+        S + "shapes", "Photos of generated shapes with their exact occupancy (pretrain-voxels' data).", _shapes
+    ),
+    "pretrain-voxels": Stage(
+        S + "pretrain_voxels", "Train the single-view voxel network on a shapes dataset.", _pretrain
+    ),
+    "voxels": Stage(
+        S + "voxels", "One or more photos of an object (with masks) -> a 32^3 occupancy grid, a mesh.", _voxels
     ),
     "xray-export": Stage(S + "xray_export", "Slice montages, a rotating DRR/MIP video and an iso-surface mesh."),
 }

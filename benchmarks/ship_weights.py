@@ -1,12 +1,13 @@
-"""Copy a pretrain-gnt output's weights into the package, with their provenance (`make pretrain-gnt`).
+"""Copy a pretrain-gnt or pretrain-voxels output's weights into the package, with their provenance (`make
+pretrain-gnt`, `make pretrain-voxels`).
 
     python -m benchmarks.ship_weights PRETRAIN_OUT WEIGHTS_DIR --command "make pretrain-gnt ..."
 
-Writes WEIGHTS_DIR/pretrained.pt (the weights file as pretrain-gnt wrote it) and WEIGHTS_DIR/pretrained.json: the
-command, the commit the code was at (and whether the tree had changes), the data recipe (each scene set's scene
-manifest: subject, layout, kind, count, seeds, size, views), the last commit that changed the code pretraining
-runs (`code_commit`), and the figures of the run (steps, seconds, loss at
-the start and the end, parameters, the sha256 of the weights).
+Writes WEIGHTS_DIR/pretrained.pt (the weights file as the stage wrote it) and WEIGHTS_DIR/pretrained.json: the
+command, the commit the code was at (and whether the tree had changes), the data recipe (gnt: each scene set's
+scene manifest: subject, layout, kind, count, seeds, size, views; voxels: the shapes manifest), the last commit
+that changed the code pretraining runs (`code_commit`), and the figures of the run (steps, seconds, loss at the
+start and the end, parameters, the sha256 of the weights).
 """
 
 from __future__ import annotations
@@ -20,7 +21,10 @@ from pathlib import Path
 from nerfpipe.data.atomic import write_json
 from nerfpipe.data.rundir import sha256_file
 
-CODE = ("model", "stages/pretrain_gnt", "stages/scene", "data/synthetic", "radiance")
+CODE = {
+    "gnt": ("model", "stages/pretrain_gnt", "stages/scene", "data/synthetic", "radiance"),
+    "voxels": ("model/voxels", "model/loop.py", "stages/pretrain_voxels", "stages/shapes", "data/synthetic"),
+}
 """What pretraining runs: the last commit that changed it is `code_commit` (the weights' own commits left out)."""
 
 
@@ -36,9 +40,13 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     manifest = json.loads((args.pretrain_out / "manifest.json").read_text())
     config = json.loads((args.pretrain_out / "config.json").read_text())
-    scenes_root = Path(config["scenes"])
+    kind = "voxels" if "shapes" in config else "gnt"
     recipe = []
-    for m in sorted(scenes_root.glob("*/manifest.json")):
+    if kind == "voxels":
+        shapes = Path(config["shapes"])
+        doc = json.loads(((shapes if shapes.is_dir() else shapes.parent) / "manifest.json").read_text())
+        recipe.append({"folder": str(shapes), **doc.get("used", {})})
+    for m in sorted(Path(config.get("scenes", "/nonexistent")).glob("*/manifest.json")):
         doc = json.loads(m.read_text())
         cfg = doc.get("config", {})
         keep = ("subject", "layout", "kind", "count", "seed", "size", "views")
@@ -51,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
         {
             "command": args.command,
             "commit": _git("rev-parse", "HEAD"),
-            "code_commit": _git("log", "-1", "--format=%H", "--", *CODE, ":!model/methods/gnt/weights", ":!*.md"),
+            "code_commit": _git("log", "-1", "--format=%H", "--", *CODE[kind], ":!*/weights/*", ":!*.md"),
             "pretrain_started": manifest.get("started"),
             "tree_changed": bool(_git("status", "--porcelain", "--untracked-files=no")),
             "recipe": recipe,

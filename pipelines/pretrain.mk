@@ -34,3 +34,28 @@ pretrain-gnt: pretrain-gnt-scenes
 .PHONY: bench-gnt
 bench-gnt: $(INSTALLED)
 	$(VENV)/bin/python -m benchmarks.bench_gnt --out $(BENCH_OUT)/gnt
+
+# issue 50: the single-view voxel network. The data: `nerfpipe shapes` (VOXEL_COUNT objects of each trained family,
+# seeds 0 and up, VOXEL_VIEWS photos each; bench-voxels holds out seeds 100000 and up and the family `sofa`), then
+# VOXEL_SECONDS of training; the weights and pretrained.json (command, commit, data, figures) go into the package.
+VOXEL_OUT ?= runs/pretrain_voxels
+VOXEL_COUNT ?= 400
+VOXEL_VIEWS ?= 6
+VOXEL_SECONDS ?= 2400
+VOXEL_DEVICE ?= auto
+VOXEL_WEIGHTS := model/voxels/weights
+
+.PHONY: pretrain-voxels bench-voxels
+$(VOXEL_OUT)/shapes/manifest.json: $(INSTALLED)
+	$(VENV)/bin/nerfpipe shapes $(VOXEL_OUT)/shapes --count $(VOXEL_COUNT) --views $(VOXEL_VIEWS) --overwrite
+
+pretrain-voxels: $(VOXEL_OUT)/shapes/manifest.json
+	$(VENV)/bin/nerfpipe pretrain-voxels $(VOXEL_OUT)/shapes $(VOXEL_OUT)/model --max-seconds $(VOXEL_SECONDS) \
+		--device $(VOXEL_DEVICE) --overwrite
+	$(VENV)/bin/python -m benchmarks.ship_weights $(VOXEL_OUT)/model $(VOXEL_WEIGHTS) \
+		--command "make pretrain-voxels VOXEL_COUNT=$(VOXEL_COUNT) VOXEL_VIEWS=$(VOXEL_VIEWS) VOXEL_SECONDS=$(VOXEL_SECONDS) VOXEL_DEVICE=$(VOXEL_DEVICE)"
+
+# issue 50: IoU on held-out objects and the held-out family (1 and 5 photos), the scanned meshes, a real photo
+# (docs/VOXELS.md has the table and the commit).
+bench-voxels: $(INSTALLED)
+	$(VENV)/bin/python -m benchmarks.bench_voxels --out $(BENCH_OUT)/voxels

@@ -31,6 +31,9 @@ COMMANDS = [
     "fit-image",
     "export-points",
     "splat",
+    "shapes",
+    "pretrain-voxels",
+    "voxels",
 ]
 # Positional arguments that make each command parse (nothing is run by config_from_args).
 ARGS = {
@@ -46,6 +49,9 @@ ARGS = {
     "fit-image": ["image.png", "o"],
     "export-points": ["r", "c.ply"],
     "splat": ["r", "s.ply"],
+    "shapes": ["o"],
+    "pretrain-voxels": ["s", "o"],
+    "voxels": ["a.png", "o"],
 }
 
 
@@ -273,10 +279,13 @@ def _bad_path_args(tmp_path):
         "fit-image": [str(missing), str(tmp_path / "o")],
         "export-points": [str(missing), str(tmp_path / "c.ply")],
         "splat": [str(missing), str(tmp_path / "s.ply")],
+        "shapes": None,  # shapes creates its output folder
+        "pretrain-voxels": [str(missing), str(tmp_path / "w")],
+        "voxels": [str(missing), str(tmp_path / "v")],
     }
 
 
-@pytest.mark.parametrize("name", [c for c in COMMANDS if c != "scene"])
+@pytest.mark.parametrize("name", [c for c in COMMANDS if c not in ("scene", "shapes")])
 def test_bad_path_one_line_nonzero(capsys, tmp_path, name):
     code, _, err = _run(capsys, name, *_bad_path_args(tmp_path)[name])
     assert code != 0

@@ -50,6 +50,8 @@ __all__ = [
     "random_scene",
     "random_primitives",
     "random_lights",
+    "textured",
+    "draw_lights",
 ]
 
 COUNT = (1, 8)
@@ -155,7 +157,7 @@ def random_scene(seed: int) -> RandomScene:
         raise ValueError(f"expected a seed >= 0, got {seed}")
     layout = np.random.default_rng([seed, 20270301])
     paint = np.random.default_rng([seed, 20270302])
-    ground_texture, ground = _textured(
+    ground_texture, ground = textured(
         paint,
         lambda m: Cylinder(center=np.zeros(2), radius=SLAB_RADIUS, z0=-0.05, z1=0.0, material=m),
         cells=(0.06, 0.2),
@@ -168,10 +170,10 @@ def random_scene(seed: int) -> RandomScene:
         if drawn is None:
             continue
         shape, size, yaw, floating, build = drawn
-        texture, prim = _textured(paint, build, cells=(0.04, 0.15), scales=(0.15, 0.6))
+        texture, prim = textured(paint, build, cells=(0.04, 0.15), scales=(0.15, 0.6))
         placed.append(Placed(shape=shape, size=size, yaw=yaw, floating=floating, texture=texture, primitive=prim))
     surround = SURROUNDS[int(layout.integers(len(SURROUNDS)))]
-    lights = _lights(np.random.default_rng([seed, 20270303]))
+    lights = draw_lights(np.random.default_rng([seed, 20270303]))
     return RandomScene(
         seed=seed, ground=ground, ground_texture=ground_texture, objects=tuple(placed), surround=surround, lights=lights
     )
@@ -248,7 +250,7 @@ def _rotation(rng: np.random.Generator) -> np.ndarray:
     return q if np.linalg.det(q) > 0 else -q
 
 
-def _textured(
+def textured(
     rng: np.random.Generator, build: Build, cells: tuple[float, float], scales: tuple[float, float]
 ) -> tuple[str, Primitive]:
     """Texture a drawn shape: ('noise', with coloured cells of `cells` metres) or ('photo:<name>', a photo of
@@ -267,7 +269,7 @@ def _textured(
     return f"photo:{name}", PhotoTextured(shape=prim, photo=texture)
 
 
-def _lights(rng: np.random.Generator) -> Lights:
+def draw_lights(rng: np.random.Generator) -> Lights:
     n = int(rng.integers(1, 4))
     elevation = np.radians(rng.uniform(20.0, 80.0, n))
     azimuth = rng.uniform(0.0, 2 * math.pi, n)
