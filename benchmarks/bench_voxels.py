@@ -234,13 +234,16 @@ def _scans(net) -> dict:
 
 
 def _head_azimuths(names: list[str]) -> list[float]:
-    """Azimuths (degrees) of the head's cameras about the turntable's axis (the normal of the plane through the
-    camera centres, from the capture's LLFF poses_bounds.npy), for the named photos."""
+    """Azimuths (degrees, counter-clockwise seen from above) of the head's cameras about the turntable's axis: the
+    normal of the plane through the camera centres (the capture's LLFF poses_bounds.npy: columns down, right, back,
+    centre), pointing the way the cameras' image up points on average."""
     pb = np.load(DATA / "head" / "poses_bounds.npy")
-    centres = pb[:, :15].reshape(-1, 3, 5)[:, :, 3]
+    poses = pb[:, :15].reshape(-1, 3, 5)
+    centres, ups = poses[:, :, 3], -poses[:, :, 0]
     all_names = sorted(p.name for p in (DATA / "head" / "images").iterdir())
     c = centres - centres.mean(0)
     axis = np.linalg.svd(c)[2][2]
+    axis = axis if float(np.mean(ups @ axis)) > 0 else -axis
     e1 = c[0] - (c[0] @ axis) * axis
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(axis, e1)
@@ -271,8 +274,7 @@ def _photo(out: Path, weights: str) -> dict:
             "--overwrite",
         ]
         if len(chosen) > 1:
-            sign = -1.0 if "--flip" in sys.argv else 1.0
-            cmd += ["--azimuths", ",".join(f"{sign * a:.2f}" for a in _head_azimuths([p.name for p in chosen]))]
+            cmd += ["--azimuths", ",".join(f"{a:.2f}" for a in _head_azimuths([p.name for p in chosen]))]
         t0 = time.perf_counter()
         subprocess.run(cmd, check=True)
         result[name] = {"photos": [p.name for p in chosen], "seconds": round(time.perf_counter() - t0, 1)}
@@ -288,7 +290,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--weights", default="pretrained")
     ap.add_argument("--count", type=int, default=30)
     ap.add_argument("--only", default="families,scans,photo")
-    ap.add_argument("--flip", action="store_true", help="negate the head's azimuths (a check of their sense)")
     args = ap.parse_args(argv)
     from nerfpipe.model.voxels.weights import load_net
 

@@ -1,5 +1,6 @@
-"""Pictures of a predicted grid: the probabilities rendered as a volume (density = probability x `DENSITY`),
-shaded grey by the grid's gradient (Lambert, one light from the camera's upper left), on white.
+"""Pictures of a predicted grid: the probabilities rendered as a volume whose density ramps from 0 to `DENSITY`
+across `level` +- `RAMP` (what is drawn is what `level` keeps, with smooth edges), shaded grey by the grid's
+gradient (Lambert, one light from the camera's upper left), on white.
 
 Cameras: in the grid's view frame (`data.synthetic.shape_views`: x right, y away from the photo's camera, z up);
 `turn` degrees about z from the photo's own camera (0: seen as in the photo; 180: from behind), `elevation`
@@ -21,7 +22,8 @@ from nerfpipe.radiance.paths import look_at
 __all__ = ["DENSITY", "DISTANCE", "render_grid"]
 
 DENSITY = 200.0
-"""Density of a cell of probability 1 (per unit length: a cell, 1/32, is then ~6 optical depths)."""
+"""Density of a cell well above the level (per unit length: a cell, 1/32, is then ~6 optical depths)."""
+RAMP = 0.1
 DISTANCE = 2.2
 SAMPLES = 160
 
@@ -33,7 +35,9 @@ def _sample(volume: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     return F.grid_sample(v, g, mode="bilinear", padding_mode="zeros", align_corners=False)[0, :, :, 0, 0].T
 
 
-def render_grid(prob: torch.Tensor, turn: float, elevation: float, size: int, fov_deg: float = 40.0) -> np.ndarray:
+def render_grid(
+    prob: torch.Tensor, turn: float, elevation: float, size: int, level: float = 0.5, fov_deg: float = 40.0
+) -> np.ndarray:
     """prob [R, R, R] -> an image [size, size, 3] float32 in [0, 1] (module doc)."""
     if prob.ndim != 3:
         raise ValueError(f"expected a grid [R, R, R], got {tuple(prob.shape)}")
@@ -51,7 +55,7 @@ def render_grid(prob: torch.Tensor, turn: float, elevation: float, size: int, fo
     t0, t1 = edges[:-1].expand(len(o), -1), edges[1:].expand(len(o), -1)  # [P, S]
     p = o[:, None, :] + 0.5 * (t0 + t1)[..., None] * d[:, None, :]  # [P, S, 3]
     vals = _sample(volume, p.reshape(-1, 3)).view(len(o), SAMPLES, 4)
-    sigma = DENSITY * vals[..., 0].clamp(0.0, 1.0)
+    sigma = DENSITY * ((vals[..., 0] - level + RAMP) / (2 * RAMP)).clamp(0.0, 1.0)
     normal = -F.normalize(vals[..., 1:], dim=-1, eps=torch.finfo(torch.float32).eps)
     light = F.normalize(torch.from_numpy(world_from_cam[:3, :3] @ np.array([-0.4, 0.5, 1.0])).float(), dim=0)
     grey = 0.25 + 0.7 * (normal @ light).clamp(min=0.0)  # [P, S]

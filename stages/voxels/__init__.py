@@ -159,14 +159,14 @@ def _png(image: np.ndarray) -> bytes:
     return buf.tobytes()
 
 
-def _preview(inputs: torch.Tensor, prob: torch.Tensor) -> np.ndarray:
+def _preview(inputs: torch.Tensor, prob: torch.Tensor, level: float) -> np.ndarray:
     tiles = []
     for x in inputs:  # the network's view of each photo, on white
         m = x[3:].numpy()
         rgb = x[:3].numpy() + (1 - m)
         tile = torch.nn.functional.interpolate(torch.from_numpy(rgb)[None], size=PREVIEW_SIDE, mode="bilinear")[0]
         tiles.append(tile.permute(1, 2, 0).numpy())
-    tiles += [render_grid(prob, turn, PREVIEW_ELEVATION, PREVIEW_SIDE) for turn in (0.0, 90.0, 180.0, 270.0)]
+    tiles += [render_grid(prob, turn, PREVIEW_ELEVATION, PREVIEW_SIDE, level) for turn in (0.0, 90.0, 180.0, 270.0)]
     return np.concatenate(tiles, axis=1)
 
 
@@ -213,7 +213,7 @@ def run(config: Config) -> Outputs:
         )
         ply = _mesh_ply(prob.numpy(), config.level)
         mesh = write_bytes(out / "mesh.ply", ply) if ply is not None else None
-        preview = write_bytes(out / "preview.png", _png(_preview(inputs, prob)))
+        preview = write_bytes(out / "preview.png", _png(_preview(inputs, prob, config.level)))
         occupied = int((prob >= config.level).sum())
         left_out = {} if mesh else {"mesh.ply": f"no cell reaches the level {config.level}"}
         write_manifest(
