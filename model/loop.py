@@ -34,6 +34,7 @@ another, so the loop the three stages share lives here, below them.
 from __future__ import annotations
 
 import contextlib
+import copy
 import signal
 import sys
 import time
@@ -53,6 +54,7 @@ __all__ = [
     "Schedule",
     "LoopSettings",
     "Stepper",
+    "NetStepper",
     "TrainingLoop",
     "TrainingDiverged",
     "set_lr",
@@ -179,6 +181,36 @@ class Stepper(Protocol):
     def finish(self, seconds: float) -> None:
         """The budget is spent: final touches and the last checkpoint."""
         ...
+
+
+@dataclass(eq=False, kw_only=True)
+class NetStepper:
+    """The bookkeeping of a `Stepper` that trains one network with one optimiser and saves through a callback
+    (the pretraining stages): no schedule changes, snapshots of both state dicts, checkpoints by `on_checkpoint`.
+    A subclass adds its data and supplies `train_step` and `log`."""
+
+    net: torch.nn.Module
+    opt: torch.optim.Optimizer
+    on_checkpoint: Callable[[float], None]
+    """(training seconds) -> None: write the partial weights."""
+    step: int = 0
+    lr_factor: float = 1.0
+
+    def prepare(self, fraction: float) -> bool:
+        return False
+
+    def snapshot(self) -> tuple[dict, dict]:
+        return copy.deepcopy(self.net.state_dict()), copy.deepcopy(self.opt.state_dict())
+
+    def restore(self, snapshot: tuple[dict, dict]) -> None:
+        self.net.load_state_dict(snapshot[0])
+        self.opt.load_state_dict(snapshot[1])
+
+    def checkpoint(self, seconds: float) -> None:
+        self.on_checkpoint(seconds)
+
+    def finish(self, seconds: float) -> None:
+        pass
 
 
 class TrainingLoop:

@@ -9,7 +9,6 @@ IoU at 0.5.
 
 from __future__ import annotations
 
-import copy
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,6 +16,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from nerfpipe.model.loop import NetStepper
 from nerfpipe.model.voxels.net import VoxelNet
 
 __all__ = ["ShapeSet", "unpack", "iou", "VoxelStep"]
@@ -42,25 +42,18 @@ def iou(prob: torch.Tensor, truth: torch.Tensor, level: float = 0.5) -> float:
     return (p & t).sum().item() / union if union else float("nan")
 
 
-@dataclass(eq=False)
-class VoxelStep:
+@dataclass(eq=False, kw_only=True)
+class VoxelStep(NetStepper):
     """A `model.loop.Stepper` (module doc)."""
 
     net: VoxelNet
     data: ShapeSet
-    opt: torch.optim.Optimizer
     gen: torch.Generator
     device: torch.device
     batch: int
     on_log: Any  # (step, loss, iou, lr) -> None, after each good step
-    on_checkpoint: Any  # (seconds) -> None
-    step: int = 0
-    lr_factor: float = 1.0
     last_loss: float = float("nan")
     last_iou: float = float("nan")
-
-    def prepare(self, fraction: float) -> bool:
-        return False
 
     def train_step(self, lr: float) -> bool:
         self.net.train()
@@ -84,16 +77,3 @@ class VoxelStep:
 
     def log(self, lr: float) -> None:
         self.on_log(self.step, self.last_loss, self.last_iou, lr)
-
-    def snapshot(self) -> tuple[dict, dict]:
-        return copy.deepcopy(self.net.state_dict()), copy.deepcopy(self.opt.state_dict())
-
-    def restore(self, snapshot: tuple[dict, dict]) -> None:
-        self.net.load_state_dict(snapshot[0])
-        self.opt.load_state_dict(snapshot[1])
-
-    def checkpoint(self, seconds: float) -> None:
-        self.on_checkpoint(seconds)
-
-    def finish(self, seconds: float) -> None:
-        pass

@@ -10,7 +10,6 @@ objects with alpha, in inverse depth otherwise), and its photos are the sources 
 
 from __future__ import annotations
 
-import copy
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,6 +18,7 @@ import torch
 
 from nerfpipe.data.errors import UserError
 from nerfpipe.data.transforms import Scene, read_scene
+from nerfpipe.model.loop import NetStepper
 from nerfpipe.model.methods.gnt.model import GntModel, RayRange, ray_range
 from nerfpipe.model.methods.gnt.net import GntNet
 from nerfpipe.model.methods.gnt.sources import Sources, sources_from_views
@@ -72,27 +72,20 @@ def load_scene_set(root: Path, source_side: int, device: torch.device) -> SceneS
     return out
 
 
-@dataclass(eq=False)
-class CrossScene:
+@dataclass(eq=False, kw_only=True)
+class CrossScene(NetStepper):
     """The cross-scene step (module doc): a `model.loop.Stepper`."""
 
     net: GntNet
     scenes: SceneSet
-    opt: torch.optim.Optimizer
     gen: torch.Generator
     device: torch.device
     batch: int
     samples: int
     k_range: tuple[int, int]
     on_log: Any  # (step, mse, k, lr) -> None, after each good step
-    on_checkpoint: Any  # (seconds) -> None
-    step: int = 0
-    lr_factor: float = 1.0
     last_mse: float = float("nan")
     last_k: int = 0
-
-    def prepare(self, fraction: float) -> bool:
-        return False
 
     def train_step(self, lr: float) -> bool:
         g = self.gen
@@ -120,16 +113,3 @@ class CrossScene:
 
     def log(self, lr: float) -> None:
         self.on_log(self.step, self.last_mse, self.last_k, lr)
-
-    def snapshot(self) -> tuple[dict, dict]:
-        return copy.deepcopy(self.net.state_dict()), copy.deepcopy(self.opt.state_dict())
-
-    def restore(self, snapshot: tuple[dict, dict]) -> None:
-        self.net.load_state_dict(snapshot[0])
-        self.opt.load_state_dict(snapshot[1])
-
-    def checkpoint(self, seconds: float) -> None:
-        self.on_checkpoint(seconds)
-
-    def finish(self, seconds: float) -> None:
-        pass
