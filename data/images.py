@@ -25,7 +25,7 @@ import numpy as np
 
 from nerfpipe.data.errors import UserError
 
-__all__ = ["MAX_PIXELS", "Decoded", "read_image", "read_image_file", "declared_size"]
+__all__ = ["MAX_PIXELS", "Decoded", "read_image", "read_image_file", "declared_size", "exif_orientation", "upright"]
 
 MAX_PIXELS = 2**27
 """The most pixels an image may declare (134 M: a 108 MP phone photo, 11584x11584; 512 MB as RGBA uint8).
@@ -150,3 +150,36 @@ def read_image(path: str | os.PathLike, what: str = "image") -> np.ndarray:
     """Pixels of an image file, [H, W] or [H, W, 3|4] BGR(A) uint8/uint16 (cv2.IMREAD_UNCHANGED), after the
     checks of the module docstring."""
     return read_image_file(path, what).pixels
+
+
+def exif_orientation(data: bytes) -> int:
+    """The EXIF orientation tag (1-8) of an image file's bytes; 1 when there is none or it cannot be read."""
+    from PIL import Image
+
+    try:
+        with Image.open(BytesIO(data)) as im:
+            value = int(im.getexif().get(0x0112, 1))
+    except Exception:  # no EXIF, or a header PIL does not read: the pixels as stored
+        return 1
+    return value if 1 <= value <= 8 else 1
+
+
+def upright(pixels: np.ndarray, orientation: int) -> np.ndarray:
+    """Pixels [H, W, ...] as stored -> as displayed under EXIF `orientation` (what PIL's `exif_transpose` does)."""
+    if orientation == 2:
+        out = pixels[:, ::-1]
+    elif orientation == 3:
+        out = pixels[::-1, ::-1]
+    elif orientation == 4:
+        out = pixels[::-1]
+    elif orientation == 5:
+        out = pixels.swapaxes(0, 1)
+    elif orientation == 6:
+        out = np.rot90(pixels, k=-1)
+    elif orientation == 7:
+        out = pixels[::-1, ::-1].swapaxes(0, 1)
+    elif orientation == 8:
+        out = np.rot90(pixels, k=1)
+    else:
+        out = pixels
+    return np.ascontiguousarray(out)

@@ -269,3 +269,58 @@ def test_shipped_weights_predict_held_out_objects():
         got.append(iou(p, t))
         prior.append(max(iou(mean, t, lv) for lv in (0.2, 0.3, 0.4, 0.5)))
     assert np.mean(got) > 0.5 and np.mean(got) > np.mean(prior) + 0.15, (got, prior)
+
+
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_upright_matches_pillow(tmp_path, orientation):
+    """`data.images.upright` turns pixels as PIL's exif_transpose does, for each EXIF orientation."""
+    from PIL import Image, ImageOps
+
+    from nerfpipe.data.images import exif_orientation, upright
+
+    rng = np.random.default_rng(orientation)
+    pixels = rng.integers(0, 255, (5, 7, 3), dtype=np.uint8)
+    im = Image.fromarray(pixels)
+    exif = im.getexif()
+    exif[0x0112] = orientation
+    path = tmp_path / "p.jpg"
+    im.save(path, exif=exif.tobytes(), quality=100)
+    data = path.read_bytes()
+    assert exif_orientation(data) == orientation
+    with Image.open(path) as reread:
+        want = np.asarray(ImageOps.exif_transpose(reread))
+        stored = np.asarray(reread.convert("RGB"))
+    assert np.array_equal(upright(stored, orientation), want)
+
+
+def test_voxels_reads_a_phone_photo_upright(tiny, capsys):
+    """A JPEG stored sideways with EXIF orientation 6 and a mask drawn on the stored pixels predicts what the
+    upright photo does."""
+    from PIL import Image
+
+    root, _, w, photos = tiny
+    p = photos[0]
+    rgb = (p.rgb * 255).round().astype(np.uint8)
+    mask = (p.mask * 255).round().astype(np.uint8)
+    stored = np.rot90(rgb, k=1)  # displayed upright after a quarter turn clockwise (orientation 6)
+    im = Image.fromarray(np.ascontiguousarray(stored))
+    exif = im.getexif()
+    exif[0x0112] = 6
+    im.save(root / "phone.jpg", exif=exif.tobytes(), quality=98)
+    Image.fromarray(np.ascontiguousarray(np.rot90(mask, k=1))).save(root / "phone_mask.png")
+    Image.fromarray(rgb).save(root / "plain.jpg", quality=98)
+    Image.fromarray(mask).save(root / "plain_mask.png")
+    for name in ("phone", "plain"):
+        code, text = _cli(
+            capsys,
+            "voxels",
+            root / f"{name}.jpg",
+            root / f"v_{name}",
+            "--masks",
+            root / f"{name}_mask.png",
+            "--weights",
+            w.weights,
+        )
+        assert code == 0, text
+    a, b = (np.load(root / f"v_{n}" / "occupancy.npy") for n in ("phone", "plain"))
+    assert np.abs(a - b).max() < 0.05

@@ -36,7 +36,7 @@ import torch
 
 from nerfpipe.data.atomic import write_bytes, write_json
 from nerfpipe.data.errors import UserError
-from nerfpipe.data.images import read_image
+from nerfpipe.data.images import exif_orientation, read_image_file, upright
 from nerfpipe.data.masks import read_mask
 from nerfpipe.data.rundir import output_folder, write_config, write_manifest
 from nerfpipe.model.device import resolve_device
@@ -85,15 +85,25 @@ class Outputs:
 
 def read_photo(image: Path, mask: Path | None) -> tuple[np.ndarray, np.ndarray]:
     """An image file and its mask (a file, or the image's alpha) -> rgb [H, W, 3], mask [H, W], float32 in
-    [0, 1]; UserError in one line when there is no usable mask."""
-    pixels = read_image(image)
+    [0, 1], upright (the photo's EXIF orientation applied; a mask file is taken as it matches the photo: upright,
+    or as stored and turned with it); UserError in one line when there is no usable mask."""
+    decoded = read_image_file(image)
+    orientation = exif_orientation(decoded.data)
+    stored = decoded.pixels
+    pixels = upright(stored, orientation)
     scale = 65535.0 if pixels.dtype == np.uint16 else 255.0
     px = pixels.astype(np.float32) / scale
     if px.ndim == 2:
         px = np.repeat(px[..., None], 3, axis=-1)
     rgb = np.ascontiguousarray(px[..., 2::-1][..., :3]) if px.shape[-1] >= 3 else np.repeat(px[..., :1], 3, -1)
     if mask is not None:
-        m = read_mask(mask, size=(px.shape[1], px.shape[0]), image=str(image))
+        m = read_mask(mask)
+        if m.shape != px.shape[:2] and m.shape == stored.shape[:2]:
+            m = upright(m, orientation)  # drawn on the pixels as stored
+        if m.shape != px.shape[:2]:
+            raise UserError(
+                f"{mask}: mask is {m.shape[1]}x{m.shape[0]} but its photo {image} is {px.shape[1]}x{px.shape[0]}"
+            )
     elif px.shape[-1] == 4:
         m = px[..., 3]
         if m.min() >= 1.0:
