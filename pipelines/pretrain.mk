@@ -37,12 +37,15 @@ bench-gnt: $(INSTALLED)
 
 # issue 50: the single-view voxel network. The data: `nerfpipe shapes` (VOXEL_COUNT objects of each trained family,
 # seeds 0 and up, VOXEL_VIEWS photos each; bench-voxels holds out seeds 100000 and up and the family `sofa`), then
-# VOXEL_SECONDS of training; the weights and pretrained.json (command, commit, data, figures) go into the package.
+# VOXEL_SECONDS of training (VOXEL_INIT=weights.pt continues earlier weights: their provenance is kept inside); the
+# weights and pretrained.json (command, commit, data, figures) go into the package.
 VOXEL_OUT ?= runs/pretrain_voxels
 VOXEL_COUNT ?= 400
 VOXEL_VIEWS ?= 6
 VOXEL_SECONDS ?= 2400
 VOXEL_DEVICE ?= auto
+VOXEL_INIT ?=
+VOXEL_LR ?= 1e-3
 VOXEL_WEIGHTS := model/voxels/weights
 
 .PHONY: pretrain-voxels bench-voxels
@@ -51,9 +54,9 @@ $(VOXEL_OUT)/shapes/manifest.json: $(INSTALLED)
 
 pretrain-voxels: $(VOXEL_OUT)/shapes/manifest.json
 	$(VENV)/bin/nerfpipe pretrain-voxels $(VOXEL_OUT)/shapes $(VOXEL_OUT)/model --max-seconds $(VOXEL_SECONDS) \
-		--device $(VOXEL_DEVICE) --overwrite
+		--device $(VOXEL_DEVICE) --lr $(VOXEL_LR) $(if $(VOXEL_INIT),--init $(VOXEL_INIT)) --overwrite
 	$(VENV)/bin/python -m benchmarks.ship_weights $(VOXEL_OUT)/model $(VOXEL_WEIGHTS) \
-		--command "make pretrain-voxels VOXEL_COUNT=$(VOXEL_COUNT) VOXEL_VIEWS=$(VOXEL_VIEWS) VOXEL_SECONDS=$(VOXEL_SECONDS) VOXEL_DEVICE=$(VOXEL_DEVICE)"
+		--command "make pretrain-voxels VOXEL_COUNT=$(VOXEL_COUNT) VOXEL_VIEWS=$(VOXEL_VIEWS) VOXEL_SECONDS=$(VOXEL_SECONDS) VOXEL_DEVICE=$(VOXEL_DEVICE) VOXEL_LR=$(VOXEL_LR)$(if $(VOXEL_INIT), VOXEL_INIT=$(VOXEL_INIT))"
 
 # issue 50: IoU on held-out objects and the held-out family (1 and 5 photos), the scanned meshes, a real photo
 # (docs/VOXELS.md has the table and the commit).

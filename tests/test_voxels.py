@@ -186,6 +186,16 @@ def test_pretrain_writes_weights_that_load(tiny):
     assert manifest["used"]["parameters"] == sum(p.numel() for p in net.parameters())
 
 
+def test_pretrain_continues_weights_and_keeps_their_provenance(tiny):
+    root, _, w, _ = tiny
+    more = pretrain_voxels.run(
+        pretrain_voxels.Config(shapes=root / "shapes", out_dir=root / "w2", init=str(w.weights), max_steps=2, batch=4)
+    )
+    _, prov = load_net(more.weights, torch.device("cpu"))
+    assert prov["steps"] == 2 and prov["init_provenance"]["steps"] == 3
+    assert json.loads(more.manifest.read_text())["used"]["steps_before"] == 3
+
+
 def test_weights_file_halves_and_predicts_the_same(tmp_path):
     net = VoxelNet().eval()
     path = write_weights(tmp_path / "w.pt", net.config(), net.state_dict(), {})

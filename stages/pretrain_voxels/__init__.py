@@ -113,8 +113,9 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         write_config(out, config)
         torch.manual_seed(config.seed)
         side = data.inputs.shape[-1]
+        init_provenance: dict = {}
         if config.init:
-            net_cfg, state, _ = read_weights(config.init)
+            net_cfg, state, init_provenance = read_weights(config.init)
             net = VoxelNet(**net_cfg)
             net.load_state_dict({k: (v.float() if v.is_floating_point() else v) for k, v in state.items()})
         else:
@@ -185,6 +186,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
             "iou_start": float(np.nanmean(ious[:n])),
             "iou_end": float(np.nanmean(ious[-n:])),
             "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(config).items()},
+            "init_provenance": init_provenance or None,  # what the weights it continued were made by
         }
         weights = write_weights(out / "weights.pt", net.config(), net.state_dict(), provenance)
         (out / "weights.partial.pt").unlink(missing_ok=True)
@@ -195,7 +197,8 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
             started=started,
             outputs=["weights.pt", "metrics.csv", "config.json"],
             used={
-                **{k: v for k, v in provenance.items() if k != "config"},
+                **{k: v for k, v in provenance.items() if k not in ("config", "init_provenance")},
+                "steps_before": (init_provenance or {}).get("steps"),
                 "net": net.config(),
                 "parameters": sum(p.numel() for p in net.parameters()),
                 "weights_sha256": sha256_file(weights),
