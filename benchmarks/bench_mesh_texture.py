@@ -33,16 +33,18 @@ from pathlib import Path
 import numpy as np
 import torch
 
-__all__ = ["main", "rasterize_textured", "saturation"]
+__all__ = ["main", "nearest_fragments", "rasterize_textured", "saturation"]
 
 
-def rasterize_textured(verts, faces, uv, image, world_from_cam, intr) -> tuple[np.ndarray, np.ndarray]:
-    """(rgb [H, W, 3] in [0, 1], mask [H, W]) of a textured mesh seen by a camera (scene frame, OpenGL c2w)."""
+def nearest_fragments(verts, faces, world_from_cam, intr) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A z-buffer: for each pixel a mesh covers (faces wholly in front of the camera; OpenGL c2w), its nearest
+    fragment: (pixel index row * w + col [N], face index into `faces` [N], perspective-correct barycentrics
+    [N, 3])."""
     from nerfpipe.radiance.camera import project
-    from nerfpipe.stages.mesh.texture import rasterize, sample_texture
+    from nerfpipe.stages.mesh.texture import rasterize
 
     px, z = (a.numpy() for a in project(torch.as_tensor(verts), torch.as_tensor(world_from_cam), intr))
-    front = (z[faces] > 1e-6).all(axis=1)
+    front = np.flatnonzero((z[faces] > 1e-6).all(axis=1))
     f = faces[front]
     w, h = intr.w, intr.h
     tri = np.stack([px[f][..., 0] / w, 1.0 - px[f][..., 1] / h], axis=-1)  # rasterize's "uv": x right, y up
@@ -52,11 +54,20 @@ def rasterize_textured(verts, faces, uv, image, world_from_cam, intr) -> tuple[n
     pixel = rows * w + cols
     order = np.lexsort((depth, pixel))  # nearest fragment of each pixel first
     first = order[np.r_[True, pixel[order][1:] != pixel[order][:-1]]]
-    tuv = np.einsum("nk,nkc->nc", inv_z[first], uv[f[face[first]]]) * depth[first, None]
+    return pixel[first], front[face[first]], inv_z[first] * depth[first, None]
+
+
+def rasterize_textured(verts, faces, uv, image, world_from_cam, intr) -> tuple[np.ndarray, np.ndarray]:
+    """(rgb [H, W, 3] in [0, 1], mask [H, W]) of a textured mesh seen by a camera (scene frame, OpenGL c2w)."""
+    from nerfpipe.stages.mesh.texture import sample_texture
+
+    pixel, face, bary = nearest_fragments(verts, faces, world_from_cam, intr)
+    w, h = intr.w, intr.h
+    tuv = np.einsum("nk,nkc->nc", bary, uv[faces[face]])
     rgb = np.zeros((h * w, 3))
-    rgb[pixel[first]] = sample_texture(image, tuv) / 255.0
+    rgb[pixel] = sample_texture(image, tuv) / 255.0
     mask = np.zeros(h * w, bool)
-    mask[pixel[first]] = True
+    mask[pixel] = True
     return rgb.reshape(h, w, 3), mask.reshape(h, w)
 
 

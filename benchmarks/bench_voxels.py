@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from benchmarks.provenance import commit
+from nerfpipe.model.voxels.pretrain import iou
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "voxels"
@@ -40,12 +41,8 @@ SCANS = ("bunny", "cow", "airplane")
 
 
 def _ious(prob: torch.Tensor, truth: torch.Tensor) -> dict[float, float]:
-    t = truth >= 0.5
-    out = {}
-    for level in LEVELS:
-        p = prob >= level
-        out[level] = float((p & t).sum()) / max(float((p | t).sum()), 1.0)
-    return out
+    """IoU at each of `LEVELS` (the test shapes are never empty: no union is 0)."""
+    return {level: iou(prob, truth, level) for level in LEVELS}
 
 
 def _predict(net, inputs: torch.Tensor, batch: int = 64) -> torch.Tensor:
@@ -171,27 +168,20 @@ def _parity_occupancy(v: np.ndarray, f: np.ndarray, res: int = 32, sub: int = 2)
 
 def _mesh_photo(v: np.ndarray, f: np.ndarray, azimuth: float, elevation: float, distance: float, size: int):
     """A grey Lambert-shaded photo of a mesh (2x supersampled z-buffer): rgb [size, size, 3], alpha [size, size]."""
+    from benchmarks.bench_mesh_texture import nearest_fragments
     from nerfpipe.data.synthetic.shape_views import camera
-    from nerfpipe.radiance.camera import project
-    from nerfpipe.stages.mesh.texture import rasterize
 
     s = 2 * size
     intr, world_from_cam = camera(azimuth, elevation, distance, s)
-    px, zc = (a.numpy() for a in project(torch.as_tensor(v), torch.as_tensor(world_from_cam), intr))
-    tri = np.stack([px[f][..., 0] / s, 1.0 - px[f][..., 1] / s], axis=-1)
-    rows, cols, face, bary = rasterize(tri, s, s)
-    depth = 1.0 / (bary / zc[f][face]).sum(1)
-    pixel = rows * s + cols
-    order = np.lexsort((depth, pixel))
-    first = order[np.r_[True, pixel[order][1:] != pixel[order][:-1]]]
+    pixel, face, _ = nearest_fragments(v, f, world_from_cam, intr)
     n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
     light = np.array([0.4, 0.3, 0.85]) / np.linalg.norm([0.4, 0.3, 0.85])
     shade = 0.3 + 0.6 * np.abs(n @ light)  # both sides lit: a mesh's winding may be either
     rgb = np.zeros((s * s, 3))
-    rgb[pixel[first]] = shade[face[first], None] * np.array([0.8, 0.7, 0.6])
+    rgb[pixel] = shade[face, None] * np.array([0.8, 0.7, 0.6])
     alpha = np.zeros(s * s)
-    alpha[pixel[first]] = 1.0
+    alpha[pixel] = 1.0
     rgb = rgb.reshape(size, 2, size, 2, 3).mean((1, 3))
     alpha = alpha.reshape(size, 2, size, 2).mean((1, 3))
     return rgb / np.maximum(alpha, 1e-6)[..., None] * (alpha > 0)[..., None], alpha

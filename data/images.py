@@ -25,7 +25,16 @@ import numpy as np
 
 from nerfpipe.data.errors import UserError
 
-__all__ = ["MAX_PIXELS", "Decoded", "read_image", "read_image_file", "declared_size", "exif_orientation", "upright"]
+__all__ = [
+    "MAX_PIXELS",
+    "Decoded",
+    "read_image",
+    "read_image_file",
+    "declared_size",
+    "as_float_rgb",
+    "exif_orientation",
+    "upright",
+]
 
 MAX_PIXELS = 2**27
 """The most pixels an image may declare (134 M: a 108 MP phone photo, 11584x11584; 512 MB as RGBA uint8).
@@ -150,6 +159,21 @@ def read_image(path: str | os.PathLike, what: str = "image") -> np.ndarray:
     """Pixels of an image file, [H, W] or [H, W, 3|4] BGR(A) uint8/uint16 (cv2.IMREAD_UNCHANGED), after the
     checks of the module docstring."""
     return read_image_file(path, what).pixels
+
+
+def as_float_rgb(pixels: np.ndarray) -> np.ndarray:
+    """Decoded pixels (`read_image`: [H, W] or [H, W, 3|4] BGR(A), uint8 or uint16) -> float32 [H, W, C] in
+    [0, 1], C = 3 (RGB) or 4 (RGBA); grey becomes three equal channels, 16-bit keeps its precision."""
+    import cv2  # heavy import kept local
+
+    scale = 65535.0 if pixels.dtype == np.uint16 else 255.0
+    if pixels.ndim == 2:
+        img = np.repeat(pixels[..., None], 3, axis=-1)
+    elif pixels.shape[-1] == 4:
+        img = cv2.cvtColor(pixels, cv2.COLOR_BGRA2RGBA)
+    else:
+        img = cv2.cvtColor(pixels[..., :3], cv2.COLOR_BGR2RGB)
+    return (img.astype(np.float32) / scale).clip(0.0, 1.0)
 
 
 def exif_orientation(data: bytes) -> int:

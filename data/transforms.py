@@ -26,7 +26,7 @@ import numpy as np
 from nerfpipe.data.atomic import write_json
 from nerfpipe.data.confine import inside, read_json
 from nerfpipe.data.errors import UserError
-from nerfpipe.data.images import MAX_PIXELS, read_image
+from nerfpipe.data.images import MAX_PIXELS, as_float_rgb, read_image
 from nerfpipe.radiance.camera import Intrinsics
 
 __all__ = [
@@ -467,17 +467,7 @@ def write_scene(scene: Scene, path: str | os.PathLike | None = None) -> Path:
 def load_image(path: str | os.PathLike) -> np.ndarray:
     """Read an image as float32 [H, W, C] in [0, 1], C = 3 (RGB) or 4 (RGBA). 16-bit PNGs keep precision.
     `data.images.read_image`'s checks: at most MAX_PIXELS declared, no truncated file."""
-    import cv2  # heavy import kept local
-
-    img = read_image(path)
-    scale = 65535.0 if img.dtype == np.uint16 else 255.0
-    if img.ndim == 2:
-        img = np.repeat(img[..., None], 3, axis=-1)
-    elif img.shape[-1] == 4:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA)
-    else:
-        img = cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2RGB)
-    return (img.astype(np.float32) / scale).clip(0.0, 1.0)
+    return as_float_rgb(read_image(path))
 
 
 def cameras_face_forward(world_from_cam: np.ndarray) -> bool:

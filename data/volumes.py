@@ -24,7 +24,7 @@ import numpy as np
 from nerfpipe.data.atomic import atomic_path
 from nerfpipe.data.errors import UserError
 
-__all__ = ["Volume", "read_volume", "check_volume", "write_npy", "VOLUME_SUFFIXES"]
+__all__ = ["Volume", "read_volume", "check_volume", "write_npy", "iso_surface", "VOLUME_SUFFIXES"]
 
 VOLUME_SUFFIXES = (".npy", ".mat", ".raw", ".nii", ".nii.gz")
 _NIFTI_TO_MM = {"mm": 1.0, "meter": 1000.0, "micron": 1e-3, "unknown": 1.0}
@@ -171,3 +171,19 @@ def write_npy(path: str | os.PathLike, array: np.ndarray) -> Path:
         with open(tmp, "wb") as f:
             np.save(f, np.ascontiguousarray(array))
     return path
+
+
+def iso_surface(
+    values: np.ndarray, level: float, first_centre: np.ndarray, spacing: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Marching cubes of values [nx, ny, nz] (index (i, j, k) -> x, y, z) at `level`, padded with zeros by one
+    cell so the surface closes where the object meets the grid's edge. Vertices float64 [V, 3] at first_centre
+    [3] + index * spacing [3] (cell centres), faces int64 [F, 3] wound counter-clockwise seen from outside for
+    values that grow into the object (skimage's "ascent"; degenerate triangles left out)."""
+    from skimage.measure import marching_cubes
+
+    verts, faces, _, _ = marching_cubes(
+        np.pad(values, 1), level=level, gradient_direction="ascent", allow_degenerate=False
+    )
+    verts = np.asarray(first_centre, np.float64) + (verts.astype(np.float64) - 1.0) * np.asarray(spacing, np.float64)
+    return verts, faces.astype(np.int64)

@@ -30,6 +30,7 @@ from nerfpipe.data.errors import UserError
 from nerfpipe.data.progress import NO_PROGRESS, Progress
 from nerfpipe.data.rundir import config_to_json, output_folder, write_manifest
 from nerfpipe.data.video import to_uint8, video_writer, write_png
+from nerfpipe.data.volumes import iso_surface
 from nerfpipe.model.device import cpu_threads
 from nerfpipe.model.xray import XrayRun, load_xray_run
 from nerfpipe.radiance.xray import detector_rays, siddon_project
@@ -163,17 +164,12 @@ def iso_level(vol: np.ndarray) -> float:
 def write_mesh(path: Path, xrun: XrayRun, vol: np.ndarray, iso: float) -> int:
     """Marching cubes at `iso` in world coordinates (length unit); returns the face count."""
     import trimesh
-    from skimage.measure import marching_cubes
 
     if not (vol.min() < iso < vol.max()):
         raise UserError(f"iso: {iso:.4g} is outside the volume's attenuation range [{vol.min():.4g}, {vol.max():.4g}]")
-    padded = np.pad(vol, 1)  # closed where the object meets the box
-    # "ascent": attenuation grows into the object, so faces wind counter-clockwise seen from outside
-    verts, faces, _, _ = marching_cubes(
-        padded, level=iso, spacing=tuple(xrun.grid.spacing), gradient_direction="ascent", allow_degenerate=False
-    )
-    # voxel (i, j, k) centre = box_min + (index + 0.5) * s; the padding shifts indices by one voxel
-    verts = verts + xrun.grid.box[0] + 0.5 * np.asarray(xrun.grid.spacing) - np.asarray(xrun.grid.spacing)
+    # attenuation grows into the object: faces wind counter-clockwise seen from outside
+    spacing = np.asarray(xrun.grid.spacing)
+    verts, faces = iso_surface(vol, iso, xrun.grid.box[0] + 0.5 * spacing, spacing)  # voxel centres
     mesh = trimesh.Trimesh(vertices=verts, faces=faces, process=False)
     with atomic_path(path, suffix=".ply") as tmp:
         mesh.export(tmp)

@@ -33,7 +33,7 @@ from nerfpipe.model.device import cpu_threads, resolve_device
 from nerfpipe.model.loop import Budget, Clock, LoopSettings, Schedule, TrainingLoop
 from nerfpipe.model.voxels.net import VoxelNet
 from nerfpipe.model.voxels.pretrain import ShapeSet, VoxelStep
-from nerfpipe.model.voxels.weights import read_weights, write_weights
+from nerfpipe.model.voxels.weights import load_net, write_weights
 
 __all__ = ["Config", "Outputs", "run", "load_shapes"]
 
@@ -115,16 +115,13 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         side = data.inputs.shape[-1]
         init_provenance: dict = {}
         if config.init:
-            net_cfg, state, init_provenance = read_weights(config.init)
-            net = VoxelNet(**net_cfg)
-            net.load_state_dict({k: (v.float() if v.is_floating_point() else v) for k, v in state.items()})
+            net, init_provenance = load_net(config.init, device)  # VoxelStep puts it in training mode
         else:
-            net = VoxelNet(side=side, res=data.res)
+            net = VoxelNet(side=side, res=data.res).to(device)
         if (net.side, net.res) != (side, data.res):
             raise UserError(
                 f"pretrain-voxels: the weights take {net.side} px -> {net.res}^3, the data is {side} -> {data.res}^3"
             )
-        net = net.to(device)
         opt = torch.optim.Adam(net.parameters(), lr=config.lr)
         metrics = MetricsLog(out / "metrics.csv", METRICS)
         losses: list[float] = []

@@ -25,7 +25,6 @@ Outputs under OUT_DIR:
 
 from __future__ import annotations
 
-import io
 import math
 import time
 from dataclasses import dataclass
@@ -36,9 +35,11 @@ import torch
 
 from nerfpipe.data.atomic import write_bytes, write_json
 from nerfpipe.data.errors import UserError
-from nerfpipe.data.images import exif_orientation, read_image_file, upright
+from nerfpipe.data.images import as_float_rgb, exif_orientation, read_image_file, upright
 from nerfpipe.data.masks import read_mask
 from nerfpipe.data.rundir import output_folder, write_config, write_manifest
+from nerfpipe.data.video import write_png
+from nerfpipe.data.volumes import iso_surface, write_npy
 from nerfpipe.model.device import resolve_device
 from nerfpipe.model.voxels.fuse import fuse
 from nerfpipe.model.voxels.inputs import prepare
@@ -90,12 +91,8 @@ def read_photo(image: Path, mask: Path | None) -> tuple[np.ndarray, np.ndarray]:
     decoded = read_image_file(image)
     orientation = exif_orientation(decoded.data)
     stored = decoded.pixels
-    pixels = upright(stored, orientation)
-    scale = 65535.0 if pixels.dtype == np.uint16 else 255.0
-    px = pixels.astype(np.float32) / scale
-    if px.ndim == 2:
-        px = np.repeat(px[..., None], 3, axis=-1)
-    rgb = np.ascontiguousarray(px[..., 2::-1][..., :3]) if px.shape[-1] >= 3 else np.repeat(px[..., :1], 3, -1)
+    px = as_float_rgb(upright(stored, orientation))  # [H, W, 3|4] RGB(A)
+    rgb = np.ascontiguousarray(px[..., :3])
     if mask is not None:
         m = read_mask(mask)
         if m.shape != px.shape[:2] and m.shape == stored.shape[:2]:
@@ -148,28 +145,16 @@ def _check(config: Config) -> None:
 def _mesh_ply(prob: np.ndarray, level: float) -> bytes | None:
     """Marching cubes of prob [R, R, R] at `level` (zero-padded: a closed surface), vertices in the view frame."""
     import trimesh
-    from skimage.measure import marching_cubes
 
     if not (prob >= level).any():
         return None
-    r = prob.shape[0]
-    padded = np.pad(prob, 1)
-    verts, faces, _, _ = marching_cubes(padded, level=level)
-    verts = (verts - 1 + 0.5) / r - 0.5  # padded index -> cell centre of the unpadded grid -> frame
-    mesh = trimesh.Trimesh(verts.astype(np.float32), faces[:, ::-1], process=False)  # outward normals
-    return mesh.export(file_type="ply")
-
-
-def _png(image: np.ndarray) -> bytes:
-    import cv2
-
-    ok, buf = cv2.imencode(".png", (np.clip(image, 0, 1)[..., ::-1] * 255).round().astype(np.uint8))
-    if not ok:
-        raise RuntimeError("cv2 could not encode the preview")
-    return buf.tobytes()
+    cell = 1.0 / prob.shape[0]
+    verts, faces = iso_surface(prob, level, np.full(3, 0.5 * cell - 0.5), np.full(3, cell))  # cell centres
+    return trimesh.Trimesh(verts.astype(np.float32), faces, process=False).export(file_type="ply")
 
 
 def _preview(inputs: torch.Tensor, prob: torch.Tensor, level: float) -> np.ndarray:
+    """The preview image: uint8 [H, W, 3] RGB."""
     tiles = []
     for x in inputs:  # the network's view of each photo, on white
         m = x[3:].numpy()
@@ -177,7 +162,7 @@ def _preview(inputs: torch.Tensor, prob: torch.Tensor, level: float) -> np.ndarr
         tile = torch.nn.functional.interpolate(torch.from_numpy(rgb)[None], size=PREVIEW_SIDE, mode="bilinear")[0]
         tiles.append(tile.permute(1, 2, 0).numpy())
     tiles += [render_grid(prob, turn, PREVIEW_ELEVATION, PREVIEW_SIDE, level) for turn in (0.0, 90.0, 180.0, 270.0)]
-    return np.concatenate(tiles, axis=1)
+    return (np.clip(np.concatenate(tiles, axis=1), 0.0, 1.0) * 255).round().astype(np.uint8)
 
 
 def run(config: Config) -> Outputs:
@@ -193,9 +178,7 @@ def run(config: Config) -> Outputs:
     with output_folder(config.out_dir, overwrite=config.overwrite):
         out = Path(config.out_dir)
         write_config(out, config)
-        buf = io.BytesIO()
-        np.save(buf, prob.numpy().astype(np.float32))
-        occupancy = write_bytes(out / "occupancy.npy", buf.getvalue())
+        occupancy = write_npy(out / "occupancy.npy", prob.numpy().astype(np.float32))
         res = prob.shape[0]
         write_json(
             out / "occupancy.json",
@@ -223,7 +206,7 @@ def run(config: Config) -> Outputs:
         )
         ply = _mesh_ply(prob.numpy(), config.level)
         mesh = write_bytes(out / "mesh.ply", ply) if ply is not None else None
-        preview = write_bytes(out / "preview.png", _png(_preview(inputs, prob, config.level)))
+        preview = write_png(out / "preview.png", _preview(inputs, prob, config.level))
         occupied = int((prob >= config.level).sum())
         left_out = {} if mesh else {"mesh.ply": f"no cell reaches the level {config.level}"}
         write_manifest(
