@@ -24,7 +24,15 @@ from nerfpipe.model.background import Background
 from nerfpipe.radiance.fields import Field, TensoRF, VanillaNeRF
 from nerfpipe.radiance.occupancy import OccupancyGrid
 from nerfpipe.radiance.regularizers import distortion_loss
-from nerfpipe.radiance.render import ColourRule, Marcher, StratifiedSampler, render_marched, render_rays_hierarchical
+from nerfpipe.radiance.render import (
+    ColourRule,
+    Marcher,
+    RayColour,
+    RgbFn,
+    StratifiedSampler,
+    render_marched,
+    render_rays_hierarchical,
+)
 from nerfpipe.radiance.safe import eps
 from nerfpipe.radiance.space import Space
 
@@ -75,9 +83,8 @@ EXACT = Inference()
 """Inference's default: rays stop once less than the dtype's epsilon of the light gets through."""
 FAST = Inference(min_transmittance=1e-2, color_keep=1e-2, step_scale=1.5)
 """What `render`, `eval` and `depth` use unless asked `--exact` (issue 54): rays stop below 1 % of the light,
-colour only samples of weight >= 1 % (and each ray's largest, rescaled), at 1.5 x the inference step. Measured
-against EXACT on the test views (`benchmarks/bench_infer.py`, docs/TRAINING.md "Inference"): the fox 2.65 x the
-rays/s at -0.02 dB, lego_400 2.2 x at -0.05 dB."""
+colour only samples of weight >= 1 % (and each ray's largest, rescaled), at 1.5 x the inference step. Its speed and
+PSNR against EXACT: docs/TRAINING.md "Inference" (`benchmarks/bench_infer.py`)."""
 
 
 def inference(exact: bool) -> Inference:
@@ -111,7 +118,7 @@ def _render_fast(
             rays_d,
             marcher=marcher,
             sigma_fn=field.density_inference,
-            rgb_fn=_rgb_fn(field),
+            rgb_fn=_rgb_fn(field, inference=True),
             background=background,
             with_median=with_median,
             min_transmittance=_min_transmittance(infer, rays_o),
@@ -140,10 +147,16 @@ def _min_transmittance(infer: Inference, rays_o: Tensor) -> float:
     return eps(rays_o.dtype) if infer.min_transmittance is None else infer.min_transmittance
 
 
-def _rgb_fn(field: TensoRF):
-    """The field's colour as the renderers' rgb_fn (None for a density-only field)."""
+def _rgb_fn(field: TensoRF, inference: bool = False) -> RgbFn | RayColour | None:
+    """The field's colour as the renderers' rgb_fn (None for a density-only field); inference: its no-grad fast path
+    in two parts, the directions' term once per ray (`TensoRF.direction_codes`, `color_from_codes`: the same values
+    up to float rounding)."""
     if not field.has_color:
         return None
+    if inference and field.view_dependent:
+        return RayColour(per_ray=field.direction_codes, colour=field.color_from_codes)
+    if inference:
+        return lambda x, d: field.color_from_codes(x, None)
     return lambda x, d: field.color(x, d if field.view_dependent else None)
 
 

@@ -35,6 +35,7 @@ __all__ = [
     "Contraction",
     "contraction_chord_scale",
     "chord_scale_xyz",
+    "ChordScale",
     "march_contracted",
     "march_contracted_reference",
     "normalized_distance",
@@ -174,6 +175,29 @@ def chord_scale_xyz(c: Contraction, rays_o: Xyz, rays_d: Xyz, rows: Tensor, t0: 
     b = c.contract_xyz(tuple(o[i] + d[i] * t1 for i in range(3)))  # type: ignore[arg-type]
     chord = torch.linalg.norm(torch.stack([b[i] - a[i] for i in range(3)], dim=-1), dim=-1)  # norm's own sum
     return chord / (t1 - t0).clamp(min=torch.finfo(t0.dtype).tiny)
+
+
+class ChordScale:
+    """`chord_scale_xyz` for many intervals of the same rays [R, 3], cheaper: an interval inside the inner box (both
+    ends between the ray's entry and exit) has the per-ray chord scale |d / half| (the contraction is linear there),
+    so only the intervals outside are contracted. The same values up to float rounding."""
+
+    def __init__(self, c: Contraction, rays_o: Tensor, rays_d: Tensor) -> None:
+        self.c = c
+        self.o_xyz, self.d_xyz = tuple(rays_o.T.contiguous()), tuple(rays_d.T.contiguous())  # x, y, z [R] each
+        t_in, t_out, hit = ray_aabb_intersect(rays_o, rays_d, c.inner_aabb.to(rays_o))
+        self.t_in = torch.where(hit, t_in, math.inf)  # [R] no interval is inside a ray that misses the box
+        self.t_out = t_out  # [R]
+        self.inside = torch.linalg.norm(rays_d / c.half.to(rays_d), dim=-1)  # [R]
+
+    def __call__(self, rows: Tensor, t0: Tensor, t1: Tensor) -> Tensor:  # rows [M], t0, t1 [M] -> [M]
+        inside = (t0 >= self.t_in.index_select(0, rows)) & (t1 <= self.t_out.index_select(0, rows))
+        scale = self.inside.index_select(0, rows)
+        out = torch.nonzero(~inside)[:, 0]
+        if out.numel():
+            rows_out, a, b = rows.index_select(0, out), t0.index_select(0, out), t1.index_select(0, out)
+            scale.index_copy_(0, out, chord_scale_xyz(self.c, self.o_xyz, self.d_xyz, rows_out, a, b))
+        return scale
 
 
 @torch.no_grad()

@@ -52,6 +52,7 @@ __all__ = [
     "render_rays",
     "render_rays_hierarchical",
     "ColourRule",
+    "RayColour",
     "Marcher",
     "render_marched",
     "render_depth",
@@ -65,6 +66,24 @@ RgbSigmaFn = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
 SigmaFn = Callable[[Tensor, Tensor], Tensor]
 PositionSigmaFn = Callable[[Tensor], Tensor]
 RgbFn = Callable[[Tensor, Tensor], Tensor]
+
+
+@dataclass(frozen=True)
+class RayColour:
+    """A colour callback in two parts, for fields whose view dependence enters through a per-ray term (TensoRF's
+    MLP: its first layer's direction columns): `per_ray(d [R, 3]) -> codes [R, D]` once per ray, then
+    `colour(x [K, 3], codes [K, D]) -> rgb [K, 3]` per sample, each sample given its ray's code. The same values as
+    an `RgbFn` of (x, d), without encoding every sample's direction."""
+
+    per_ray: Callable[[Tensor], Tensor]
+    colour: Callable[[Tensor, Tensor], Tensor]
+
+
+def _colours(rgb_fn: RgbFn | RayColour, x: Tensor, rays_d: Tensor, rows: Tensor) -> Tensor:
+    """Colours of the samples x [K, 3] on rays `rows` [K] of rays_d [R, 3], in batches (`_in_batches`)."""
+    if isinstance(rgb_fn, RayColour):
+        return _in_batches(rgb_fn.colour, x, rgb_fn.per_ray(rays_d).index_select(0, rows))
+    return _in_batches(rgb_fn, x, rays_d.index_select(0, rows))
 
 
 @dataclass(frozen=True)
@@ -282,7 +301,7 @@ def render_marched(
     *,
     marcher: Marcher,
     sigma_fn: PositionSigmaFn,  # field x [N, 3] -> sigma [N] per field length
-    rgb_fn: RgbFn | None,  # (field x [K, 3], ray d [K, 3]) -> rgb [K, 3]; None: density only
+    rgb_fn: RgbFn | RayColour | None,  # (field x [K, 3], ray d [K, 3]) -> rgb [K, 3]; None: density only
     background: Tensor | None = None,  # [3] or [R, 3]
     colour: ColourRule = ColourRule(),
     jitter: bool | torch.Generator = False,
@@ -428,7 +447,7 @@ def _march_terminating(
             largest = torch.zeros(n, **like).scatter_reduce(0, rows, w, "amax")  # [R]
             keep = (keep & (w >= colour.keep)) | (w >= largest[rows])
         rows, x, w = rows[keep], x[keep], w[keep]
-        rgb = accumulate(w, _in_batches(rgb_fn, x, rays_d[rows]), rows, n) if rows.numel() else acc.new_zeros(n, 3)
+        rgb = accumulate(w, _colours(rgb_fn, x, rays_d, rows), rows, n) if rows.numel() else acc.new_zeros(n, 3)
         if colour.keep is not None:  # the coloured samples stand for all of the ray's weight
             rgb = rgb * safe_div(acc, accumulate(w, None, rows, n))[:, None]
         out["rgb"] = rgb if background is None else rgb + (1 - acc)[:, None] * background.to(rgb)
@@ -470,7 +489,11 @@ def _shade_packed(
     out = {"acc": acc}
     if rgb_fn is not None:
         keep = _colour_samples(weights.detach(), n, colour.threshold, colour.per_ray, colour.min_per_ray)  # [N]
-        rgb_s = rgb_fn(x[keep], rays_d[ray_idx[keep]])  # [K, 3]
+        rows = ray_idx[keep]
+        if isinstance(rgb_fn, RayColour):
+            rgb_s = rgb_fn.colour(x[keep], rgb_fn.per_ray(rays_d)[rows])  # [K, 3]
+        else:
+            rgb_s = rgb_fn(x[keep], rays_d[rows])  # [K, 3]
         rgb = accumulate(weights[keep], rgb_s, ray_idx[keep], n)
         out["rgb"] = rgb if background is None else rgb + (1 - acc)[:, None] * background.to(rgb)
     out["depth"] = safe_div(accumulate(weights, t_mid, ray_idx, n), acc)

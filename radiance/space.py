@@ -30,8 +30,8 @@ from torch import Tensor
 from nerfpipe.radiance.aabb import ray_aabb_segment
 from nerfpipe.radiance.contraction import (
     CONTRACTED_BOX,
+    ChordScale,
     Contraction,
-    chord_scale_xyz,
     contraction_chord_scale,
     march_contracted,
     normalized_distance,
@@ -316,11 +316,7 @@ class Contracted(Space):
     def steps(self, grid, rays_o, rays_d, step):
         c = self.contraction
         t_s, s0, s_end = warped_range(c, rays_o, rays_d, near=self.near, step_size=step)
-        o_xyz, d_xyz = tuple(rays_o.T.contiguous()), tuple(rays_d.T.contiguous())  # x, y, z [R] each
-
-        def scale(rows, t0, t1):  # contraction_chord_scale's values
-            return chord_scale_xyz(c, o_xyz, d_xyz, rows, t0, t1)
-
+        scale = ChordScale(c, rays_o, rays_d)  # contraction_chord_scale's values
         return Steps(s0, s_end, step, lambda u, rows: t_of_s(u, t_s[rows][:, None]), c.contract_xyz, scale)
 
     def box_segment(self, rays_o, rays_d):

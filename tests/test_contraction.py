@@ -8,6 +8,7 @@ import torch
 
 from nerfpipe.radiance.contraction import (
     CONTRACTED_BOX,
+    ChordScale,
     Contraction,
     chord_scale_xyz,
     contraction_chord_scale,
@@ -75,6 +76,33 @@ def test_contract_xyz_and_chord_scale_xyz_equal_their_row_twins(dtype):
     t1[:5] = t0[:5]  # zero-length intervals
     fast = chord_scale_xyz(c, tuple(o.T.contiguous()), tuple(d.T.contiguous()), rows, t0, t1)
     assert torch.equal(fast, contraction_chord_scale(c, o[rows], d[rows], t0, t1))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_chord_scale_of_rays_equals_the_interval_formula(dtype):
+    """`ChordScale` (the per-ray scale for intervals inside the inner box, contracted chords elsewhere) gives
+    `chord_scale_xyz`'s values: rays from inside and outside the box, rays that miss it, intervals inside, straddling
+    the entry or the exit, beyond it, and of zero length."""
+    c = Contraction(BOX)
+    g = torch.Generator().manual_seed(5)
+    o = torch.tensor([0.0, 0.5, -1.0], dtype=dtype) + torch.randn(60, 3, generator=g, dtype=dtype) * 1.5
+    o[:10] = torch.tensor([0.0, 0.5, -1.0], dtype=dtype)  # origins inside the box
+    d = torch.nn.functional.normalize(torch.randn(60, 3, generator=g, dtype=dtype), dim=-1)
+    rows = torch.randint(60, (5000,), generator=g)
+    t0 = torch.rand(5000, generator=g, dtype=dtype) * 4
+    t1 = t0 + torch.rand(5000, generator=g, dtype=dtype) * torch.logspace(-4, 0.5, 5000, dtype=dtype)
+    t1[:5] = t0[:5]
+    scale = ChordScale(c, o, d)
+    want = chord_scale_xyz(c, tuple(o.T.contiguous()), tuple(d.T.contiguous()), rows, t0, t1)
+    got = scale(rows, t0, t1)
+    inside = (t0 >= scale.t_in[rows]) & (t1 <= scale.t_out[rows])
+    assert 200 < int(inside.sum()) < 4800  # both cases taken
+    torch.testing.assert_close(got[~inside], want[~inside], rtol=0, atol=0)  # the same computation
+    # inside, against the chord in float64 (in float32 the chord of a short interval loses digits: b - a cancels)
+    o64, d64 = tuple(o.double().T.contiguous()), tuple(d.double().T.contiguous())
+    exact = chord_scale_xyz(c, o64, d64, rows, t0.double(), t1.double())
+    keep = inside & (t1 > t0)
+    torch.testing.assert_close(got[keep].double(), exact[keep], rtol=1e-6 if dtype == torch.float32 else 1e-9, atol=0)
 
 
 def test_bad_inner_box_is_refused():

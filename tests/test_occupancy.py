@@ -234,6 +234,9 @@ def test_inference_colours_every_sample_of_a_long_faint_ray(infer):
         def color(self, x, d):
             return colour.expand(x.shape[0], 3)
 
+        def color_from_codes(self, x, codes):  # inference's colour (TensoRF's); view-independent: no codes
+            return self.color(x, None)
+
     grid = OccupancyGrid([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0], 8)
     grid.binary.fill_(True)
     space = Box(aabb=((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)), near=0.1, far=10.0)

@@ -12,6 +12,7 @@ from nerfpipe.radiance.render import (
     PER_RAY_KEYS,
     ColourRule,
     Marcher,
+    RayColour,
     StratifiedSampler,
     chunked,
     render_attenuation,
@@ -318,6 +319,27 @@ def test_terminating_march_matches_its_plain_twin():
     torch.testing.assert_close(fast["depth_median"], plain["depth_median"], atol=1e-9, rtol=0)
     with pytest.raises(ValueError, match="min_transmittance"):
         render_marched(o, d, marcher=box_marcher(grid), sigma_fn=sigma, min_transmittance=1.0, **kw)
+
+
+def test_ray_colour_in_two_parts_gives_the_plain_callbacks_colour():
+    """A `RayColour` (a per-ray code, then per-sample colour from it) renders what the plain (x, d) callback
+    renders, in the terminating march and the differentiable one, each sample given its own ray's code."""
+    o, d = blob_rays(40, seed=2)
+    grid = blob_grid()
+    bg = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
+    per_ray_calls = []
+
+    def per_ray(rays_d):
+        per_ray_calls.append(rays_d.shape[0])
+        return torch.cat([rays_d, rays_d.sum(-1, keepdim=True)], dim=-1)  # [R, 4]: any code that carries d
+
+    two_parts = RayColour(per_ray=per_ray, colour=lambda x, code: blob_rgb(x, code[:, :3]))
+    kw = dict(marcher=box_marcher(grid), sigma_fn=lambda x: 20 * blob_sigma(x), background=bg)
+    for extra in (dict(min_transmittance=1e-3), {}):
+        want = render_marched(o, d, rgb_fn=blob_rgb, **kw, **extra)
+        got = render_marched(o, d, rgb_fn=two_parts, **kw, **extra)
+        torch.testing.assert_close(got["rgb"], want["rgb"], atol=1e-12, rtol=0)
+        assert per_ray_calls.pop() == o.shape[0]
 
 
 def test_coarse_colour_rule_keeps_the_full_weight():

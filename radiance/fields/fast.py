@@ -28,6 +28,7 @@ from torch import Tensor, nn
 
 from nerfpipe.radiance.fields.base import Field, check_points
 from nerfpipe.radiance.fields.encodings import positional_encoding
+from nerfpipe.radiance.fields.vm_tables import VmTables
 
 __all__ = ["TensoRF", "TENSORF_RANK", "DENSITY_ACTIVATIONS", "DEFAULT_ACTIVATION", "DEFAULT_HIDDEN", "split_rank"]
 
@@ -227,6 +228,7 @@ class TensoRF(Field):
         self.density_activation = density_activation
         self._volume: tuple | None = None  # density_volume's cache: (factors' key, volume)
         self._edits = 0  # bumped by `touch` (fused Adam leaves the version counters as they are)
+        self._tables: tuple | None = None  # color_inference's cache: (factors' key, VmTables)
         self.density_planes, self.density_lines = self._factors(self.density_rank)
         if has_color:
             self.app_planes, self.app_lines = self._factors(self.app_rank)
@@ -276,13 +278,7 @@ class TensoRF(Field):
         products at the nodes, so trilinear sampling of this volume gives `density`'s factor sum exactly (up to
         float rounding) from 8 values a point instead of 3 x (4 + 2) x density_rank. Kept until the factors
         change (their version counters: optimizer steps, loads and upsampling all bump or replace them)."""
-        factors = [*self.density_planes, *self.density_lines]
-        key = (
-            tuple((t.data_ptr(), t._version, t.shape) for t in factors),
-            self._edits,
-            factors[0].dtype,
-            factors[0].device,
-        )
+        key = self._cache_key([*self.density_planes, *self.density_lines])
         if self._volume is None or self._volume[0] != key:
             with torch.no_grad():
                 p = [t.detach()[0] for t in self.density_planes]  # [C, H, W] each
@@ -294,8 +290,8 @@ class TensoRF(Field):
         return self._volume[1]
 
     def touch(self) -> None:
-        """The factors changed in place behind their version counters (a fused Adam step): rebuild the volume (without
-        it an evaluation reads a stale volume: docs/MEASUREMENTS.md, "Fields")."""
+        """The factors changed in place behind their version counters (a fused Adam step): rebuild the density volume
+        and the appearance tables (without it an evaluation reads stale ones: docs/MEASUREMENTS.md, "Fields")."""
         self._edits += 1
 
     @torch.no_grad()
@@ -313,7 +309,67 @@ class TensoRF(Field):
             raise ValueError("this field is density-only (has_color=False)")
         xn = self.normalize(x).clamp(-1, 1)
         f = torch.cat(_plane_features(self.app_planes, self.app_lines, xn))  # [sum(app_rank), N]
-        feat = self.basis(f.T)  # [N, app_dim]
+        return self._shade(self.basis(f.T), d)  # basis: [N, app_dim]
+
+    @torch.no_grad()
+    def color_inference(self, x: Tensor, d: Tensor | None) -> Tensor:
+        """`color` through `direction_codes` and `color_from_codes` (no gradient): the same values up to float
+        rounding. The renderers take the two parts (`radiance.render.RayColour`) at inference."""
+        if not self.has_color:
+            raise ValueError("this field is density-only (has_color=False)")
+        if self.view_dependent and d is None:
+            raise ValueError("this field is view dependent: pass directions d [N, 3]")
+        codes = self.direction_codes(d) if self.view_dependent else None
+        return self.color_from_codes(x, codes)
+
+    @torch.no_grad()
+    def direction_codes(self, d: Tensor) -> Tensor:
+        """View directions d [R, 3] -> their term of the colour MLP's first layer (with its bias), [R, hidden]:
+        what `color_from_codes` adds to each sample of the ray (`radiance.render.RayColour`)."""
+        first = self.mlp[0]
+        n_dir = 3 + 2 * self.view_freqs * 3
+        enc = torch.cat([d, positional_encoding(d, self.view_freqs, include_input=False)], dim=-1).to(first.weight)
+        return F.linear(enc, first.weight[:, -n_dir:], first.bias)  # [R, hidden]
+
+    @torch.no_grad()
+    def color_from_codes(self, x: Tensor, codes: Tensor | None) -> Tensor:
+        """`color` at x [K, 3] given each sample's `direction_codes` [K, hidden] (None: a view-independent field),
+        the appearance features from channels-last tables (`VmTables`, kept until the factors change, as
+        `density_volume` is) where they fit; no gradient."""
+        check_points(x)
+        if not self.has_color:
+            raise ValueError("this field is density-only (has_color=False)")
+        dtype = self.app_planes[0].dtype
+        xn = self.normalize(x).clamp(-1, 1).to(dtype)
+        if VmTables.fits(self.app_planes, self.app_lines):
+            f = self._app_tables().features(xn)  # [K, sum(app_rank)]
+        else:  # a component count per plane: grid_sample (docs/TRAINING.md, "Inference")
+            f = torch.cat(_plane_features(self.app_planes, self.app_lines, xn)).T
+        feat = self.basis(f)  # [K, app_dim]
+        parts = [feat, positional_encoding(feat, self.feat_freqs, include_input=False)] if self.feat_freqs else [feat]
+        first = self.mlp[0]
+        if codes is None:
+            h = first(torch.cat(parts, dim=-1))
+        else:
+            inputs = parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
+            h = F.linear(inputs, first.weight[:, : inputs.shape[1]]) + codes.to(dtype)
+        return torch.sigmoid(self.mlp[1:](h)).to(x.dtype)
+
+    def _cache_key(self, factors: list[Tensor]) -> tuple:
+        """What a cache built from `factors` depends on: their storage, version counters and shapes, `touch`'s
+        count, dtype and device."""
+        tensors = tuple((t.data_ptr(), t._version, t.shape) for t in factors)
+        return (tensors, self._edits, factors[0].dtype, factors[0].device)
+
+    def _app_tables(self) -> VmTables:
+        key = self._cache_key([*self.app_planes, *self.app_lines])
+        if self._tables is None or self._tables[0] != key:
+            with torch.no_grad():
+                self._tables = (key, VmTables.build(self.app_planes, self.app_lines))
+        return self._tables[1]
+
+    def _shade(self, feat: Tensor, d: Tensor | None) -> Tensor:
+        """Appearance features after the basis, feat [N, app_dim], and directions d [N, 3] -> rgb [N, 3]."""
         parts = [feat]
         if self.feat_freqs:
             parts.append(positional_encoding(feat, self.feat_freqs, include_input=False))

@@ -106,7 +106,7 @@ class Config:
     """torch device: auto, cpu, cuda, cuda:N."""
     exact: bool = False
     """Score renders whose rays stop at float32's epsilon of light with every sample coloured
-    (`model.field_model.EXACT`); default: `FAST` (2.2-2.65 x the speed, 0.02-0.05 dB apart: docs/TRAINING.md
+    (`model.field_model.EXACT`); default: `FAST` (faster, a few hundredths of a dB apart: docs/TRAINING.md
     "Inference"). eval.json's `inference` says which."""
     test_pose_steps: int | None = None
     """Runs trained with --refine-poses: optimise each test camera's pose against its photo for this many steps

@@ -135,7 +135,7 @@ class Config:
     """torch device: auto (cuda if available, else cpu), cpu, cuda, cuda:1, ..."""
     exact: bool = False
     """Render with rays stopped at float32's epsilon of light and every sample coloured (`model.field_model.EXACT`);
-    default: `FAST` (2.2-2.65 x the speed at 0.02-0.05 dB, docs/TRAINING.md "Inference")."""
+    default: `FAST` (faster, a few hundredths of a dB apart: docs/TRAINING.md "Inference")."""
 
 
 @dataclass(frozen=True, kw_only=True)
