@@ -108,3 +108,9 @@ def test_inference_colour_is_refused_without_colour_or_directions():
     field = TensoRF(aabb=[[-1, -1, -1], [1, 1, 1]], resolution=4, app_dim=3, hidden=4)
     with pytest.raises(ValueError, match="pass directions"):
         field.color_inference(torch.zeros(2, 3), None)
+    with pytest.raises(ValueError, match="expected direction codes for a view-dependent field"):
+        field.color_from_codes(torch.zeros(2, 3), None)
+    flat = TensoRF(aabb=[[-1, -1, -1], [1, 1, 1]], resolution=4, app_dim=3, hidden=4, view_dependent=False)
+    assert flat.color_from_codes(torch.zeros(2, 3), None).shape == (2, 3)
+    with pytest.raises(ValueError, match="None otherwise"):
+        flat.color_from_codes(torch.zeros(2, 3), torch.zeros(2, 4))

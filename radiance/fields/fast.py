@@ -228,7 +228,7 @@ class TensoRF(Field):
         self.density_activation = density_activation
         self._volume: tuple | None = None  # density_volume's cache: (factors' key, volume)
         self._edits = 0  # bumped by `touch` (fused Adam leaves the version counters as they are)
-        self._tables: tuple | None = None  # color_inference's cache: (factors' key, VmTables)
+        self._tables: tuple | None = None  # color_from_codes' cache: (factors' key, VmTables)
         self.density_planes, self.density_lines = self._factors(self.density_rank)
         if has_color:
             self.app_planes, self.app_lines = self._factors(self.app_rank)
@@ -339,6 +339,11 @@ class TensoRF(Field):
         check_points(x)
         if not self.has_color:
             raise ValueError("this field is density-only (has_color=False)")
+        if (codes is None) == self.view_dependent:
+            raise ValueError(
+                f"expected direction codes for a view-dependent field and None otherwise (view_dependent "
+                f"{self.view_dependent}), got {'None' if codes is None else tuple(codes.shape)}"
+            )
         dtype = self.app_planes[0].dtype
         xn = self.normalize(x).clamp(-1, 1).to(dtype)
         if VmTables.fits(self.app_planes, self.app_lines):
