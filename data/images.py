@@ -32,6 +32,7 @@ __all__ = [
     "read_image_file",
     "declared_size",
     "as_float_rgb",
+    "srgb_to_linear",
     "exif_orientation",
     "upright",
 ]
@@ -159,6 +160,12 @@ def read_image(path: str | os.PathLike, what: str = "image") -> np.ndarray:
     """Pixels of an image file, [H, W] or [H, W, 3|4] BGR(A) uint8/uint16 (cv2.IMREAD_UNCHANGED), after the
     checks of the module docstring."""
     return read_image_file(path, what).pixels
+
+
+def srgb_to_linear(values: np.ndarray) -> np.ndarray:
+    """sRGB-encoded values in [0, 1] -> linear light (IEC 61966-2-1), as float32: what glTF's vertex colours hold."""
+    v = np.clip(np.asarray(values, np.float64), 0.0, 1.0)
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
 def as_float_rgb(pixels: np.ndarray) -> np.ndarray:

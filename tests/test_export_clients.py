@@ -186,6 +186,43 @@ def test_the_glb_opens_upright_in_a_default_three_js_scene(ball_files, tmp_path)
     assert iou >= 0.97 and err <= 0.03, (iou, err, tmp_path)
 
 
+@pytest.mark.skipif(not HAVE_JS or CHROMIUM is None, reason=NO_JS if not HAVE_JS else NO_CHROMIUM)
+def test_vertex_coloured_glbs_show_their_colours_in_a_default_three_js_scene(ball_files, tmp_path):
+    """A scene without lights (three.js' default): a ball of one colour comes out in that colour (COLOR_0 in linear
+    light under an unlit material: glTF's default material drew it black, sRGB bytes read as linear washed it out),
+    and the stage's vertex-coloured ball upright, as the textured GLB."""
+    from nerfpipe.data.images import srgb_to_linear
+    from nerfpipe.stages.mesh.texture_files import glb_vertex_coloured
+
+    files = tmp_path / "files"
+    files.mkdir()
+    ball = trimesh.creation.icosphere(subdivisions=3)
+    colour = np.array([200, 120, 40], np.uint8)
+    (files / "uniform.glb").write_bytes(
+        glb_vertex_coloured(ball.vertices, ball.faces, np.tile(colour, (len(ball.vertices), 1)))
+    )
+    (files / "coloured.glb").write_bytes((ball_files / "coloured.glb").read_bytes())
+    server, base = _serve(files)
+    try:
+        shots = {
+            name: _page_result(f"{base}/page/three_glb.html?file={name}&fov={FOV}&w={W}&h={H}", tmp_path / name)[
+                "image"
+            ]
+            for name in ("uniform.glb", "coloured.glb")
+        }
+    finally:
+        server.shutdown()
+    uniform = shots["uniform.glb"]
+    drawn = uniform[..., :3][uniform[..., 3] == 255].astype(np.float64)  # [P, 3] the ball's inner pixels
+    spread = drawn.std(axis=0).round(2)
+    print(f"one-colour GLB in three.js: drawn {drawn.mean(axis=0).round(1)} (spread {spread}), written {colour}")
+    assert len(drawn) > 1000 and np.abs(drawn - colour).max() <= 2.0, (drawn.mean(axis=0), tmp_path)
+    assert _top_minus_bottom_blue(shots["coloured.glb"]) >= BLUE_GAP
+    (m,) = trimesh.load(files / "uniform.glb", process=False).geometry.values()  # trimesh reads them back, linear
+    want = srgb_to_linear(colour / 255.0)
+    np.testing.assert_allclose(np.asarray(m.visual.vertex_attributes["color"]), np.tile(want, (len(m.vertices), 1)))
+
+
 def _ball_splats(n: int = 1500, radius: float = 0.15) -> sp.Splats:
     """Gaussians on a ball at the origin of `_TiltedBall`'s scene frame, coloured by the normal as it is (the radius
     smaller than the mesh tests' ball: 0.6 in the user's units, in view of the splat viewer's camera at 5)."""

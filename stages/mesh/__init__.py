@@ -80,7 +80,7 @@ from nerfpipe.stages.mesh.field_access import (
 from nerfpipe.stages.mesh.grid import Grid, make_grid
 from nerfpipe.stages.mesh.surface import Level, Region, choose_level, density_surface
 from nerfpipe.stages.mesh.texture import bake_texture
-from nerfpipe.stages.mesh.texture_files import write_glb_textured, write_obj_textured
+from nerfpipe.stages.mesh.texture_files import glb_vertex_coloured, write_glb_textured, write_obj_textured
 from nerfpipe.stages.mesh.texture_views import training_photos, training_views
 from nerfpipe.stages.mesh.threshold import auto_threshold, march_crossings
 
@@ -119,11 +119,14 @@ def _grid_for(config: Config, trained: Any, out_from_scene: np.ndarray) -> tuple
 
 
 def _export(path: Path, tmp: Path, verts: np.ndarray, faces: np.ndarray, colors: np.ndarray | None) -> None:
-    """Write the mesh to `tmp` in the format `path`'s extension names."""
+    """Write the mesh to `tmp` in the format `path`'s extension names (a coloured GLB: `glb_vertex_coloured`)."""
     import trimesh
 
-    mesh = trimesh.Trimesh(vertices=verts, faces=faces, vertex_colors=colors, process=False)
-    mesh.export(tmp, file_type=path.suffix.lower().lstrip("."))
+    kind = path.suffix.lower().lstrip(".")
+    if kind == "glb" and colors is not None:
+        tmp.write_bytes(glb_vertex_coloured(verts, faces, colors))
+        return
+    trimesh.Trimesh(vertices=verts, faces=faces, vertex_colors=colors, process=False).export(tmp, file_type=kind)
 
 
 def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), progress: Any | None = None) -> Outputs:

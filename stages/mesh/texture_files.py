@@ -1,5 +1,6 @@
-"""Textured meshes to files: OBJ + MTL + PNG (`write_obj_textured`) and one GLB with the PNG embedded
-(`write_glb_textured`), from a `stages.mesh.texture.Textured` (its UV and image conventions)."""
+"""Meshes with their colours to files: textured, OBJ + MTL + PNG (`write_obj_textured`) and one GLB with the PNG
+embedded (`write_glb_textured`), from a `stages.mesh.texture.Textured` (its UV and image conventions); vertex-coloured,
+a GLB with the colours in linear light (`glb_vertex_coloured`). Every GLB material is unlit."""
 
 from __future__ import annotations
 
@@ -12,9 +13,10 @@ from pathlib import Path
 import numpy as np
 
 from nerfpipe.data.atomic import atomic_path
+from nerfpipe.data.images import srgb_to_linear
 from nerfpipe.stages.mesh.texture import Textured
 
-__all__ = ["write_obj_textured", "write_glb_textured", "texture_paths", "MATERIAL"]
+__all__ = ["write_obj_textured", "write_glb_textured", "glb_vertex_coloured", "texture_paths", "MATERIAL"]
 
 MATERIAL = "material0"
 
@@ -86,18 +88,66 @@ def write_glb_textured(path: str | Path, textured: Textured, *, into: Path | Non
 
 def _mark_unlit(glb: bytes) -> bytes:
     """Add KHR_materials_unlit to every material of a GLB (its JSON chunk rewritten, the binary chunk kept)."""
-    magic, version, _ = struct.unpack_from("<4sII", glb, 0)
-    json_len, json_type = struct.unpack_from("<I4s", glb, 12)
-    if magic != b"glTF" or json_type != b"JSON":
-        raise ValueError("trimesh wrote something other than a GLB")
-    doc = json.loads(glb[20 : 20 + json_len])
+    doc, binary = _glb_chunks(glb)
     for mat in doc.get("materials", []):
         mat.setdefault("extensions", {})["KHR_materials_unlit"] = {}
     used = doc.setdefault("extensionsUsed", [])
     if "KHR_materials_unlit" not in used:
         used.append("KHR_materials_unlit")
-    text = json.dumps(doc, separators=(",", ":")).encode()
-    text += b" " * (-len(text) % 4)  # chunks are 4-byte aligned, JSON padded with spaces
+    return _glb_bytes(doc, binary)
+
+
+def glb_vertex_coloured(vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray) -> bytes:
+    """A GLB of a mesh with vertex colours as glTF means them: COLOR_0 in linear light (float32 RGB; the colours
+    [V, 3+] are sRGB bytes, as trimesh and PLY hold them) and an unlit white material, so that a client draws the
+    colours as the photos show them, with or without lights (with trimesh's bytes as COLOR_0 and no material, a
+    default three.js scene drew them black; read as linear they would come out washed out). trimesh reads the
+    colours back as `visual.vertex_attributes["color"]` (a mesh with a material)."""
+    import trimesh
+
+    if colours.ndim != 2 or colours.shape[0] != len(vertices) or colours.shape[1] not in (3, 4):
+        raise ValueError(f"expected colours [V, 3 or 4] for {len(vertices)} vertices, got {colours.shape}")
+    doc, binary = _glb_chunks(trimesh.Trimesh(vertices=vertices, faces=faces, process=False).export(file_type="glb"))
+    linear = srgb_to_linear(np.asarray(colours[:, :3], np.float64) / 255.0)  # [V, 3] float32
+    binary += b"\0" * (-len(binary) % 4)
+    doc["bufferViews"].append({"buffer": 0, "byteOffset": len(binary), "byteLength": linear.nbytes, "target": 34962})
+    doc["accessors"].append(
+        {"bufferView": len(doc["bufferViews"]) - 1, "componentType": 5126, "count": len(linear), "type": "VEC3"}
+    )
+    binary += linear.tobytes()
+    doc["buffers"][0]["byteLength"] = len(binary)
+    pbr = {"baseColorFactor": [1.0, 1.0, 1.0, 1.0], "metallicFactor": 0.0, "roughnessFactor": 1.0}
+    doc["materials"] = [{"name": MATERIAL, "pbrMetallicRoughness": pbr, "doubleSided": True}]
+    for mesh in doc["meshes"]:
+        for prim in mesh["primitives"]:
+            prim["attributes"]["COLOR_0"] = len(doc["accessors"]) - 1
+            prim["material"] = 0
+    return _mark_unlit(_glb_bytes(doc, binary))
+
+
+def _glb_chunks(glb: bytes) -> tuple[dict, bytes]:
+    """A GLB -> (its JSON document, its binary chunk's bytes)."""
+    magic, version, _ = struct.unpack_from("<4sII", glb, 0)
+    json_len, json_type = struct.unpack_from("<I4s", glb, 12)
+    if magic != b"glTF" or version != 2 or json_type != b"JSON":
+        raise ValueError("trimesh wrote something other than a GLB 2.0")
+    doc = json.loads(glb[20 : 20 + json_len])
     rest = glb[20 + json_len :]
-    total = 12 + 8 + len(text) + len(rest)
-    return struct.pack("<4sII", magic, version, total) + struct.pack("<I4s", len(text), b"JSON") + text + rest
+    if not rest:
+        return doc, b""
+    bin_len, bin_type = struct.unpack_from("<I4s", rest, 0)
+    if bin_type != b"BIN\0":
+        raise ValueError("expected a GLB's second chunk to be BIN")
+    return doc, rest[8 : 8 + bin_len]
+
+
+def _glb_bytes(doc: dict, binary: bytes) -> bytes:
+    """A JSON document and a binary chunk -> GLB 2.0 bytes (chunks 4-byte aligned: JSON padded with spaces, BIN
+    with zeros)."""
+    text = json.dumps(doc, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)
+    chunks = struct.pack("<I4s", len(text), b"JSON") + text
+    if binary:
+        binary += b"\0" * (-len(binary) % 4)
+        chunks += struct.pack("<I4s", len(binary), b"BIN\0") + binary
+    return struct.pack("<4sII", b"glTF", 2, 12 + len(chunks)) + chunks
