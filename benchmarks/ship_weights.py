@@ -51,17 +51,21 @@ def main(argv: list[str] | None = None) -> int:
         cfg = doc.get("config", {})
         keep = ("subject", "layout", "kind", "count", "seed", "size", "views")
         recipe.append({"folder": m.parent.name, **{k: cfg.get(k) for k in keep}})
+    code = ("--", *CODE[kind], ":!*/weights/*", ":!*.md")  # what pretraining runs, without the weights and docs
+    provenance = {
+        "command": args.command,
+        "commit": _git("rev-parse", "HEAD"),
+        "code_commit": _git("log", "-1", "--format=%H", *code),
+        "pretrain_started": manifest.get("started"),
+        "tree_changed": bool(_git("status", "--porcelain", "--untracked-files=no", *code)),  # that code uncommitted
+    }
     args.weights_dir.mkdir(parents=True, exist_ok=True)
     target = args.weights_dir / "pretrained.pt"
     shutil.copyfile(args.pretrain_out / "weights.pt", target)
     write_json(
         args.weights_dir / "pretrained.json",
         {
-            "command": args.command,
-            "commit": _git("rev-parse", "HEAD"),
-            "code_commit": _git("log", "-1", "--format=%H", "--", *CODE[kind], ":!*/weights/*", ":!*.md"),
-            "pretrain_started": manifest.get("started"),
-            "tree_changed": bool(_git("status", "--porcelain", "--untracked-files=no")),
+            **provenance,
             "recipe": recipe,
             "pretrain_config": config,
             "figures": manifest.get("used", {}),
