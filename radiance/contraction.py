@@ -188,11 +188,11 @@ class ChordScale:
         t_in, t_out, hit = ray_aabb_intersect(rays_o, rays_d, c.inner_aabb.to(rays_o))
         self.t_in = torch.where(hit, t_in, math.inf)  # [R] no interval is inside a ray that misses the box
         self.t_out = t_out  # [R]
-        self.inside = torch.linalg.norm(rays_d / c.half.to(rays_d), dim=-1)  # [R]
+        self.inside_scale = torch.linalg.norm(rays_d / c.half.to(rays_d), dim=-1)  # [R] |d / half|
 
     def __call__(self, rows: Tensor, t0: Tensor, t1: Tensor) -> Tensor:  # rows [M], t0, t1 [M] -> [M]
         inside = (t0 >= self.t_in.index_select(0, rows)) & (t1 <= self.t_out.index_select(0, rows))
-        scale = self.inside.index_select(0, rows)
+        scale = self.inside_scale.index_select(0, rows)
         out = torch.nonzero(~inside)[:, 0]
         if out.numel():
             rows_out, a, b = rows.index_select(0, out), t0.index_select(0, out), t1.index_select(0, out)

@@ -79,11 +79,12 @@ class RayColour:
     colour: Callable[[Tensor, Tensor], Tensor]
 
 
-def _colours(rgb_fn: RgbFn | RayColour, x: Tensor, rays_d: Tensor, rows: Tensor) -> Tensor:
-    """Colours of the samples x [K, 3] on rays `rows` [K] of rays_d [R, 3], in batches (`_in_batches`)."""
+def _per_sample(rgb_fn: RgbFn | RayColour, rays_d: Tensor, rows: Tensor) -> tuple[RgbFn, Tensor]:
+    """The colour callback of samples on rays `rows` [K] of rays_d [R, 3] and its second argument for them: the
+    directions [K, 3], or for a `RayColour` its per-sample callback and each sample's ray code [K, D]."""
     if isinstance(rgb_fn, RayColour):
-        return _in_batches(rgb_fn.colour, x, rgb_fn.per_ray(rays_d).index_select(0, rows))
-    return _in_batches(rgb_fn, x, rays_d.index_select(0, rows))
+        return rgb_fn.colour, rgb_fn.per_ray(rays_d).index_select(0, rows)
+    return rgb_fn, rays_d.index_select(0, rows)
 
 
 @dataclass(frozen=True)
@@ -447,7 +448,11 @@ def _march_terminating(
             largest = torch.zeros(n, **like).scatter_reduce(0, rows, w, "amax")  # [R]
             keep = (keep & (w >= colour.keep)) | (w >= largest[rows])
         rows, x, w = rows[keep], x[keep], w[keep]
-        rgb = accumulate(w, _colours(rgb_fn, x, rays_d, rows), rows, n) if rows.numel() else acc.new_zeros(n, 3)
+        if rows.numel():
+            fn, per_sample = _per_sample(rgb_fn, rays_d, rows)
+            rgb = accumulate(w, _in_batches(fn, x, per_sample), rows, n)
+        else:
+            rgb = acc.new_zeros(n, 3)
         if colour.keep is not None:  # the coloured samples stand for all of the ray's weight
             rgb = rgb * safe_div(acc, accumulate(w, None, rows, n))[:, None]
         out["rgb"] = rgb if background is None else rgb + (1 - acc)[:, None] * background.to(rgb)
@@ -468,10 +473,10 @@ COLOUR_BATCH_CUDA = 1 << 20
 
 
 def _in_batches(fn: RgbFn, x: Tensor, d: Tensor) -> Tensor:
-    """fn(x [K, 3], d [K, 3]) -> [K, 3], called on COLOUR_BATCH samples at a time. The field colours every sample
-    on its own, so the values are one call's (bit for bit with the fields' colour at 8192, a multiple of every SIMD
-    width, which keeps each sample in the same vectorised loop; another size may move a sample to torch's scalar
-    loop: float32 rounding)."""
+    """fn(x [K, 3], d [K, 3] or codes [K, D]) -> [K, 3], called on COLOUR_BATCH samples at a time. The field
+    colours every sample on its own, so the values are one call's (bit for bit with the fields' colour at 8192, a
+    multiple of every SIMD width, which keeps each sample in the same vectorised loop; another size may move a sample
+    to torch's scalar loop: float32 rounding)."""
     size = COLOUR_BATCH_CUDA if x.device.type == "cuda" else COLOUR_BATCH
     if x.shape[0] <= size:
         return fn(x, d)
@@ -489,11 +494,8 @@ def _shade_packed(
     out = {"acc": acc}
     if rgb_fn is not None:
         keep = _colour_samples(weights.detach(), n, colour.threshold, colour.per_ray, colour.min_per_ray)  # [N]
-        rows = ray_idx[keep]
-        if isinstance(rgb_fn, RayColour):
-            rgb_s = rgb_fn.colour(x[keep], rgb_fn.per_ray(rays_d)[rows])  # [K, 3]
-        else:
-            rgb_s = rgb_fn(x[keep], rays_d[rows])  # [K, 3]
+        fn, per_sample = _per_sample(rgb_fn, rays_d, ray_idx[keep])
+        rgb_s = fn(x[keep], per_sample)  # [K, 3]
         rgb = accumulate(weights[keep], rgb_s, ray_idx[keep], n)
         out["rgb"] = rgb if background is None else rgb + (1 - acc)[:, None] * background.to(rgb)
     out["depth"] = safe_div(accumulate(weights, t_mid, ray_idx, n), acc)

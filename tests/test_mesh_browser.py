@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from nerfpipe.data.images import srgb_to_linear
 from nerfpipe.radiance.paths import look_at
 from nerfpipe.stages.mesh.texture import bake_texture, sample_texture
 from nerfpipe.stages.mesh.texture_files import write_glb_textured
@@ -93,7 +94,7 @@ def _three_output(rgb: np.ndarray) -> np.ndarray:
     """three.js' output of an unlit sRGB colour: to linear, ACESFilmicToneMapping (exposure 1; its shader's
     matrices, written as rows here), back to sRGB."""
     rgb = np.clip(rgb, 0.0, 1.0)
-    lin = np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4)
+    lin = srgb_to_linear(rgb).astype(np.float64)
     c = (lin / 0.6) @ _ACES_IN.T
     c = (c * (c + 0.0245786) - 0.000090537) / (c * (0.983729 * c + 0.4329510) + 0.238081)
     c = np.clip(c @ _ACES_OUT.T, 0.0, 1.0)

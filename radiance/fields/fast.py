@@ -309,7 +309,12 @@ class TensoRF(Field):
             raise ValueError("this field is density-only (has_color=False)")
         xn = self.normalize(x).clamp(-1, 1)
         f = torch.cat(_plane_features(self.app_planes, self.app_lines, xn))  # [sum(app_rank), N]
-        return self._shade(self.basis(f.T), d)  # basis: [N, app_dim]
+        inputs = self._feature_inputs(self.basis(f.T))  # [N, app_dim (1 + 2 feat_freqs)]
+        if self.view_dependent:
+            if d is None:
+                raise ValueError("this field is view dependent: pass directions d [N, 3]")
+            inputs = torch.cat([inputs, d, positional_encoding(d, self.view_freqs, include_input=False)], dim=-1)
+        return torch.sigmoid(self.mlp(inputs))
 
     @torch.no_grad()
     def color_inference(self, x: Tensor, d: Tensor | None) -> Tensor:
@@ -350,15 +355,20 @@ class TensoRF(Field):
             f = self._app_tables().features(xn)  # [K, sum(app_rank)]
         else:  # a component count per plane: grid_sample (docs/TRAINING.md, "Inference")
             f = torch.cat(_plane_features(self.app_planes, self.app_lines, xn)).T
-        feat = self.basis(f)  # [K, app_dim]
-        parts = [feat, positional_encoding(feat, self.feat_freqs, include_input=False)] if self.feat_freqs else [feat]
+        inputs = self._feature_inputs(self.basis(f))  # [K, app_dim (1 + 2 feat_freqs)]
         first = self.mlp[0]
         if codes is None:
-            h = first(torch.cat(parts, dim=-1))
-        else:
-            inputs = parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
+            h = first(inputs)
+        else:  # the first layer's feature columns; the direction columns and the bias are in the codes
             h = F.linear(inputs, first.weight[:, : inputs.shape[1]]) + codes.to(dtype)
         return torch.sigmoid(self.mlp[1:](h)).to(x.dtype)
+
+    def _feature_inputs(self, feat: Tensor) -> Tensor:
+        """Appearance features after the basis, feat [N, app_dim] -> the colour MLP's inputs before the direction's:
+        feat and, with feat_freqs, its encoding."""
+        if not self.feat_freqs:
+            return feat
+        return torch.cat([feat, positional_encoding(feat, self.feat_freqs, include_input=False)], dim=-1)
 
     def _cache_key(self, factors: list[Tensor]) -> tuple:
         """What a cache built from `factors` depends on: their storage, version counters and shapes, `touch`'s
@@ -372,17 +382,6 @@ class TensoRF(Field):
             with torch.no_grad():
                 self._tables = (key, VmTables.build(self.app_planes, self.app_lines))
         return self._tables[1]
-
-    def _shade(self, feat: Tensor, d: Tensor | None) -> Tensor:
-        """Appearance features after the basis, feat [N, app_dim], and directions d [N, 3] -> rgb [N, 3]."""
-        parts = [feat]
-        if self.feat_freqs:
-            parts.append(positional_encoding(feat, self.feat_freqs, include_input=False))
-        if self.view_dependent:
-            if d is None:
-                raise ValueError("this field is view dependent: pass directions d [N, 3]")
-            parts += [d, positional_encoding(d, self.view_freqs, include_input=False)]
-        return torch.sigmoid(self.mlp(torch.cat(parts, dim=-1)))
 
     def grid_parameters(self) -> list[nn.Parameter]:
         groups = ["density_planes", "density_lines"] + (["app_planes", "app_lines"] if self.has_color else [])

@@ -89,12 +89,17 @@ def write_glb_textured(path: str | Path, textured: Textured, *, into: Path | Non
 def _mark_unlit(glb: bytes) -> bytes:
     """Add KHR_materials_unlit to every material of a GLB (its JSON chunk rewritten, the binary chunk kept)."""
     doc, binary = _glb_chunks(glb)
+    return _glb_bytes(_unlit(doc), binary)
+
+
+def _unlit(doc: dict) -> dict:
+    """A glTF document with KHR_materials_unlit on every material (in place; returned)."""
     for mat in doc.get("materials", []):
         mat.setdefault("extensions", {})["KHR_materials_unlit"] = {}
     used = doc.setdefault("extensionsUsed", [])
     if "KHR_materials_unlit" not in used:
         used.append("KHR_materials_unlit")
-    return _glb_bytes(doc, binary)
+    return doc
 
 
 def glb_vertex_coloured(vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray) -> bytes:
@@ -122,7 +127,7 @@ def glb_vertex_coloured(vertices: np.ndarray, faces: np.ndarray, colours: np.nda
         for prim in mesh["primitives"]:
             prim["attributes"]["COLOR_0"] = len(doc["accessors"]) - 1
             prim["material"] = 0
-    return _mark_unlit(_glb_bytes(doc, binary))
+    return _glb_bytes(_unlit(doc), binary)
 
 
 def _glb_chunks(glb: bytes) -> tuple[dict, bytes]:
