@@ -54,9 +54,11 @@ from nerfpipe.model.camera_opt import pose_report, write_refined_transforms
 from nerfpipe.model.device import cpu_threads
 from nerfpipe.model.distributed import DataParallel, joined, rank_device, world_from_env
 from nerfpipe.model.views import evenly_spaced
+from nerfpipe.radiance.occupancy import OccupancyGrid
 from nerfpipe.stages.train.checks import train_checks
 from nerfpipe.stages.train.config import Config, RefineOptions, validate
 from nerfpipe.stages.train.defaults import final_eval_stride
+from nerfpipe.stages.train.fog import seen_occupied_share
 from nerfpipe.stages.train.loop import Loop, TrainingDiverged, evaluate_psnr
 from nerfpipe.stages.train.refine import PoseRefinement
 from nerfpipe.stages.train.report import per_view_report, plot_psnr, used_and_left_out
@@ -159,7 +161,7 @@ def _run(config: Config, progress: Progress, par: DataParallel | None = None) ->
     )
     used["defaults"] = record
     outputs = [run_dir / n for n in ("config.json", "checkpoint.pt", "metrics.csv", "psnr_vs_time.png")]
-    used["per_view"] = per_view_report(
+    used["per_view"], depths = per_view_report(
         run_dir, loop.model, scene, train_idx, config.downscale, seconds, loop.eval_rays_per_second, loop.device
     )
     outputs += [run_dir / f for f in used["per_view"]["files"]]
@@ -167,6 +169,11 @@ def _run(config: Config, progress: Progress, par: DataParallel | None = None) ->
     described = loop.model.describe()
     skip = described.get("occupancy_skip_fraction")
     space = loop.model.space
+    grid = getattr(loop.model, "grid", None)
+    boxed = isinstance(grid, OccupancyGrid) and space is not None and space.object_box
+    seen = seen_occupied_share(grid, loop.model.field.density, depths) if boxed else None
+    if seen is not None:
+        used["occupied_seen_share"] = round(seen, 4)
     checks = train_checks(
         rows=loop.metrics.rows,
         test_psnr=test_psnr,
@@ -175,6 +182,7 @@ def _run(config: Config, progress: Progress, par: DataParallel | None = None) ->
         object_box=space.object_box if space is not None else False,
         pose=used.get("pose_refinement"),
         scene_dir=scene_path if scene_path.is_dir() else None,
+        seen_occupied=seen,
     )
     checks += loop.method.checks(loop.model)
     inputs = [scene_path / "transforms.json"] if scene_path.is_dir() else [scene_path]

@@ -8,8 +8,8 @@ supports:
 1. **poses (the poses stage said so)**: the scene's poses_report.json (beside transforms.json) failed a check of
    the poses against the photos (`capture_order`: the reconstruction folded where faces look alike;
    `look_alike_matches`) or a camera check. The poses stage's own evidence, independent of the field.
-2. **background rule**: the field fills most of its object box (occupied_share): a fog of density, which is what a
-   background rule that keeps the backdrop (or a box that is wrong) trains.
+2. **background rule**: the field fills most of the space its training cameras see (occupied_share): a fog of
+   density, which is what a background rule that keeps the backdrop (or a box that is wrong) trains.
 3. **too little training**: the training PSNR still rose by over RISE_DB in the run's last fifth (a run too short
    for that measure: over its last 40 %): the run was cut while learning (more --max-seconds is the cure; the poses
    cannot be judged before the field has fitted its photos).
@@ -58,6 +58,7 @@ class Evidence:
     per_view: dict[str, Any] | None
     """The manifest's per-view summary (`suspect`, `views_total`, `worst`)."""
     occupied: float | None
+    """The occupied share of the cells the training cameras see (`fog.seen_occupied_share`)."""
     poses_report: dict[str, Any] | None
     """The scene's poses_report.json, if the poses stage made the scene."""
     late_rise: float | None = None
@@ -85,8 +86,9 @@ def diagnose(e: Evidence) -> tuple[str, str]:
         )
     if "occupied_share" in e.failed:
         return "background rule", (
-            f"background rule: the field fills {e.occupied:.0%} of its object box, a fog rather than an object "
-            f"({fit}{held}): the background was learned as density; try --background white (or black), or masks"
+            f"background rule: the field fills {e.occupied:.0%} of the space its training cameras see, a fog "
+            f"rather than an object ({fit}{held}): the background was learned as density; try --background white "
+            "(or black), or masks"
         )
     climbing = e.rise if e.rise is not None else e.late_rise
     low_fit = e.train_psnr is not None and e.train_psnr < TRAIN_FIT_DB

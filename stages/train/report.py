@@ -30,6 +30,7 @@ from nerfpipe.model.methods import TrainModel
 from nerfpipe.radiance.camera import generate_rays
 from nerfpipe.radiance.compositing import over_background
 from nerfpipe.radiance.metrics import psnr_from_mse
+from nerfpipe.stages.train.fog import ViewDepth
 
 if TYPE_CHECKING:
     from nerfpipe.stages.train.loop import Loop
@@ -150,15 +151,25 @@ def _view_image(scene: Scene, i: int, w: int, h: int) -> np.ndarray:
 
 
 @torch.no_grad()
-def _render(model: TrainModel, intr, world_from_cam: np.ndarray, bg: torch.Tensor, device) -> np.ndarray:
-    """The field's colour of every pixel of `intr` (rows first): float32 [h, w, 3]."""
+def _render(
+    model: TrainModel, intr, world_from_cam: np.ndarray, bg: torch.Tensor, device
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """The field's colour [h, w, 3], depth and opacity [h, w] (None where the method renders none) of every
+    pixel of `intr` (rows first), float32."""
     o, d = generate_rays(intr, torch.as_tensor(world_from_cam, dtype=torch.float64))
     o, d = o.float().to(device), d.float().to(device)
-    out = [
-        model.render(o[k : k + model.chunk], d[k : k + model.chunk], bg, train=False)["rgb"]
+    outs = [
+        model.render(o[k : k + model.chunk], d[k : k + model.chunk], bg, train=False)
         for k in range(0, o.shape[0], model.chunk)
     ]
-    return torch.cat(out).clamp(0, 1).cpu().numpy().reshape(intr.h, intr.w, 3)
+    rgb = torch.cat([out["rgb"] for out in outs]).clamp(0, 1).cpu().numpy().reshape(intr.h, intr.w, 3)
+    per_pixel = [
+        torch.cat([out[key] for out in outs]).float().cpu().numpy().reshape(intr.h, intr.w)
+        if all(key in out for out in outs)
+        else None
+        for key in ("depth", "acc")
+    ]
+    return rgb, per_pixel[0], per_pixel[1]
 
 
 def _shrink(scene: Scene, train_idx: tuple[int, ...], downscale: float, rays: float) -> float:
@@ -224,10 +235,11 @@ def per_view_report(
     rays_per_second: float | None,
     device: torch.device,
     fraction: float = PER_VIEW_FRACTION,
-) -> dict[str, Any]:
+) -> tuple[dict[str, Any], tuple[ViewDepth, ...]]:
     """Write run_dir/per_view.json and per_view_worst.png (module docstring); returns the manifest's summary
-    (`files` lists the two files). `rays_per_second`: the render speed measured in training (None: measured on
-    the first view)."""
+    (`files` lists the two files) and each rendered view's depth and opacity (`fog.ViewDepth`; none where the
+    method renders no depth). `rays_per_second`: the render speed measured in training (None: measured on the
+    first view)."""
     t0 = time.perf_counter()
     model.train_mode(False)
     bg = model.background.eval_colour().detach()
@@ -239,13 +251,15 @@ def per_view_report(
         rays_per_second = first.w * first.h / max(time.perf_counter() - t, 1e-6)
     factor = _shrink(scene, train_idx, downscale, budget * rays_per_second)
     picked = _affordable(scene, train_idx, factor, max(budget, PER_VIEW_FLOOR_SECONDS) * rays_per_second)
-    views, sheet_rows = [], {}
+    views, sheet_rows, depths = [], {}, []
     bg_np = bg.cpu().numpy()
     for i in picked:
         intr = scene.frame_intrinsics(i).scaled(1 / factor)
         photo = _view_image(scene, i, intr.w, intr.h)
         target = over_background(photo[..., :3], photo[..., 3:], bg_np)
-        render = _render(model, intr, scene.frames[i].world_from_cam, bg, device)
+        render, depth, acc = _render(model, intr, scene.frames[i].world_from_cam, bg, device)
+        if depth is not None and acc is not None:
+            depths.append(ViewDepth(intr=intr, world_from_cam=scene.frames[i].world_from_cam, depth=depth, acc=acc))
         mse = float(np.mean((render - target) ** 2))
         name = Path(scene.frames[i].file_path).name
         views.append(
@@ -280,7 +294,7 @@ def per_view_report(
         "views": worst,
     }
     write_json(run_dir / "per_view.json", doc)
-    return {
+    summary = {
         "files": ["per_view.json", "per_view_worst.png"],
         "median_psnr": doc["median_psnr"],
         "worst": [[v["file"], v["psnr"]] for v in shown[:3]],
@@ -291,3 +305,4 @@ def per_view_report(
         "budget_seconds": doc["budget_seconds"],
         "downscale": round(factor, 3),
     }
+    return summary, tuple(depths)
