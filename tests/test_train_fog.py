@@ -2,8 +2,8 @@
 
 One camera above a box looks straight down; the field is either a solid floor filling the box's lower half (what a
 disk seen from above trains: its underside never seen) or a fog filling the whole box. The floor's share counts
-only the cells above it (and the layers within a cell diagonal under its surface), whatever the hidden half holds; the fog's front is all
-the camera sees, and all of it is occupied.
+only the cells above it (and the layers within a cell diagonal under its surface), whatever the hidden half
+holds; the fog's front is all the camera sees, and all of it is occupied.
 """
 
 from __future__ import annotations
