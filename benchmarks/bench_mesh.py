@@ -57,6 +57,7 @@ def measure(spec: dict) -> dict:
         out=out,
         resolution=spec["resolution"],
         threshold=spec.get("threshold", "auto"),
+        frame="user",  # the ground truth's frame, exactly (the default, upright, turns and centres it)
     )
     t0 = time.perf_counter()
     if spec["kind"] == "standin":

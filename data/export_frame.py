@@ -2,11 +2,14 @@
 
 Shared by the stages that write geometry (`mesh`, `export-points`, `splat`). Three choices (`FRAMES`):
 
-- `upright` (the default): the user's frame (the one `convert` started from: its origin, its units) turned by the
-  smallest rotation that puts the scene's up on the format's up axis (`FORMAT_UP`), so that a client opens the file
-  the right way up. The scene's up is the scene frame's +z: `convert`'s choice (the cameras' mean up vector for
-  COLMAP and LLFF worlds, the source's z for Blender, tiny-NeRF and transforms.json inputs; `radiance.normalize`);
-  or an up direction the user gives in their own frame (`up`).
+- `upright` (the default): the user's frame (the one `convert` started from: its units) turned by the smallest
+  rotation that puts the scene's up on the format's up axis (`FORMAT_UP`), so that a client opens the file the
+  right way up, and moved so that the scene's centre (the scene frame's origin: the middle of the region of
+  interest) is the file's origin. Viewers orbit the origin: gsplat.js' default camera looks at it from 5 units,
+  three.js' OrbitControls and Blender's view turn about it; `make demo`'s splats, at their COLMAP origin, lay 2.6
+  units from it, under the default camera's view (issue 52). The scene's up is the scene frame's +z: `convert`'s
+  choice (the cameras' mean up vector for COLMAP and LLFF worlds, the source's z for Blender, tiny-NeRF and
+  transforms.json inputs; `radiance.normalize`); or an up direction the user gives in their own frame (`up`).
 - `user`: the user's frame exactly as it came in (e.g. COLMAP's, whose axes are wherever the first camera pointed).
 - `normalized`: the scene frame the field was trained in (z up, the region of interest in [-1, 1]^3).
 
@@ -23,8 +26,8 @@ The format's up (`FORMAT_UP`, each with a 3x3 rotation from a z-up frame):
   antimatter15's viewer does. The rotation takes z-up x, y, z to x, z, -y.
 
 Every matrix is recorded in the outputs' reports: `out_from_scene` (4x4; scene -> file) as before, and with it
-`out_from_source` (4x4; the user's frame -> file: a rotation for `upright`, the identity for `user`), so every
-export maps back to the user's frame: `p_source = inv(out_from_source) @ p_file`.
+`out_from_source` (4x4; the user's frame -> file: a rotation and a shift for `upright`, the identity for `user`), so
+every export maps back to the user's frame: `p_source = inv(out_from_source) @ p_file`.
 """
 
 from __future__ import annotations
@@ -106,6 +109,7 @@ def export_frame(
     source_up = source_up / np.linalg.norm(source_up)
     out_from_source = np.eye(4)
     out_from_source[:3, :3] = to_format @ rotation_onto(source_up, np.array([0.0, 0.0, 1.0]))
+    out_from_source[:3, 3] = -out_from_source[:3, :3] @ m[:3, 3]  # the scene's centre (its origin) to the origin
     info = {
         "frame": "upright",
         "up": {"rule": rule, "source_up": source_up.round(6).tolist(), "format_up": axis_name, "format": fmt},

@@ -98,7 +98,36 @@ def test_upright_frame_puts_the_scenes_up_on_the_formats_axis_and_records_it(tmp
         out_from_scene, out_from_source = (np.asarray(report[k]) for k in ("out_from_scene", "out_from_source"))
         up = out_from_scene[:3, :3] @ [0.0, 0.0, 1.0]
         assert np.allclose(up / np.linalg.norm(up), axis, atol=1e-9)
-        # the same mesh as the user-frame one, turned by out_from_source (a rotation about the user's origin)
+        # the same mesh as the user-frame one, turned and moved by out_from_source (the scene's centre to the origin)
         got = np.asarray(trimesh.load(out.mesh, force="mesh", process=False).vertices)
-        want = np.asarray(trimesh.load(user.mesh, force="mesh", process=False).vertices) @ out_from_source[:3, :3].T
+        user_verts = np.asarray(trimesh.load(user.mesh, force="mesh", process=False).vertices)
+        want = user_verts @ out_from_source[:3, :3].T + out_from_source[:3, 3]
         assert np.allclose(np.sort(got, axis=0), np.sort(want, axis=0), atol=1e-4)
+
+
+def test_closing_joins_a_solid_cut_by_one_voxel_thin_planes_and_leaves_a_smooth_one_as_it_was():
+    """The gaps a grid field's line factors leave (stages.mesh.surface.close_gaps): a solid cube crossed by one-voxel
+    planes of zero density along z (as `make demo`'s field) meshes as 3 closed slices, as one piece after the
+    closing; a ball's smooth density (a bump along every line) is not changed at all."""
+    from skimage.measure import marching_cubes
+
+    from nerfpipe.stages.mesh import Config
+    from nerfpipe.stages.mesh.surface import close_gaps
+
+    window = Config.close_gaps
+
+    n = 40
+    x = np.arange(n, dtype=np.float64)
+    cube = np.zeros((n, n, n))
+    cube[8:32, 8:32, 8:32] = 10.0
+    cube[:, :, 16] = cube[:, :, 24] = 0.0  # planes of ~0 density through the solid
+
+    def pieces(vol):
+        verts, faces, _, _ = marching_cubes(vol, level=1.0)
+        return len(trimesh.Trimesh(verts, faces, process=True).split(only_watertight=False))
+
+    assert pieces(cube) == 3 and pieces(close_gaps(cube, window)) == 1
+    r2 = sum(np.square(g - 19.5) for g in np.meshgrid(x, x, x, indexing="ij"))
+    ball = 10.0 * np.exp(-r2 / 80.0)
+    assert np.array_equal(close_gaps(ball, window), ball)
+    assert close_gaps(cube, 1) is cube

@@ -78,9 +78,9 @@ class Config:
     acc_threshold: float = 0.5
     """A ray gives a point when its accumulated opacity is at least this (0 < value <= 1)."""
     frame: Literal["upright", "user", "normalized"] = "upright"
-    """Output (and bbox) frame: "upright" = the user's frame turned so that the scene's up is +Z
-    (`data.export_frame`); "user" = the source frame before convert, as it came in (e.g. COLMAP's); "normalized" =
-    the scene frame the field was trained in."""
+    """Output (and bbox) frame: "upright" = the user's frame turned so that the scene's up is +Z, the scene's centre at
+    the origin (`data.export_frame`); "user" = the source frame before convert, as it came in (e.g. COLMAP's);
+    "normalized" = the scene frame the field was trained in."""
     up: tuple[float, float, float] | None = None
     """With frame "upright": the scene's up as a direction x,y,z in the user's frame; None: the scene frame's +z
     (convert's choice: the cameras' mean up for COLMAP and LLFF worlds)."""

@@ -191,6 +191,7 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
             given=surface.level is None and config.threshold not in ("auto", "global"),
             device=device,
             chunk=config.chunk,
+            close=config.close_gaps,
         )
         steps = [{"step": "marching_cubes", "vertices": len(verts_g), "faces": len(faces_g)}]
         t = lap("sampling_and_marching_cubes", t)

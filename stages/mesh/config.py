@@ -43,9 +43,9 @@ class Config:
     cells; "field" the field's whole (inner) box; "auto": occupied for object scenes (alpha or plain background),
     looked-at for real captures."""
     frame: Literal["upright", "user", "normalized"] = "upright"
-    """Output (and bbox) frame: "upright" = the user's frame turned so that the scene's up is the format's up (+Y
-    for .glb and .obj, +Z for .ply; `data.export_frame`); "user" = the source frame before convert, as it came in
-    (e.g. COLMAP's); "normalized" = the scene frame the field was trained in."""
+    """Output (and bbox) frame: "upright" = the user's frame turned so that the scene's up is the format's up (+Y for
+    .glb and .obj, +Z for .ply), the scene's centre at the origin (`data.export_frame`); "user" = the source frame
+    before convert, as it came in (e.g. COLMAP's); "normalized" = the scene frame the field was trained in."""
     up: tuple[float, float, float] | None = None
     """With frame "upright": the scene's up as a direction x,y,z in the user's frame; None: the scene frame's +z
     (convert's choice: the cameras' mean up for COLMAP and LLFF worlds)."""
@@ -66,6 +66,10 @@ class Config:
     texture_source: Literal["photos", "field"] = "photos"
     """What the cameras show the texels: "photos" the training photos (the colours as they were captured), "field"
     the field's renders of those cameras; the photos fall back to the renders where they cannot be read."""
+    close_gaps: int = 3
+    """Before marching cubes, close the sampled volume along each axis over this many voxels (`stages.mesh.surface.
+    close_gaps`): fills gaps up to 2 voxels thin, the planes of ~0 density a grid field's line factors leave (they cut
+    `make demo`'s objects into 12 slices), and also real grooves that thin; 1: off."""
     coarse_resolution: int = 128
     """Coarse pass: the fine grid is evaluated only in blocks near the surface of a grid about this fine
     (>= resolution: every voxel is evaluated)."""
@@ -147,5 +151,7 @@ def validate(config: Config) -> None:
         raise UserError(f"--method: expected 'density' or 'poisson', got {config.method!r}")
     if config.crop not in ("auto", "looked-at", "occupied", "field"):
         raise UserError(f"--crop: expected auto, looked-at, occupied or field, got {config.crop!r}")
+    if config.close_gaps < 1:
+        raise UserError(f"--close-gaps: expected 1 (off) or more voxels, got {config.close_gaps}")
     if config.threshold_rays < 16:
         raise UserError(f"threshold_rays: expected at least 16, got {config.threshold_rays}")

@@ -94,8 +94,8 @@ class Config:
     best of 25k-300k (docs/SPLATS.md)."""
     frame: Literal["upright", "user", "normalized"] = "upright"
     """Output frame: upright (the user's frame turned so that the scene's up is -Y, the 3DGS files' convention that
-    splat viewers open upright; `data.export_frame`) | user (the source frame before convert, as it came in) |
-    normalized (the scene frame)."""
+    splat viewers open upright, the scene's centre at the origin they orbit; `data.export_frame`) | user (the source
+    frame before convert, as it came in) | normalized (the scene frame)."""
     up: tuple[float, float, float] | None = None
     """With frame "upright": the scene's up as a direction x,y,z in the user's frame; None: the scene frame's +z
     (convert's choice: the cameras' mean up for COLMAP and LLFF worlds)."""
