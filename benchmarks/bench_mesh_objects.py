@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["main", "umeyama"]
+__all__ = ["main", "scene_from_ground_truth", "umeyama"]
 
 
 def umeyama(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -37,6 +37,22 @@ def umeyama(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     m[:3, :3] = scale * rot
     m[:3, 3] = mu_d - scale * rot @ mu_s
     return m
+
+
+def scene_from_ground_truth(run_dir: Path, ground_truth: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The similarity [4, 4] taking the `scene` stage's ground-truth frame (GROUND_TRUTH/cameras.json) into the
+    run's scene frame, fitted on the camera centres both hold, and each centre's residual [N] (scene units)."""
+    cfg = json.loads((run_dir / "config.json").read_text())
+    transforms = json.loads((Path(cfg["scene_dir"]) / "transforms.json").read_text())  # the scene frame's cameras
+    gt = json.loads((ground_truth / "cameras.json").read_text())
+    ours = {
+        Path(f["file_path"]).stem: np.asarray(f["transform_matrix"], np.float64)[:3, 3] for f in transforms["frames"]
+    }
+    stems = sorted(set(ours) & set(gt["frames"]))
+    src = np.stack([np.asarray(gt["frames"][k]["world_from_cam"], np.float64)[:3, 3] for k in stems])
+    dst = np.stack([ours[k] for k in stems])
+    scene_from_gt = umeyama(src, dst)
+    return scene_from_gt, np.linalg.norm(src @ scene_from_gt[:3, :3].T + scene_from_gt[:3, 3] - dst, axis=1)
 
 
 def _area_above(verts: np.ndarray, faces: np.ndarray, height: np.ndarray, level: float) -> float:
@@ -58,17 +74,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--tol", type=float, default=0.02, help="metres (ground-truth units)")
     args = p.parse_args(argv)
 
-    cfg = json.loads((args.run_dir / "config.json").read_text())
-    transforms = json.loads((Path(cfg["scene_dir"]) / "transforms.json").read_text())  # the scene frame's cameras
-    gt = json.loads((args.ground_truth / "cameras.json").read_text())
-    ours = {
-        Path(f["file_path"]).stem: np.asarray(f["transform_matrix"], np.float64)[:3, 3] for f in transforms["frames"]
-    }
-    stems = sorted(set(ours) & set(gt["frames"]))
-    src = np.stack([np.asarray(gt["frames"][k]["world_from_cam"], np.float64)[:3, 3] for k in stems])
-    dst = np.stack([ours[k] for k in stems])
-    scene_from_gt = umeyama(src, dst)
-    residual = np.linalg.norm(src @ scene_from_gt[:3, :3].T + scene_from_gt[:3, 3] - dst, axis=1)
+    scene_from_gt, residual = scene_from_ground_truth(args.run_dir, args.ground_truth)
     scale = float(np.cbrt(np.linalg.det(scene_from_gt[:3, :3])))
 
     truth = trimesh.load(args.ground_truth / "mesh.ply", force="mesh", process=False)
@@ -95,7 +101,7 @@ def main(argv: list[str] | None = None) -> dict:
         "run": str(args.run_dir),
         "mesh": str(args.mesh),
         "tol_m": args.tol,
-        "alignment": {"frames": len(stems), "camera_residual_m_max": float(residual.max() / scale)},
+        "alignment": {"frames": len(residual), "camera_residual_m_max": float(residual.max() / scale)},
         "objects": objects,
         "min_object_recall": min(o["recall"] for o in objects) if objects else None,
         "area_above_ground": {
