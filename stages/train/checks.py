@@ -13,7 +13,7 @@ Each rule, its limit and why (figures from `make bench-real`, docs/BENCH_REAL.md
   the field's density at the end is over the grid's threshold (`fog.seen_occupied_share`), <= FOG_SHARE: an
   object fills a fraction of the space its cameras see, a fog of density fills it all. (The grid's own marks are
   conservative and stale by design: they made `make demo`'s sound field a 64 % "fog"; the field's own share of
-  the cells its cameras see is 14 % there.)
+  the cells its cameras see is 16 % there.)
 - **occupied_share_min** (fast field): the share of all occupancy cells occupied > 0 (an empty field renders
   nothing).
 - **pose corrections** (--refine-poses): the guard's record (`model.camera_opt.pose_report`): refinement pulled
