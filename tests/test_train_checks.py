@@ -162,6 +162,35 @@ def test_without_a_poses_verdict_a_flat_poor_fit_is_named_poses_and_a_rising_one
     assert some["cause"].value == "poses of some views" and "a.png, b.png, c.png" in some["cause"].says
 
 
+def test_a_poor_fit_under_a_background_that_contradicts_the_photos_is_named_the_background_rule(tmp_path):
+    """make demo's white-backed photos trained with --background black: 2.0 dB, flat (named "poses" before)."""
+    conflict = "the photos' border is one colour (1.00, 1.00, 1.00) in 97% of its pixels, but training put black"
+    failed = _failed(
+        train_checks(
+            rows=_rows(2.0),
+            test_psnr=2.1,
+            per_view=None,
+            occupied=0.05,
+            object_box=True,
+            pose=None,
+            scene_dir=tmp_path,
+            background_conflict=conflict,
+        )
+    )
+    cause = failed["cause"]
+    assert cause.value == "background rule" and conflict in cause.says and "--background auto" in cause.says
+    fitted = train_checks(
+        rows=_rows(31.0),
+        test_psnr=30.0,
+        per_view=None,
+        occupied=0.1,
+        object_box=True,
+        pose=None,
+        background_conflict=conflict,
+    )
+    assert verdict(fitted)["check"] == "ok"  # a conflict that did not stop the fit is no failure
+
+
 def test_an_ok_poses_report_is_no_evidence_against_the_poses(tmp_path):
     (tmp_path / "poses_report.json").write_text(
         json.dumps(

@@ -16,7 +16,7 @@ from nerfpipe.model.views import Views
 from nerfpipe.stages import convert as convert_stage
 from nerfpipe.stages import scene as scene_stage
 from nerfpipe.stages import train
-from nerfpipe.stages.train.background import choose_background, detect_plain_colour
+from nerfpipe.stages.train.background import background_conflict, choose_background, detect_plain_colour
 
 
 def _views(images: list[np.ndarray]) -> Views:
@@ -67,6 +67,19 @@ def test_textured_border_trains_on_random_and_alpha_too():
     assert choose_background("learned", views, has_alpha=False)[0].mode == "learned"
     assert choose_background("auto", views, has_alpha=True)[0].mode == "random"
     assert choose_background("black", views, has_alpha=False)[0].eval_colour().tolist() == [0.0, 0.0, 0.0]
+
+
+def test_a_background_asked_for_against_the_photos_plain_colour_is_a_conflict():
+    """White-backed photos trained on black (or random colours) cannot be fitted: said in one line; the same colour,
+    auto, alpha, or photos without a plain border are no conflict."""
+    white = _views([_object_on(255, s) for s in range(3)])
+    black_says = background_conflict("black", white, has_alpha=False)
+    assert black_says is not None and "(1.00, 1.00, 1.00)" in black_says and "--background black" in black_says
+    assert "random colours" in background_conflict("random", white, has_alpha=False)
+    assert background_conflict("white", white, has_alpha=False) is None
+    assert background_conflict("auto", white, has_alpha=False) is None
+    assert background_conflict("black", white, has_alpha=True) is None
+    assert background_conflict("black", _views([_object_on(None, s) for s in range(3)]), has_alpha=False) is None
 
 
 def test_detect_plain_colour_thresholds():

@@ -183,6 +183,7 @@ def _run(config: Config, progress: Progress, par: DataParallel | None = None) ->
         pose=used.get("pose_refinement"),
         scene_dir=scene_path if scene_path.is_dir() else None,
         seen_occupied=seen,
+        background_conflict=record.get("background_conflict"),
     )
     checks += loop.method.checks(loop.model)
     inputs = [scene_path / "transforms.json"] if scene_path.is_dir() else [scene_path]

@@ -11,11 +11,21 @@ import torch
 from nerfpipe.model.background import Background
 from nerfpipe.model.views import Views
 
-__all__ = ["choose_background", "detect_plain_colour", "BORDER", "PLAIN_FRACTION", "PLAIN_TOLERANCE"]
+__all__ = [
+    "background_conflict",
+    "choose_background",
+    "detect_plain_colour",
+    "BORDER",
+    "PLAIN_FRACTION",
+    "PLAIN_TOLERANCE",
+]
 
 BORDER = 2
 PLAIN_FRACTION = 0.9
 PLAIN_TOLERANCE = 4 / 255
+CONFLICT = 0.1
+"""An asked-for background colour further than this (in any channel, 0..1) from the photos' plain border colour
+contradicts them (`background_conflict`)."""
 
 
 def _border_rgba(views: Views) -> np.ndarray:
@@ -68,3 +78,24 @@ def choose_background(mode: str, views: Views, has_alpha: bool) -> tuple[Backgro
         return Background("plain", colour), True, why
     why = f"no plain border colour ({frac:.1%}): random per ray in training (the field must explain every pixel)"
     return Background("random", start), False, why + ", the border median at evaluation"
+
+
+def background_conflict(mode: str, views: Views, has_alpha: bool) -> str | None:
+    """One line where an asked-for background contradicts opaque photos with a plain border colour (None where it
+    does not, or where the mode was not asked for): empty space composited on black (or random colours) while the
+    photos show white behind the object can only be fitted by painting the backdrop as density, or not at all
+    (`make demo`'s photos with `--background black`: 2.0 dB after 400 steps, an empty field)."""
+    if mode not in ("black", "white", "random") or has_alpha:
+        return None
+    colour, frac = detect_plain_colour(_border_rgba(views)[:, :3].astype(np.float64) / 255.0)
+    if colour is None:
+        return None
+    asked = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0)}.get(mode)
+    if asked is not None and max(abs(a - c) for a, c in zip(asked, colour, strict=True)) <= CONFLICT:
+        return None
+    rgb = ", ".join(f"{c:.2f}" for c in colour)
+    behind = "random colours" if asked is None else mode
+    return (
+        f"the photos' border is one colour ({rgb}) in {frac:.0%} of its pixels, but training put {behind} behind "
+        "empty space (--background " + mode + ")"
+    )

@@ -80,10 +80,12 @@ def train_checks(
     pose: dict[str, Any] | None,
     scene_dir: Path | None = None,
     seen_occupied: float | None = None,
+    background_conflict: str | None = None,
 ) -> list[Check]:
     """The run's checks from its metrics rows, final held-out PSNR, per-view report, occupied cell share (None
     without a grid) and that share among the cells the training cameras see (None: not measured, the share of
-    all cells stands in), whether the field's box is the object's own (`radiance.space.Space.object_box`), the
+    all cells stands in), the asked-for background's contradiction of the photos (`background.background_conflict`;
+    evidence for `diagnose`), whether the field's box is the object's own (`radiance.space.Space.object_box`), the
     pose-refinement record (None without refinement) and the scene folder (where the poses stage's
     poses_report.json may lie beside transforms.json: evidence for `diagnose`)."""
     out: list[Check] = []
@@ -181,6 +183,7 @@ def train_checks(
             steps=_last_step(rows),
             per_view=per_view,
             occupied=fog,
+            background_conflict=background_conflict,
             poses_report=_poses_report(scene_dir),
         )
         cause, line = diagnose(evidence)

@@ -37,7 +37,7 @@ from nerfpipe.model.methods import Method, Prepared, TrainContext, method_named
 from nerfpipe.model.spaces import choose_space
 from nerfpipe.model.views import Views, auto_downscale
 from nerfpipe.radiance.space import Space
-from nerfpipe.stages.train.background import choose_background
+from nerfpipe.stages.train.background import background_conflict, choose_background
 from nerfpipe.stages.train.config import Config, method_options
 
 __all__ = ["Defaults", "Photos", "resolve_defaults", "resolve_downscale", "final_eval_stride"]
@@ -97,6 +97,9 @@ def resolve_defaults(config: Config, photos: Photos, device: torch.device, downs
     background = background.to(device)  # every method's model holds it: its colours join the batch's device
     why = " (asked for)" if config.downscale else f": long side <= {_max_side(device)} px"
     reasons = {"background": bg_reason, "downscale": f"{downscale:g}{why}"}
+    conflict = background_conflict(config.background, views, has_alpha)
+    if conflict is not None:
+        reasons["background_conflict"] = conflict
     kind, kind_why = choose_space(config.scene_model, scene, plain_background=plain)
     context = TrainContext(
         scene=scene,

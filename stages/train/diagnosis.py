@@ -8,8 +8,11 @@ supports:
 1. **poses (the poses stage said so)**: the scene's poses_report.json (beside transforms.json) failed a check of
    the poses against the photos (`capture_order`: the reconstruction folded where faces look alike;
    `look_alike_matches`) or a camera check. The poses stage's own evidence, independent of the field.
-2. **background rule**: the field fills most of the space its training cameras see (occupied_share): a fog of
-   density, which is what a background rule that keeps the backdrop (or a box that is wrong) trains.
+2. **background rule**: a background asked for (`--background black|white|random`) contradicts the opaque photos'
+   plain border colour and the training photos are not fitted (`background.background_conflict`: `make demo`'s
+   white-backed photos with `--background black`, 2.0 dB after 400 steps, were named "poses" before); or the field
+   fills most of the space its training cameras see (occupied_share): a fog of density, which is what a background
+   rule that keeps the backdrop (or a box that is wrong) trains.
 3. **too little training**: the training PSNR still rose by over RISE_DB in the run's last fifth (a run too short
    for that measure: over its last 40 %): the run was cut while learning (more --max-seconds is the cure; the poses
    cannot be judged before the field has fitted its photos).
@@ -63,6 +66,8 @@ class Evidence:
     """The scene's poses_report.json, if the poses stage made the scene."""
     late_rise: float | None = None
     """Training PSNR at the end minus at 60 % of the run's time (dB): the trend of a short run (3+ rows)."""
+    background_conflict: str | None = None
+    """Where an asked-for background contradicts the photos' plain border colour, the line saying so."""
 
 
 def _db(value: float | None) -> str:
@@ -84,6 +89,12 @@ def diagnose(e: Evidence) -> tuple[str, str]:
             f"poses: the poses stage's own check {c['name']} = {c['value']} failed ({c.get('says', '')}); the "
             f"field trained on those poses ({fit}{held}): rerun poses (see poses_report.json) before training"
         )
+    low_fit = e.train_psnr is not None and e.train_psnr < TRAIN_FIT_DB
+    if e.background_conflict is not None and (low_fit or "training_fit" in e.failed):
+        return "background rule", (
+            f"background rule: {e.background_conflict}: the field cannot fit photos whose backdrop it is told is "
+            f"another colour ({fit}{held}); train with --background auto (the photos' own colour)"
+        )
     if "occupied_share" in e.failed:
         return "background rule", (
             f"background rule: the field fills {e.occupied:.0%} of the space its training cameras see, a fog "
@@ -91,7 +102,6 @@ def diagnose(e: Evidence) -> tuple[str, str]:
             "(or black), or masks"
         )
     climbing = e.rise if e.rise is not None else e.late_rise
-    low_fit = e.train_psnr is not None and e.train_psnr < TRAIN_FIT_DB
     if (
         climbing is not None
         and climbing > RISE_DB
