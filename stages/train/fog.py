@@ -33,6 +33,8 @@ SEEN_TOLERANCE_CELLS = 1.0
 """A cell behind the rendered surface by up to this many cell diagonals still counts as seen (its surface cell)."""
 POINTS_PER_CELL = 4
 """Random points per cell at which the field's density is asked (the grid's own full refresh uses as many)."""
+MAX_VIEWS = 48
+"""Views asked at most (evenly spaced): each projects every cell (64^3 cells and 43 views: 0.6 s on 2 cores)."""
 SEES_THROUGH = 0.5
 """A ray whose opacity stays under this sees through: every cell along it counts as seen."""
 
@@ -54,13 +56,14 @@ class ViewDepth:
 
 
 def seen_cells(centres: torch.Tensor, views: list[ViewDepth] | tuple[ViewDepth, ...], tolerance: float) -> torch.Tensor:
-    """Cell centres [M, 3] (scene frame) -> bool [M]: seen by at least one view (module docstring); `tolerance`
-    is in scene units."""
+    """Cell centres [M, 3] (scene frame) -> bool [M]: seen by at least one view (module docstring; at most
+    MAX_VIEWS of them, evenly spaced); `tolerance` is in scene units."""
     if centres.ndim != 2 or centres.shape[-1] != 3:
         raise ValueError(f"expected centres [M, 3], got {tuple(centres.shape)}")
     seen = torch.zeros(centres.shape[0], dtype=torch.bool)
     x = centres.to(torch.float64)
-    for v in views:
+    picked = np.unique(np.linspace(0, len(views) - 1, MAX_VIEWS).round().astype(int)) if views else []
+    for v in (views[i] for i in picked):
         c2w = torch.as_tensor(v.world_from_cam, dtype=torch.float64)
         uv, z = project(x, c2w, v.intr)
         col, row = torch.floor(uv[:, 0]).long(), torch.floor(uv[:, 1]).long()
