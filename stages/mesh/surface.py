@@ -162,7 +162,7 @@ def density_surface(
     given: bool,
     device: torch.device,
     chunk: int,
-    close: int = 1,
+    close: int,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Marching cubes of `level` on the region's grid (its support plane cut first; with levels by region the second
     pass on the crossings in the meshed region; the volume closed over `close` voxels, `close_gaps`) -> (verts [V, 3]

@@ -172,8 +172,6 @@ def _run(config: Config, progress: Progress, par: DataParallel | None = None) ->
     grid = getattr(loop.model, "grid", None)
     boxed = isinstance(grid, OccupancyGrid) and space is not None and space.object_box
     seen = seen_occupied_share(grid, loop.model.field.density, depths) if boxed else None
-    if seen is not None:
-        used["occupied_seen_share"] = round(seen, 4)
     checks = train_checks(
         rows=loop.metrics.rows,
         test_psnr=test_psnr,

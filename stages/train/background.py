@@ -28,8 +28,8 @@ CONFLICT = 0.1
 contradicts them (`background_conflict`)."""
 
 
-def _border_rgba(views: Views) -> np.ndarray:
-    """uint8 [K, 4]: the 2-pixel frame of every view."""
+def _border_rgb(views: Views) -> np.ndarray:
+    """float64 [K, 3] in [0, 1]: the colours of the 2-pixel frame of every view."""
     parts, start = [], 0
     for h, w in views.shapes:
         img = views.rgba[start : start + h * w].reshape(h, w, 4)
@@ -38,7 +38,8 @@ def _border_rgba(views: Views) -> np.ndarray:
         mask = torch.zeros(h, w, dtype=torch.bool)
         mask[:b], mask[-b:], mask[:, :b], mask[:, -b:] = True, True, True, True
         parts.append(img[mask].numpy())
-    return np.concatenate(parts) if parts else np.zeros((0, 4), np.uint8)
+    rgba = np.concatenate(parts) if parts else np.zeros((0, 4), np.uint8)
+    return rgba[:, :3].astype(np.float64) / 255.0
 
 
 def detect_plain_colour(rgb: np.ndarray) -> tuple[tuple[float, float, float] | None, float]:
@@ -62,7 +63,7 @@ def choose_background(mode: str, views: Views, has_alpha: bool) -> tuple[Backgro
         return Background("fixed", (1.0, 1.0, 1.0)), True, "asked for: white"
     if mode == "random":
         return Background("random"), has_alpha, "asked for: random per ray in training, white for evaluation"
-    border = _border_rgba(views)[:, :3].astype(np.float64) / 255.0
+    border = _border_rgb(views)
     start = tuple(float(v) for v in np.median(border, axis=0)) if border.size else (0.5, 0.5, 0.5)
     if mode == "learned":
         return Background("learned", start), False, "asked for: a learned colour (starts at the border median)"
@@ -87,7 +88,7 @@ def background_conflict(mode: str, views: Views, has_alpha: bool) -> str | None:
     (`make demo`'s photos with `--background black`: 2.0 dB after 400 steps, an empty field)."""
     if mode not in ("black", "white", "random") or has_alpha:
         return None
-    colour, frac = detect_plain_colour(_border_rgba(views)[:, :3].astype(np.float64) / 255.0)
+    colour, frac = detect_plain_colour(_border_rgb(views))
     if colour is None:
         return None
     asked = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0)}.get(mode)
