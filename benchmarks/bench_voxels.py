@@ -2,7 +2,7 @@
 one photo and five fused, against the mean shape; the real scanned meshes pymeshlab ships; a real masked photo.
 
 Run: .venv/bin/python -m benchmarks.bench_voxels --out runs/bench/voxels [--weights pretrained|FILE]
-     [--count 30] [--only families,scans,photo]
+     [--count 30] [--only families,scans,photo] [--no-mirror]
 
 - families: `nerfpipe shapes` (the command a user types) draws objects the network never saw: seeds 100000 and up
   of the trained families (pretraining used 0-99999), and the held-out family; 5 photos each (random cameras,
@@ -45,14 +45,14 @@ def _ious(prob: torch.Tensor, truth: torch.Tensor) -> dict[float, float]:
     return {level: iou(prob, truth, level) for level in LEVELS}
 
 
-def _predict(net, inputs: torch.Tensor, batch: int = 64) -> torch.Tensor:
-    with torch.no_grad():
-        return torch.cat(
-            [torch.sigmoid(net(inputs[i : i + batch].float() / 255.0)) for i in range(0, len(inputs), batch)]
-        )
+def _predict(net, inputs: torch.Tensor, mirror: bool) -> torch.Tensor:
+    """uint8 inputs [B, 4, S, S] -> probabilities [B, R, R, R], as `nerfpipe voxels [--no-mirror]` predicts."""
+    from nerfpipe.model.voxels.infer import occupancy
+
+    return occupancy(net, inputs.float() / 255.0, mirror=mirror)
 
 
-def _score(net, path: Path) -> dict:
+def _score(net, path: Path, mirror: bool) -> dict:
     """Per-family mean IoUs (1 view, 5 views fused) of a shapes dataset."""
     from nerfpipe.model.voxels.fuse import fuse
     from nerfpipe.model.voxels.pretrain import unpack
@@ -61,7 +61,7 @@ def _score(net, path: Path) -> dict:
     data, meta = load_shapes(path)
     truth = unpack(data.bits, data.res)
     t0 = time.perf_counter()
-    prob = _predict(net, data.inputs)
+    prob = _predict(net, data.inputs, mirror)
     per_photo = (time.perf_counter() - t0) / len(prob)
     fams, seeds, az = meta["family"], meta["seed"], torch.from_numpy(meta["azimuth"])
     mean_shape = truth.mean(0)
@@ -102,7 +102,7 @@ def _overall(rows: dict[str, dict], key: str, level: float = 0.5) -> float:
     return sum(r[key][level] * r["objects"] for r in rows.values()) / n
 
 
-def _families(net, out: Path, count: int) -> dict:
+def _families(net, out: Path, count: int, mirror: bool) -> dict:
     from nerfpipe.data.synthetic.families import HELD_OUT
 
     sets = {
@@ -115,7 +115,7 @@ def _families(net, out: Path, count: int) -> dict:
         if not (folder / "manifest.json").is_file():
             cmd = [sys.executable, "-m", "nerfpipe.cli", "shapes", str(folder), "--views", "5", *args, "--overwrite"]
             subprocess.run(cmd, check=True)
-        result[name] = _score(net, folder)
+        result[name] = _score(net, folder, mirror)
         print(_table(f"{name} families (held-out objects)", result[name]["families"]))
         rows = result[name]["families"]
         print(
@@ -187,7 +187,7 @@ def _mesh_photo(v: np.ndarray, f: np.ndarray, azimuth: float, elevation: float, 
     return rgb / np.maximum(alpha, 1e-6)[..., None] * (alpha > 0)[..., None], alpha
 
 
-def _scans(net) -> dict:
+def _scans(net, mirror: bool) -> dict:
     from nerfpipe.data.synthetic.shape_views import DISTANCE, ELEVATION_DEG, view_rotation
     from nerfpipe.model.voxels.fuse import fuse
     from nerfpipe.model.voxels.inputs import prepare
@@ -211,7 +211,7 @@ def _scans(net) -> dict:
             turned = v @ view_rotation(az)  # unit -> view frame: p_view = R^T p_unit
             truths.append(torch.from_numpy(_parity_occupancy(turned, f).astype(np.float32)))
             azs.append(az)
-        prob = _predict(net, (torch.stack(inputs) * 255).round())
+        prob = _predict(net, (torch.stack(inputs) * 255).round(), mirror)
         one = float(np.mean([_ious(p, t)[0.5] for p, t in zip(prob, truths, strict=True)]))
         five = _ious(fuse(prob, torch.tensor(azs, dtype=torch.float64)), truths[0])[0.5]
         out[name] = {"one": one, "five": five, "occupied": float(truths[0].mean())}
@@ -241,7 +241,7 @@ def _head_azimuths(names: list[str]) -> list[float]:
     return [float(az[all_names.index(n)] - az[all_names.index(names[0])]) for n in names]
 
 
-def _photo(out: Path, weights: str) -> dict:
+def _photo(out: Path, weights: str, mirror: bool) -> dict:
     images = sorted((DATA / "head" / "images").iterdir())
     if not images:
         return {"skipped": "no head photos"}
@@ -261,6 +261,7 @@ def _photo(out: Path, weights: str) -> dict:
             ",".join(map(str, mk)),
             "--weights",
             weights,
+            "--mirror" if mirror else "--no-mirror",
             "--overwrite",
         ]
         if len(chosen) > 1:
@@ -280,7 +281,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--weights", default="pretrained")
     ap.add_argument("--count", type=int, default=30)
     ap.add_argument("--only", default="families,scans,photo")
+    ap.add_argument("--no-mirror", action="store_true", help="one forward pass a photo (`voxels --no-mirror`)")
     args = ap.parse_args(argv)
+    mirror = not args.no_mirror
     from nerfpipe.model.voxels.weights import load_net
 
     torch.set_num_threads(2)
@@ -290,14 +293,15 @@ def main(argv: list[str] | None = None) -> int:
     result: dict = {
         "commit": commit(),
         "weights": args.weights,
+        "mirror": mirror,
         "weights_provenance": {k: provenance.get(k) for k in ("steps", "seconds", "examples", "objects")},
     }
     if "families" in parts:
-        result["families"] = _families(net, args.out, args.count)
+        result["families"] = _families(net, args.out, args.count, mirror)
     if "scans" in parts:
-        result["scans"] = _scans(net)
+        result["scans"] = _scans(net, mirror)
     if "photo" in parts:
-        result["photo"] = _photo(args.out, args.weights)
+        result["photo"] = _photo(args.out, args.weights, mirror)
     (args.out / "bench_voxels.json").write_text(json.dumps(result, indent=1, default=str))
     return 0
 

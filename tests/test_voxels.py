@@ -16,6 +16,7 @@ from nerfpipe.data.synthetic.families import FAMILIES, HELD_OUT, TRAINED, inside
 from nerfpipe.data.synthetic.raycast import _cast
 from nerfpipe.data.synthetic.shape_views import grid_points, shape_photos, view_occupancy, view_rotation
 from nerfpipe.model.voxels.fuse import fuse, turn
+from nerfpipe.model.voxels.infer import occupancy
 from nerfpipe.model.voxels.inputs import SIDE, prepare
 from nerfpipe.model.voxels.net import VoxelNet
 from nerfpipe.model.voxels.pretrain import iou, unpack
@@ -136,6 +137,24 @@ def test_net_shapes_and_gradients():
     assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
     with pytest.raises(ValueError, match="expected"):
         net(torch.rand(2, 3, 64, 64))
+
+
+def test_mirrored_prediction_is_mirror_consistent():
+    """`occupancy(mirror=True)`: the mirrored photo's grid is the photo's grid mirrored in x (exactly, not by
+    training), and the mean of the two single passes; `mirror=False` is one pass; batching changes nothing."""
+    torch.manual_seed(1)
+    net, _ = load_net("pretrained", torch.device("cpu"))  # trained: an untrained net's output is nearly constant
+    x = torch.rand(3, 4, 64, 64)
+    plain = occupancy(net, x, mirror=False)
+    with torch.no_grad():
+        assert torch.equal(plain, torch.sigmoid(net(x)))
+        back = torch.sigmoid(net(x.flip(-1))).flip(1)
+    assert float((plain - back).abs().max()) > 0.01  # the net alone is not mirror-symmetric
+    both = occupancy(net, x, mirror=True, batch=2)
+    torch.testing.assert_close(both, 0.5 * (plain + back))
+    torch.testing.assert_close(occupancy(net, x.flip(-1)), both.flip(1))
+    with pytest.raises(ValueError, match="expected photos"):
+        occupancy(net, x[0])
 
 
 def test_preview_renders_what_is_there():
@@ -273,8 +292,7 @@ def test_shipped_weights_predict_held_out_objects():
         for p in photos:
             inputs.append(prepare(p.rgb, p.mask))
             truths.append(torch.from_numpy(p.occupancy.astype(np.float32)))
-    with torch.no_grad():
-        prob = torch.sigmoid(net(torch.stack(inputs)))
+    prob = occupancy(net, torch.stack(inputs))  # as `nerfpipe voxels` predicts
     mean = torch.stack(truths).mean(0)
     for p, t in zip(prob, truths, strict=True):
         got.append(iou(p, t))

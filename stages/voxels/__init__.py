@@ -42,6 +42,7 @@ from nerfpipe.data.video import write_png
 from nerfpipe.data.volumes import iso_surface, write_npy
 from nerfpipe.model.device import resolve_device
 from nerfpipe.model.voxels.fuse import fuse
+from nerfpipe.model.voxels.infer import occupancy
 from nerfpipe.model.voxels.inputs import prepare
 from nerfpipe.model.voxels.preview import render_grid
 from nerfpipe.model.voxels.weights import load_net
@@ -66,6 +67,8 @@ class Config:
     """The network: 'pretrained' (shipped with nerfpipe) or a weights.pt of pretrain-voxels."""
     level: float = 0.5
     """Probability at which a cell counts as occupied (the mesh's iso-level)."""
+    mirror: bool = True
+    """Also predict from each photo mirrored left-right and average (model.voxels.infer; twice the passes)."""
     device: str = "auto"
     """torch device: auto, cpu, cuda, cuda:N."""
     overwrite: bool = False
@@ -115,11 +118,9 @@ def read_photo(image: Path, mask: Path | None) -> tuple[np.ndarray, np.ndarray]:
     return rgb, m
 
 
-def predict(net: torch.nn.Module, inputs: torch.Tensor, azimuths_deg: list[float]) -> torch.Tensor:
+def predict(net: torch.nn.Module, inputs: torch.Tensor, azimuths_deg: list[float], *, mirror: bool) -> torch.Tensor:
     """inputs [V, 4, S, S] -> the fused probabilities [R, R, R] in the first photo's view frame."""
-    device = next(net.parameters()).device
-    with torch.no_grad():
-        prob = torch.sigmoid(net(inputs.to(device))).cpu()  # [V, R, R, R]
+    prob = occupancy(net, inputs, mirror=mirror)  # [V, R, R, R]
     if len(prob) == 1:
         return prob[0]
     return fuse(prob, torch.tensor([math.radians(a) for a in azimuths_deg], dtype=torch.float64))
@@ -174,7 +175,7 @@ def run(config: Config) -> Outputs:
     net, provenance = load_net(config.weights, device)
     inputs = torch.stack([prepare(rgb, m, net.side) for rgb, m in photos])  # [V, 4, S, S]
     azimuths = list(config.azimuths) or [0.0]
-    prob = predict(net, inputs, azimuths)
+    prob = predict(net, inputs, azimuths, mirror=config.mirror)
     with output_folder(config.out_dir, overwrite=config.overwrite):
         out = Path(config.out_dir)
         write_config(out, config)
@@ -195,6 +196,9 @@ def run(config: Config) -> Outputs:
                 "level": config.level,
                 "photos": [str(p) for p in config.images],
                 "azimuths_deg": azimuths,
+                "mirror": "mean of each photo's prediction and its mirrored photo's, mirrored back"
+                if config.mirror
+                else "none (one prediction a photo)",
                 "fusion": "mean of the probabilities, each photo's grid turned into the first photo's frame"
                 if len(photos) > 1
                 else "none (one photo)",
@@ -215,7 +219,13 @@ def run(config: Config) -> Outputs:
             started=started,
             inputs=[*config.images, *config.masks],
             outputs=["occupancy.npy", "occupancy.json", "preview.png", "config.json"] + (["mesh.ply"] if mesh else []),
-            used={"photos": len(photos), "occupied_cells": occupied, "level": config.level, "device": str(device)},
+            used={
+                "photos": len(photos),
+                "mirror": config.mirror,
+                "occupied_cells": occupied,
+                "level": config.level,
+                "device": str(device),
+            },
             left_out=left_out,
         )
         return Outputs(
