@@ -67,5 +67,6 @@ def compare(sparse: Path, reference: dict[str, np.ndarray], by_stem: bool = Fals
         "common": len(common),
         "reference": len(ref),
         "rotation_deg": [round(err.median_rotation_deg, 3), round(float(err.rotation_deg.max()), 3)],
+        "within_1deg": int((err.rotation_deg <= 1.0).sum()),
         "pairwise_deg": [round(float(np.median(pairs)), 3), round(float(np.max(pairs)), 3)],
     }

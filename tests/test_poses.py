@@ -267,10 +267,17 @@ def _settings(**kw) -> sfm.SfmSettings:
 
 def test_attempt_ladder_escalates():
     first = _settings(max_image_size=1000, max_num_features=2048)
-    plan = ladder(first, 4, long_side=4000)
-    assert [a.name for a in plan] == ["as configured", "more features", "relaxed mapper", "guided matching"]
-    assert [a.reuse for a in plan] == ["nothing", "nothing", "matches", "features"]
-    one, more, relaxed, guided = (a.settings for a in plan)
+    plan = ladder(first, 5, long_side=4000)
+    assert [a.name for a in plan] == [
+        "as configured",
+        "more features",
+        "relaxed mapper",
+        "wide-baseline features",
+        "guided matching",
+    ]
+    assert [a.reuse for a in plan] == ["nothing", "nothing", "matches", "nothing", "features"]
+    one, more, relaxed, wide, guided = (a.settings for a in plan)
+    assert [a.settings.wide_baseline for a in plan] == [False, False, False, True, False]
     assert one == first
     # 2: pycolmap's defaults: its working size and feature cap, plain matching, its mapper thresholds
     assert (more.max_image_size, more.max_num_features) == (3200, 8192)
@@ -280,10 +287,20 @@ def test_attempt_ladder_escalates():
     assert relaxed == dataclasses.replace(more, mapper=sfm.RELAXED_MAPPER)
     for name, default in vars(sfm.MapperThresholds()).items():
         relaxed_value = getattr(sfm.RELAXED_MAPPER, name)
+        if name == "structure_less_fallback":
+            assert default and not relaxed_value  # stricter: registration from 2D-3D matches only
+            continue
         assert relaxed_value > default if name == "max_reg_trials" else relaxed_value < default, name
-    # 4: the same features matched again, guided, keeping pairs as weak as the relaxed mapper uses
+    # 5: attempt 2's features matched again, guided, keeping pairs as weak as the relaxed mapper uses
     assert guided == dataclasses.replace(relaxed, guided_matching=True, min_verified_inliers=8)
     assert sfm.RELAXED_MAPPER.min_num_matches == 8
+    # 4: new wide-baseline features at attempt 1's size (at most 1000 px) and cap, guided matching, pycolmap's
+    # verification
+    assert wide == dataclasses.replace(
+        first, wide_baseline=True, guided_matching=True, mapper=sfm.RELAXED_MAPPER, min_verified_inliers=15
+    )
+    assert ladder(_settings(max_image_size=1600), 4, long_side=4000)[3].settings.max_image_size == 1000
+    assert [a.name for a in ladder(first, 4, long_side=4000)][-1] == "wide-baseline features"
 
     # an extraction attempt 1 already made (pycolmap's size, or the photos' own size, and cap) doubles the cap
     assert ladder(_settings(max_image_size=3200), 2, long_side=4000)[1].settings.max_num_features == 16384
@@ -314,6 +331,7 @@ def test_defaults_named_pycolmap_are_pycolmap_defaults():
         "max_reg_trials",
     ):
         assert getattr(defaults, name) == pytest.approx(getattr(pipeline.mapper, name)), name
+    assert defaults.structure_less_fallback == pipeline.structure_less_registration_fallback
 
 
 def test_working_size_is_the_smallest_with_enough_features():
@@ -408,9 +426,17 @@ def test_unrelated_images_fail_with_report(tmp_path):
     assert report["check"] is None and report["checks"] == []  # no model: nothing checked, nothing passed
     # every retry was made (so each way of reusing a database ran) and the error says so
     attempts = report["attempts"]
-    assert [a["name"] for a in attempts] == ["as configured", "more features", "relaxed mapper", "guided matching"]
-    assert [a["reused"] for a in attempts] == ["nothing", "nothing", "matches", "features"]
-    assert attempts[3]["features_median"] == attempts[1]["features_median"]  # attempt 2's features, copied
+    assert [a["name"] for a in attempts] == [
+        "as configured",
+        "more features",
+        "relaxed mapper",
+        "wide-baseline features",
+        "guided matching",
+    ]
+    assert [a["reused"] for a in attempts] == ["nothing", "nothing", "matches", "nothing", "features"]
+    assert attempts[3]["options"]["wide_baseline"] and "DSP" in attempts[3]["settings"]
+    assert attempts[4]["features_median"] == attempts[1]["features_median"]  # attempt 2's features, copied
+    assert not attempts[4]["options"]["wide_baseline"]
     assert "tried as configured 0/6" in msg
 
 

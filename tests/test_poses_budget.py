@@ -5,6 +5,7 @@ its pycolmap steps stubbed (no COLMAP run)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -17,7 +18,7 @@ from nerfpipe.stages.poses.budget import AttemptCost, cap_working_size, fit_retr
 from nerfpipe.stages.poses.colmap import SfmSettings
 
 
-def _settings(size: int = 3200, cap: int = 8192) -> SfmSettings:
+def _settings(size: int = 3200, cap: int = 8192, **kw) -> SfmSettings:
     return SfmSettings(
         max_image_size=size,
         max_num_features=cap,
@@ -27,6 +28,7 @@ def _settings(size: int = 3200, cap: int = 8192) -> SfmSettings:
         sequential_overlap=10,
         num_threads=2,
         seed=0,
+        **kw,
     )
 
 
@@ -58,6 +60,12 @@ def test_retry_costs_are_predicted_from_the_first_attempt():
     assert predict(FIRST, 3200, 8192, "nothing") == pytest.approx(20 * 10.24 + 10 * ratio**2 + 5 * ratio)
     assert predict(FIRST, 1000, 8192, "matches") == 10.0 and predict(FIRST, 1000, 8192, "neighbours") == 5.0
     assert predict(FIRST, 1000, 8192, "features") == 3 * 10.0 + 20 * 5.0  # guided: matching x 3, mapping x 20
+    # wide-baseline features at the first attempt's size: extraction x 7.5, 4 x the features (6,000): matching
+    # 16 x 1.3, mapping 4 x
+    assert predict(FIRST, 1000, 8192, "nothing", wide=True) == pytest.approx(7.5 * 20 + 16 * 1.3 * 10 + 4 * 5)
+    wide = _settings(1000, 8192, wide_baseline=True)
+    assert fit_retry(wide, "nothing", FIRST, 400.0, 4000)[0] == wide
+    assert fit_retry(wide, "nothing", FIRST, 300.0, 4000)[0] is None  # never shrunk: made at 1000 px already
 
 
 def test_an_extraction_retry_is_shrunk_to_fit_or_left_out():
@@ -74,7 +82,7 @@ def test_an_extraction_retry_is_shrunk_to_fit_or_left_out():
 
 
 def _run_ladder(tmp_path: Path, monkeypatch, registered: list[int], first: AttemptCost, time_budget: float):
-    """run_attempts over the 4-attempt plan (attempt 1 at 1000 px) with pycolmap stubbed; attempt k registers
+    """run_attempts over the 5-attempt plan (attempt 1 at 1000 px) with pycolmap stubbed; attempt k registers
     registered[k - 1] of 22 (cameras pass, no consistency check applies); the first attempt's cost is `first`."""
     from nerfpipe.data.rundir import MetricsLog
     from nerfpipe.stages.poses import attempts
@@ -100,7 +108,7 @@ def _run_ladder(tmp_path: Path, monkeypatch, registered: list[int], first: Attem
     phase = PhaseTimer(
         state, MetricsLog(tmp_path / "metrics.csv", ["step", "seconds", "phase", "images", "registered"]), None
     )
-    plan = attempts.ladder(_settings(1000, 8192), 4, long_side=4000)
+    plan = attempts.ladder(_settings(1000, 8192), 5, long_side=4000)
     attempts.run_attempts(plan, tmp_path, tmp_path, [names], [4000], state, phase, budget=time_budget)
     return state
 
@@ -118,11 +126,13 @@ def _model(registered: int) -> pycolmap.Reconstruction:
 
 def test_ladder_leaves_out_retries_that_do_not_fit_once_a_usable_model_exists(tmp_path, monkeypatch):
     """Issue 53's 4000 px head: attempt 1 usable (13/22) but under 80 %; the budget (110 s) has no room for 3200 px
-    and 8192 features (predicted ~430 s) nor for any shrunk extraction, nor for guided matching (predicted 130 s);
-    the relaxed mapper (10 s) fits."""
+    and 8192 features (predicted ~430 s) nor for any shrunk extraction, nor for wide-baseline features (378 s) nor
+    guided matching (predicted 130 s); the relaxed mapper (10 s) fits."""
     state = _run_ladder(tmp_path, monkeypatch, [13, 16], FIRST, 110.0)
     assert [a["name"] for a in state.attempts] == ["as configured", "relaxed mapper"]
-    assert state.ladder["left_out_for_time"] == ["more features", "guided matching"]
+    # attempt 1 found 1,500 features a photo: wide-baseline features were moved ahead of more features (and neither fit)
+    assert state.ladder["left_out_for_time"] == ["wide-baseline features", "more features", "guided matching"]
+    assert "moved before 'more features'" in state.ladder["reordered"]
     assert state.ladder["time_budget_s"] == 110.0
     assert "SIFT at 1000 px" in state.attempts[1]["settings"]  # the relaxed mapper re-maps attempt 1's matches
     assert [a["kept"] for a in state.attempts] == [False, True]
@@ -130,9 +140,17 @@ def test_ladder_leaves_out_retries_that_do_not_fit_once_a_usable_model_exists(tm
     assert state.ladder["stopped"].startswith("the retries that fit the time budget were made")
 
 
+def test_wide_baseline_features_stay_late_when_attempt_1_found_few_features(tmp_path, monkeypatch):
+    few = dataclasses.replace(FIRST, features=600.0)  # under ENOUGH_FEATURES: more of them comes first
+    state = _run_ladder(tmp_path, monkeypatch, [13, 16], few, 110.0)
+    assert "reordered" not in state.ladder
+    assert state.ladder["left_out_for_time"][:2] == ["more features", "wide-baseline features"]
+
+
 def test_without_a_usable_model_the_budget_leaves_nothing_out(tmp_path, monkeypatch):
-    state = _run_ladder(tmp_path, monkeypatch, [5, 20], FIRST, 110.0)  # 5/22 is under 40 %: not usable
-    assert [a["name"] for a in state.attempts] == ["as configured", "more features"]
+    # 5/22 is under 40 %: not usable; the wide-baseline retry (predicted 378 s, moved ahead) runs all the same
+    state = _run_ladder(tmp_path, monkeypatch, [5, 20], FIRST, 110.0)
+    assert [a["name"] for a in state.attempts] == ["as configured", "wide-baseline features"]
     assert state.ladder["left_out_for_time"] == [] and "budget" not in state.attempts[1]
 
 

@@ -113,6 +113,23 @@ def test_a_folded_model_is_caught_at_its_creases(ring):
     assert common == VIEWS and largest == pytest.approx(180.0, abs=1.0) and median > 90
 
 
+def test_arcs_joined_through_a_wrong_pair_are_caught_at_the_join(ring):
+    """The second half of the turn placed 30 deg further round than it is (issue 53's head at 4000 px: two arcs
+    joined through a false pair): the step at the join (52.5 deg) is 2.3 x the others, no jump, but the model
+    contradicts the matches of the two photos there; each arc alone is right."""
+    azimuth = 360.0 / VIEWS * np.arange(VIEWS)
+    azimuth[VIEWS // 2 :] += 30.0
+    joined = _posed(ring["truth"], _ring(azimuth))
+    checks, record = consistency.consistency_checks(joined, ring["db"], ring["order"])
+    (check,) = checks
+    assert record["creases"] == [] and not check.ok and check.value == 1
+    (link,) = record["broken_links"]
+    assert link[:2] == [ring["order"][VIEWS // 2 - 1], ring["order"][VIEWS // 2]]
+    assert link[3] < consistency.BROKEN_LINK_SHARE and "contradict the poses" in check.says
+    _, right = consistency.consistency_checks(ring["truth"], ring["db"], ring["order"])
+    assert right["broken_links"] == []
+
+
 def test_without_a_capture_order_contradicted_matches_are_flagged_as_look_alike(ring):
     folded = _folded(ring["truth"])
     shuffled = list(np.random.default_rng(0).permutation(ring["order"]))

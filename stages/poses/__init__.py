@@ -10,12 +10,12 @@ view, distortion, principal point, reprojection error, track length) and its pos
 (`consistency`: a model that folded onto itself where faces look alike reprojects well; the capture order
 catches it) -> a fold is retried at once with the matches restricted to neighbours in capture order; under 80 %
 registered or a camera check failed, retries with pycolmap's size and feature cap, then a relaxed mapper, then
-guided matching, within the stage's time budget (`budget`: 5 s a photo by default, whatever their resolution;
-`attempts`, `choice`), keeping the attempt that registered most among those whose cameras pass the checks and
-whose poses agree with the photos (a failing one only when all fail, marked suspect) -> with a shared camera, the last
-bundle adjustments refine the principal point, then try a second radial term (`lens`: each kept where it
-pays) -> the written model's checks: `check` ("ok" | "suspect") and `checks` in poses_report.json and
-colmap/manifest.json, a warning line per failed check.
+wide-baseline features (for photos taken far apart), then guided matching, within the stage's time budget
+(`budget`: 5 s a photo by default, whatever their resolution; `attempts`, `choice`), keeping the attempt that
+registered most among those whose cameras pass the checks and whose poses agree with the photos (a failing one only
+when all fail, marked suspect) -> with a shared camera, the last bundle adjustments refine the principal point,
+then try a second radial term (`lens`: each kept where it pays) -> the written model's checks: `check` ("ok" |
+"suspect") and `checks` in poses_report.json and colmap/manifest.json, a warning line per failed check.
 
 Outputs (COLMAP conventions: OpenCV camera axes, `cam_from_world` poses, binary model):
   SCENE_DIR/colmap/images/          upright copies / video frames: the image folder of the model

@@ -8,8 +8,15 @@ usable model in hand, the retries spent their time budget), the stage tries, che
      that would repeat attempt 1's extraction), plain matching, the default mapper;
   3. "relaxed mapper": attempt 2's features and matches, mapped again with `RELAXED_MAPPER`'s thresholds
      (costs only the mapping);
-  4. "guided matching": attempt 2's features, matched again with guided matching (more inliers per pair;
-     verification also keeps pairs with as few inliers as the relaxed mapper accepts), relaxed mapper.
+  4. "wide-baseline features": new features made to survive larger changes of viewpoint
+     (`colmap.SfmSettings.wide_baseline`: SIFT upsampled 2x, DSP-SIFT, affine shapes) at attempt 1's working size
+     or 1000 px if smaller, attempt 1's cap, guided matching with pycolmap's verification (15 inliers a pair),
+     relaxed mapper. For photos taken far apart (22 photos all round a masked head, ~16 deg apart, 1000 px: 11-13
+     registered by the other attempts, 20 by this one; docs/BENCH_POSES.md);
+  5. "guided matching": the last plain extraction's features (attempt 2's), matched again with guided matching
+     (more inliers per pair; verification also keeps pairs with as few inliers as the relaxed mapper accepts),
+     relaxed mapper. After attempt 4, not before: its weak pairs misplaced cameras on that sparse set (15/22
+     registered, 2.0 deg median rotation error, against 0.4 deg), and its mapping is the ladder's slowest.
 Every extraction's cameras get the photos' EXIF focal prior before matching (`exif`). Every attempt's model is
 checked (`quality`) and compared with the photos' matches (`consistency`); `choice.choose` keeps the one that
 registered most among those whose cameras pass the checks, whose poses agree with the photos and that registered
@@ -48,7 +55,15 @@ from nerfpipe.data.rundir import config_to_json
 from nerfpipe.stages.poses import colmap as sfm
 from nerfpipe.stages.poses.budget import AttemptCost, attempt_cost, fit_retry
 from nerfpipe.stages.poses.choice import Candidate, candidate, choose, keepable, stop_reason
-from nerfpipe.stages.poses.colmap import PYCOLMAP_MAX_IMAGE_SIZE, PYCOLMAP_MAX_NUM_FEATURES, RELAXED_MAPPER, SfmSettings
+from nerfpipe.stages.poses.colmap import (
+    ENOUGH_FEATURES,
+    PYCOLMAP_MAX_IMAGE_SIZE,
+    PYCOLMAP_MAX_NUM_FEATURES,
+    PYCOLMAP_MIN_VERIFIED_INLIERS,
+    RELAXED_MAPPER,
+    WORKING_SIZES,
+    SfmSettings,
+)
 from nerfpipe.stages.poses.consistency import (
     AGREE_DEG,
     consistency_checks,
@@ -76,9 +91,9 @@ class Attempt:
     name: str
     settings: SfmSettings
     reuse: Literal["nothing", "features", "matches", "neighbours"] = "nothing"
-    """What to take from the last attempt that extracted features: its features (match again) or its
-    features and matches (map again); "neighbours": the database of the attempt just made, its verified pairs
-    restricted to neighbours in capture order (map again)."""
+    """What to take from the last attempt that extracted features: its features (match again; the last extraction that
+    was not wide-baseline) or its features and matches (map again); "neighbours": the database of the attempt just
+    made, its verified pairs restricted to neighbours in capture order (map again)."""
 
 
 def ladder(first: SfmSettings, max_attempts: int, long_side: int) -> list[Attempt]:
@@ -93,10 +108,19 @@ def ladder(first: SfmSettings, max_attempts: int, long_side: int) -> list[Attemp
     more = replace(first, max_image_size=size, max_num_features=cap)
     relaxed = replace(more, mapper=RELAXED_MAPPER)
     guided = replace(relaxed, guided_matching=True, min_verified_inliers=RELAXED_MAPPER.min_num_matches)
+    wide = replace(
+        first,
+        max_image_size=min(first.max_image_size, WORKING_SIZES[0]),
+        mapper=RELAXED_MAPPER,
+        guided_matching=True,
+        min_verified_inliers=PYCOLMAP_MIN_VERIFIED_INLIERS,
+        wide_baseline=True,
+    )
     return [
         Attempt(name="as configured", settings=first),
         Attempt(name="more features", settings=more),
         Attempt(name="relaxed mapper", settings=relaxed, reuse="matches"),
+        Attempt(name="wide-baseline features", settings=wide),
         Attempt(name="guided matching", settings=guided, reuse="features"),
     ][:max_attempts]
 
@@ -105,7 +129,8 @@ def describe(settings: SfmSettings, long_side: int) -> str:
     """One line: what an attempt's settings are, for photos whose long side is `long_side` px."""
     t = settings.mapper
     return (
-        f"SIFT at {min(settings.max_image_size, long_side)} px, {settings.max_num_features} features, "
+        f"{'wide-baseline SIFT (2x upsampled, DSP, affine)' if settings.wide_baseline else 'SIFT'} at "
+        f"{min(settings.max_image_size, long_side)} px, {settings.max_num_features} features, "
         f"{'guided' if settings.guided_matching else 'plain'} {settings.matcher} matching, mapper "
         f"min_num_matches {t.min_num_matches}, init_min_num_inliers {t.init_min_num_inliers}, "
         f"abs_pose_min_num_inliers {t.abs_pose_min_num_inliers}"
@@ -140,6 +165,7 @@ def run_attempts(
     evidence_db = db  # the database with every pair the photos gave, that the consistency checks read
     first: AttemptCost | None = None
     stopped = f"every attempt allowed was made (max_attempts {len(plan)})"
+    reordered = None
     k = 0
     while k < len(plan):
         attempt = plan[k]
@@ -171,7 +197,8 @@ def run_attempts(
                         {n: p.focal_px for n, p in state.exif_focal.items()},
                         {n: p.weak for n, p in state.exif_focal.items() if p.weak},
                     )
-                    extracted, source = db, s
+                    if not s.wide_baseline:  # "features" retries re-match plain SIFT (the ladder's doc)
+                        extracted, source = db, s
                 state.stats = sfm.database_stats(db)
             if textured(state.stats):
                 with phase("matching"):
@@ -228,6 +255,8 @@ def run_attempts(
             break
         if _folded(found) and k < len(plan) and not any(a.reuse == "neighbours" for a in plan):
             plan = [*plan[:k], Attempt(name="neighbours in capture order", settings=s, reuse="neighbours"), *plan[k:-1]]
+        elif k == 1 and first.features >= ENOUGH_FEATURES:
+            plan, reordered = _wide_first(plan, first.features)
     chosen = choose(candidates, total)
     kept_db, state.stats, state.all_models, state.model, state.focal_prior = results[chosen.index]
     state.attempts[chosen.index]["kept"] = True
@@ -243,6 +272,7 @@ def run_attempts(
         "time_budget_s": None if math.isinf(budget) else round(budget, 1),
         "left_out_for_time": skipped,
         "rule": LADDER_RULE,
+        **({"reordered": reordered} if reordered else {}),
     }
     phase.attempt = 1
     os.replace(kept_db, build / "database.db")
@@ -275,6 +305,23 @@ def _within_budget(
         state.warnings.append(f"retry '{attempt.name}' {why} (poses --time-budget)")
         return None
     return replace(attempt, settings=fitted), why
+
+
+def _wide_first(plan: list[Attempt], features: float) -> tuple[list[Attempt], str | None]:
+    """`plan` with its wide-baseline retry moved right after attempt 1, and why (None: no such retry, or already
+    next). Attempt 1's photos had `features` (median) >= ENOUGH_FEATURES: what kept images out was how their
+    features link across views, not their number, so new features that survive a change of viewpoint come before
+    more of the same (which cost the time budget first: 22 photos all round a masked head at 4000 px, budget
+    110 s: "more features" registered 15 of 22 in 71 s and left the wide-baseline retry no time)."""
+    wide = [i for i, a in enumerate(plan) if a.settings.wide_baseline]
+    if not wide or wide[0] <= 1:
+        return plan, None
+    i = wide[0]
+    moved = [plan[0], plan[i], *plan[1:i], *plan[i + 1 :]]
+    return moved, (
+        f"'{plan[i].name}' moved before '{plan[1].name}': attempt 1 found {features:.0f} SIFT features a photo "
+        f"(median, >= {ENOUGH_FEATURES}), so its unregistered photos lacked links between views, not features"
+    )
 
 
 def _folded(found: Candidate) -> bool:

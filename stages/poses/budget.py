@@ -15,7 +15,9 @@ photos) bounds two things, each from times the stage itself measured:
   mapper costs RELAXED_MAPPING mappings; guided re-matching GUIDED_MATCHING matchings and GUIDED_MAPPING mappings
   (measured, below). An extraction retry ("more features") that does not fit is shrunk first
   (its working size down the candidates to the first attempt's, its cap halved down to the first attempt's
-  features): the largest that fits runs; when none does, the retry is left out.
+  features): the largest that fits runs; when none does, the retry is left out. Wide-baseline features cost
+  WIDE_EXTRACTION x an extraction at their size and find WIDE_FEATURES x its features (capped), matched at
+  WIDE_MATCHING x the plain cost of as many; they are never shrunk (made at 1000 px or the first attempt's size).
 Without a usable model, every retry runs whatever the budget (the alternative is a failed or a suspect result),
 and so does the retry that cures a fold (`consistency`: a mapping of restricted pairs). The budget is wall-clock:
 on a loaded machine the same photos get fewer retries. `Config.time_budget = 0` bounds nothing.
@@ -33,6 +35,9 @@ __all__ = [
     "SECONDS_PER_PHOTO",
     "MIN_SECONDS",
     "FIRST_EXTRACTION_SHARE",
+    "WIDE_EXTRACTION",
+    "WIDE_FEATURES",
+    "WIDE_MATCHING",
     "stage_budget",
     "cap_working_size",
     "AttemptCost",
@@ -55,6 +60,16 @@ long (the head, masked: 11.1 s against 11.4 s at 1000 px; 22 photos of 4000 px a
 guided matching matches 3 x as long and its many weak pairs make the relaxed mapper's trials 18 x as long (the
 same 22: 31.6 s against 10.6 s, 134 s against 7.3 s; the prediction before these factors let it start with 20 s
 left and the stage end at 255 s of a 110 s budget)."""
+
+
+WIDE_EXTRACTION = 7.5
+WIDE_FEATURES = 4.0
+WIDE_MATCHING = 1.3
+"""Wide-baseline features (`colmap.SfmSettings.wide_baseline`) against plain SIFT at the same working size and cap:
+SIFT upsampled 2x with DSP and affine shapes extracts 7.5 x as long and finds 4 x the features (the 2x upsampling's
+pixels), which guided matching matches in 1.3 x the time plain matching would take on as many (22 photos of the
+masked head all round at 1000 px, 2 shared cores: 41 s against 5.5 s, 2,394 against 601 features, 15.6 s against
+0.77 s of matching; mapping 2.4 s against 0.33 s, as the features)."""
 
 
 def stage_budget(asked: float | None, photos: int) -> float:
@@ -111,16 +126,25 @@ class AttemptCost:
     mapping: float
 
 
-def predict(first: AttemptCost, size: int, cap: int, reuse: str) -> float:
-    """Predicted seconds of a retry after `first` (module doc): `reuse` "nothing" (extract at `size` with `cap`),
-    "features" (match and map again), "matches" or "neighbours" (map again)."""
+def predict(first: AttemptCost, size: int, cap: int, reuse: str, *, wide: bool = False) -> float:
+    """Predicted seconds of a retry after `first` (module doc): `reuse` "nothing" (extract at `size` with `cap`;
+    `wide`: wide-baseline features, matched guided), "features" (match and map again), "matches" or "neighbours"
+    (map again)."""
+    pixels = (size / first.size) ** 2
+    if wide:
+        features = min(cap, first.features * pixels * WIDE_FEATURES) if first.features > 0 else cap
+        ratio = features / max(first.features, 1.0)
+        return (
+            first.extraction * pixels * WIDE_EXTRACTION
+            + first.matching * ratio**2 * WIDE_MATCHING
+            + first.mapping * ratio
+        )
     if reuse == "neighbours":
         return first.mapping
     if reuse == "matches":
         return RELAXED_MAPPING * first.mapping
     if reuse == "features":
         return GUIDED_MATCHING * first.matching + GUIDED_MAPPING * first.mapping
-    pixels = (size / first.size) ** 2
     features = min(cap, first.features * pixels) if first.features > 0 else cap
     ratio = features / max(first.features, 1.0)
     return first.extraction * pixels + first.matching * ratio**2 + first.mapping * ratio
@@ -131,10 +155,12 @@ def fit_retry(
 ) -> tuple[SfmSettings | None, float, str]:
     """The retry to run within `left` seconds: `settings` if its predicted cost fits, an extraction retry shrunk
     until it does (module doc), or None. Returns (settings or None, predicted seconds, what was decided)."""
-    cost = predict(first, min(settings.max_image_size, long_side), settings.max_num_features, reuse)
+    cost = predict(
+        first, min(settings.max_image_size, long_side), settings.max_num_features, reuse, wide=settings.wide_baseline
+    )
     if cost <= left:
         return settings, cost, f"predicted {cost:.0f} s, {left:.0f} s of the budget left"
-    if reuse == "nothing":
+    if reuse == "nothing" and not settings.wide_baseline:
         for size, cap in _shrunk(settings, first, long_side):
             cost = predict(first, size, cap, reuse)
             if cost <= left:

@@ -53,10 +53,11 @@ class Config:
     max_num_features: int = sfm.PYCOLMAP_MAX_NUM_FEATURES
     """SIFT features kept per image, the coarsest scales first (pycolmap's 8192; matching time grows with its
     square; fox at 1000 px finds 942-1812, so the cap only binds on larger working sizes)."""
-    max_attempts: int = 4
+    max_attempts: int = 5
     """Settings to try while under 80 % of the images register or a camera check fails: 1 = no retry, 2 = also
-    pycolmap's 3200 px and 8192 features, 3 = also relaxed mapper thresholds, 4 = also guided matching (see
-    stages.poses.attempts; a time budget may stop it earlier once a usable model exists)."""
+    pycolmap's 3200 px and 8192 features, 3 = also relaxed mapper thresholds, 4 = also wide-baseline features, 5 =
+    also guided matching (see stages.poses.attempts; a time budget may stop it earlier once a usable model
+    exists)."""
     matcher: Literal["auto", "exhaustive", "sequential"] = "auto"
     """Image pairs to match: 'auto' = exhaustive for photo folders, sequential for video."""
     single_camera: bool = True

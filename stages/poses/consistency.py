@@ -14,7 +14,8 @@ face) and still report 0.3 px. Three pieces of evidence that the mapper did not 
   along a path, so that consecutive photos (by name) are neighbours: most of them share a verified pair. Where the
   order is such a path, the model's camera path in that order should have no jumps: a step (the rotation between
   two consecutive cameras) over JUMP_FACTOR x the median step and over JUMP_MIN_DEG is a jump; a fold makes one at
-  each crease.
+  each crease. Nor should it contradict the matches of consecutive photos (`broken_links`): a model that joined
+  two parts of the set through a wrong pair does where they meet, even when its steps look even.
 - **agreement between attempts** (`rotation_disagreement`): two models of the same photos should agree on the
   rotation between every two cameras (a comparison that needs no alignment). When they do not, at least one is
   wrong, and the evidence above says which.
@@ -56,6 +57,8 @@ __all__ = [
     "neighbour_window",
     "verified_pairs",
     "creases",
+    "broken_links",
+    "BROKEN_LINK_SHARE",
     "consistency_checks",
     "LOOK_ALIKE_SHARE",
     "AGREE_DEG",
@@ -76,6 +79,10 @@ LOOK_ALIKE_SHARE = 0.05
 """Without a capture order: more than this share of the verified inlier matches contradicting the poses is
 suspect (a right model of distinct surfaces explains ~99.9 %: the synthetic scene; a folded carton contradicted
 7 %, the right model of it 52 %, all of them false pairs between its look-alike faces)."""
+BROKEN_LINK_SHARE = 0.5
+"""Consecutive photos' verified pair is contradicted when the model's poses explain under this share of its inlier
+matches (`broken_links`; a wrong model of the head all round explained 0-5 % of three such pairs, the right models
+of the same photos every consecutive pair over 80 %)."""
 AGREE_DEG = 2.0
 """Two attempts agree when the median difference of their rotations between two cameras is under this."""
 
@@ -262,6 +269,25 @@ def creases(
     return [(a, b, s, verified[frozenset((a, b))]) for a, b, s in found if frozenset((a, b)) in verified], median
 
 
+def broken_links(
+    rec: pycolmap.Reconstruction, order: Sequence[str], evidence: Sequence[PairEvidence]
+) -> list[tuple[str, str, int, float]]:
+    """Consecutive registered photos in capture `order` whose verified pair the model's poses contradict: (name,
+    next name, verified matches, share of them explained) for each such pair under BROKEN_LINK_SHARE. Photos taken
+    one after the other see the same surface, so their matches are the surest evidence of the path; a model that
+    attached part of the set through a wrong pair (22 photos all round a masked head: two arcs joined 30 deg off)
+    contradicts the true matches where the arcs meet, even where its steps look even."""
+    by_pair = {frozenset((p.a, p.b)): p for p in evidence}
+    registered = {im.name for im in rec.images.values() if im.has_pose}
+    seq = [n for n in order if n in registered]
+    out = []
+    for a, b in itertools.pairwise(seq):
+        p = by_pair.get(frozenset((a, b)))
+        if p is not None and p.explained < BROKEN_LINK_SHARE * p.inliers:
+            out.append((a, b, p.inliers, p.explained / p.inliers))
+    return out
+
+
 def consistency_checks(
     rec: pycolmap.Reconstruction, db_path: Path, order: Sequence[str]
 ) -> tuple[list[Check], dict[str, Any]]:
@@ -285,19 +311,29 @@ def consistency_checks(
     checks: list[Check] = []
     if record["order_is_path"] and rec.num_reg_images() >= 4:
         folds, median = creases(rec, order, verified)
-        record.update(median_step_deg=round(median, 2), creases=[[a, b, round(s, 1), n] for a, b, s, n in folds])
+        folded = {frozenset((a, b)) for a, b, _, _ in folds}
+        broken = [link for link in broken_links(rec, order, evidence) if frozenset(link[:2]) not in folded]
+        record.update(
+            median_step_deg=round(median, 2),
+            creases=[[a, b, round(s, 1), n] for a, b, s, n in folds],
+            broken_links=[[a, b, n, round(e, 3)] for a, b, n, e in broken],
+        )
         where = "; ".join(
-            f"{a} and {b} share {n} verified matches but are {s:.0f} deg apart" for a, b, s, n in folds[:3]
+            [f"{a} and {b} share {n} verified matches but are {s:.0f} deg apart" for a, b, s, n in folds[:3]]
+            + [f"{a} and {b} share {n} verified matches, {e:.0%} of them explained" for a, b, n, e in broken[:3]]
         )
         says = (
-            f"{len(folds)} place(s) where consecutive photos that see the same thing are placed far apart "
-            f"(over {JUMP_FACTOR:g} x the median step of {median:.1f} deg and {JUMP_MIN_DEG:g} deg): {where}: the "
-            "reconstruction folded onto itself: faces that look alike were matched to one another, or (the object "
-            "on a turntable) a background that did not turn with it was; mask the background (--masks) if so"
-            if folds
-            else f"the camera path in capture order has no fold (median step {median:.1f} deg)"
+            f"{len(folds) + len(broken)} place(s) where consecutive photos that see the same thing are placed far "
+            f"apart (over {JUMP_FACTOR:g} x the median step of {median:.1f} deg and {JUMP_MIN_DEG:g} deg) or so that "
+            f"their matches contradict the poses (under {BROKEN_LINK_SHARE:.0%} explained): {where}: the "
+            "reconstruction folded onto itself or joined parts of the set through a wrong pair: faces that look "
+            "alike were matched to one another, or (the object on a turntable) a background that did not turn "
+            "with it was; mask the background (--masks) if so"
+            if folds or broken
+            else f"the camera path in capture order has no fold (median step {median:.1f} deg) and explains the "
+            "matches of consecutive photos"
         )
-        checks.append(Check.upper("capture_order", len(folds), 0, says=says))
+        checks.append(Check.upper("capture_order", len(folds) + len(broken), 0, says=says))
     elif evidence:
         bad = sum(p.inliers for p in contradicted) / max(sum(p.inliers for p in evidence), 1)
         record["contradicted_share"] = round(bad, 4)
