@@ -12,7 +12,7 @@ usable model in hand, the retries spent their time budget), the stage tries, che
      (`colmap.SfmSettings.wide_baseline`: SIFT upsampled 2x, DSP-SIFT, affine shapes) at attempt 1's working size
      or 1000 px if smaller, attempt 1's cap, guided matching with pycolmap's verification (15 inliers a pair),
      relaxed mapper. For photos taken far apart (22 photos all round a masked head, ~16 deg apart, 1000 px: 11-13
-     registered by the other attempts, 20 by this one; docs/BENCH_POSES.md);
+     registered by the other attempts, 20 by this one, all within 1 deg; docs/BENCH_POSES.md);
   5. "guided matching": the last plain extraction's features (attempt 2's), matched again with guided matching
      (more inliers per pair; verification also keeps pairs with as few inliers as the relaxed mapper accepts),
      relaxed mapper. After attempt 4, not before: its weak pairs misplaced cameras on that sparse set (15/22
