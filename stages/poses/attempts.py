@@ -21,19 +21,21 @@ Every extraction's cameras get the photos' EXIF focal prior before matching (`ex
 checked (`quality`) and compared with the photos' matches (`consistency`); `choice.choose` keeps the one that
 registered most among those whose cameras pass the checks, whose poses agree with the photos and that registered
 at least FAIL_FRACTION (40 %); only when there is none, the most registered, marked suspect with a warning.
+Where attempt 1 found ENOUGH_FEATURES (1,000) or more SIFT features a photo (median) and did not fold, attempt 4
+moves up to be the first retry (`_wide_first`; the report's `ladder.reordered`): the photos lack links, not features.
 An attempt whose model folded along the capture order (`consistency.creases`: consecutive photos that share
-matches placed far apart) is followed at once by
+matches placed far apart, or whose matches it contradicts) is followed at once by
   "neighbours in capture order": its features and matches, the verified pairs restricted to photos within
      `consistency.neighbour_window` places of one another in name order (a face is then matched only with the
      photos taken next to it, never with a look-alike face on the other side), mapped again (costs a mapping,
      usually cheaper than the first: fewer, consistent pairs);
 it takes the place of the ladder's last attempt (max_attempts still bounds the count). Each attempt's record
 says how far its rotations between two cameras differ from the kept model's (`consistency.rotation_disagreement`).
-Attempt 2 is pycolmap's own defaults (bar first_octave, see `colmap.SMALL_IMAGE`, and
-the seeds) and is never skipped for time, so a set that ends under 80 % should not end with fewer images than
-pycolmap's defaults register unless their model failed a camera check (a set at 80 %+ with sane cameras after
-attempt 1 is not retried). tests/test_poses.py checks this on a small synthetic set; COLMAP's randomness makes
-it no proof.
+"more features" is pycolmap's own defaults (bar first_octave, see `colmap.SMALL_IMAGE`, and the seeds) and runs
+whatever the budget while no usable model exists, so a set that ends unusable should not end with fewer images
+than pycolmap's defaults register unless their model failed a check (a set at 80 %+ with sane cameras after
+attempt 1 is not retried; with a usable model in hand the budget may leave it out). tests/test_poses.py checks this
+on a small synthetic set; COLMAP's randomness makes it no proof.
 """
 
 from __future__ import annotations
