@@ -125,7 +125,7 @@ def test_arcs_joined_through_a_wrong_pair_are_caught_at_the_join(ring):
     assert record["creases"] == [] and not check.ok and check.value == 1
     (link,) = record["broken_links"]
     assert link[:2] == [ring["order"][VIEWS // 2 - 1], ring["order"][VIEWS // 2]]
-    assert link[3] < consistency.BROKEN_LINK_SHARE and "contradict the poses" in check.says
+    assert link[3] < consistency.CONTRADICTED_SHARE and "contradict the poses" in check.says
     _, right = consistency.consistency_checks(ring["truth"], ring["db"], ring["order"])
     assert right["broken_links"] == []
 

@@ -57,8 +57,9 @@ __all__ = [
     "neighbour_window",
     "verified_pairs",
     "creases",
+    "contradicted_pairs",
     "broken_links",
-    "BROKEN_LINK_SHARE",
+    "CONTRADICTED_SHARE",
     "consistency_checks",
     "LOOK_ALIKE_SHARE",
     "AGREE_DEG",
@@ -79,10 +80,10 @@ LOOK_ALIKE_SHARE = 0.05
 """Without a capture order: more than this share of the verified inlier matches contradicting the poses is
 suspect (a right model of distinct surfaces explains ~99.9 %: the synthetic scene; a folded carton contradicted
 7 %, the right model of it 52 %, all of them false pairs between its look-alike faces)."""
-BROKEN_LINK_SHARE = 0.5
-"""Consecutive photos' verified pair is contradicted when the model's poses explain under this share of its inlier
-matches (`broken_links`; a wrong model of the head all round explained 0-5 % of three such pairs, the right models
-of the same photos every consecutive pair over 80 %)."""
+CONTRADICTED_SHARE = 0.5
+"""A verified pair is contradicted when the model's poses explain under this share of its inlier matches
+(`contradicted_pairs`: the report's count, the look-alike share, `broken_links`; a wrong model of the head all round
+explained 0-5 % of three consecutive pairs, the right models of the same photos every consecutive pair over 80 %)."""
 AGREE_DEG = 2.0
 """Two attempts agree when the median difference of their rotations between two cameras is under this."""
 
@@ -269,21 +270,25 @@ def creases(
     return [(a, b, s, verified[frozenset((a, b))]) for a, b, s in found if frozenset((a, b)) in verified], median
 
 
+def contradicted_pairs(evidence: Sequence[PairEvidence]) -> list[PairEvidence]:
+    """The verified pairs whose inlier matches the model's poses mostly contradict (under CONTRADICTED_SHARE
+    explained)."""
+    return [p for p in evidence if p.explained < CONTRADICTED_SHARE * p.inliers]
+
+
 def broken_links(
-    rec: pycolmap.Reconstruction, order: Sequence[str], evidence: Sequence[PairEvidence]
+    rec: pycolmap.Reconstruction, order: Sequence[str], contradicted: Sequence[PairEvidence]
 ) -> list[tuple[str, str, int, float]]:
-    """Consecutive registered photos in capture `order` whose verified pair the model's poses contradict: (name,
-    next name, verified matches, share of them explained) for each such pair under BROKEN_LINK_SHARE. Photos taken
-    one after the other see the same surface, so their matches are the surest evidence of the path; a model that
-    attached part of the set through a wrong pair (22 photos all round a masked head: two arcs joined 30 deg off)
-    contradicts the true matches where the arcs meet, even where its steps look even."""
-    by_pair = {frozenset((p.a, p.b)): p for p in evidence}
-    registered = {im.name for im in rec.images.values() if im.has_pose}
-    seq = [n for n in order if n in registered]
+    """Consecutive registered photos in capture `order` (`order_steps`) whose verified pair is among the
+    `contradicted` ones (`contradicted_pairs`): (name, next name, verified matches, share of them explained). Photos
+    taken one after the other see the same surface, so their matches are the surest evidence of the path; a model
+    that attached part of the set through a wrong pair (22 photos all round a masked head: two arcs joined 30 deg
+    off) contradicts the true matches where the arcs meet, even where its steps look even."""
+    by_pair = {frozenset((p.a, p.b)): p for p in contradicted}
     out = []
-    for a, b in itertools.pairwise(seq):
+    for a, b, _ in order_steps(rec, order):
         p = by_pair.get(frozenset((a, b)))
-        if p is not None and p.explained < BROKEN_LINK_SHARE * p.inliers:
+        if p is not None:
             out.append((a, b, p.inliers, p.explained / p.inliers))
     return out
 
@@ -301,7 +306,7 @@ def consistency_checks(
     verified = verified_pairs(db_path)
     evidence = pair_evidence(db_path, rec)
     share = explained_share(evidence)
-    contradicted = [p for p in evidence if p.explained < 0.5 * p.inliers]
+    contradicted = contradicted_pairs(evidence)
     record: dict[str, Any] = {
         "explained_matches": None if math.isnan(share) else round(share, 4),
         "contradicted_pairs": len(contradicted),
@@ -312,7 +317,7 @@ def consistency_checks(
     if record["order_is_path"] and rec.num_reg_images() >= 4:
         folds, median = creases(rec, order, verified)
         folded = {frozenset((a, b)) for a, b, _, _ in folds}
-        broken = [link for link in broken_links(rec, order, evidence) if frozenset(link[:2]) not in folded]
+        broken = [link for link in broken_links(rec, order, contradicted) if frozenset(link[:2]) not in folded]
         record.update(
             median_step_deg=round(median, 2),
             creases=[[a, b, round(s, 1), n] for a, b, s, n in folds],
@@ -325,7 +330,7 @@ def consistency_checks(
         says = (
             f"{len(folds) + len(broken)} place(s) where consecutive photos that see the same thing are placed far "
             f"apart (over {JUMP_FACTOR:g} x the median step of {median:.1f} deg and {JUMP_MIN_DEG:g} deg) or so that "
-            f"their matches contradict the poses (under {BROKEN_LINK_SHARE:.0%} explained): {where}: the "
+            f"their matches contradict the poses (under {CONTRADICTED_SHARE:.0%} explained): {where}: the "
             "reconstruction folded onto itself or joined parts of the set through a wrong pair: faces that look "
             "alike were matched to one another, or (the object on a turntable) a background that did not turn "
             "with it was; mask the background (--masks) if so"
