@@ -242,6 +242,16 @@ def _head_azimuths(names: list[str]) -> list[float]:
     return [float(az[all_names.index(n)] - az[all_names.index(names[0])]) for n in names]
 
 
+def _voxels(
+    images: list[Path], masks: list[Path], folder: Path, weights: str, mirror: bool, azimuths: list[float] | None = None
+) -> None:
+    """`nerfpipe voxels IMAGES FOLDER --masks ... --weights ... [--no-mirror] [--azimuths ...]`, as a user types it."""
+    cmd = [sys.executable, "-m", "nerfpipe.cli", "voxels", *map(str, images), str(folder)]
+    cmd += ["--masks", ",".join(map(str, masks)), "--weights", weights, "--mirror" if mirror else "--no-mirror"]
+    cmd += ["--overwrite"] + (["--azimuths", ",".join(f"{a:.2f}" for a in azimuths)] if azimuths else [])
+    subprocess.run(cmd, check=True)
+
+
 def _photo(out: Path, weights: str, mirror: bool) -> dict:
     images = sorted((DATA / "head" / "images").iterdir())
     if not images:
@@ -251,24 +261,9 @@ def _photo(out: Path, weights: str, mirror: bool) -> dict:
     result = {}
     for name, chosen, mk in (("head_1", picks[:1], masks[:1]), ("head_5", picks, masks)):
         folder = out / name
-        cmd = [
-            sys.executable,
-            "-m",
-            "nerfpipe.cli",
-            "voxels",
-            *map(str, chosen),
-            str(folder),
-            "--masks",
-            ",".join(map(str, mk)),
-            "--weights",
-            weights,
-            "--mirror" if mirror else "--no-mirror",
-            "--overwrite",
-        ]
-        if len(chosen) > 1:
-            cmd += ["--azimuths", ",".join(f"{a:.2f}" for a in _head_azimuths([p.name for p in chosen]))]
+        azimuths = _head_azimuths([p.name for p in chosen]) if len(chosen) > 1 else None
         t0 = time.perf_counter()
-        subprocess.run(cmd, check=True)
+        _voxels(chosen, mk, folder, weights, mirror, azimuths)
         result[name] = {"photos": [p.name for p in chosen], "seconds": round(time.perf_counter() - t0, 1)}
         DOCS.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(folder / "preview.png", DOCS / f"{name}_preview.png")
@@ -300,10 +295,7 @@ def _cup(out: Path, weights: str, mirror: bool) -> dict:
         cv2.fillPoly(mask, [np.array(polygon).round().astype(np.int32)], 255)
     Image.fromarray(photo).save(folder / "coffee.png")
     Image.fromarray(mask).save(folder / "coffee_mask.png")
-    cmd = [sys.executable, "-m", "nerfpipe.cli", "voxels", str(folder / "coffee.png"), str(folder / "out")]
-    cmd += ["--masks", str(folder / "coffee_mask.png"), "--weights", weights, "--overwrite"]
-    cmd += ["--mirror" if mirror else "--no-mirror"]
-    subprocess.run(cmd, check=True)
+    _voxels([folder / "coffee.png"], [folder / "coffee_mask.png"], folder / "out", weights, mirror)
     prob = torch.from_numpy(np.load(folder / "out" / "occupancy.npy"))
     above = [render_grid(prob, turn, 50.0, 200, 0.5) for turn in (0.0, 90.0, 180.0, 270.0)]
     DOCS.mkdir(parents=True, exist_ok=True)
