@@ -458,6 +458,27 @@ def test_looked_at_crop_meshes_the_object_not_the_floor(tmp_path):
     assert wb[0, 2] < s.FLOOR - 0.05 and (wb[1, :2] - wb[0, :2] > 1.9).all(), wb
 
 
+class _PoleBesideObjects(_ObjectInRoom):
+    """_ObjectInRoom with a pole beside the objects, taller than the box the views look at (a lamp beside the fox)."""
+
+    def sdf(self, x):
+        r = torch.linalg.vector_norm(x[:, :2] - torch.tensor([0.75, 0.0], dtype=x.dtype), dim=-1) - 0.08
+        return torch.minimum(super().sdf(x), torch.maximum(r, x[:, 2] - 1.5))
+
+
+def test_a_piece_the_box_cuts_away_is_not_counted_as_missed_surface(tmp_path):
+    """The looked-at box cuts through the pole: the piece goes (surroundings), and the self-check counts the rays
+    that see it as cut away on purpose, not as surface the mesh lacks (the fox's frame read as 7 % missed)."""
+    s = _PoleBesideObjects(tmp_path)
+    cfg = mesh.Config(run_dir=tmp_path, out=tmp_path / "m.ply", resolution=48, threshold=50.0, colors=False)
+    report = json.loads(mesh.extract(s, cfg).report.read_text())
+    cut = next(step for step in report["steps"] if step["step"] == "box_cut_pieces")
+    assert cut["removed_pieces"] == 1, cut
+    assert report["agreement"]["on_pieces_cut_away"] > 100, report["agreement"]
+    checks = {c["name"]: c for c in report["checks"]}
+    assert report["check"] == "ok" and checks["missed_surface"]["value"] < 0.01, checks
+
+
 def test_texture_baked_from_the_field_through_the_stage(tmp_path):
     """`texture=True`: OBJ + MTL + PNG (and a GLB with the PNG inside) whose texels read back the field's colour
     at the surface; a PLY output with a texture is refused in one line."""

@@ -11,7 +11,9 @@ lattice's), and along each of their rays:
   more than `tol` beyond: the objects missing, a disk where the field shows a cylinder on it, a hole through an
   object), and no mesh surface lies within NEAR_VOXELS voxels of the point in space (points sampled on the mesh
   every half voxel): a ray that grazes an edge becomes half opaque through the density's soft rim a voxel or two
-  outside the level set, where the ray itself never meets the mesh; that surface is not missing.
+  outside the level set, where the ray itself never meets the mesh; that surface is not missing. Nor is the field's
+  surface within NEAR_VOXELS of a piece the stage cut away on purpose (`cut_away`: the looked-at box's pieces at its
+  edge, `crop.drop_box_cut_pieces`): those rays count in `cut_away`, not in `field_surface`.
 - `extra`: the ray hits the mesh more than `tol` before the field's crossing, or where the field stays nearly
   transparent (opacity through the box below EMPTY_OPACITY): fog, floaters or a fattened surface meshed.
 `tol` = TOL_VOXELS voxels of the grid + TOL_DEPTH of the depth along the ray.
@@ -69,6 +71,8 @@ class Agreement:
     """... of which the mesh is more than tol before the field's surface, or where the field shows nothing."""
     views: int
     """Training views rasterised (a view whose camera the mesh surrounds is skipped)."""
+    cut_away: int = 0
+    """Rays whose field surface lies on a piece the stage removed on purpose (module doc): not counted above."""
     tol: float
     """The tolerance's voxel part, scene units."""
 
@@ -87,6 +91,7 @@ class Agreement:
             "rays_hitting_mesh": self.mesh_surface,
             "extra": self.extra,
             "views": self.views,
+            "on_pieces_cut_away": self.cut_away,
             "tolerance": f"along a ray {TOL_VOXELS:g} voxels ({self.tol:.4g} scene units) + {TOL_DEPTH:.0%} of the "
             f"depth; in space {NEAR_VOXELS:g} voxels",
         }
@@ -132,9 +137,11 @@ def mesh_agreement(
     inside: Callable[[np.ndarray], np.ndarray],
     voxel: float,
     max_views: int = CHECK_VIEWS,
+    cut_away: np.ndarray | None = None,
 ) -> Agreement:
     """Compare the mesh (scene frame) with the field along the crossings' rays of `max_views` spread-out training
-    views (module doc); `voxel` the grid's voxel side in scene units."""
+    views (module doc); `voxel` the grid's voxel side in scene units; `cut_away` [K, 3] points sampled every half
+    voxel on the pieces removed on purpose (scene frame; None: none)."""
     from scipy.spatial import cKDTree
 
     tol0 = TOL_VOXELS * voxel
@@ -143,8 +150,9 @@ def mesh_agreement(
         seen = int(inside(crossings.points).sum()) if crossings.crossed.any() else 0
         return Agreement(field_surface=seen, missed=seen, mesh_surface=0, extra=0, views=0, tol=tol0)
     tree = cKDTree(surface_samples(verts, faces, 0.5 * voxel))
+    cut_tree = cKDTree(cut_away) if cut_away is not None and len(cut_away) else None
     c2ws = np.stack([np.asarray(scene.frames[int(i)].world_from_cam, np.float64) for i in frames])
-    field_surface = missed = hits = extra = views = 0
+    field_surface = missed = hits = extra = views = on_cut = 0
     for i in frames[spread_views(c2ws, max_views)]:
         rows = np.flatnonzero(crossings.frame == i)
         stride = crossings.stride[int(i)]
@@ -170,10 +178,24 @@ def mesh_agreement(
             p = crossings.origins[rows[lacking]] + t_field[lacking, None] * crossings.dirs[rows[lacking]]
             far = np.isinf(tree.query(p, distance_upper_bound=NEAR_VOXELS * voxel)[0])
             lacking[np.flatnonzero(lacking)[~far]] = False
+        if cut_tree is not None and lacking.any():  # lacking on purpose: neither seen nor missed
+            p = crossings.origins[rows[lacking]] + t_field[lacking, None] * crossings.dirs[rows[lacking]]
+            cut = np.isfinite(cut_tree.query(p, distance_upper_bound=NEAR_VOXELS * voxel)[0])
+            on_cut += int(cut.sum())
+            seen[np.flatnonzero(lacking)[cut]] = False
+            lacking &= seen
         hit = np.isfinite(t_mesh)
         empty = ~crossed & (crossings.opacity[rows] < EMPTY_OPACITY)
         field_surface += int(seen.sum())
         missed += int(lacking.sum())
         hits += int(hit.sum())
         extra += int((hit & (empty | (crossed & (t_mesh < t_field - tol)))).sum())
-    return Agreement(field_surface=field_surface, missed=missed, mesh_surface=hits, extra=extra, views=views, tol=tol0)
+    return Agreement(
+        field_surface=field_surface,
+        missed=missed,
+        mesh_surface=hits,
+        extra=extra,
+        views=views,
+        tol=tol0,
+        cut_away=on_cut,
+    )

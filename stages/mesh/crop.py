@@ -166,12 +166,13 @@ def cut_density(density: Callable[[torch.Tensor], torch.Tensor], plane: Plane, k
 
 def drop_box_cut_pieces(
     verts: np.ndarray, faces: np.ndarray, lo: np.ndarray, hi: np.ndarray, tolerance: float
-) -> tuple[np.ndarray, np.ndarray, dict]:
+) -> tuple[np.ndarray, np.ndarray, dict, np.ndarray]:
     """Remove the connected pieces that the crop box cuts through (a vertex within `tolerance` of a face of the
     box [lo, hi]), except the largest piece: with a looked-at box they are surroundings at its edge (a picture
-    frame beside the fox), not the object the views centre on. (verts, faces, the report's step)."""
+    frame beside the fox), not the object the views centre on. (verts, faces, the report's step, the removed
+    pieces' faces [K, 3] into the given verts: the self-check does not count their surface as missed)."""
     if len(faces) == 0:
-        return verts, faces, {"step": "box_cut_pieces", "removed_pieces": 0, "faces": 0}
+        return verts, faces, {"step": "box_cut_pieces", "removed_pieces": 0, "faces": 0}, faces
     n, label = vertex_components(faces, len(verts))
     face_label = label[faces[:, 0]]
     sizes = np.bincount(face_label, minlength=n)
@@ -192,7 +193,7 @@ def drop_box_cut_pieces(
         "faces": int(keep_face.sum()),
         "why": why,
     }
-    return verts[used], index[faces[keep_face]], step
+    return verts[used], index[faces[keep_face]], step, faces[~keep_face]
 
 
 def default_box(rule: str, trained: Any) -> tuple[np.ndarray, np.ndarray, str, dict, Plane | None]:

@@ -48,6 +48,11 @@ class Grid:
     def hi(self) -> np.ndarray:  # [3] last sample
         return self.lo + (np.asarray(self.shape) - 1) * self.h
 
+    @property
+    def voxel(self) -> float:
+        """Voxel side in scene units (`scene_from_grid` is a similarity)."""
+        return self.h * float(np.cbrt(abs(np.linalg.det(self.scene_from_grid[:3, :3]))))
+
 
 def make_grid(
     lo: np.ndarray, hi: np.ndarray, resolution: int, stride: int, scene_from_grid: np.ndarray | None = None
