@@ -24,6 +24,11 @@ bench-ndc: $(INSTALLED)
 bench-mesh: $(INSTALLED)
 	$(VENV)/bin/python -m benchmarks.bench_mesh --out $(BENCH_OUT)/mesh
 
+# issue 48: the sdf method against the density method, same photos, same seconds (docs/SDF.md)
+.PHONY: bench-sdf
+bench-sdf: $(INSTALLED)
+	$(VENV)/bin/python -m benchmarks.bench_sdf --out $(BENCH_OUT)/sdf
+
 # issue 29: the default textured mesh of a real capture against its field, on its held-out cameras (the fox run
 # that bench-real makes; MESH_RUN=DIR for another)
 MESH_RUN ?= $(BENCH_OUT)/real/fox/run

@@ -195,7 +195,7 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
         )
         steps = [{"step": "marching_cubes", "vertices": len(verts_g), "faces": len(faces_g)}]
         t = lap("sampling_and_marching_cubes", t)
-    cut_away = np.zeros((0, 3))  # the box-cut pieces' vertices in the scene frame (not missed: cut on purpose)
+    cut_away = np.zeros((0, 3))  # points on the box-cut pieces, scene frame (their surface is not missed)
     if crop_info["rule"] == "looked-at":
         verts_cut = verts_g
         verts_g, faces_g, step, faces_cut = drop_box_cut_pieces(verts_g, faces_g, grid.lo, grid.hi, 1.5 * grid.h)
