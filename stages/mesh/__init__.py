@@ -63,7 +63,7 @@ from nerfpipe.data.errors import UserError
 from nerfpipe.data.export_frame import export_frame
 from nerfpipe.data.rundir import config_to_json, write_manifest
 from nerfpipe.model.run import can
-from nerfpipe.stages.mesh.agreement import mesh_agreement, surface_samples
+from nerfpipe.stages.mesh.agreement import mesh_agreement
 from nerfpipe.stages.mesh.checks import agreement_checks, mesh_checks
 from nerfpipe.stages.mesh.cleanup import Cleanup, cleanup_mesh, mesh_stats, transform_mesh
 from nerfpipe.stages.mesh.config import FORMAT_NAMES, FORMATS, Config, Outputs, parse_bbox, parse_threshold, validate
@@ -195,14 +195,12 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
         )
         steps = [{"step": "marching_cubes", "vertices": len(verts_g), "faces": len(faces_g)}]
         t = lap("sampling_and_marching_cubes", t)
-    cut_away = np.zeros((0, 3))  # points on the box-cut pieces, scene frame (their surface is not missed)
+    cut_away = None  # the box-cut pieces in the scene frame (the self-check does not count their surface missed)
     if crop_info["rule"] == "looked-at":
         verts_cut = verts_g
         verts_g, faces_g, step, faces_cut = drop_box_cut_pieces(verts_g, faces_g, grid.lo, grid.hi, 1.5 * grid.h)
         steps.append(step)
-        if len(faces_cut):
-            cut_away, _ = transform_mesh(verts_cut, faces_cut, grid.scene_from_grid)
-            cut_away = surface_samples(cut_away, faces_cut, 0.5 * grid.voxel)
+        cut_away = transform_mesh(verts_cut, faces_cut, grid.scene_from_grid)
     t = lap("box_cut_pieces", t)
 
     out_from_grid = out_from_scene @ grid.scene_from_grid
@@ -241,10 +239,9 @@ def extract(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), prog
         left_out["cleanup"] = "--no-cleanup"
     t = lap("colors", t)
 
-    voxel = grid.voxel
     agreement = None
     if crossings is not None:
-        agreement = mesh_agreement(v_scene, f_scene, crossings, scene, region.inside, voxel, cut_away=cut_away)
+        agreement = mesh_agreement(v_scene, f_scene, crossings, scene, region.inside, grid.voxel, cut_away=cut_away)
     else:
         left_out["agreement"] = "the run has no density to render the training views' surface with (signed distance)"
     t = lap("check", t)

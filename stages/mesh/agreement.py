@@ -137,11 +137,11 @@ def mesh_agreement(
     inside: Callable[[np.ndarray], np.ndarray],
     voxel: float,
     max_views: int = CHECK_VIEWS,
-    cut_away: np.ndarray | None = None,
+    cut_away: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Agreement:
     """Compare the mesh (scene frame) with the field along the crossings' rays of `max_views` spread-out training
-    views (module doc); `voxel` the grid's voxel side in scene units; `cut_away` [K, 3] points sampled every half
-    voxel on the pieces removed on purpose (scene frame; None: none)."""
+    views (module doc); `voxel` the grid's voxel side in scene units; `cut_away` the pieces removed on purpose
+    (vertices [V, 3] in the scene frame, faces [K, 3]; None: none)."""
     from scipy.spatial import cKDTree
 
     tol0 = TOL_VOXELS * voxel
@@ -150,7 +150,9 @@ def mesh_agreement(
         seen = int(inside(crossings.points).sum()) if crossings.crossed.any() else 0
         return Agreement(field_surface=seen, missed=seen, mesh_surface=0, extra=0, views=0, tol=tol0)
     tree = cKDTree(surface_samples(verts, faces, 0.5 * voxel))
-    cut_tree = cKDTree(cut_away) if cut_away is not None and len(cut_away) else None
+    cut_tree = None
+    if cut_away is not None and len(cut_away[1]):
+        cut_tree = cKDTree(surface_samples(*cut_away, 0.5 * voxel))
     c2ws = np.stack([np.asarray(scene.frames[int(i)].world_from_cam, np.float64) for i in frames])
     field_surface = missed = hits = extra = views = on_cut = 0
     for i in frames[spread_views(c2ws, max_views)]:
@@ -175,15 +177,14 @@ def mesh_agreement(
             seen[crossed] = inside(p)
         lacking = seen & ~(t_mesh <= t_field + tol)
         if lacking.any():
-            p = crossings.origins[rows[lacking]] + t_field[lacking, None] * crossings.dirs[rows[lacking]]
+            idx = np.flatnonzero(lacking)
+            p = crossings.origins[rows[idx]] + t_field[idx, None] * crossings.dirs[rows[idx]]
             far = np.isinf(tree.query(p, distance_upper_bound=NEAR_VOXELS * voxel)[0])
-            lacking[np.flatnonzero(lacking)[~far]] = False
-        if cut_tree is not None and lacking.any():  # lacking on purpose: neither seen nor missed
-            p = crossings.origins[rows[lacking]] + t_field[lacking, None] * crossings.dirs[rows[lacking]]
-            cut = np.isfinite(cut_tree.query(p, distance_upper_bound=NEAR_VOXELS * voxel)[0])
-            on_cut += int(cut.sum())
-            seen[np.flatnonzero(lacking)[cut]] = False
-            lacking &= seen
+            lacking[idx[~far]] = False
+            if cut_tree is not None:  # lacking on purpose: neither seen nor missed
+                cut = far & np.isfinite(cut_tree.query(p, distance_upper_bound=NEAR_VOXELS * voxel)[0])
+                on_cut += int(cut.sum())
+                seen[idx[cut]] = lacking[idx[cut]] = False
         hit = np.isfinite(t_mesh)
         empty = ~crossed & (crossings.opacity[rows] < EMPTY_OPACITY)
         field_surface += int(seen.sum())
