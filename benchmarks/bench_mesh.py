@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["main", "measure"]
+__all__ = ["main", "measure", "trained_run"]
 
 POINTS = 200_000
 
@@ -108,17 +108,22 @@ def _in_subprocess(spec: dict) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def _train(out: Path, seconds: float, method: str = "density") -> tuple[Path, Path]:
+def trained_run(
+    out: Path, seconds: float, method: str = "density", *, name: str | None = None, max_steps: int | None = None
+) -> tuple[Path, Path]:
+    """The synthetic posed scene in OUT (made once) and a run of `method` on it in OUT/name (default: run, or
+    run_METHOD), trained for `seconds` (and at most `max_steps`) unless it is there: (run_dir, the scene's source)."""
     from nerfpipe.stages import convert, scene, train
 
     src, scene_dir = out / "scene_src", out / "scene"
-    run_dir = out / ("run" if method == "density" else f"run_{method}")
+    run_dir = out / (name or ("run" if method == "density" else f"run_{method}"))
     if not (src / "manifest.json").is_file():
         scene.run(scene.Config(out_dir=src, kind="posed", size=128, views=48, seed=0))
     if not (scene_dir / "transforms.json").is_file():
         convert.run(convert.Config(source=src, scene_dir=scene_dir))
     if not (run_dir / "manifest.json").is_file():
-        train.run(train.Config(scene_dir=scene_dir, run_dir=run_dir, max_seconds=seconds, method=method))
+        limit = {"max_steps": max_steps} if max_steps is not None else {}
+        train.run(train.Config(scene_dir=scene_dir, run_dir=run_dir, max_seconds=seconds, method=method, **limit))
     return run_dir, src
 
 
@@ -173,7 +178,7 @@ def main(argv: list[str] | None = None) -> None:
                 p.error("--run needs --scene-src")
         else:
             t0 = time.perf_counter()
-            run_dir, src = _train(out, args.train_seconds, args.method)
+            run_dir, src = trained_run(out, args.train_seconds, args.method)
             print(f"scene + convert + train: {time.perf_counter() - t0:.0f} s", flush=True)
         for res in resolutions:
             spec = {

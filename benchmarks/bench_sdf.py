@@ -17,7 +17,7 @@ import json
 import time
 from pathlib import Path
 
-from benchmarks.bench_mesh import _in_subprocess
+from benchmarks.bench_mesh import _in_subprocess, trained_run
 
 __all__ = ["main"]
 
@@ -25,22 +25,8 @@ RESOLUTION = 256
 UNDER_TRAINED_STEPS = 300
 
 
-def _train(out: Path, name: str, method: str, seconds: float, steps: int | None) -> tuple[Path, Path]:
-    from nerfpipe.stages import convert, scene, train
-
-    src, scene_dir, run_dir = out / "scene_src", out / "scene", out / name
-    if not (src / "manifest.json").is_file():
-        scene.run(scene.Config(out_dir=src, kind="posed", size=128, views=48, seed=0))
-    if not (scene_dir / "transforms.json").is_file():
-        convert.run(convert.Config(source=src, scene_dir=scene_dir))
-    if not (run_dir / "manifest.json").is_file():
-        limit = {"max_steps": steps} if steps is not None else {}
-        train.run(train.Config(scene_dir=scene_dir, run_dir=run_dir, max_seconds=seconds, method=method, **limit))
-    return run_dir, src
-
-
 def _row(out: Path, name: str, method: str, seconds: float, steps: int | None) -> dict:
-    run_dir, src = _train(out, name, method, seconds, steps)
+    run_dir, src = trained_run(out, seconds, method, name=name, max_steps=steps)
     used = json.loads((run_dir / "manifest.json").read_text())
     spec = {
         "kind": name,
