@@ -19,10 +19,12 @@ from nerfpipe.model import load_trained
 from nerfpipe.model.methods.registry import method_named
 from nerfpipe.model.methods.sdf import SdfOptions
 from nerfpipe.model.methods.sdf.field import SdfField
+from nerfpipe.model.methods.sdf.model import SdfModel
 from nerfpipe.model.methods.sdf.neus import neus_alpha_reference, neus_tau, weights_from_tau
 from nerfpipe.radiance import paths
 from nerfpipe.radiance.camera import Intrinsics, generate_rays
 from nerfpipe.radiance.compositing import render_weights_reference
+from nerfpipe.radiance.space import Box
 from nerfpipe.stages import depth as depth_stage
 from nerfpipe.stages import eval as eval_stage
 from nerfpipe.stages import export_points, train
@@ -88,6 +90,31 @@ def test_central_difference_gradient_of_the_starting_sphere():
     f, grad = field.sdf_and_gradient(u)
     torch.testing.assert_close(f, torch.full_like(f, 0.2), atol=field.cell**2 / (3 * 0.7) * 1.01, rtol=0)
     torch.testing.assert_close(grad, u / 0.7, atol=field.cell**2 / 0.7**2, rtol=0)
+
+
+def test_cutting_the_band_finer_keeps_the_opacity_and_moves_the_depth_onto_the_surface():
+    """NeuS's optical depth telescopes where f falls along the ray: the sub-intervals' taus sum to the whole
+    interval's, so cutting the band's intervals finer (refine) leaves each ray's opacity as it was, and the expected
+    depth, read at the sub-intervals' middles, moves onto the surface (the starting sphere, grid at zero)."""
+    field = SdfField(aabb=[[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], resolution=33, radius=0.5, sharpness=400.0)
+    with torch.no_grad():
+        for p in field.planes:
+            p.zero_()
+    space = Box(aabb=((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)), near=0.5, far=6.0)
+    xy = 0.3 * (torch.rand(256, 2, generator=torch.Generator().manual_seed(3)) - 0.5)  # rays that hit the ball
+    o = torch.tensor([[0.0, 0.0, -3.0]]).expand(256, 3)
+    d = torch.nn.functional.normalize(torch.cat([xy, torch.full((256, 1), 3.0)], dim=-1), dim=-1)
+    b = (o * d).sum(-1)
+    t_hit = -b - torch.sqrt(b * b - (o * o).sum(-1) + 0.25)  # |o + t d| = 0.5, the near root
+    out = {}
+    for m in (1, 4):
+        model = SdfModel(field=field, space=space, samples=16, refine=m)
+        with torch.no_grad():
+            out[m] = model.render(o, d, torch.zeros(3), train=False)
+    torch.testing.assert_close(out[4]["acc"], out[1]["acc"], atol=1e-5, rtol=0)
+    assert (out[1]["acc"] > 0.99).all()
+    error = {m: (out[m]["depth"] - t_hit).abs().mean() for m in out}
+    assert error[4] < 0.4 * error[1], error  # interval 2 / 16 long: its middle is off by ~1/32 on average
 
 
 # ---------------------------------------------------------------------------------------------- the chain

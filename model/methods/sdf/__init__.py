@@ -23,7 +23,7 @@ from nerfpipe.model.methods.base import Method, Prepared, RunFiles, TrainContext
 from nerfpipe.model.methods.sdf.field import SdfField
 from nerfpipe.model.methods.sdf.hooks import hooks_for
 from nerfpipe.model.methods.sdf.model import SdfModel
-from nerfpipe.model.methods.sdf.options import RESOLUTION, SAMPLES, UPSAMPLE_AT, SdfOptions, validate_options
+from nerfpipe.model.methods.sdf.options import REFINE, RESOLUTION, SAMPLES, UPSAMPLE_AT, SdfOptions, validate_options
 from nerfpipe.model.methods.sdf.run import SdfRun, sdf_checks
 from nerfpipe.model.spaces import make_space
 from nerfpipe.model.trained import read_run_scene
@@ -50,7 +50,7 @@ def _model(options: SdfOptions, space: Box, field_cfg: dict | None, device: torc
             radius=options.init_radius,
         ).config()
     field = SdfField(**field_cfg).to(device)
-    return SdfModel(field=field, space=space, samples=options.sdf_samples)
+    return SdfModel(field=field, space=space, samples=options.sdf_samples, refine=options.sdf_refine)
 
 
 class SdfMethod(Method):
@@ -75,12 +75,14 @@ class SdfMethod(Method):
             resolution=options.resolution or RESOLUTION,
             upsample_at=options.upsample_at if options.upsample_at is not None else UPSAMPLE_AT,
             sdf_samples=options.sdf_samples or SAMPLES,
+            sdf_refine=options.sdf_refine or REFINE,
             view_dependent=True if options.view_dependent is None else options.view_dependent,
         )
         for name, why in (
             ("resolution", "32 to 128 (coarse-to-fine)"),
             ("upsample_at", "at 10, 20, 30, 40 % of the run"),
             ("sdf_samples", f"{SAMPLES} intervals a ray in the box"),
+            ("sdf_refine", f"{REFINE} sub-intervals an interval near the surface"),
             ("view_dependent", "on for every scene"),
         ):
             reasons[name] = "asked for" if getattr(options, name) is not None else why
@@ -108,6 +110,7 @@ class SdfMethod(Method):
             "sdf_field_config": model.field.config(),
             "sdf_field": model.field.state_dict(),
             "sdf_samples": model.samples,
+            "sdf_refine": model.refine,
             "space": model.space.to_dict(),
         }
 
@@ -122,9 +125,12 @@ class SdfMethod(Method):
             field = SdfField(**state["sdf_field_config"]).to(device)
             field.load_state_dict(state["sdf_field"])
             samples = int(state["sdf_samples"])
+            refine = int(state.get("sdf_refine", 1))
         except (KeyError, TypeError, ValueError, RuntimeError) as exc:
             raise UserError(f"{run.checkpoint}: not an sdf checkpoint this version reads ({exc})") from None
-        model = SdfModel(field=field, space=space, samples=samples, background=restore_background(state, device))
+        model = SdfModel(
+            field=field, space=space, samples=samples, refine=refine, background=restore_background(state, device)
+        )
         model.appearance = restore_appearance(state, device)
         model.train_mode(False)
         return SdfRun(

@@ -4,13 +4,14 @@ normal, composited with transmittance exp(-exclusive_cumsum(tau)) (`model.method
 Each ray is cut into `samples` equal intervals of its segment in the box (`radiance.space.Box.box_segment`),
 jittered while training. The distance at every interval's middle is read without gradient; only the intervals of
 the *band* (where that distance is small enough that the interval may hold the surface: `BAND_STEPS`,
-`BAND_SHARPNESS`) are differentiated: the distances at the interval's two ends (NeuS's section points, read, not
-estimated from a slope), and the interval's opacity NeuS's logistic ratio of them with the learned sharpness s
-(`neus_tau`). Outside the band the opacity is that of a unit-slope entry (0 far outside, opaque deep inside),
-without gradient. Where the weight is above `COLOR_THRESHOLD` the colour network sees the unit normal g / |g| (g by
-central differences one grid cell wide: `SdfField.sdf_and_gradient`). A training render also returns the Eikonal
-residual (|g| - 1)^2 over those samples and one free point a ray in the box (`eikonal`): the hook adds it to the
-loss.
+`BAND_SHARPNESS`) are differentiated, each cut into `refine` equal sub-intervals (NeuS's up-sampling near the
+surface, deterministic): the distances at the sub-intervals' ends are read with gradient (NeuS's section points,
+read, not estimated from a slope), and each sub-interval's opacity is NeuS's logistic ratio of them with the learned
+sharpness s (`neus_tau`). Outside the band the opacity is that of a unit-slope entry (0 far outside, opaque deep
+inside), without gradient, shared evenly by the interval's sub-intervals. Where a sub-interval's weight is above
+`COLOR_THRESHOLD` the colour network sees, at its middle, the unit normal g / |g| (g by central differences one grid
+cell wide: `SdfField.sdf_and_gradient`). A training render also returns the Eikonal residual (|g| - 1)^2 over those
+samples and one free point a ray in the box (`eikonal`): the hook adds it to the loss.
 """
 
 from __future__ import annotations
@@ -50,6 +51,8 @@ class SdfModel:
     space: Box
     samples: int
     """Intervals a ray is cut into, in training and rendering."""
+    refine: int = 1
+    """Sub-intervals each interval of the band is cut into (1: none)."""
     background: Background | None = None
     appearance: Appearance | None = None
     chunk: int = 1024
@@ -70,7 +73,7 @@ class SdfModel:
         return out
 
     def _render(self, o: Tensor, d: Tensor, background: Tensor, *, train: bool) -> dict[str, Tensor]:
-        field, n, s = self.field, self.samples, self.field.sharpness
+        field, n, m, s = self.field, self.samples, self.refine, self.field.sharpness
         t_near, t_far = self.space.box_segment(o, d)  # [R] each, scene units
         t_far = torch.maximum(t_far, t_near)  # rays that miss the box: an empty segment
         frac = torch.arange(n, dtype=o.dtype, device=o.device) / n  # [S]
@@ -86,19 +89,26 @@ class SdfModel:
             near = f_all.abs() < delta * BAND_STEPS + BAND_SHARPNESS / s.detach() + field.cell
             tau = neus_tau(f_all + 0.5 * delta, f_all - 0.5 * delta, s.detach())  # elsewhere: a unit-slope entry
         band = near.nonzero()[:, 0]  # [B]
-        half_step = (0.5 * delta[band])[:, None] * dirs[band]  # [B, 3] u units
-        f_ends = field.sdf_unit(torch.cat([u[band] - half_step, u[band] + half_step]))  # [2 B]
-        tau = tau.index_put((band,), neus_tau(*f_ends.chunk(2), s))
-        weights = weights_from_tau(tau.reshape(r, n))  # [R, S]
-        lit = band[weights.detach().reshape(-1)[band] > COLOR_THRESHOLD]  # band samples worth a colour: [L]
-        _, g = field.sdf_and_gradient(u[lit])  # [L, 3]
+        # a band interval is cut into m sub-intervals: its m + 1 ends are read with gradient
+        ends = torch.arange(m + 1, dtype=o.dtype, device=o.device) / m - 0.5  # [m + 1] of an interval
+        mids = (torch.arange(m, dtype=o.dtype, device=o.device) + 0.5) / m - 0.5  # [m]
+        step = delta[band, None, None] * dirs[band, None, :]  # [B, 1, 3] one interval along the ray, u units
+        f_ends = field.sdf_unit((u[band, None, :] + ends[:, None] * step).reshape(-1, 3)).reshape(-1, m + 1)
+        tau = (tau / m)[:, None].expand(r * n, m).index_put((band,), neus_tau(f_ends[:, :-1], f_ends[:, 1:], s))
+        weights = weights_from_tau(tau.reshape(r, n * m))  # [R, S m]
+        sub = (band[:, None] * m + torch.arange(m, device=o.device)).reshape(-1)  # [B m] band sub-intervals
+        lit = sub[weights.detach().reshape(-1)[sub] > COLOR_THRESHOLD]  # worth a colour: [L]
+        whole = lit.div(m, rounding_mode="floor")  # [L] their intervals
+        u_lit = u[whole] + (mids[lit % m] * delta[whole])[:, None] * dirs[whole]  # [L, 3]
+        _, g = field.sdf_and_gradient(u_lit)  # [L, 3]
         norm = torch.linalg.vector_norm(g, dim=-1, keepdim=True)  # [L, 1]
-        rgb = torch.zeros(r * n, 3, dtype=o.dtype, device=o.device)
+        rgb = torch.zeros(r * n * m, 3, dtype=o.dtype, device=o.device)
         if lit.numel():
-            view = dirs[lit] if field.view_dependent else None
-            rgb = rgb.index_put((lit,), field.color(u[lit], g / norm.clamp_min(eps(g.dtype)), view))
-        out = composite_weights(weights, rgb.reshape(r, n, 3), t_mid, background)
-        out["samples"] = torch.tensor(float(band.numel()))
+            view = dirs[whole] if field.view_dependent else None
+            rgb = rgb.index_put((lit,), field.color(u_lit, g / norm.clamp_min(eps(g.dtype)), view))
+        t_sub = (t_mid[..., None] + mids * (span / n)[..., None]).reshape(r, n * m)  # [R, S m]
+        out = composite_weights(weights, rgb.reshape(r, n * m, 3), t_sub, background)
+        out["samples"] = torch.tensor(float(band.numel() * m))
         if train:
             lo, hi = field.to_unit(self.space.field_box.to(o))
             free = lo + torch.rand(r, 3, dtype=o.dtype, device=o.device) * (hi - lo)  # one free point a ray
@@ -146,6 +156,7 @@ class SdfModel:
                 "sharpness": round(float(self.field.sharpness.detach()), 3),
                 "band_in_cells": round(1.0 / (float(self.field.sharpness.detach()) * self.field.cell), 4),
                 "samples_per_ray": self.samples,
+                "refine": self.refine,
                 "last_eikonal": round(self.last_eikonal, 5) if math.isfinite(self.last_eikonal) else None,
             },
             "scene_model": self.space.name,

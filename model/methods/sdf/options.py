@@ -7,15 +7,17 @@ from dataclasses import dataclass
 
 from nerfpipe.data.errors import UserError
 
-__all__ = ["SdfOptions", "validate_options", "RESOLUTION", "UPSAMPLE_AT", "SAMPLES"]
+__all__ = ["SdfOptions", "validate_options", "RESOLUTION", "UPSAMPLE_AT", "SAMPLES", "REFINE"]
 
 RESOLUTION = (32, 128)
 """The grid's resolution at the start and at the end (coarse-to-fine) by default."""
 UPSAMPLE_AT = (0.1, 0.2, 0.3, 0.4)
 """Run fractions of the grid's growth by default (the density method's steps, a little later: the start shape must
 first move to the object's hull)."""
-SAMPLES = 64
+SAMPLES = 32
 """Intervals a ray is cut into in the box by default."""
+REFINE = 4
+"""Sub-intervals each interval of the band is cut into by default."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -27,7 +29,9 @@ class SdfOptions:
     upsample_at: tuple[float, ...] | None = None
     """Run-progress fractions at which the grid grows (geometric steps to the final size). None: 0.1,0.2,0.3,0.4."""
     sdf_samples: int | None = None
-    """Intervals each ray is cut into inside the box (training and rendering). None: 64."""
+    """Intervals each ray is cut into inside the box (training and rendering). None: 32."""
+    sdf_refine: int | None = None
+    """Sub-intervals each interval near the surface (the band) is cut into, read with gradient. None: 4."""
     eikonal: float = 0.01
     """Weight of the Eikonal term mean (|grad f| - 1)^2, finite differences one grid cell wide. NeuS's 0.1 is set
     against an L1 colour loss; against train's squared error it flattened the grid to nothing (docs/SDF.md)."""
@@ -46,6 +50,8 @@ def validate_options(options: SdfOptions) -> None:
         raise UserError(f"upsample_at: expected increasing fractions in [0, 1], got {at}")
     if options.sdf_samples is not None and options.sdf_samples < 2:
         raise UserError(f"sdf_samples: expected >= 2, got {options.sdf_samples}")
+    if options.sdf_refine is not None and options.sdf_refine < 1:
+        raise UserError(f"sdf_refine: expected >= 1, got {options.sdf_refine}")
     if not options.eikonal >= 0:
         raise UserError(f"eikonal: expected >= 0, got {options.eikonal}")
     if not 0 < options.init_radius < 1:
