@@ -24,6 +24,7 @@ __all__ = [
     "Box",
     "Cylinder",
     "Material",
+    "material",
     "solid_texture",
     "Lights",
     "DEFAULT_LIGHTS",
@@ -355,7 +356,9 @@ def shade(albedo: np.ndarray, n: np.ndarray, lights: Lights = DEFAULT_LIGHTS) ->
 # ---------------------------------------------------------------- the scene
 
 
-def _material(rng: np.random.Generator, key: int, cell_big: float, cell_small: float) -> Material:
+def material(rng: np.random.Generator, key: int, cell_big: float, cell_small: float) -> Material:
+    """A solid texture of coloured cells `cell_big` and light/dark cells `cell_small` (metres), its lattices turned
+    and offset at random by `rng`, hashed with `key`."""
     a = rng.normal(size=(3, 3))
     q, r = np.linalg.qr(a)
     q = q * np.sign(np.diag(r))  # a proper random orthonormal matrix
@@ -377,16 +380,16 @@ def default_primitives(seed: int) -> tuple[Primitive, ...]:
             radius=0.75,
             z0=-0.05,
             z1=0.0,
-            material=_material(rng, int(keys[0]), 0.12, 0.035),
+            material=material(rng, int(keys[0]), 0.12, 0.035),
         ),
         Sphere(
-            center=np.array([-0.28, 0.22, 0.2 - sink]), radius=0.2, material=_material(rng, int(keys[1]), 0.08, 0.025)
+            center=np.array([-0.28, 0.22, 0.2 - sink]), radius=0.2, material=material(rng, int(keys[1]), 0.08, 0.025)
         ),
         Box(
             center=np.array([0.27, 0.22, 0.16 - sink]),
             half=np.array([0.16, 0.1, 0.16]),
             yaw=0.5,
-            material=_material(rng, int(keys[2]), 0.08, 0.025),
+            material=material(rng, int(keys[2]), 0.08, 0.025),
         ),
         Cylinder(
             center=np.array([0.05, -0.3]),
@@ -394,16 +397,16 @@ def default_primitives(seed: int) -> tuple[Primitive, ...]:
             z0=-sink,
             z1=0.45,
             sections=512,
-            material=_material(rng, int(keys[3]), 0.08, 0.025),
+            material=material(rng, int(keys[3]), 0.08, 0.025),
         ),
         Box(
             center=np.array([-0.38, -0.22, 0.09 - sink]),
             half=np.array([0.09, 0.09, 0.09]),
             yaw=-0.35,
-            material=_material(rng, int(keys[4]), 0.06, 0.02),
+            material=material(rng, int(keys[4]), 0.06, 0.02),
         ),
         Sphere(
-            center=np.array([0.4, -0.2, 0.12 - sink]), radius=0.12, material=_material(rng, int(keys[5]), 0.06, 0.02)
+            center=np.array([0.4, -0.2, 0.12 - sink]), radius=0.12, material=material(rng, int(keys[5]), 0.06, 0.02)
         ),
     )
 
@@ -417,10 +420,10 @@ def room(seed: int) -> tuple[Primitive, ...]:
         center=np.array([0.0, 0.0, -0.3]),
         half=np.array([4.0, 4.0, 0.05]),
         yaw=0.0,
-        material=_material(rng, keys[0], 0.45, 0.2),
+        material=material(rng, keys[0], 0.45, 0.2),
     )
     walls = [
-        Box(center=np.array(c), half=np.array(h), yaw=0.0, material=_material(rng, k, 0.55, 0.2))
+        Box(center=np.array(c), half=np.array(h), yaw=0.0, material=material(rng, k, 0.55, 0.2))
         for c, h, k in (
             ((0.0, 4.05, 1.375), (4.1, 0.05, 1.625), keys[1]),
             ((0.0, -4.05, 1.375), (4.1, 0.05, 1.625), keys[2]),
@@ -440,5 +443,5 @@ def backdrop(seed: int) -> Primitive:
         center=np.array([0.0, 4.05, 0.0]),
         half=np.array([4.0, 0.05, 3.0]),
         yaw=0.0,
-        material=_material(rng, key, 0.5, 0.15),
+        material=material(rng, key, 0.5, 0.15),
     )

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nerfpipe.data.synthetic.objects import Box, Material, _material, _unit, _value_noise
+from nerfpipe.data.synthetic.objects import Box, Material, _unit, _value_noise, material
 
 __all__ = ["Label", "PrintedBox", "label_texture", "SUBJECTS", "subject_primitives"]
 
@@ -108,7 +108,7 @@ def subject_primitives(subject: str, seed: int) -> tuple[Box, ...]:
     keys = [int(k) for k in rng.integers(0, 2**31, size=4)]
     grounds = [tuple(float(c) for c in 0.35 + 0.6 * rng.uniform(size=3)) for _ in range(4)]
     a, b, top, bottom = (Label(key=k, ground=g) for k, g in zip(keys, grounds, strict=True))
-    material: Material = _material(rng, keys[0], 0.1, 0.03)  # unused by the prints; Box requires one
+    texture: Material = material(rng, keys[0], 0.1, 0.03)  # unused by the prints; Box requires one
     if subject == "carton":
         half, labels = np.array([0.19, 0.19, 0.4]), (b, b, a, a, top, bottom)
     elif subject == "cube":
@@ -116,4 +116,4 @@ def subject_primitives(subject: str, seed: int) -> tuple[Box, ...]:
     else:
         raise ValueError(f"expected subject 'carton' or 'cube', got {subject!r}")
     centre = np.array([0.0, 0.0, half[2] - 0.2])
-    return (PrintedBox(center=centre, half=half, yaw=0.0, material=material, labels=labels),)
+    return (PrintedBox(center=centre, half=half, yaw=0.0, material=texture, labels=labels),)

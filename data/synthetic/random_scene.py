@@ -33,8 +33,8 @@ from nerfpipe.data.synthetic.objects import (
     Material,
     Primitive,
     Sphere,
-    _material,
     backdrop,
+    material,
     room,
 )
 from nerfpipe.data.synthetic.photo import GREYS, PHOTOS, PhotoTexture, PhotoTextured
@@ -256,8 +256,8 @@ def textured(
     """Texture a drawn shape: ('noise', with coloured cells of `cells` metres) or ('photo:<name>', a photo of
     `scales` metres per image width): (the texture's name, the primitive)."""
     cell_big = float(rng.uniform(*cells))
-    material = _material(rng, int(rng.integers(0, 2**31)), cell_big, cell_big * float(rng.uniform(0.2, 0.4)))
-    prim = build(material)
+    solid = material(rng, int(rng.integers(0, 2**31)), cell_big, cell_big * float(rng.uniform(0.2, 0.4)))
+    prim = build(solid)
     if rng.uniform() < 0.5:
         return "noise", prim
     names = PHOTOS + GREYS

@@ -223,6 +223,7 @@ def _run(config: Config) -> Outputs:
             "test_split": f"every {TEST_EVERY}th view"
             + (f", val every {TEST_EVERY}th from {TEST_EVERY // 2}" if config.kind == "blender" else ""),
             **({"random_subject": subj.drawn} if subj.drawn is not None else {}),
+            **({"mesh_subject": _placed_at_scale(subj.placed, scale)} if subj.placed is not None else {}),
             **(
                 {"turntable": "the objects turn, camera and room fixed; poses object-relative; masks/ = object"}
                 if turntable
@@ -247,3 +248,10 @@ def _run(config: Config) -> Outputs:
         mesh=mesh_path,
         manifest=manifest_path,
     )
+
+
+def _placed_at_scale(placed: dict, scale: float) -> dict:
+    """The mesh subject's record with scene_from_source taking the file to the written (scaled) scene frame."""
+    tf = np.array(placed["scene_from_source"])
+    tf[:3] *= scale
+    return {**placed, "scene_from_source": tf.tolist()}

@@ -35,7 +35,7 @@ class Config:
     box, so the room lies beyond it: an unbounded capture). forward: cameras on a
     jittered grid in one plane, all looking the same way at the scene, with a textured wall 4 m behind it (an
     LLFF-style forward-facing capture: content from ~1.5 m to ~7 m)."""
-    subject: Literal["objects", "carton", "cube", "random"] = "objects"
+    subject: Literal["objects", "carton", "cube", "random", "mesh"] = "objects"
     """What is photographed. objects: five textured objects on a slab. carton / cube: one printed box on white,
     with no ground (a product shot; `data.synthetic.prints`): carton, a tall box with one print on front and back
     and another on both sides; cube, the same print on all four sides. Faces that look alike are what can make
@@ -43,7 +43,15 @@ class Config:
     random: the seed draws the scene (`data.synthetic.random_scene`): 1-8 spheres, boxes and cylinders of
     0.1-0.6 m on or above the slab, none touching, each with a noise or photo texture, the slab's texture, the
     lights, and (layout orbit) nothing, a far wall or a room around; manifest.json's `random_subject` says what
-    was drawn. Pretraining data for a cross-scene model: the layouts differ from seed to seed."""
+    was drawn. Pretraining data for a cross-scene model: the layouts differ from seed to seed.
+    mesh: the mesh file `mesh` alone (no slab), textured like the objects, its box's centre at the rig's look-at
+    point and its half-diagonal 0.6 m, the file's `mesh_up` axis up; manifest.json's `mesh_subject` holds the 4x4
+    scene_from_source and ground_truth/mesh.ply is the mesh in the scene's frame."""
+    mesh: Path | None = None
+    """subject=mesh: the mesh file to photograph (any format trimesh reads: obj, ply, stl, off, glb)."""
+    mesh_up: Literal["z", "y"] = "z"
+    """subject=mesh: the file's up axis (y: turned so that its +y is the scene's +z, as glTF and most OBJ files
+    have it; z: no rotation)."""
     count: int = 1
     """Scenes to write: 1 writes out_dir itself; N > 1 writes out_dir/<seed> (six digits) for the seeds seed,
     seed + 1, ..., seed + N - 1, each a whole scene, and a manifest over them (a dataset of scenes: with --subject
@@ -90,8 +98,12 @@ def check(config: Config) -> None:
         raise UserError(f"scene: expected --layout orbit|forward|room|turntable, got {config.layout!r}")
     if config.layout == "turntable" and config.kind == "blender":
         raise UserError("scene: --layout turntable writes kinds photos, posed or rgba, not blender")
-    if config.subject not in ("objects", "carton", "cube", "random"):
-        raise UserError(f"scene: expected --subject objects|carton|cube|random, got {config.subject!r}")
+    if config.subject not in ("objects", "carton", "cube", "random", "mesh"):
+        raise UserError(f"scene: expected --subject objects|carton|cube|random|mesh, got {config.subject!r}")
+    if (config.subject == "mesh") != (config.mesh is not None):
+        raise UserError("scene: --subject mesh and --mesh FILE go together (the mesh file is the subject)")
+    if config.mesh_up not in ("z", "y"):
+        raise UserError(f"scene: expected --mesh-up z|y, got {config.mesh_up!r}")
     if config.subject == "random" and config.seed < 0:
         raise UserError(f"scene: --subject random draws from a seed >= 0, got --seed {config.seed}")
     scale = float(config.scale)

@@ -1,15 +1,30 @@
 """What the scene stage photographs, decided once per run: the objects, what surrounds them in this layout, the
-lights, and (random subject) a record of what the seed drew."""
+lights, and a record of what the seed drew (random subject) or how a mesh file was placed (mesh subject)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Any
 
-from nerfpipe.data.synthetic.objects import DEFAULT_LIGHTS, Lights, Primitive, backdrop, default_primitives, room
+import numpy as np
+
+from nerfpipe.data.synthetic.mesh_subject import MeshSurface, fit, read_mesh
+from nerfpipe.data.synthetic.objects import (
+    DEFAULT_LIGHTS,
+    Lights,
+    Primitive,
+    backdrop,
+    default_primitives,
+    material,
+    room,
+)
 from nerfpipe.data.synthetic.prints import subject_primitives
 from nerfpipe.data.synthetic.random_scene import random_scene
 from nerfpipe.stages.scene.config import Config
+from nerfpipe.stages.scene.rig import LOOK_AT
+
+MESH_RADIUS = 0.6
+"""subject=mesh: the mesh's bounding box's half-diagonal in the scene, metres (the objects' scene spans ~0.8 m)."""
 
 __all__ = ["Subject", "subject"]
 
@@ -26,6 +41,8 @@ class Subject:
     """What everything is shaded with."""
     drawn: dict[str, Any] | None
     """subject=random: what the seed drew (`RandomScene.describe`) and the surroundings used; None otherwise."""
+    placed: dict[str, Any] | None = None
+    """subject=mesh: the file and the 4x4 scene_from_source it was placed with (`mesh_subject.fit`); None otherwise."""
 
 
 def subject(config: Config) -> Subject:
@@ -37,15 +54,29 @@ def subject(config: Config) -> Subject:
         surroundings = room(seed) if around == "room" else (backdrop(seed),) if around == "wall" else ()
         record = {**drawn.describe(), "surroundings": around}
         return Subject(objects=drawn.primitives(), surroundings=surroundings, lights=drawn.lights, drawn=record)
-    product = config.subject != "objects"  # a printed box on white: no slab, no room behind a turntable
-    objects = subject_primitives(config.subject, seed) if product else default_primitives(seed)
+    product = config.subject != "objects"  # a printed box or a mesh alone: no slab, no room behind a turntable
+    placed = None
+    if config.subject == "mesh":
+        surface, scene_from_source = fit(read_mesh(config.mesh), LOOK_AT, MESH_RADIUS, config.mesh_up)
+        texture = material(np.random.default_rng([seed, 20261129]), seed, 0.08, 0.025)
+        objects: tuple[Primitive, ...] = (MeshSurface(surface=surface, material=texture),)
+        placed = {
+            "file": str(config.mesh),
+            "faces": len(surface.faces),
+            "scene_from_source": scene_from_source.tolist(),
+            "up": config.mesh_up,
+            "rule": f"the file's +{config.mesh_up} turned to +z, its box centred at the look-at point "
+            f"{LOOK_AT.tolist()}, half-diagonal {MESH_RADIUS} m",
+        }
+    else:
+        objects = subject_primitives(config.subject, seed) if product else default_primitives(seed)
     if layout == "forward":
         surroundings = (backdrop(seed),)
     elif layout == "room" or (layout == "turntable" and not product):
         surroundings = room(seed)
     else:
         surroundings = ()
-    return Subject(objects=objects, surroundings=surroundings, lights=DEFAULT_LIGHTS, drawn=None)
+    return Subject(objects=objects, surroundings=surroundings, lights=DEFAULT_LIGHTS, drawn=None, placed=placed)
 
 
 def _around(layout: str, drawn: str, kind: str) -> str:
