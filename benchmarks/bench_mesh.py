@@ -96,6 +96,7 @@ def measure(spec: dict) -> dict:
         "samples": report["grid"]["samples"],
         "timing": report["timing_seconds"],
         "watertight": result.watertight,
+        "bodies": int(trimesh.load(result.mesh, force="mesh", process=False).body_count),
     }
 
 
@@ -109,16 +110,24 @@ def _in_subprocess(spec: dict) -> dict:
 
 
 def trained_run(
-    out: Path, seconds: float, method: str = "density", *, name: str | None = None, max_steps: int | None = None
+    out: Path,
+    seconds: float,
+    method: str = "density",
+    *,
+    name: str | None = None,
+    max_steps: int | None = None,
+    scene_args: dict | None = None,
 ) -> tuple[Path, Path]:
-    """The synthetic posed scene in OUT (made once) and a run of `method` on it in OUT/name (default: run, or
-    run_METHOD), trained for `seconds` (and at most `max_steps`) unless it is there: (run_dir, the scene's source)."""
+    """The synthetic scene in OUT (made once: `scene_args` for `stages.scene.Config`, by default kind posed, 128 px,
+    48 views, seed 0) and a run of `method` on it in OUT/name (default: run, or run_METHOD), trained for `seconds`
+    (and at most `max_steps`) unless it is there: (run_dir, the scene's source)."""
     from nerfpipe.stages import convert, scene, train
 
     src, scene_dir = out / "scene_src", out / "scene"
     run_dir = out / (name or ("run" if method == "density" else f"run_{method}"))
     if not (src / "manifest.json").is_file():
-        scene.run(scene.Config(out_dir=src, kind="posed", size=128, views=48, seed=0))
+        args = scene_args or {"kind": "posed", "size": 128, "views": 48, "seed": 0}
+        scene.run(scene.Config(out_dir=src, **args))
     if not (scene_dir / "transforms.json").is_file():
         convert.run(convert.Config(source=src, scene_dir=scene_dir))
     if not (run_dir / "manifest.json").is_file():

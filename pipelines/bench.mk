@@ -29,6 +29,10 @@ bench-mesh: $(INSTALLED)
 bench-sdf: $(INSTALLED)
 	$(VENV)/bin/python -m benchmarks.bench_sdf --out $(BENCH_OUT)/sdf
 
+.PHONY: bench-sdf-scenes
+bench-sdf-scenes: $(INSTALLED)
+	$(VENV)/bin/python -m benchmarks.bench_sdf --out $(BENCH_OUT)/sdf_scenes --scenes
+
 # issue 29: the default textured mesh of a real capture against its field, on its held-out cameras (the fox run
 # that bench-real makes; MESH_RUN=DIR for another)
 MESH_RUN ?= $(BENCH_OUT)/real/fox/run
