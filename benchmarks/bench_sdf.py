@@ -26,12 +26,12 @@ within 1 % of the scene's diagonal of the mesh.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import time
 from pathlib import Path
 
 from benchmarks.bench_mesh import _in_subprocess, trained_run
+from benchmarks.mesh_metrics import scanned_mesh_file
 
 __all__ = ["main"]
 
@@ -44,17 +44,6 @@ DEMO_VIEWS, DEMO_SIZE = 40, 256
 from COLMAP) and a white background."""
 KEPT_SHARE, KEPT_TOL = 0.5, 0.01
 """An object is kept when this share of its visible surface lies within this fraction of the diagonal of the mesh."""
-
-
-def _scan_file(name: str) -> Path:
-    """pymeshlab's bundled sample mesh `name`.obj (found without importing pymeshlab)."""
-    spec = importlib.util.find_spec("pymeshlab")
-    if spec is None or not spec.submodule_search_locations:
-        raise SystemExit("bench_sdf --scans: pymeshlab is not installed (make install)")
-    path = Path(spec.submodule_search_locations[0]) / "tests" / "sample_meshes" / f"{name}.obj"
-    if not path.is_file():
-        raise SystemExit(f"bench_sdf --scans: {path} is not in this pymeshlab wheel")
-    return path
 
 
 def _row(out: Path, name: str, method: str, seconds: float, steps: int | None, scene_args: dict | None = None) -> dict:
@@ -131,7 +120,7 @@ def _cases() -> dict[str, dict]:
     """--scenes' cases: name -> the `stages.scene.Config` arguments of its scene (module doc)."""
     photos = {"kind": "rgba", "size": SCENE_SIZE, "views": SCENE_VIEWS}
     demo = {"kind": "posed", "size": DEMO_SIZE, "views": DEMO_VIEWS}
-    scans = {scan: {**photos, "subject": "mesh", "mesh": _scan_file(scan)} for scan in SCANS}
+    scans = {scan: {**photos, "subject": "mesh", "mesh": scanned_mesh_file(scan)} for scan in SCANS}
     return {"slab": photos, "demo": demo} | scans
 
 
@@ -144,7 +133,9 @@ def _scene_rows(out: Path, seconds: float, only: list[str] | None) -> list[dict]
         if only is not None and case not in only:
             continue
         for method in ("density", "sdf"):
-            rows.append({**_row(out / case, method, method, seconds, None, args), "row": f"{case} {method}"})
+            rows.append(
+                {**_row(out / case, method, method, seconds, None, args), "row": f"{case} {method}", "scene": case}
+            )
     return rows
 
 
@@ -162,9 +153,9 @@ def _scene_table(rows: list[dict]) -> str:
         "pieces | watertight |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
-    density = {r["row"].split()[0]: r["chamfer_pct_diag"] for r in rows if r["method"] == "density"}
+    density = {r["scene"]: r["chamfer_pct_diag"] for r in rows if r["method"] == "density"}
     for r in rows:
-        ratio = r["chamfer_pct_diag"] / density[r["row"].split()[0]] if r["method"] == "sdf" else None
+        ratio = r["chamfer_pct_diag"] / density[r["scene"]] if r["method"] == "sdf" else None
         lines.append(
             f"| {r['row']} | {r['steps']} | {r['test_psnr']:.2f} dB | {r['train_check']} | "
             f"{r['chamfer_pct_diag']:.3f} | {'' if ratio is None else f'{ratio:.2f}'} | {_kept(r)} | {r['bodies']} | "
@@ -177,7 +168,9 @@ def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, default=Path("runs/bench/sdf"))
     p.add_argument("--seconds", type=float, default=None, help="train seconds (300; with --scenes 180)")
-    p.add_argument("--scenes", action="store_true", help="the slab and the scanned meshes instead (module doc)")
+    p.add_argument(
+        "--scenes", action="store_true", help="the slab, the demo's scene and the scanned meshes instead (module doc)"
+    )
     p.add_argument(
         "--only", type=lambda v: v.split(","), default=None, help="with --scenes: these cases, comma-separated"
     )

@@ -130,11 +130,11 @@ def _families(net, out: Path, count: int, mirror: bool) -> dict:
 
 
 def _scan(name: str):
-    import pymeshlab
     import trimesh
 
-    path = Path(pymeshlab.__file__).parent / "tests" / "sample_meshes" / f"{name}.obj"
-    m = trimesh.load(path, force="mesh")
+    from benchmarks.mesh_metrics import scanned_mesh_file
+
+    m = trimesh.load(scanned_mesh_file(name), force="mesh")
     v = np.asarray(m.vertices, np.float64)[:, [0, 2, 1]] * np.array([1.0, -1.0, 1.0])  # y up -> z up
     lo, hi = v.min(0), v.max(0)
     axis = 0.5 * (lo[:2] + hi[:2])

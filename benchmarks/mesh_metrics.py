@@ -6,9 +6,11 @@ wind counter-clockwise seen from outside, so face normals point outward; a signe
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
-__all__ = ["chamfer_distance", "surface_points", "surface_samples", "signed_offsets"]
+__all__ = ["chamfer_distance", "surface_points", "surface_samples", "signed_offsets", "scanned_mesh_file"]
 
 
 def chamfer_distance(a_points: np.ndarray, b_points: np.ndarray) -> float:
@@ -59,3 +61,17 @@ def signed_offsets(points: np.ndarray, surface: np.ndarray, normals: np.ndarray)
         raise ValueError(f"expected a non-empty surface [M, 3] and normals of the same shape, got {s.shape}, {n.shape}")
     idx = cKDTree(s).query(p, workers=-1)[1]
     return np.einsum("nd,nd->n", p - s[idx], n[idx])
+
+
+def scanned_mesh_file(name: str) -> Path:
+    """A scanned mesh pymeshlab's wheel ships, `pymeshlab/tests/sample_meshes/<name>.obj` (bunny, cow, airplane ...),
+    found without importing pymeshlab; SystemExit in one line when it is not there."""
+    import importlib.util
+
+    spec = importlib.util.find_spec("pymeshlab")
+    if spec is None or not spec.submodule_search_locations:
+        raise SystemExit("pymeshlab is not installed (make install): its sample meshes are the scans")
+    path = Path(spec.submodule_search_locations[0]) / "tests" / "sample_meshes" / f"{name}.obj"
+    if not path.is_file():
+        raise SystemExit(f"{path} is not in this pymeshlab wheel")
+    return path
