@@ -13,7 +13,7 @@ import torch
 from nerfpipe.data.errors import UserError
 from nerfpipe.model.methods.gnt.hooks import GntBatches
 from nerfpipe.model.methods.gnt.model import RayRange
-from nerfpipe.model.methods.gnt.net import GntNet, masked_softmax
+from nerfpipe.model.methods.gnt.net import GntNet, masked_softmax, stored_config, unpremultiply
 from nerfpipe.model.methods.gnt.options import GntOptions
 from nerfpipe.model.methods.gnt.sources import Sources, gather, gather_plain
 from nerfpipe.radiance.camera import Intrinsics, project
@@ -122,6 +122,42 @@ def test_a_point_no_source_sees_gives_finite_outputs_and_gradients():
     loss.backward()
     assert all(bool(torch.isfinite(v).all()) for v in out.values())
     assert all(p.grad is None or bool(torch.isfinite(p.grad).all()) for p in net.parameters())
+
+
+def test_the_blend_read_out_copies_the_colour_every_source_shows_and_unpremultiplies_it():
+    """Sources that agree on a colour at every sample give that colour whatever the network's other weights are
+    (the token's own colour given no weight); half-covered source pixels give the colour, not its half."""
+    torch.manual_seed(0)
+    net = GntNet(channels=8, width=8, blocks=1, heads=2, readout="blend")
+    with torch.no_grad():
+        net.own.weight.zero_()
+        net.own.bias.fill_(-1e4)
+    colour = torch.tensor([0.9, 0.2, 0.6])
+    alpha = torch.tensor([1.0, 0.5, 0.25])[None, None, :, None].expand(3, 5, 3, 1)  # per view
+    rgba = torch.cat([colour * alpha, alpha], dim=-1)  # premultiplied, [3, 5, 3, 4]
+    views = torch.cat([torch.randn(3, 5, 3, 8), rgba], dim=-1)
+    seen = torch.ones(3, 5, 3, dtype=torch.bool)
+    out = net(views, torch.randn(3, 5, 3, 4), seen, torch.linspace(0, 1, 5).expand(3, 5))
+    torch.testing.assert_close(out["rgb"], colour.expand(3, 3), atol=1e-5, rtol=0)
+    zero = unpremultiply(torch.zeros(2, 4))
+    assert bool((zero == 0).all())
+
+
+def test_the_blend_read_out_trains_both_ways_and_old_weights_read_out_directly():
+    """Gradients reach the blending logits and the token's own colour (finite, non-zero), also where a sample is
+    seen by no source; a configuration stored before the read-out existed names the direct read-out."""
+    torch.manual_seed(1)
+    net = GntNet(channels=8, width=8, blocks=1, heads=2)
+    assert net.readout == "blend"
+    views = torch.rand(2, 4, 3, 12)
+    seen = torch.rand(2, 4, 3) > 0.3
+    seen[1] = False
+    out = net(views, torch.randn(2, 4, 3, 4), seen, torch.linspace(0, 1, 4).expand(2, 4))
+    out["rgb"].sum().backward()
+    for p in (net.blend[0].weight, net.own.weight, net.rgb[0].weight):
+        assert p.grad is not None and bool(torch.isfinite(p.grad).all()) and float(p.grad.abs().sum()) > 0
+    assert stored_config({"extractor": "shallow"})["readout"] == "direct"
+    assert GntNet.from_config({"extractor": "shallow", "readout": "blend"}).readout == "blend"
 
 
 def test_inverse_depth_samples_reach_far_and_stay_finite_without_a_far_plane():

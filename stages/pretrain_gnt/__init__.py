@@ -30,7 +30,7 @@ from nerfpipe.data.rundir import MetricsLog, output_folder, sha256_file, write_c
 from nerfpipe.model.device import cpu_threads, resolve_device
 from nerfpipe.model.loop import Budget, Clock, LoopSettings, Schedule, TrainingLoop
 from nerfpipe.model.methods.gnt.features import EXTRACTORS
-from nerfpipe.model.methods.gnt.net import GntNet
+from nerfpipe.model.methods.gnt.net import READOUTS, GntNet
 from nerfpipe.model.methods.gnt.pretrain import CrossScene, load_scene_set
 from nerfpipe.model.methods.gnt.weights import read_weights, write_weights
 from nerfpipe.radiance.metrics import psnr_from_mse
@@ -53,6 +53,9 @@ class Config:
     """Stop after this many steps."""
     extractor: str = "shallow"
     """Image features: shallow or resunet (`model.methods.gnt.features`)."""
+    readout: str = "blend"
+    """A sample's colour: blend (the source pixels', weighted) or direct (`model.methods.gnt.net`); with --init,
+    the weights' own."""
     init: str | None = None
     """Continue from these weights (a weights.pt, a gnt run's checkpoint.pt, or 'pretrained')."""
     source_views: tuple[int, int] = (3, 10)
@@ -94,6 +97,8 @@ class Outputs:
 def _check(config: Config) -> None:
     if config.extractor not in EXTRACTORS:
         raise UserError(f"pretrain-gnt: expected --extractor in {sorted(EXTRACTORS)}, got {config.extractor!r}")
+    if config.readout not in READOUTS:
+        raise UserError(f"pretrain-gnt: expected --readout in {list(READOUTS)}, got {config.readout!r}")
     lo, hi = config.source_views
     if not 1 <= lo <= hi:
         raise UserError(f"pretrain-gnt: expected --source-views LO,HI with 1 <= LO <= HI, got {lo},{hi}")
@@ -113,10 +118,10 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         scenes = load_scene_set(Path(config.scenes), config.source_side, device)
         if config.init:
             net_cfg, state, _ = read_weights(config.init, device)
-            net = GntNet(**net_cfg).to(device)
+            net = GntNet.from_config(net_cfg).to(device)
             net.load_state_dict(state)
         else:
-            net = GntNet(extractor=config.extractor).to(device)
+            net = GntNet(extractor=config.extractor, readout=config.readout).to(device)
         opt = torch.optim.Adam(net.parameters(), lr=config.lr)
         metrics = MetricsLog(out / "metrics.csv", METRICS)
         losses: list[float] = []

@@ -26,7 +26,7 @@ from nerfpipe.model.checkpoint import read_checkpoint, restore_appearance, resto
 from nerfpipe.model.methods.base import Method, Prepared, RunFiles, TrainContext
 from nerfpipe.model.methods.gnt.hooks import GntBatches
 from nerfpipe.model.methods.gnt.model import GntModel, RayRange, ray_range
-from nerfpipe.model.methods.gnt.net import GntNet
+from nerfpipe.model.methods.gnt.net import GntNet, stored_config
 from nerfpipe.model.methods.gnt.options import (
     SAMPLES,
     SOURCE_SIDE,
@@ -58,7 +58,7 @@ class GntPrepared(Prepared):
 
 
 def _net(config: dict, state: dict | None, device: torch.device) -> GntNet:
-    net = GntNet(**config).to(device)
+    net = GntNet.from_config(config).to(device)
     if state is not None:
         try:
             net.load_state_dict(state)
@@ -87,9 +87,13 @@ class GntMethod(Method):
             raise UserError(f"extractor: the initial weights use {init[0]['extractor']!r}, not {extractor!r}")
         side = max(max(h, w) for h, w in ctx.train.shapes)
         cap = SOURCE_SIDE[1] if ctx.cuda else SOURCE_SIDE[0]
+        readout = options.readout or (stored_config(init[0])["readout"] if init else "blend")
+        if init and readout != stored_config(init[0])["readout"]:
+            raise UserError(f"readout: the initial weights use {stored_config(init[0])['readout']!r}, not {readout!r}")
         resolved = replace(
             options,
             extractor=extractor,
+            readout=readout,
             source_views=min(options.source_views or SOURCE_VIEWS, n),
             gnt_samples=options.gnt_samples or (2 * SAMPLES if ctx.cuda else SAMPLES),
             source_side=options.source_side or min(side, cap),
@@ -98,6 +102,7 @@ class GntMethod(Method):
         reasons["scene_model"] = f"{ctx.space_kind.name}: {ctx.space_why}; rays {why}"
         for name, default in (
             ("extractor", "shallow" if not init else "the initial weights'"),
+            ("readout", "blend" if not init else "the initial weights'"),
             ("source_views", f"{SOURCE_VIEWS}, at most the training photos (a training ray: but its own)"),
             ("gnt_samples", f"{SAMPLES} a ray on CPU, {2 * SAMPLES} on CUDA"),
             ("source_side", f"{cap} px on this device, or the photos' size when smaller"),
@@ -119,7 +124,7 @@ class GntMethod(Method):
         elif prepared.init is not None:
             net = _net(prepared.init[0], prepared.init[1], ctx.device)
         else:
-            net = _net({"extractor": o.extractor}, None, ctx.device)
+            net = _net({"extractor": o.extractor, "readout": o.readout}, None, ctx.device)
         model = GntModel(
             net=net,
             sources=sources_from_views(ctx.train, o.source_side).to(ctx.device),

@@ -11,8 +11,14 @@ rgb and alpha), D the token width.
   because our pretraining is thousands of steps, not GNT's 250k); later blocks' queries are the tokens.
 - Ray transformer (per ray, across its S samples): pre-norm multi-head self-attention plus a feed-forward, with a
   sinusoidal code of each sample's position along the ray (0 at the ray's near end, 1 at its far end).
-- Read-out: one logit a sample, softmax over the ray: rgb and coverage (alpha) from the weighted token; the same
-  weights give the depth (GNT reads depth from the ray transformer's attention the same way).
+- Read-out: one logit a sample, softmax over the ray: coverage (alpha) from the weighted token; the same weights
+  give the depth (GNT reads depth from the ray transformer's attention the same way) and pool the samples' colours.
+  A sample's colour (`readout`):
+  - `direct`: an MLP of the token (GNT's linear read-out);
+  - `blend` (default): IBRNet's colour blending, the source pixels' colours at the sample (unpremultiplied) weighted
+    by a softmax over the views that see it, plus one more entry, the token's own colour, for what no source shows.
+    A network trained for thousands of steps, not GNT's 250k, has not learned to copy colour through its tokens;
+    blending copies it by construction and leaves the network to choose whom to copy.
 """
 
 from __future__ import annotations
@@ -24,7 +30,10 @@ from torch import Tensor, nn
 
 from nerfpipe.model.methods.gnt.features import make_extractor
 
-__all__ = ["GntNet", "masked_softmax"]
+__all__ = ["GntNet", "masked_softmax", "READOUTS", "stored_config", "unpremultiply"]
+
+READOUTS = ("blend", "direct")
+"""How a sample's colour is read (module doc)."""
 
 
 def masked_softmax(logits: Tensor, mask: Tensor, dim: int) -> Tensor:
@@ -33,6 +42,20 @@ def masked_softmax(logits: Tensor, mask: Tensor, dim: int) -> Tensor:
     (uniform weights) need zeroing: a multiply by `mask.any(dim)`, not by the whole mask and a renormalisation."""
     w = torch.softmax(logits.masked_fill(~mask, torch.finfo(logits.dtype).min), dim=dim)
     return w * mask.any(dim=dim, keepdim=True)
+
+
+def unpremultiply(rgba: Tensor) -> Tensor:
+    """Source pixels [..., 4] (colour premultiplied by alpha, alpha) -> colour [..., 3]; 0 where alpha is 0 (data,
+    not learned: the quotient carries no gradient to the network, so no epsilon guards it beyond the zero)."""
+    a = rgba[..., 3:]
+    some = a > 0
+    return torch.where(some, rgba[..., :3] / torch.where(some, a, torch.ones_like(a)), 0.0).clamp(0, 1)
+
+
+def stored_config(config: dict) -> dict:
+    """A network configuration as stored in a weights file or checkpoint, completed: one written before `readout`
+    existed read its colour out directly."""
+    return {"readout": "direct", **config}
 
 
 def _mlp(d_in: int, d_hidden: int, d_out: int) -> nn.Sequential:
@@ -81,11 +104,21 @@ class GntNet(nn.Module):
         blocks: int = 2,
         heads: int = 4,
         frequencies: int = 6,
+        readout: str = "blend",
     ):
         super().__init__()
+        if readout not in READOUTS:
+            raise ValueError(f"readout: expected one of {READOUTS}, got {readout!r}")
         self._config = dict(
-            extractor=extractor, channels=channels, width=width, blocks=blocks, heads=heads, frequencies=frequencies
+            extractor=extractor,
+            channels=channels,
+            width=width,
+            blocks=blocks,
+            heads=heads,
+            frequencies=frequencies,
+            readout=readout,
         )
+        self.readout = readout
         self.extractor = make_extractor(extractor, channels)
         self.stride = self.extractor.stride
         self.frequencies = frequencies
@@ -99,9 +132,17 @@ class GntNet(nn.Module):
         self.logit = nn.Linear(width, 1)
         self.rgb = _mlp(width, width, 3)
         self.alpha = nn.Linear(width, 1)
+        if readout == "blend":
+            self.blend = _mlp(width, width, 1)  # a view's blending logit, from its token, its code and the sample's
+            self.own = nn.Linear(width, 1)  # the logit of the token's own colour
 
     def config(self) -> dict:
         return dict(self._config)
+
+    @staticmethod
+    def from_config(config: dict) -> GntNet:
+        """The network a stored configuration names (`stored_config`)."""
+        return GntNet(**stored_config(config))
 
     def features(self, images: Tensor) -> Tensor:
         """Source images [V, 4, H, W] -> feature maps [V, C, H / stride, W / stride]."""
@@ -110,6 +151,8 @@ class GntNet(nn.Module):
     def forward(self, views: Tensor, ray_diff: Tensor, seen: Tensor, t01: Tensor) -> dict[str, Tensor]:
         """views [R, S, K, C + 4] (features, then the source pixel's rgba), ray_diff [R, S, K, 4], seen [R, S, K]
         (bool), t01 [R, S] (position along the ray in [0, 1]) -> dict(rgb [R, 3], alpha [R], weights [R, S])."""
+        if views.shape[-1] < 4:
+            raise ValueError(f"expected views [R, S, K, C + 4] ending with the source pixel's rgba, got {views.shape}")
         x = self.embed(views)  # [R, S, K, D]
         pos = self.pos(ray_diff)
         m = seen[..., None]
@@ -128,8 +171,17 @@ class GntNet(nn.Module):
         token = self.norm(token)
         weights = torch.softmax(self.logit(token)[..., 0], dim=1)  # [R, S]
         pooled = (weights[..., None] * token).sum(1)  # [R, D]
-        return {
-            "rgb": torch.sigmoid(self.rgb(pooled)),
-            "alpha": torch.sigmoid(self.alpha(pooled))[..., 0],
-            "weights": weights,
-        }
+        if self.readout == "direct":
+            rgb = torch.sigmoid(self.rgb(pooled))
+        else:
+            rgb = (weights[..., None] * self._blend(token, x, pos, seen, views[..., -4:])).sum(1)
+        return {"rgb": rgb, "alpha": torch.sigmoid(self.alpha(pooled))[..., 0], "weights": weights}
+
+    def _blend(self, token: Tensor, x: Tensor, pos: Tensor, seen: Tensor, rgba: Tensor) -> Tensor:
+        """Each sample's colour [R, S, 3]: the seen views' colours and the token's own, softmax-weighted (module doc).
+        token [R, S, D], x and pos [R, S, K, D], seen [R, S, K], rgba [R, S, K, 4] (premultiplied)."""
+        logits = torch.cat([self.blend(x + pos + token[:, :, None])[..., 0], self.own(token)], dim=-1)  # [R, S, K+1]
+        mask = torch.cat([seen, torch.ones_like(seen[..., :1])], dim=-1)
+        w = masked_softmax(logits, mask, dim=-1)
+        colours = torch.cat([unpremultiply(rgba), torch.sigmoid(self.rgb(token))[:, :, None]], dim=2)  # [R, S, K+1, 3]
+        return (w[..., None] * colours).sum(2)

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 from nerfpipe.data.errors import UserError
 from nerfpipe.model.methods.gnt.features import EXTRACTORS
+from nerfpipe.model.methods.gnt.net import READOUTS
 
 __all__ = ["GntOptions", "validate_options", "SOURCE_VIEWS", "SAMPLES", "SOURCE_SIDE", "VIEWS_PER_STEP"]
 
@@ -31,6 +32,9 @@ class GntOptions:
     extractor: str | None = None
     """Image features: shallow (three convolutions) or resunet (a residual encoder-decoder). None: shallow, or the
     initial weights' kind."""
+    readout: str | None = None
+    """A sample's colour: blend (the source pixels' colours weighted by the network, IBRNet's read-out) or direct
+    (the network's own colour, GNT's). None: blend, or the initial weights' kind."""
     source_views: int | None = None
     """Source photos each ray reads (the nearest in viewing angle). None: 8, or every training photo when there are
     fewer (a training ray never reads its own photo: one fewer then)."""
@@ -49,6 +53,8 @@ def validate_options(options: GntOptions) -> None:
     """Every check the options alone allow (UserError naming the option)."""
     if options.extractor is not None and options.extractor not in EXTRACTORS:
         raise UserError(f"extractor: expected one of {', '.join(sorted(EXTRACTORS))}, got {options.extractor!r}")
+    if options.readout is not None and options.readout not in READOUTS:
+        raise UserError(f"readout: expected one of {', '.join(READOUTS)}, got {options.readout!r}")
     if options.source_views is not None and options.source_views < 1:
         raise UserError(f"source_views: expected >= 1, got {options.source_views}")
     if options.gnt_samples is not None and options.gnt_samples < 2:
