@@ -255,6 +255,18 @@ def test_a_run_of_given_weights_and_no_step_renders_what_their_run_renders(tiny)
                 options=GntOptions(init=str(root / "scene" / "transforms.json")),
             )
         )
+    with pytest.raises(UserError, match="readout: the initial weights use 'blend', not 'direct'"):
+        train.run(
+            train.Config(
+                scene_dir=root / "scene",
+                run_dir=root / "bad",
+                method="gnt",
+                max_steps=0,
+                device="cpu",
+                options=GntOptions(init=str(out.checkpoint), readout="direct"),
+            )
+        )
+    assert not (root / "bad" / "checkpoint.pt").exists()
 
 
 def test_pretraining_across_scenes_writes_weights_a_run_starts_from(tmp_path):
