@@ -32,7 +32,7 @@ from nerfpipe.model.loop import Budget, Clock, LoopSettings, Schedule, TrainingL
 from nerfpipe.model.methods.gnt.features import EXTRACTORS
 from nerfpipe.model.methods.gnt.net import READOUTS, GntNet
 from nerfpipe.model.methods.gnt.pretrain import CrossScene, load_scene_set
-from nerfpipe.model.methods.gnt.weights import read_weights, write_weights
+from nerfpipe.model.methods.gnt.weights import build_net, read_weights, write_weights
 from nerfpipe.radiance.metrics import psnr_from_mse
 
 __all__ = ["Config", "Outputs", "run"]
@@ -118,8 +118,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         scenes = load_scene_set(Path(config.scenes), config.source_side, device)
         if config.init:
             net_cfg, state, _ = read_weights(config.init, device)
-            net = GntNet.from_config(net_cfg).to(device)
-            net.load_state_dict(state)
+            net = build_net(net_cfg, state, device)
         else:
             net = GntNet(extractor=config.extractor, readout=config.readout).to(device)
         opt = torch.optim.Adam(net.parameters(), lr=config.lr)

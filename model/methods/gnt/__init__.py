@@ -26,7 +26,6 @@ from nerfpipe.model.checkpoint import read_checkpoint, restore_appearance, resto
 from nerfpipe.model.methods.base import Method, Prepared, RunFiles, TrainContext
 from nerfpipe.model.methods.gnt.hooks import GntBatches
 from nerfpipe.model.methods.gnt.model import GntModel, RayRange, ray_range
-from nerfpipe.model.methods.gnt.net import GntNet, stored_config
 from nerfpipe.model.methods.gnt.options import (
     SAMPLES,
     SOURCE_SIDE,
@@ -36,7 +35,7 @@ from nerfpipe.model.methods.gnt.options import (
 )
 from nerfpipe.model.methods.gnt.run import GntRun
 from nerfpipe.model.methods.gnt.sources import sources_from_views
-from nerfpipe.model.methods.gnt.weights import read_weights
+from nerfpipe.model.methods.gnt.weights import build_net, read_weights
 from nerfpipe.model.trained import read_run_scene
 from nerfpipe.model.views import load_views
 from nerfpipe.radiance.space import Box
@@ -55,16 +54,6 @@ class GntPrepared(Prepared):
     range: RayRange
     init: tuple[dict, dict, dict] | None
     """The initial weights (net config, state, provenance), or None."""
-
-
-def _net(config: dict, state: dict | None, device: torch.device) -> GntNet:
-    net = GntNet.from_config(config).to(device)
-    if state is not None:
-        try:
-            net.load_state_dict(state)
-        except RuntimeError as exc:
-            raise UserError(f"gnt weights do not fit the network they name ({str(exc).splitlines()[0]})") from None
-    return net
 
 
 class GntMethod(Method):
@@ -87,9 +76,9 @@ class GntMethod(Method):
             raise UserError(f"extractor: the initial weights use {init[0]['extractor']!r}, not {extractor!r}")
         side = max(max(h, w) for h, w in ctx.train.shapes)
         cap = SOURCE_SIDE[1] if ctx.cuda else SOURCE_SIDE[0]
-        readout = options.readout or (stored_config(init[0])["readout"] if init else "blend")
-        if init and readout != stored_config(init[0])["readout"]:
-            raise UserError(f"readout: the initial weights use {stored_config(init[0])['readout']!r}, not {readout!r}")
+        readout = options.readout or (init[0]["readout"] if init else "blend")
+        if init and readout != init[0]["readout"]:
+            raise UserError(f"readout: the initial weights use {init[0]['readout']!r}, not {readout!r}")
         resolved = replace(
             options,
             extractor=extractor,
@@ -120,11 +109,11 @@ class GntMethod(Method):
     def build(self, ctx: TrainContext, prepared: GntPrepared, state: dict | None) -> GntModel:
         o = prepared.options
         if state is not None:
-            net = _net(state["gnt_net_config"], state["gnt_net"], ctx.device)
+            net = build_net(state["gnt_net_config"], state["gnt_net"], ctx.device)
         elif prepared.init is not None:
-            net = _net(prepared.init[0], prepared.init[1], ctx.device)
+            net = build_net(prepared.init[0], prepared.init[1], ctx.device)
         else:
-            net = _net({"extractor": o.extractor, "readout": o.readout}, None, ctx.device)
+            net = build_net({"extractor": o.extractor, "readout": o.readout}, None, ctx.device)
         model = GntModel(
             net=net,
             sources=sources_from_views(ctx.train, o.source_side).to(ctx.device),
@@ -152,7 +141,7 @@ class GntMethod(Method):
         state = read_checkpoint(run.checkpoint, device)
         scene = read_run_scene(run.run_dir, run.config)
         try:
-            net = _net(state["gnt_net_config"], state["gnt_net"], device)
+            net = build_net(state["gnt_net_config"], state["gnt_net"], device)
             rng = RayRange.from_dict(state["gnt_range"])
             samples, k, side = int(state["gnt_samples"]), int(state["gnt_source_views"]), int(state["gnt_source_side"])
         except (KeyError, TypeError, ValueError) as exc:

@@ -16,8 +16,9 @@ import torch
 
 from nerfpipe.data.atomic import write_bytes
 from nerfpipe.data.errors import UserError
+from nerfpipe.model.methods.gnt.net import GntNet, stored_config
 
-__all__ = ["WEIGHTS_FORMAT", "PRETRAINED", "read_weights", "write_weights"]
+__all__ = ["WEIGHTS_FORMAT", "PRETRAINED", "read_weights", "write_weights", "build_net"]
 
 WEIGHTS_FORMAT = "nerfpipe-gnt-weights-1"
 PRETRAINED = Path(__file__).parent / "weights" / "pretrained.pt"
@@ -25,8 +26,8 @@ PRETRAINED = Path(__file__).parent / "weights" / "pretrained.pt"
 
 
 def read_weights(init: str, device: torch.device) -> tuple[dict, dict, dict]:
-    """`init` ('pretrained', a weights file or a gnt checkpoint.pt) -> (net config, state dict, provenance);
-    UserError in one line when it is missing or not gnt weights."""
+    """`init` ('pretrained', a weights file or a gnt checkpoint.pt) -> (net config, completed by `stored_config`,
+    state dict, provenance); UserError in one line when it is missing or not gnt weights."""
     path = PRETRAINED if init == "pretrained" else Path(init)
     if not path.is_file():
         what = "the shipped pretrained gnt weights (make pretrain-gnt writes them)" if init == "pretrained" else init
@@ -37,7 +38,19 @@ def read_weights(init: str, device: torch.device) -> tuple[dict, dict, dict]:
         raise UserError(f"init: {path}: not gnt weights (unreadable: {type(exc).__name__})") from None
     if not isinstance(state, dict) or "gnt_net" not in state or "gnt_net_config" not in state:
         raise UserError(f"init: {path}: not gnt weights (expected a weights file or a gnt run's checkpoint.pt)")
-    return dict(state["gnt_net_config"]), state["gnt_net"], dict(state.get("provenance") or {})
+    return stored_config(state["gnt_net_config"]), state["gnt_net"], dict(state.get("provenance") or {})
+
+
+def build_net(config: dict, state: dict | None, device: torch.device) -> GntNet:
+    """The network a (stored) configuration names, with `state` loaded when given; UserError in one line when the
+    state does not fit it."""
+    net = GntNet.from_config(config).to(device)
+    if state is not None:
+        try:
+            net.load_state_dict(state)
+        except RuntimeError as exc:
+            raise UserError(f"gnt weights do not fit the network they name ({str(exc).splitlines()[0]})") from None
+    return net
 
 
 def write_weights(path: Path, config: dict, state: dict, provenance: dict) -> Path:
