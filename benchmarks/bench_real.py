@@ -74,6 +74,13 @@ CAPTURES = (
         reference=f"transforms:{DATA}/fox/transforms.json",
     ),
     Capture(
+        "fox-sdf",
+        "phone photos, unbounded (contract), `--method sdf`",
+        (f"PHOTOS={DATA}/fox/images", "TRAIN_ARGS=--max-seconds=300 --method=sdf"),
+        "one smooth surface for the head and plaque, <= 15 min (issue 48)",
+        reference=f"transforms:{DATA}/fox/transforms.json",
+    ),
+    Capture(
         "head",
         "masked object, turntable (box)",
         (f"PHOTOS={DATA}/head/images", f"POSES_ARGS=--masks {DATA}/head/masks", "TRAIN_ARGS=--max-seconds=300"),

@@ -3,10 +3,12 @@ opacity by NeuS's logistic ratio with a learned sharpness, an Eikonal term by fi
 a colour network that sees the normal, coarse-to-fine growth. Its runs can render rays, give a signed distance
 (`mesh` extracts the zero level set: no threshold) and a colour at points.
 
-Objects in their box only (photos with alpha, masks or a plain background); a contracted or forward-facing scene is
-refused in one line. Modules: `options` (the options group), `neus` (the opacity and compositing maths), `field`
-(the signed distance and colour), `model` (the `TrainModel`), `hooks` (Eikonal term, growth), `run` (the run for the
-stages and the self-check).
+Objects in their box (photos with alpha, masks or a plain background), and real captures (a contracted scene: the
+signed distance in the scene's box, a density field in contracted space for what lies outside it, as neus-facto and
+BakedSDF split them); a forward-facing (NDC) scene is refused in one line. Modules: `options` (the options group),
+`neus` (the opacity and compositing maths), `field` (the signed distance and colour), `outside` (the density field
+beyond the box), `model` (the `TrainModel`), `hooks` (Eikonal term, growth, the outside field's smoothing), `run`
+(the run for the stages and the self-check).
 """
 
 from __future__ import annotations
@@ -24,10 +26,11 @@ from nerfpipe.model.methods.sdf.field import SdfField
 from nerfpipe.model.methods.sdf.hooks import hooks_for
 from nerfpipe.model.methods.sdf.model import SdfModel
 from nerfpipe.model.methods.sdf.options import REFINE, RESOLUTION, SAMPLES, UPSAMPLE_AT, SdfOptions, validate_options
+from nerfpipe.model.methods.sdf.outside import Outside
 from nerfpipe.model.methods.sdf.run import SdfRun, sdf_checks
 from nerfpipe.model.spaces import make_space
 from nerfpipe.model.trained import read_run_scene
-from nerfpipe.radiance.space import Box
+from nerfpipe.radiance.space import Box, Contracted, Space
 
 __all__ = ["SDF", "SdfMethod", "SdfOptions"]
 
@@ -38,38 +41,54 @@ LR = 0.02
 @dataclass(frozen=True, kw_only=True)
 class SdfPrepared(Prepared):
     options: SdfOptions
-    space: Box
+    space: Space
 
 
-def _model(options: SdfOptions, space: Box, field_cfg: dict | None, device: torch.device) -> SdfModel:
+def sdf_box(space: Space) -> torch.Tensor:
+    """[2, 3] the box the signed distance lives in: the field's box of an object scene, the inner (uncontracted)
+    box of a contracted one."""
+    return space.contraction.inner_aabb if isinstance(space, Contracted) else space.field_box
+
+
+def _model(options: SdfOptions, space: Space, field_cfg: dict | None, device: torch.device) -> SdfModel:
     if field_cfg is None:
         field_cfg = SdfField(
-            aabb=space.field_box,
+            aabb=sdf_box(space),
             resolution=options.resolution[0],
             view_dependent=options.view_dependent,
             radius=options.init_radius,
         ).config()
     field = SdfField(**field_cfg).to(device)
-    return SdfModel(field=field, space=space, samples=options.sdf_samples, refine=options.sdf_refine)
+    outside = Outside.create(space.contraction).to(device) if isinstance(space, Contracted) else None
+    return SdfModel(field=field, space=space, samples=options.sdf_samples, refine=options.sdf_refine, outside=outside)
 
 
 class SdfMethod(Method):
     name = "sdf"
-    summary = "signed distance (an ellipsoid start + VM grid), NeuS opacity, Eikonal term: objects in their box"
+    summary = (
+        "signed distance (an ellipsoid start + VM grid), NeuS opacity, Eikonal term: objects in their box, real "
+        "captures with a density field outside the box"
+    )
     Options = SdfOptions
 
     def validate(self, options: SdfOptions) -> None:
         validate_options(options)
 
     def prepare(self, ctx: TrainContext, options: SdfOptions, reasons: dict[str, str]) -> SdfPrepared:
-        if ctx.space_kind is not Box:
+        if ctx.space_kind not in (Box, Contracted):
             raise UserError(
-                f"the sdf method models objects in their box (photos with alpha, masks or a plain background); this "
-                f"scene is {ctx.space_kind.name} ({ctx.space_why}): use method=density, or scene_model=box"
+                f"the sdf method models objects in their box or real captures around one (contracted); this scene "
+                f"is {ctx.space_kind.name} ({ctx.space_why}): use method=density, or scene_model=box or contract"
             )
         if ctx.refine_poses:
             raise UserError("the sdf method does not refine poses (refine_poses): use method=density")
-        reasons["scene_model"] = f"box: {ctx.space_why}"
+        if ctx.space_kind is Box:
+            reasons["scene_model"] = f"box: {ctx.space_why}"
+            reasons["outside"] = "left out: an object scene, nothing to model beyond the box"
+        else:
+            reasons["scene_model"] = (
+                f"contract: {ctx.space_why}; the signed distance in the scene's box, a density field outside it"
+            )
         resolved = replace(
             options,
             resolution=options.resolution or RESOLUTION,
@@ -86,7 +105,7 @@ class SdfMethod(Method):
             ("view_dependent", "on for every scene"),
         ):
             reasons[name] = "asked for" if getattr(options, name) is not None else why
-        return SdfPrepared(options=resolved, space=make_space(Box, ctx.scene))
+        return SdfPrepared(options=resolved, space=make_space(ctx.space_kind, ctx.scene))
 
     def default_lr(self) -> tuple[float, str]:
         return LR, f"{LR} for the signed distance's grids (its colour network at lr/20)"
@@ -99,20 +118,24 @@ class SdfMethod(Method):
         space = restore_space(state, lambda kind: make_space(kind, ctx.scene))
         model = _model(prepared.options, space, state["sdf_field_config"], ctx.device)
         model.field.load_state_dict(state["sdf_field"])
+        model.outside = _outside(state, space, ctx.device)
         model.background = restore_background(state, ctx.device)
         return model
 
     def hooks(self, ctx: TrainContext, prepared: SdfPrepared, model: SdfModel) -> list:
-        return hooks_for(prepared.options)
+        return hooks_for(prepared.options, outside=model.outside is not None)
 
     def checkpoint(self, model: SdfModel) -> dict[str, Any]:
-        return {
+        state = {
             "sdf_field_config": model.field.config(),
             "sdf_field": model.field.state_dict(),
             "sdf_samples": model.samples,
             "sdf_refine": model.refine,
             "space": model.space.to_dict(),
         }
+        if model.outside is not None:
+            state |= {"sdf_outside_config": model.outside.config(), "sdf_outside": model.outside.field.state_dict()}
+        return state
 
     def checks(self, model: SdfModel) -> list[Check]:
         return sdf_checks(model)
@@ -126,10 +149,16 @@ class SdfMethod(Method):
             field.load_state_dict(state["sdf_field"])
             samples = int(state["sdf_samples"])
             refine = int(state.get("sdf_refine", 1))
+            outside = _outside(state, space, device)
         except (KeyError, TypeError, ValueError, RuntimeError) as exc:
             raise UserError(f"{run.checkpoint}: not an sdf checkpoint this version reads ({exc})") from None
         model = SdfModel(
-            field=field, space=space, samples=samples, refine=refine, background=restore_background(state, device)
+            field=field,
+            space=space,
+            samples=samples,
+            refine=refine,
+            background=restore_background(state, device),
+            outside=outside,
         )
         model.appearance = restore_appearance(state, device)
         model.train_mode(False)
@@ -140,6 +169,15 @@ class SdfMethod(Method):
             background=model.background.eval_colour().detach(),
             downscale=run.downscale,
         )
+
+
+def _outside(state: dict, space: Space, device: torch.device) -> Outside | None:
+    """The outside field a checkpoint holds (a contracted scene's), or None (an object scene's)."""
+    if not isinstance(space, Contracted):
+        return None
+    outside = Outside.from_config(state["sdf_outside_config"], space.contraction).to(device)
+    outside.field.load_state_dict(state["sdf_outside"])
+    return outside
 
 
 SDF = SdfMethod()

@@ -1,7 +1,7 @@
 """The SDF method's `TrainModel`: rays through the box, NeuS's opacity from the signed distance, colour given the
 normal, composited with transmittance exp(-exclusive_cumsum(tau)) (`model.methods.sdf.neus`).
 
-Each ray is cut into `samples` equal intervals of its segment in the box (`radiance.space.Box.box_segment`),
+Each ray is cut into `samples` equal intervals of its segment in the signed distance's box (`SdfField.aabb`),
 jittered while training. The distance at every interval's middle is read without gradient; only the intervals of
 the *band* (where that distance is small enough that the interval may hold the surface: `BAND_STEPS`,
 `BAND_SHARPNESS`) are differentiated, each cut into `refine` equal sub-intervals (NeuS's up-sampling near the
@@ -12,6 +12,11 @@ inside), without gradient, shared evenly by the interval's sub-intervals. Where 
 `COLOR_THRESHOLD` the colour network sees, at its middle, the unit normal g / |g| (g by central differences one grid
 cell wide: `SdfField.sdf_and_gradient`). A training render also returns the Eikonal residual (|g| - 1)^2 over those
 samples and one free point a ray in the box (`eikonal`): the hook adds it to the loss.
+
+In a contracted scene (a real capture) the box is the object's, and `outside` (a density field in contracted
+space: `model.methods.sdf.outside`) gives intervals in front of the box and behind it; the three pieces are
+composited as one ray (their optical depths concatenated in order along it), so the surroundings hide or show the
+surface as they stand.
 """
 
 from __future__ import annotations
@@ -29,8 +34,10 @@ from nerfpipe.model.background import Background
 from nerfpipe.model.field_model import param_groups
 from nerfpipe.model.methods.sdf.field import SdfField
 from nerfpipe.model.methods.sdf.neus import composite_weights, neus_tau, weights_from_tau
+from nerfpipe.model.methods.sdf.outside import Outside, Piece, split
+from nerfpipe.radiance.aabb import ray_aabb_segment
 from nerfpipe.radiance.safe import eps
-from nerfpipe.radiance.space import Box
+from nerfpipe.radiance.space import Space
 
 __all__ = ["SdfModel", "BAND_STEPS", "BAND_SHARPNESS", "COLOR_THRESHOLD"]
 
@@ -48,13 +55,16 @@ class SdfModel:
     """A signed-distance field in the scene's box (module doc): a `model.methods.base.TrainModel`."""
 
     field: SdfField
-    space: Box
+    space: Space
+    """A `Box` (an object scene) or `Contracted` (a real capture: `outside` models what lies beyond the box)."""
     samples: int
     """Intervals a ray is cut into, in training and rendering."""
     refine: int = 1
     """Sub-intervals each interval of the band is cut into (1: none)."""
     background: Background | None = None
     appearance: Appearance | None = None
+    outside: Outside | None = None
+    """The density field outside the box (a contracted scene: `model.methods.sdf.outside`); None: an object scene."""
     chunk: int = 1024
     random_draws_per_ray: int = 4
     """One jitter and one free point (3 numbers) a ray."""
@@ -74,8 +84,11 @@ class SdfModel:
 
     def _render(self, o: Tensor, d: Tensor, background: Tensor, *, train: bool) -> dict[str, Tensor]:
         field, n, m, s = self.field, self.samples, self.refine, self.field.sharpness
-        t_near, t_far = self.space.box_segment(o, d)  # [R] each, scene units
-        t_far = torch.maximum(t_far, t_near)  # rays that miss the box: an empty segment
+        box = field.aabb.to(o)
+        if self.outside is None:
+            t_near, t_far = ray_aabb_segment(o, d, box, self.space.near, self.space.far)  # [R] each, scene units
+        else:
+            t_near, t_far = split(o, d, box, self.space.near)
         frac = torch.arange(n, dtype=o.dtype, device=o.device) / n  # [S]
         r = o.shape[0]
         jitter = torch.rand(r, 1, dtype=o.dtype, device=o.device) if train else torch.full_like(t_near[:, None], 0.5)
@@ -95,9 +108,16 @@ class SdfModel:
         step = delta[band, None, None] * dirs[band, None, :]  # [B, 1, 3] one interval along the ray, u units
         f_ends = field.sdf_unit((u[band, None, :] + ends[:, None] * step).reshape(-1, 3)).reshape(-1, m + 1)
         tau = (tau / m)[:, None].expand(r * n, m).index_put((band,), neus_tau(f_ends[:, :-1], f_ends[:, 1:], s))
-        weights = weights_from_tau(tau.reshape(r, n * m))  # [R, S m]
+        t_sub = (t_mid[..., None] + mids * (span / n)[..., None]).reshape(r, n * m)  # [R, S m]
+        pieces: tuple[Piece, ...] = ()
+        if self.outside is not None:  # a contracted scene: intervals in front of the box and behind it
+            pieces = self.outside.pieces(o, d, t_near, t_far, self.space.near, train=train)
+        taus = [pieces[0].tau, tau.reshape(r, n * m), pieces[1].tau] if pieces else [tau.reshape(r, n * m)]
+        weights = weights_from_tau(torch.cat(taus, -1))  # [R, F + S m + B]
+        first = pieces[0].tau.shape[1] if pieces else 0
+        inner = weights[:, first : first + n * m]  # [R, S m]
         sub = (band[:, None] * m + torch.arange(m, device=o.device)).reshape(-1)  # [B m] band sub-intervals
-        lit = sub[weights.detach().reshape(-1)[sub] > COLOR_THRESHOLD]  # worth a colour: [L]
+        lit = sub[inner.detach().reshape(-1)[sub] > COLOR_THRESHOLD]  # worth a colour: [L]
         whole = lit.div(m, rounding_mode="floor")  # [L] their intervals
         u_lit = u[whole] + (mids[lit % m] * delta[whole])[:, None] * dirs[whole]  # [L, 3]
         _, g = field.sdf_and_gradient(u_lit)  # [L, 3]
@@ -106,11 +126,16 @@ class SdfModel:
         if lit.numel():
             view = dirs[whole] if field.view_dependent else None
             rgb = rgb.index_put((lit,), field.color(u_lit, g / norm.clamp_min(eps(g.dtype)), view))
-        t_sub = (t_mid[..., None] + mids * (span / n)[..., None]).reshape(r, n * m)  # [R, S m]
-        out = composite_weights(weights, rgb.reshape(r, n * m, 3), t_sub, background)
-        out["samples"] = torch.tensor(float(band.numel() * m))
+        rgbs, ts = [rgb.reshape(r, n * m, 3)], [t_sub]
+        if pieces:
+            back = weights[:, first + n * m :]
+            rgbs = [self._outside_rgb(pieces[0], weights[:, :first], d, train), *rgbs]
+            rgbs.append(self._outside_rgb(pieces[1], back, d, train))
+            ts = [pieces[0].t, t_sub, pieces[1].t]
+        out = composite_weights(weights, torch.cat(rgbs, 1), torch.cat(ts, -1), background)
+        out["samples"] = torch.tensor(float(band.numel() * m + sum(p.tau.numel() for p in pieces)))
         if train:
-            lo, hi = field.to_unit(self.space.field_box.to(o))
+            lo, hi = field.to_unit(box)
             free = lo + torch.rand(r, 3, dtype=o.dtype, device=o.device) * (hi - lo)  # one free point a ray
             _, g_free = field.sdf_and_gradient(free)
             norms = torch.cat([norm[:, 0], torch.linalg.vector_norm(g_free, dim=-1)])
@@ -118,18 +143,39 @@ class SdfModel:
             self.last_eikonal = float(out["eikonal"].detach())
         return out
 
+    def _outside_rgb(self, piece: Piece, weights: Tensor, d: Tensor, train: bool) -> Tensor:
+        """The colours [R, K, 3] of a piece outside the box whose weights [R, K] are worth one (while training,
+        also each ray's largest: at the start every weight is below the threshold, and the outside field's colour
+        would get no gradient)."""
+        r, k = weights.shape
+        w = weights.detach()
+        lit = w > COLOR_THRESHOLD
+        if train and k:
+            lit |= w == w.amax(-1, keepdim=True)
+        idx = lit.reshape(-1).nonzero()[:, 0]  # [L]
+        rgb = torch.zeros(r * k, 3, dtype=d.dtype, device=d.device)
+        if idx.numel():
+            dirs = d[:, None, :].expand(r, k, 3).reshape(-1, 3)[idx]
+            rgb = rgb.index_put((idx,), self.outside.colour(piece.x.reshape(-1, 3)[idx], dirs))
+        return rgb.reshape(r, k, 3)
+
     # ------------------------------------------------------------------------------------------------ TrainModel
     def param_groups(self, lr: float) -> list[dict]:
-        return param_groups(self.field.param_groups(lr), self.background, self.appearance, lr)
+        outside = self.outside.param_groups(lr) if self.outside is not None else []
+        return param_groups(self.field.param_groups(lr) + outside, self.background, self.appearance, lr)
 
     def train_mode(self, on: bool) -> None:
         self.field.train(on)
+        if self.outside is not None:
+            self.outside.field.train(on)
 
     def after_step(self) -> None:
-        pass
+        if self.outside is not None:
+            self.outside.field.touch()  # fused Adam leaves the version counters: its inference cache must know
 
     def learned(self) -> dict[str, torch.nn.Module]:
         mods = {"field": self.field, "background": self.background, "appearance": self.appearance}
+        mods["outside"] = self.outside.field if self.outside is not None else None
         return {k: v for k, v in mods.items() if v is not None}
 
     def snapshot(self) -> dict[str, Any]:
@@ -160,5 +206,6 @@ class SdfModel:
                 "last_eikonal": round(self.last_eikonal, 5) if math.isfinite(self.last_eikonal) else None,
             },
             "scene_model": self.space.name,
+            "outside": self.outside.describe() if self.outside is not None else None,
             "space": self.space.describe(),
         }

@@ -39,6 +39,9 @@ class SdfOptions:
     """The starting shape: the ellipsoid inscribed in the box shrunk by this fraction (a sphere in a cube box)."""
     view_dependent: bool | None = None
     """Colour depends on view direction (None: on for every scene; off suits Lambertian scenes)."""
+    outside_tv: float = 0.01
+    """Contracted scenes: weight of the total variation on the outside field's planes (the density method's weight
+    for real captures); object scenes have no outside field."""
 
 
 def validate_options(options: SdfOptions) -> None:
@@ -54,5 +57,7 @@ def validate_options(options: SdfOptions) -> None:
         raise UserError(f"sdf_refine: expected >= 1, got {options.sdf_refine}")
     if not options.eikonal >= 0:
         raise UserError(f"eikonal: expected >= 0, got {options.eikonal}")
+    if not options.outside_tv >= 0:
+        raise UserError(f"outside_tv: expected >= 0, got {options.outside_tv}")
     if not 0 < options.init_radius < 1:
         raise UserError(f"init_radius: expected in (0, 1), got {options.init_radius}")

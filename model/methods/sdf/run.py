@@ -29,6 +29,7 @@ from nerfpipe.model.appearance import Appearance
 from nerfpipe.model.device import rays_per_chunk, render_in_chunks
 from nerfpipe.model.methods.sdf.model import SdfModel
 from nerfpipe.radiance.safe import eps
+from nerfpipe.radiance.space import Space
 
 __all__ = ["SdfRun", "sdf_checks", "EIKONAL_LIMIT", "INSIDE_LIMITS", "BAND_LIMIT"]
 
@@ -60,8 +61,13 @@ class SdfRun:
         return float(self.model.space.far)
 
     @property
+    def space(self) -> Space:
+        """The scene space (a contracted scene's mesh crops to the looked-at box: `stages.mesh.crop`)."""
+        return self.model.space
+
+    @property
     def aabb(self) -> Tensor:
-        return self.model.space.field_box.to(self.device)
+        return self.model.field.aabb.to(self.device)  # the signed distance's box (a contracted scene's inner box)
 
     @property
     def chunk(self) -> int:
@@ -103,7 +109,7 @@ class SdfRun:
 def sdf_checks(model: SdfModel, resolution: int = CHECK_GRID) -> list[Check]:
     """The run's self-check (module doc) on a resolution^3 grid of the box."""
     field = model.field
-    box = model.space.field_box.to(field.aabb)
+    box = field.aabb
     axes = [torch.linspace(0, 1, resolution, device=box.device) for _ in range(3)]
     frac = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     u = field.to_unit(box[0] + frac * (box[1] - box[0]))
