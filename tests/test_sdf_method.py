@@ -5,6 +5,7 @@ train -> mesh (the zero level set) -> render -> eval -> depth, and the one-line 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import imageio.v3 as imageio
@@ -95,6 +96,28 @@ def test_central_difference_gradient_of_the_starting_sphere():
     torch.testing.assert_close(grad, u / 0.7, atol=field.cell**2 / 0.7**2, rtol=0)
 
 
+def test_curvature_term_is_the_laplacian_of_the_starting_sphere():
+    """With the grid at zero the field is the sphere |u| - r, whose Laplacian is 2 / |u|: the training render's
+    curvature (mean |lap f| over the coloured samples, which lie about the surface |u| = r) is 2 / r, and it has a
+    gradient for the grid."""
+    field = SdfField(aabb=[[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], resolution=33, radius=0.5)
+    with torch.no_grad():
+        for p in field.planes:
+            p.zero_()
+    field.log_sharpness.data.fill_(math.log(200.0))  # a sharp surface: the coloured samples hug it
+    model = SdfModel(field=field, space=Box(aabb=((-1,) * 3, (1,) * 3), near=0.1, far=10.0), samples=32, curvature=True)
+    o = torch.tensor([[0.0, 0.0, -3.0]]).repeat(64, 1)
+    d = torch.nn.functional.normalize(
+        torch.randn(64, 3, generator=torch.Generator().manual_seed(1)) * 0.05 + torch.tensor([0.0, 0.0, 1.0]), dim=-1
+    )
+    out = model.render(o, d, torch.ones(3), train=True)
+    assert abs(float(out["curvature"].detach()) - 2 / 0.5) < 0.2
+    out["curvature"].backward()
+    assert any(p.grad is not None and float(p.grad.abs().sum()) > 0 for p in field.planes)
+    model.curvature = False
+    assert "curvature" not in model.render(o, d, torch.ones(3), train=True)  # off: not computed
+
+
 def test_cutting_the_band_finer_keeps_the_opacity_and_moves_the_depth_onto_the_surface():
     """NeuS's optical depth telescopes where f falls along the ray: the sub-intervals' taus sum to the whole
     interval's, so cutting the band's intervals finer (refine) leaves each ray's opacity as it was, and the expected
@@ -152,21 +175,26 @@ def _rgba_scene(root: Path, views: int = 12, size: int = 24) -> Path:
 TINY = SdfOptions(resolution=(12, 16), upsample_at=(0.5,), sdf_samples=16)
 
 
-def test_sdf_run_goes_through_mesh_render_eval_depth(tmp_path):
-    scene_dir = _rgba_scene(tmp_path / "scene", size=16)
-    run_dir = tmp_path / "run"
-    out = train.run(
+def _train_tiny(scene_dir: Path, run_dir: Path, **config) -> train.Outputs:
+    """A TINY sdf run of 128-ray steps on the CPU (`config`: max_steps, scene_model, ...)."""
+    return train.run(
         train.Config(
             scene_dir=scene_dir,
             run_dir=run_dir,
             method="sdf",
             options=TINY,
-            max_steps=20,
             batch_rays=128,
             eval_every=0,
             device="cpu",
+            **config,
         )
     )
+
+
+def test_sdf_run_goes_through_mesh_render_eval_depth(tmp_path):
+    scene_dir = _rgba_scene(tmp_path / "scene", size=16)
+    run_dir = tmp_path / "run"
+    out = _train_tiny(scene_dir, run_dir, max_steps=20)
     manifest = json.loads(out.manifest.read_text())
     assert manifest["used"]["method"] == "sdf" and manifest["used"]["scene_model"] == "box"
     checks = {c["name"]: c for c in manifest["checks"]}
@@ -285,24 +313,14 @@ def _sky_scene(root: Path, views: int = 12, size: int = 16) -> Path:
 def test_sdf_run_of_a_contracted_scene_goes_through_the_stages(tmp_path):
     scene_dir = _sky_scene(tmp_path / "scene")
     run_dir = tmp_path / "run"
-    out = train.run(
-        train.Config(
-            scene_dir=scene_dir,
-            run_dir=run_dir,
-            method="sdf",
-            scene_model="contract",
-            options=TINY,
-            max_steps=40,
-            batch_rays=128,
-            eval_every=0,
-            device="cpu",
-        )
-    )
+    out = _train_tiny(scene_dir, run_dir, max_steps=40, scene_model="contract")
     manifest = json.loads(out.manifest.read_text())
     used = manifest["used"]
     assert used["method"] == "sdf" and used["scene_model"] == "contract"
     assert json.dumps(used).count("density field in contracted space") >= 1  # the outside field is recorded
-    assert out.test_psnr is not None and out.test_psnr > 14  # the sky is learned by the outside field
+    # 40 steps leave the outside field's density near its start (the test above checks that it is composited and
+    # gets gradients; bench-real's fox-sdf row that it learns the surroundings): the stages are what this checks
+    assert out.test_psnr is not None and out.test_psnr > 14
     run = load_trained(run_dir, "cpu")
     assert run.model.outside is not None and run.capabilities == {"rays", "sdf", "color"}
     torch.testing.assert_close(run.aabb, torch.as_tensor(np.stack([CENTRE - 1.0, CENTRE + 1.0]), dtype=torch.float32))

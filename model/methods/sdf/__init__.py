@@ -25,7 +25,15 @@ from nerfpipe.model.methods.base import Method, Prepared, RunFiles, TrainContext
 from nerfpipe.model.methods.sdf.field import SdfField
 from nerfpipe.model.methods.sdf.hooks import hooks_for
 from nerfpipe.model.methods.sdf.model import SdfModel
-from nerfpipe.model.methods.sdf.options import REFINE, RESOLUTION, SAMPLES, UPSAMPLE_AT, SdfOptions, validate_options
+from nerfpipe.model.methods.sdf.options import (
+    CURVATURE_REAL,
+    REFINE,
+    RESOLUTION,
+    SAMPLES,
+    UPSAMPLE_AT,
+    SdfOptions,
+    validate_options,
+)
 from nerfpipe.model.methods.sdf.outside import Outside
 from nerfpipe.model.methods.sdf.run import SdfRun, sdf_checks
 from nerfpipe.model.spaces import make_space
@@ -60,7 +68,14 @@ def _model(options: SdfOptions, space: Space, field_cfg: dict | None, device: to
         ).config()
     field = SdfField(**field_cfg).to(device)
     outside = Outside.create(space.contraction).to(device) if isinstance(space, Contracted) else None
-    return SdfModel(field=field, space=space, samples=options.sdf_samples, refine=options.sdf_refine, outside=outside)
+    return SdfModel(
+        field=field,
+        space=space,
+        samples=options.sdf_samples,
+        refine=options.sdf_refine,
+        outside=outside,
+        curvature=options.curvature > 0,
+    )
 
 
 class SdfMethod(Method):
@@ -82,7 +97,8 @@ class SdfMethod(Method):
             )
         if ctx.refine_poses:
             raise UserError("the sdf method does not refine poses (refine_poses): use method=density")
-        if ctx.space_kind is Box:
+        box = ctx.space_kind is Box
+        if box:
             reasons["scene_model"] = f"box: {ctx.space_why}"
             reasons["outside"] = "left out: an object scene, nothing to model beyond the box"
         else:
@@ -96,6 +112,12 @@ class SdfMethod(Method):
             sdf_samples=options.sdf_samples or SAMPLES,
             sdf_refine=options.sdf_refine or REFINE,
             view_dependent=True if options.view_dependent is None else options.view_dependent,
+            curvature=options.curvature if options.curvature is not None else (0.0 if box else CURVATURE_REAL),
+        )
+        curvature_why = (
+            "0 (off) for objects in their box"
+            if box
+            else f"{CURVATURE_REAL:g} for real captures: the surface comes out rippled without it (docs/SDF.md)"
         )
         for name, why in (
             ("resolution", "32 to 128 (coarse-to-fine)"),
@@ -103,6 +125,7 @@ class SdfMethod(Method):
             ("sdf_samples", f"{SAMPLES} intervals a ray in the box"),
             ("sdf_refine", f"{REFINE} sub-intervals an interval near the surface"),
             ("view_dependent", "on for every scene"),
+            ("curvature", curvature_why),
         ):
             reasons[name] = "asked for" if getattr(options, name) is not None else why
         return SdfPrepared(options=resolved, space=make_space(ctx.space_kind, ctx.scene))

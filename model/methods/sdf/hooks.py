@@ -46,9 +46,23 @@ class OutsideSmoothing(Hook):
         loop.model.outside.field.add_tv_grad_(self.weight, TV_TEXELS, loop.gen)
 
 
+class Curvature(Hook):
+    """weight x the render's `curvature`, mean |Laplacian f| (Neuralangelo's curvature term)."""
+
+    name = "curvature"
+
+    def __init__(self, weight: float) -> None:
+        self.weight = weight
+
+    def loss(self, loop: LoopState, batch: Batch, out: dict[str, Tensor]) -> Tensor | None:
+        return self.weight * out["curvature"] if "curvature" in out else None
+
+
 def hooks_for(options: SdfOptions, *, outside: bool = False) -> list[Hook]:
     """The method's hooks for resolved `options`, in call order (`outside`: the model has an outside field)."""
     hooks: list[Hook] = [Upsampling(options.resolution, options.upsample_at), Eikonal(options.eikonal)]
+    if options.curvature > 0:
+        hooks.append(Curvature(options.curvature))
     if outside and options.outside_tv > 0:
         hooks.append(OutsideSmoothing(options.outside_tv))
     return hooks

@@ -68,6 +68,9 @@ class SdfModel:
     chunk: int = 1024
     random_draws_per_ray: int = 4
     """One jitter and one free point (3 numbers) a ray."""
+    curvature: bool = False
+    """Training renders also return `curvature`, mean |Laplacian f| over the coloured samples (Neuralangelo's
+    curvature term, from the same six points as the normal and one more at the centre)."""
     last_eikonal: float = math.nan
     """The Eikonal residual (|g| - 1)^2 of the last training render (the manifest and the metrics)."""
 
@@ -120,7 +123,7 @@ class SdfModel:
         lit = sub[inner.detach().reshape(-1)[sub] > COLOR_THRESHOLD]  # worth a colour: [L]
         whole = lit.div(m, rounding_mode="floor")  # [L] their intervals
         u_lit = u[whole] + (mids[lit % m] * delta[whole])[:, None] * dirs[whole]  # [L, 3]
-        _, g = field.sdf_and_gradient(u_lit)  # [L, 3]
+        f_six, g = field.sdf_and_gradient(u_lit)  # [L] the six points' mean, [L, 3]
         norm = torch.linalg.vector_norm(g, dim=-1, keepdim=True)  # [L, 1]
         rgb = torch.zeros(r * n * m, 3, dtype=o.dtype, device=o.device)
         if lit.numel():
@@ -141,6 +144,9 @@ class SdfModel:
             norms = torch.cat([norm[:, 0], torch.linalg.vector_norm(g_free, dim=-1)])
             out["eikonal"] = ((norms - 1) ** 2).mean()
             self.last_eikonal = float(out["eikonal"].detach())
+            if self.curvature and lit.numel():  # the six points' mean is f + h^2 lap f / 6 (field doc)
+                lap = (f_six - field.sdf_unit(u_lit)) * (6.0 / field.cell**2)  # [L]
+                out["curvature"] = lap.abs().mean()
         return out
 
     def _outside_rgb(self, piece: Piece, weights: Tensor, d: Tensor, train: bool) -> Tensor:

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 from nerfpipe.data.errors import UserError
 
-__all__ = ["SdfOptions", "validate_options", "RESOLUTION", "UPSAMPLE_AT", "SAMPLES", "REFINE"]
+__all__ = ["SdfOptions", "validate_options", "RESOLUTION", "UPSAMPLE_AT", "SAMPLES", "REFINE", "CURVATURE_REAL"]
 
 RESOLUTION = (32, 128)
 """The grid's resolution at the start and at the end (coarse-to-fine) by default."""
@@ -18,6 +18,10 @@ SAMPLES = 32
 """Intervals a ray is cut into in the box by default."""
 REFINE = 4
 """Sub-intervals each interval of the band is cut into by default."""
+CURVATURE_REAL = 1e-4
+"""The curvature term's weight by default in a contracted scene (a real capture): the fox's surface without it is
+covered in ripples a few cells across, with it smooth at the same held-out PSNR (docs/SDF.md). Objects in their box
+keep 0: not measured there at this weight."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -39,6 +43,9 @@ class SdfOptions:
     """The starting shape: the ellipsoid inscribed in the box shrunk by this fraction (a sphere in a cube box)."""
     view_dependent: bool | None = None
     """Colour depends on view direction (None: on for every scene; off suits Lambertian scenes)."""
+    curvature: float | None = None
+    """Weight of Neuralangelo's curvature term, mean |Laplacian f| over the coloured samples (u units, one cell
+    wide): smooths the surface. None: 1e-4 for real captures (contracted scenes), 0 (off) for objects in their box."""
     outside_tv: float = 0.01
     """Contracted scenes: weight of the total variation on the outside field's planes (the density method's weight
     for real captures); object scenes have no outside field."""
@@ -57,6 +64,8 @@ def validate_options(options: SdfOptions) -> None:
         raise UserError(f"sdf_refine: expected >= 1, got {options.sdf_refine}")
     if not options.eikonal >= 0:
         raise UserError(f"eikonal: expected >= 0, got {options.eikonal}")
+    if options.curvature is not None and not options.curvature >= 0:
+        raise UserError(f"curvature: expected >= 0, got {options.curvature}")
     if not options.outside_tv >= 0:
         raise UserError(f"outside_tv: expected >= 0, got {options.outside_tv}")
     if not 0 < options.init_radius < 1:
