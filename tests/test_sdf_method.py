@@ -277,6 +277,7 @@ def test_a_contracted_render_composites_the_outside_and_gives_it_gradients():
     model = SdfModel(
         field=SdfField(aabb=box, resolution=12), space=space, samples=8, refine=2, outside=outside, chunk=64
     )
+    assert model.random_draws_per_ray == 4 + 4 + 8  # jitter, free point, one a sample outside (data parallel)
     o = torch.tensor([[0.0, 0.0, -3.0], [0.0, 3.0, -3.0]]).repeat(8, 1)
     d = torch.nn.functional.normalize(torch.tensor([[0.0, 0.1, 1.0], [0.0, 0.0, 1.0]]).repeat(8, 1), dim=-1)
     out = model.render(o, d, torch.tensor([1.0, 1.0, 1.0]), train=True)

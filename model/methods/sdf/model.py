@@ -67,12 +67,16 @@ class SdfModel:
     """The density field outside the box (a contracted scene: `model.methods.sdf.outside`); None: an object scene."""
     chunk: int = 1024
     random_draws_per_ray: int = 4
-    """One jitter and one free point (3 numbers) a ray."""
+    """One jitter and one free point (3 numbers) a ray, and one a sample outside the box (set in __post_init__:
+    data-parallel runs place a rank's draws by it)."""
     curvature: bool = False
     """Training renders also return `curvature`, mean |Laplacian f| over the coloured samples (Neuralangelo's
     curvature term, from the same six points as the normal and one more at the centre)."""
     last_eikonal: float = math.nan
     """The Eikonal residual (|g| - 1)^2 of the last training render (the manifest and the metrics)."""
+
+    def __post_init__(self) -> None:
+        self.random_draws_per_ray = 4 + (self.outside.front + self.outside.back if self.outside is not None else 0)
 
     def render(
         self, o: Tensor, d: Tensor, background: Tensor, *, train: bool, view: Tensor | None = None, **_: Any
