@@ -115,7 +115,7 @@ class SdfMethod(Method):
             curvature=options.curvature if options.curvature is not None else (0.0 if box else CURVATURE_REAL),
         )
         curvature_why = (
-            "0 (off) for objects in their box"
+            "0 (off) for objects in their box: it rounds off their edges (docs/SDF.md)"
             if box
             else f"{CURVATURE_REAL:g} for real captures: the surface comes out rippled without it (docs/SDF.md)"
         )
