@@ -242,6 +242,8 @@ def test_sdf_refuses_scenes_outside_a_box_and_bad_options(tmp_path):
         method_named("sdf").validate(SdfOptions(init_radius=1.5))
     with pytest.raises(UserError, match="outside_tv: expected >= 0"):
         method_named("sdf").validate(SdfOptions(outside_tv=-1.0))
+    with pytest.raises(UserError, match="curvature: expected >= 0"):
+        method_named("sdf").validate(SdfOptions(curvature=-1.0))
 
 
 # ---------------------------------------------------------------------------------------------- real captures
