@@ -9,6 +9,8 @@ averaged: its texels are drawn from the run's generator, identically on every ra
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -17,6 +19,7 @@ from nerfpipe.model.field_model import MarchedModel
 from nerfpipe.model.methods.density.options import DensityOptions
 from nerfpipe.model.methods.hooks import Batch, Hook, LoopState
 from nerfpipe.model.views import DepthRays
+from nerfpipe.radiance.fields import TensoRF
 from nerfpipe.radiance.regularizers import depth_nll_loss
 
 __all__ = [
@@ -142,15 +145,18 @@ class DepthLoss(Hook):
 
 
 class TotalVariation(Hook):
-    """TensoRF's TV prior on the planes: its gradient on TV_TEXELS random texels per plane, after backward."""
+    """TensoRF's TV prior on the planes: its gradient on TV_TEXELS random texels per plane, after backward. `field`
+    picks the TensoRF from the model (None: the model's `field`; the sdf method's: its outside field)."""
 
     name = "tv"
 
-    def __init__(self, weight: float):
+    def __init__(self, weight: float, field: Callable[[Any], TensoRF] | None = None):
         self.weight = weight
+        self.field = field
 
     def after_backward(self, loop: LoopState) -> None:
-        loop.model.field.add_tv_grad_(self.weight, TV_TEXELS, loop.gen)
+        field = loop.model.field if self.field is None else self.field(loop.model)
+        field.add_tv_grad_(self.weight, TV_TEXELS, loop.gen)
 
 
 def hooks_for(options: DensityOptions, model: MarchedModel, depth_rays: DepthRays | None) -> list[Hook]:

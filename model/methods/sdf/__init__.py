@@ -58,7 +58,11 @@ def sdf_box(space: Space) -> torch.Tensor:
     return space.contraction.inner_aabb if isinstance(space, Contracted) else space.field_box
 
 
-def _model(options: SdfOptions, space: Space, field_cfg: dict | None, device: torch.device) -> SdfModel:
+def _model(
+    options: SdfOptions, space: Space, field_cfg: dict | None, device: torch.device, outside: Outside | None = None
+) -> SdfModel:
+    """The model of resolved `options` in `space`: a fresh field (`field_cfg` None) or one of `field_cfg` (its state
+    loaded by the caller); `outside` as given, else a fresh one in a contracted space."""
     if field_cfg is None:
         field_cfg = SdfField(
             aabb=sdf_box(space),
@@ -67,7 +71,8 @@ def _model(options: SdfOptions, space: Space, field_cfg: dict | None, device: to
             radius=options.init_radius,
         ).config()
     field = SdfField(**field_cfg).to(device)
-    outside = Outside.create(space.contraction).to(device) if isinstance(space, Contracted) else None
+    if outside is None and isinstance(space, Contracted):
+        outside = Outside.create(space.contraction).to(device)
     return SdfModel(
         field=field,
         space=space,
@@ -139,9 +144,9 @@ class SdfMethod(Method):
             model.background = ctx.background
             return model
         space = restore_space(state, lambda kind: make_space(kind, ctx.scene))
-        model = _model(prepared.options, space, state["sdf_field_config"], ctx.device)
+        outside = _outside(state, space, ctx.device)
+        model = _model(prepared.options, space, state["sdf_field_config"], ctx.device, outside)
         model.field.load_state_dict(state["sdf_field"])
-        model.outside = _outside(state, space, ctx.device)
         model.background = restore_background(state, ctx.device)
         return model
 

@@ -7,14 +7,15 @@ manifest (`used.sdf`, `checks`), not in the per-step rows.
   finite differences that give the normals: `model.methods.sdf.model`).
 - Coarse-to-fine: the density method's `Upsampling` (geometric steps of the grid at run fractions); finite
   differences follow the grid (one cell wide), so early steps see a smooth, wide gradient and later ones detail.
-- Outside smoothing (a contracted scene only): total variation on the outside field's planes.
+- Outside smoothing (a contracted scene only): the density method's total variation (`TotalVariation`) on the
+  outside field's planes.
 """
 
 from __future__ import annotations
 
 from torch import Tensor
 
-from nerfpipe.model.methods.density.hooks import TV_TEXELS, Upsampling
+from nerfpipe.model.methods.density.hooks import TotalVariation, Upsampling
 from nerfpipe.model.methods.hooks import Batch, Hook, LoopState
 from nerfpipe.model.methods.sdf.options import SdfOptions
 
@@ -31,19 +32,6 @@ class Eikonal(Hook):
 
     def loss(self, loop: LoopState, batch: Batch, out: dict[str, Tensor]) -> Tensor | None:
         return self.weight * out["eikonal"] if self.weight > 0 else None
-
-
-class OutsideSmoothing(Hook):
-    """TensoRF's total variation on the outside field's planes (a contracted scene), as the density method smooths
-    its field in real captures (`model.methods.density.hooks.TotalVariation`)."""
-
-    name = "outside_tv"
-
-    def __init__(self, weight: float) -> None:
-        self.weight = weight
-
-    def after_backward(self, loop: LoopState) -> None:
-        loop.model.outside.field.add_tv_grad_(self.weight, TV_TEXELS, loop.gen)
 
 
 class Curvature(Hook):
@@ -64,5 +52,5 @@ def hooks_for(options: SdfOptions, *, outside: bool = False) -> list[Hook]:
     if options.curvature > 0:
         hooks.append(Curvature(options.curvature))
     if outside and options.outside_tv > 0:
-        hooks.append(OutsideSmoothing(options.outside_tv))
+        hooks.append(TotalVariation(options.outside_tv, field=lambda model: model.outside.field))
     return hooks
