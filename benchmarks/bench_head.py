@@ -5,8 +5,9 @@ Cases (every photo's EXIF as shot: 4000 x 4000 px, FocalLength 31 mm, FocalLengt
 of a 3:2 APS-C frame):
   masked       the 66 photos (1000 px) with their masks (`poses --masks`);
   white        the 66 photos composited on pure white with their masks, given without masks (a product shot);
-  as-shot      the 66 photos, no masks: the turntable's room stands still, so the stage must refuse in one line
-               (static camera) rather than pose the room;
+  as-shot      the 66 photos, no masks: the turntable's room stands still while the head turns (yet the camera
+               moves enough that the static-camera refusal does not apply): the poses must be the head's, not
+               a fold between the two motions;
   4000px       the first 22 photos (a third of the turn, at the capture's own spacing of ~4.7 deg) upscaled to
                4000 x 4000 px (LANCZOS; their EXIF kept) with their masks upscaled: the bounded-time case (goal
                <= 120 s, >= 20 of 22 within 1 deg). The upscaled photos hold no more detail than the 1000 px ones,

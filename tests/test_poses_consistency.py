@@ -295,3 +295,123 @@ def test_a_step_across_a_gap_in_the_frame_numbers_is_no_jump():
     assert consistency.jumps(across)[0] == []
     assert consistency.jumps([*steps, ("0091.jpg", "0093.jpg", 28.0)])[0] == [("0091.jpg", "0093.jpg", 28.0)]
     assert consistency.frame_spans([("a.jpg", "b.jpg"), ("IMG_1.jpg", "DSC_2.jpg")]) == [1.0, 1.0]  # no numbering
+
+
+def test_far_matched_features_are_dropped_from_every_pair_and_the_rest_verified_again(ring, tmp_path):
+    """A turntable's room as the ring sees it: 60 of the 300 points (the "room") are matched, verified, between
+    photos over the window apart; the object's points only between neighbours. `drop_far_matched` flags the
+    room's keypoints in every photo, removes every match touching them (near pairs too) and keeps every other
+    match; verified again, each neighbouring pair keeps all its remaining (exact) matches as inliers."""
+    from nerfpipe.stages.poses.far_matched import drop_far_matched
+
+    truth, order = ring["truth"], ring["order"]
+    window = consistency.neighbour_window(VIEWS)
+    room = set(sorted(truth.points3D)[:60])
+    place = {truth.images[i].name: k for k, i in enumerate(sorted(truth.images))}
+    src = tmp_path / "src.db"
+    src.write_bytes(ring["db"].read_bytes())
+    db = pycolmap.Database.open(src)
+    try:
+        in_room = {i: np.array([p.point3D_id in room for p in im.points2D], bool) for i, im in truth.images.items()}
+        pair_ids, geometries = db.read_two_view_geometries()
+        for pair_id, geometry in zip(pair_ids, geometries, strict=True):
+            a, b = pycolmap.pair_id_to_image_pair(pair_id)
+            d = abs(place[truth.images[a].name] - place[truth.images[b].name])
+            if min(d, VIEWS - d) > window:  # far apart: only the room matches
+                m = np.asarray(geometry.inlier_matches)
+                geometry.inlier_matches = m[in_room[a][m[:, 0]]]
+                db.delete_two_view_geometry(a, b)
+                db.write_two_view_geometry(a, b, geometry)
+    finally:
+        db.close()
+    verify = pycolmap.TwoViewGeometryOptions()
+    verify.ransac.random_seed = 0
+    record = drop_far_matched(src, tmp_path / "dst.db", order, verify, num_threads=1)
+    assert record["window"] == window
+    assert record["keypoints_dropped_share"] == pytest.approx(60 / 300)
+    db = pycolmap.Database.open(tmp_path / "dst.db")
+    try:
+        pair_ids, matches = db.read_all_matches()
+        assert len(pair_ids) == VIEWS * (VIEWS - 1) // 2
+        for pair_id, m in zip(pair_ids, matches, strict=True):
+            a, b = pycolmap.pair_id_to_image_pair(pair_id)
+            assert len(m) == 240 and not in_room[a][m[:, 0]].any() and not in_room[b][m[:, 1]].any()
+        assert record["matches_kept"] == 240 * len(pair_ids) and record["matches_dropped"] == 60 * len(pair_ids)
+        ids = sorted(truth.images)
+        for a, b in zip(ids, ids[1:], strict=False):  # neighbours: verified again, every remaining match an inlier
+            assert len(db.read_two_view_geometry(a, b).inlier_matches) == 240
+    finally:
+        db.close()
+
+
+def test_ladder_follows_a_second_fold_with_the_far_matched_attempt(tmp_path, monkeypatch):
+    """run_attempts, its pycolmap steps stubbed: attempt 1 folds, the neighbours attempt folds too, the next is the
+    far-matched one: built from attempt 1's database (every pair the photos gave), mapped with the relaxed
+    thresholds, its model checked against its own database (the matches it kept), kept."""
+    from nerfpipe.data.rundir import MetricsLog
+    from nerfpipe.stages.poses import attempts
+    from nerfpipe.stages.poses import colmap as sfm
+    from nerfpipe.stages.poses.report import PhaseTimer, RunState
+
+    names = [f"{k}.jpg" for k in range(10)]
+    stats = sfm.DatabaseStats(
+        features=dict.fromkeys(names, 500),
+        matches=dict.fromkeys(names, 100),
+        verified_pairs=dict.fromkeys(names, 3),
+        camera_of=dict.fromkeys(names, 1),
+    )
+    model = _model10()
+    verdicts = iter([False, False, True])
+    checked, built, mappers = [], [], []
+    monkeypatch.setattr(sfm, "extract", lambda db, *a: pycolmap.Database.open(db).close())
+    monkeypatch.setattr(sfm, "match", lambda db, s: None)
+    monkeypatch.setattr(sfm, "database_stats", lambda db: stats)
+
+    def fake_reconstruct(db, images, out, s):
+        mappers.append(s.mapper)
+        return {0: model}
+
+    def fake_drop(src: Path, dst: Path, order, verify, num_threads=-1):
+        built.append(src.name)
+        dst.write_bytes(src.read_bytes())
+        return {"window": 3, "keypoints_dropped_share": 0.2}
+
+    def fake_checks(rec, db, order):
+        checked.append(Path(db).name)
+        ok = next(verdicts)
+        return [Check.upper("capture_order", 0 if ok else 2, 0, says="")], {"creases": [] if ok else [["a", "b"]]}
+
+    monkeypatch.setattr(sfm, "reconstruct", fake_reconstruct)
+    monkeypatch.setattr(attempts, "apply_focal_priors", lambda db, priors, weak=None: {1: {"prior_px": None}})
+    monkeypatch.setattr(
+        attempts, "restrict_to_neighbours", lambda src, dst, order: (dst.write_bytes(b""), 20, 25, 3)[1:]
+    )
+    monkeypatch.setattr(attempts, "drop_far_matched", fake_drop)
+    monkeypatch.setattr(attempts, "consistency_checks", fake_checks)
+    settings = sfm.SfmSettings(
+        max_image_size=1000,
+        max_num_features=2048,
+        camera_model="SIMPLE_RADIAL",
+        single_camera=True,
+        matcher="exhaustive",
+        sequential_overlap=10,
+        num_threads=1,
+        seed=0,
+    )
+    state = RunState(started=0.0)
+    phase = PhaseTimer(
+        state, MetricsLog(tmp_path / "metrics.csv", ["step", "seconds", "phase", "images", "registered"]), None
+    )
+    attempts.run_attempts(
+        attempts.ladder(settings, 5, long_side=1000), tmp_path, tmp_path, [names], [1000], state, phase
+    )
+    assert [a["name"] for a in state.attempts] == [
+        "as configured",
+        "neighbours in capture order",
+        "far-matched features dropped",
+    ]
+    assert built == ["database.1.db"] and checked == ["database.1.db", "database.1.db", "database.3.db"]
+    assert mappers[2] == sfm.RELAXED_MAPPER and mappers[0] != sfm.RELAXED_MAPPER
+    assert state.attempts[2]["far_matched_dropped"]["window"] == 3 and state.attempts[2]["reused"] == "far_matched"
+    assert "without the features matched over 3 places away" in state.attempts[2]["settings"]
+    assert [a["kept"] for a in state.attempts] == [False, False, True]

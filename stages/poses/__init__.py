@@ -8,7 +8,8 @@ exhaustive or sequential matching -> incremental mapping -> the LARGEST model (m
 blindly model 0 -> its cameras and structure checked (`quality`: focal against EXIF or a plausible field of
 view, distortion, principal point, reprojection error, track length) and its poses against the photos
 (`consistency`: a model that folded onto itself where faces look alike reprojects well; the capture order
-catches it) -> a fold is retried at once with the matches restricted to neighbours in capture order; under 80 %
+catches it) -> a fold is retried at once with the matches restricted to neighbours in capture order, then
+without the features matched far across that order (a turntable's room, `far_matched`); under 80 %
 registered or a camera check failed, retries with pycolmap's size and feature cap, then a relaxed mapper, then
 wide-baseline features (for photos taken far apart), then guided matching, within the stage's time budget
 (`budget`: 5 s a photo by default, whatever their resolution; `attempts`, `choice`), keeping the attempt that

@@ -29,7 +29,11 @@ matches placed far apart, or whose matches it contradicts) is followed at once b
      `consistency.neighbour_window` places of one another in name order (a face is then matched only with the
      photos taken next to it, never with a look-alike face on the other side), mapped again (costs a mapping,
      usually cheaper than the first: fewer, consistent pairs);
-it takes the place of the ladder's last attempt (max_attempts still bounds the count). Each attempt's record
+  "far-matched features dropped": the last extraction's matches without those of features that also match a photo
+     over the window away in capture order (`far_matched`: a turntable's room that did not turn, or faces that look
+     alike), verified again and mapped with the relaxed thresholds (the shared head as shot, no masks: every other
+     attempt folded, 8.4 deg median error; this one 66/66 within 0.9 deg, docs/BENCH_POSES.md);
+they take the place of the ladder's last attempts (max_attempts still bounds the count). Each attempt's record
 says how far its rotations between two cameras differ from the kept model's (`consistency.rotation_disagreement`).
 "more features" is pycolmap's own defaults (bar first_octave, see `colmap.SMALL_IMAGE`, and the seeds) and runs
 whatever the budget while no usable model exists, so a set that ends unusable should not end with fewer images
@@ -73,6 +77,7 @@ from nerfpipe.stages.poses.consistency import (
     rotation_disagreement,
 )
 from nerfpipe.stages.poses.exif import apply_focal_priors
+from nerfpipe.stages.poses.far_matched import drop_far_matched
 from nerfpipe.stages.poses.images import natural_key
 from nerfpipe.stages.poses.report import WARN_FRACTION, PhaseTimer, RunState, textured
 
@@ -92,10 +97,12 @@ LADDER_RULE = (
 class Attempt:
     name: str
     settings: SfmSettings
-    reuse: Literal["nothing", "features", "matches", "neighbours"] = "nothing"
+    reuse: Literal["nothing", "features", "matches", "neighbours", "far_matched"] = "nothing"
     """What to take from the last attempt that extracted features: its features (match again; the last extraction that
     was not wide-baseline) or its features and matches (map again); "neighbours": the database of the attempt just
-    made, its verified pairs restricted to neighbours in capture order (map again)."""
+    made, its verified pairs restricted to neighbours in capture order (map again); "far_matched": the last
+    extraction's matched database without the matches of features matched far across the capture order
+    (`far_matched.drop_far_matched`), verified again (map again)."""
 
 
 def ladder(first: SfmSettings, max_attempts: int, long_side: int) -> list[Attempt]:
@@ -180,8 +187,16 @@ def run_attempts(
             continue
         attempt, budget_note = fitted
         phase.attempt, t0, s, before = k, time.perf_counter(), attempt.settings, dict(state.timings)
-        state.model, models, restricted = None, {}, None
-        if attempt.reuse == "neighbours":
+        state.model, models, restricted, dropped_far = None, {}, None, None
+        own_evidence = None  # the far-matched attempt's model is checked against the matches it kept
+        if attempt.reuse == "far_matched":
+            db = own_evidence = build / f"database.{k}.db"
+            with phase("matching"):
+                dropped_far = drop_far_matched(
+                    evidence_db, db, order, sfm.verification_options(s), num_threads=s.num_threads
+                )
+                state.stats = sfm.database_stats(db)
+        elif attempt.reuse == "neighbours":
             previous, db = db, build / f"database.{k}.db"
             with phase("matching"):
                 kept, dropped, window = restrict_to_neighbours(previous, db, order)
@@ -216,7 +231,7 @@ def run_attempts(
         consistency, record = [], None
         if state.model is not None:
             with phase("consistency"):
-                consistency, record = consistency_checks(state.model, evidence_db, order)
+                consistency, record = consistency_checks(state.model, own_evidence or evidence_db, order)
         found = candidate(
             attempt.name, state.model, prior_focals(priors), total, weak_priors(priors), consistency=consistency
         )
@@ -242,9 +257,15 @@ def run_attempts(
                 ),
                 "consistency": record,
                 **({"restricted_to_neighbours": restricted} if restricted else {}),
+                **({"far_matched_dropped": dropped_far} if dropped_far else {}),
                 **({"budget": budget_note} if budget_note else {}),
                 "settings": describe(s, max(long_sides))
-                + (f", pairs within {restricted['window']} places in capture order" if restricted else ""),
+                + (f", pairs within {restricted['window']} places in capture order" if restricted else "")
+                + (
+                    f", without the features matched over {dropped_far['window']} places away in capture order"
+                    if dropped_far
+                    else ""
+                ),
                 "options": config_to_json(s),
             }
         )
@@ -256,7 +277,7 @@ def run_attempts(
             stopped = reason
             break
         if _folded(found) and k < len(plan) and not any(a.reuse == "neighbours" for a in plan):
-            plan = [*plan[:k], Attempt(name="neighbours in capture order", settings=s, reuse="neighbours"), *plan[k:-1]]
+            plan = [*plan[:k], *_fold_cures(s), *plan[k:]][: len(plan)]
         elif k == 1 and first.features >= ENOUGH_FEATURES:
             plan, reordered = _wide_first(plan, first.features)
     chosen = choose(candidates, total)
@@ -297,9 +318,14 @@ def _within_budget(
     long_side: int,
 ) -> tuple[Attempt, str | None] | None:
     """`attempt` as it may run within the time budget (an extraction retry possibly shrunk), with a note for its
-    record, or None when it does not fit (`budget` module). Unbounded: the first attempt, the neighbours attempt,
-    and every attempt while no usable model the stage would keep exists."""
-    if first is None or attempt.reuse == "neighbours" or math.isinf(budget) or keepable(candidates, total) is None:
+    record, or None when it does not fit (`budget` module). Unbounded: the first attempt, the fold cures
+    (`_fold_cures`), and every attempt while no usable model the stage would keep exists."""
+    if (
+        first is None
+        or attempt.reuse in ("neighbours", "far_matched")
+        or math.isinf(budget)
+        or keepable(candidates, total) is None
+    ):
         return attempt, None
     left = budget - (time.time() - state.started)
     fitted, _, why = fit_retry(attempt.settings, attempt.reuse, first, left, long_side)
@@ -324,6 +350,21 @@ def _wide_first(plan: list[Attempt], features: float) -> tuple[list[Attempt], st
         f"'{plan[i].name}' moved before '{plan[1].name}': attempt 1 found {features:.0f} SIFT features a photo "
         f"(median, >= {ENOUGH_FEATURES}), so its unregistered photos lacked links between views, not features"
     )
+
+
+def _fold_cures(settings: SfmSettings) -> list[Attempt]:
+    """The retries made at once after an attempt (with `settings`) whose model folded, in order: its matches
+    restricted to neighbours in capture order (faces that look alike: a carton's prints), then the last
+    extraction's matches without the features matched far across the order (what did not turn with the object:
+    a turntable's room), mapped with the relaxed thresholds since fewer matches remain."""
+    return [
+        Attempt(name="neighbours in capture order", settings=settings, reuse="neighbours"),
+        Attempt(
+            name="far-matched features dropped",
+            settings=replace(settings, mapper=RELAXED_MAPPER),
+            reuse="far_matched",
+        ),
+    ]
 
 
 def _folded(found: Candidate) -> bool:

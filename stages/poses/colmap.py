@@ -40,6 +40,7 @@ __all__ = [
     "count_features",
     "extract",
     "match",
+    "verification_options",
     "reconstruct",
     "database_stats",
     "DatabaseStats",
@@ -251,13 +252,19 @@ def extract(
             to_full_resolution(db, full)
 
 
+def verification_options(s: SfmSettings) -> pycolmap.TwoViewGeometryOptions:
+    """The two-view geometric verification of `s`'s matching (its inlier minimum and seed)."""
+    verify = pycolmap.TwoViewGeometryOptions()
+    verify.min_num_inliers = s.min_verified_inliers
+    verify.ransac.random_seed = s.seed
+    return verify
+
+
 def match(db: Path, s: SfmSettings) -> None:
     opts = pycolmap.FeatureMatchingOptions()
     opts.num_threads = s.num_threads
     opts.guided_matching = s.guided_matching
-    verify = pycolmap.TwoViewGeometryOptions()
-    verify.min_num_inliers = s.min_verified_inliers
-    verify.ransac.random_seed = s.seed
+    verify = verification_options(s)
     if s.matcher == "sequential":
         pairing = pycolmap.SequentialPairingOptions()
         pairing.overlap = s.sequential_overlap
