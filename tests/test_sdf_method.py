@@ -4,6 +4,7 @@ train -> mesh (the zero level set) -> render -> eval -> depth, and the one-line 
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 from pathlib import Path
@@ -94,6 +95,46 @@ def test_central_difference_gradient_of_the_starting_sphere():
     f, grad = field.sdf_and_gradient(u)
     torch.testing.assert_close(f, torch.full_like(f, 0.2), atol=field.cell**2 / (3 * 0.7) * 1.01, rtol=0)
     torch.testing.assert_close(grad, u / 0.7, atol=field.cell**2 / 0.7**2, rtol=0)
+
+
+def test_inference_reads_the_grid_from_caches_that_follow_the_factors():
+    """In eval mode without gradient the distance comes from the grid's node volume and the colour's features from
+    VmTables (module doc of field.py): the same values as the factor path (their plain twin, a copy in train mode)
+    on a flat box's field with random factors; an in-place change of a factor (a version bump) rebuilds them, and
+    so does a change of mode (a fused optimiser step changes factors without bumping versions)."""
+    torch.manual_seed(0)
+    field = SdfField(aabb=[[-1.0, -0.5, -0.3], [1.0, 0.5, 0.3]], resolution=17, radius=0.5)
+    with torch.no_grad():
+        for p in [*field.planes, *field.lines, *field.app_planes, *field.app_lines]:
+            p.normal_()
+    u = torch.rand(500, 3) * 2 - 1
+    normal = torch.nn.functional.normalize(torch.randn(500, 3), dim=-1)
+    d = torch.nn.functional.normalize(torch.randn(500, 3), dim=-1)
+    twin = copy.deepcopy(field)  # stays in train mode: the factors are read
+
+    def same() -> None:
+        torch.testing.assert_close(field.sdf_unit(u), twin.sdf_unit(u), rtol=0, atol=1e-5)
+        torch.testing.assert_close(field.color(u, normal, d), twin.color(u, normal, d), rtol=0, atol=1e-5)
+
+    field.eval()
+    with torch.no_grad():
+        same()
+        assert set(field._caches) == {"sdf_volume", "app_tables"}
+        for f in (field, twin):  # in place, in eval mode: the versions move and the caches follow
+            f.planes[1].mul_(2.0)
+            f.app_lines[0].mul_(-1.0)
+        same()
+        volume = field._caches["sdf_volume"][1]
+        field.train()
+        assert field._caches == {}
+        field.lines[2].data.add_(0.5)  # behind the version counter (`.data`), as a fused step may do
+        twin.lines[2].data.add_(0.5)
+        field.eval()
+        same()
+        assert field._caches["sdf_volume"][1] is not volume
+    f_grad = field.sdf_unit(u)  # gradient on: the factor path, even in eval mode
+    assert f_grad.requires_grad and "sdf_volume" in field._caches
+    torch.testing.assert_close(f_grad.detach(), twin.sdf_unit(u).detach(), rtol=0, atol=1e-5)
 
 
 def test_curvature_term_is_the_laplacian_of_the_starting_sphere():

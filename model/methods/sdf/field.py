@@ -12,6 +12,14 @@ f(x - h e_i)) / 2h), as Neuralangelo takes its numerical gradient: smooth, no do
 second-order accurate, and the mean of the six values is the distance at the centre to second order (h^2 lap f / 6).
 The cheaper four-point tetrahedron is only first-order accurate (its error is h times the Hessian's off-diagonal:
 4 % of the normal on a sphere seven cells wide), so it is not used.
+
+At inference (the module in eval mode, no gradient) the grid is read from caches built from its factors, as the
+density field reads its own: the distance grid's plane-times-line sums at every node, one volume read trilinearly
+(a plane's bilinear interpolation times its line's linear one is the trilinear interpolation of their products at
+the nodes: the same values up to float rounding, from 8 reads a point instead of 3 x (4 + 2) x rank), and the
+appearance factors as `VmTables`. The caches follow the factors (their storage, versions and shapes) and are
+dropped whenever the module's mode changes, since an optimiser step may change the factors in place behind their
+version counters (fused Adam). The factor path is their plain twin (tests/test_sdf_method.py).
 """
 
 from __future__ import annotations
@@ -24,6 +32,7 @@ from torch import Tensor, nn
 
 from nerfpipe.radiance.fields.encodings import positional_encoding
 from nerfpipe.radiance.fields.fast import _plane_features
+from nerfpipe.radiance.fields.vm_tables import VmTables
 from nerfpipe.radiance.safe import eps
 
 __all__ = ["SdfField", "AXES"]
@@ -34,6 +43,9 @@ VIEW_FREQS = 2
 PLANE_STD, LINE_STD = 0.1, 0.02
 """The geometry factors' initial spread: products ~0.002 a component, so the start is the ellipsoid within ~1 % of
 the box."""
+MAX_VOLUME_NODES = 256**3
+"""The distance grid's inference volume is built up to this many nodes (64 MB in float32); above, the factors are
+read."""
 
 
 def _factors(rank: int, resolution: int, plane_std: float, line_std: float) -> tuple[nn.ParameterList, ...]:
@@ -87,6 +99,7 @@ class SdfField(nn.Module):
             nn.Linear(hidden, 3),
         )
         self.log_sharpness = nn.Parameter(torch.tensor(math.log(sharpness)))
+        self._caches: dict[str, tuple] = {}  # inference caches (module doc): name -> (factors' key, value)
 
     # ------------------------------------------------------------------------------------------------ frames
     @property
@@ -133,9 +146,43 @@ class SdfField(nn.Module):
         return torch.where(centre, -a.min(), k0 * (k0 - 1) / torch.where(centre, torch.ones_like(k1), k1))
 
     def sdf_unit(self, u: Tensor) -> Tensor:
-        """u [N, 3] -> signed distance [N] in u units (negative inside): the start plus the grid."""
-        grid = sum(p.sum(0) for p in _plane_features(self.planes, self.lines, self._grid_coords(u)))
-        return self.start(u) + grid
+        """u [N, 3] -> signed distance [N] in u units (negative inside): the start plus the grid (at inference read
+        from the grid's volume, module doc)."""
+        xn = self._grid_coords(u)
+        if self._inferring() and self.resolution**3 <= MAX_VOLUME_NODES:
+            grid = xn[None, :, None, None, :].to(self.planes[0].dtype)  # [1, N, 1, 1, 3] (x, y, z)
+            return self.start(u) + F.grid_sample(self._sdf_volume(), grid, align_corners=True).reshape(-1).to(u.dtype)
+        return self.start(u) + sum(p.sum(0) for p in _plane_features(self.planes, self.lines, xn))
+
+    def _inferring(self) -> bool:
+        return not self.training and not torch.is_grad_enabled()
+
+    def _cached(self, name: str, factors: list[Tensor], build) -> object:
+        key = tuple((t.data_ptr(), t._version, t.shape, t.dtype, t.device) for t in factors)
+        hit = self._caches.get(name)
+        if hit is None or hit[0] != key:
+            with torch.no_grad():
+                hit = (key, build())
+            self._caches[name] = hit
+        return hit[1]
+
+    def _sdf_volume(self) -> Tensor:
+        """The grid's plane-times-line sums at every node, [1, 1, R, R, R] indexed (z, y, x) as `F.grid_sample`
+        reads a volume (cached: module doc)."""
+
+        def build() -> Tensor:
+            p = [t.detach()[0] for t in self.planes]  # [C, R, R] each
+            ln = [t.detach()[0, :, :, 0] for t in self.lines]  # [C, R] each
+            vol = torch.einsum("cyx,cz->zyx", p[0], ln[0])  # plane (x, y), line z
+            vol += torch.einsum("czx,cy->zyx", p[1], ln[1])  # plane (x, z), line y
+            vol += torch.einsum("czy,cx->zyx", p[2], ln[2])  # plane (y, z), line x
+            return vol[None, None].contiguous()
+
+        return self._cached("sdf_volume", [*self.planes, *self.lines], build)
+
+    def train(self, mode: bool = True) -> SdfField:
+        self._caches.clear()  # a step between two modes may change the factors behind their versions (module doc)
+        return super().train(mode)
 
     def sdf(self, x: Tensor) -> Tensor:
         """Scene points x [N, 3] -> signed distance [N] in scene units (negative inside)."""
@@ -150,7 +197,13 @@ class SdfField(nn.Module):
 
     def color(self, u: Tensor, normal: Tensor, d: Tensor | None) -> Tensor:
         """u [N, 3], unit normal [N, 3], unit view direction d [N, 3] (None: not view dependent) -> rgb [N, 3]."""
-        feat = self.basis(torch.cat(_plane_features(self.app_planes, self.app_lines, self._grid_coords(u))).T)
+        xn = self._grid_coords(u)
+        if self._inferring():
+            factors = [*self.app_planes, *self.app_lines]
+            tables = self._cached("app_tables", factors, lambda: VmTables.build(self.app_planes, self.app_lines))
+            feat = self.basis(tables.features(xn))
+        else:
+            feat = self.basis(torch.cat(_plane_features(self.app_planes, self.app_lines, xn)).T)
         parts = [feat, normal]
         if self.view_dependent:
             if d is None:
