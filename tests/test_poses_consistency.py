@@ -415,3 +415,29 @@ def test_ladder_follows_a_second_fold_with_the_far_matched_attempt(tmp_path, mon
     assert state.attempts[2]["far_matched_dropped"]["window"] == 3 and state.attempts[2]["reused"] == "far_matched"
     assert "without the features matched over 3 places away" in state.attempts[2]["settings"]
     assert [a["kept"] for a in state.attempts] == [False, False, True]
+
+
+def test_the_far_matched_cure_follows_only_a_neighbours_attempt_that_folded():
+    """`_fold_cure`: a first fold gets the neighbours attempt; the far-matched one only follows the neighbours
+    attempt (it is made only when that folded too); each once."""
+    from nerfpipe.stages.poses import attempts
+    from nerfpipe.stages.poses import colmap as sfm
+
+    settings = sfm.SfmSettings(
+        max_image_size=1000,
+        max_num_features=2048,
+        camera_model="SIMPLE_RADIAL",
+        single_camera=True,
+        matcher="exhaustive",
+        sequential_overlap=10,
+        num_threads=1,
+        seed=0,
+    )
+    plan = attempts.ladder(settings, 5, long_side=1000)
+    cure = attempts._fold_cure(plan, plan[0])
+    assert cure.reuse == "neighbours" and cure.settings == settings
+    plan = [plan[0], cure, *plan[1:-1]]
+    assert attempts._fold_cure(plan, plan[2]) is None  # a later attempt folded: the neighbours cure was made
+    far = attempts._fold_cure(plan, cure)
+    assert far.reuse == "far_matched" and far.settings.mapper == sfm.RELAXED_MAPPER
+    assert attempts._fold_cure([*plan[:2], far, *plan[2:-1]], cure) is None

@@ -32,9 +32,10 @@ matches placed far apart, or whose matches it contradicts) is followed at once b
   "far-matched features dropped": the last extraction's matches without those of features that also match a photo
      over the window away in capture order (`far_matched`: a turntable's room that did not turn, or faces that look
      alike), verified again and mapped with the relaxed thresholds (the shared head as shot, no masks: every other
-     attempt folded, 8.4 deg median error; this one 66/66 within 0.9 deg, docs/BENCH_POSES.md);
-they take the place of the ladder's last attempts (max_attempts still bounds the count). Each attempt's record
-says how far its rotations between two cameras differ from the kept model's (`consistency.rotation_disagreement`).
+     attempt folded, 8.4 deg median error; this one 66/66 at 1.07 deg, docs/BENCH_POSES.md);
+the second only when the first folded too; each takes the place of the ladder's last attempt (max_attempts still
+bounds the count). Each attempt's record says how far its rotations between two cameras differ from the kept
+model's (`consistency.rotation_disagreement`).
 "more features" is pycolmap's own defaults (bar first_octave, see `colmap.SMALL_IMAGE`, and the seeds) and runs
 whatever the budget while no usable model exists, so a set that ends unusable should not end with fewer images
 than pycolmap's defaults register unless their model failed a check (a set at 80 %+ with sane cameras after
@@ -276,8 +277,9 @@ def run_attempts(
         if reason is not None:
             stopped = reason
             break
-        if _folded(found) and k < len(plan) and not any(a.reuse == "neighbours" for a in plan):
-            plan = [*plan[:k], *_fold_cures(s), *plan[k:]][: len(plan)]
+        cure = _fold_cure(plan, attempt) if _folded(found) and k < len(plan) else None
+        if cure is not None:
+            plan = [*plan[:k], cure, *plan[k:-1]]
         elif k == 1 and first.features >= ENOUGH_FEATURES:
             plan, reordered = _wide_first(plan, first.features)
     chosen = choose(candidates, total)
@@ -319,7 +321,7 @@ def _within_budget(
 ) -> tuple[Attempt, str | None] | None:
     """`attempt` as it may run within the time budget (an extraction retry possibly shrunk), with a note for its
     record, or None when it does not fit (`budget` module). Unbounded: the first attempt, the fold cures
-    (`_fold_cures`), and every attempt while no usable model the stage would keep exists."""
+    (`_fold_cure`), and every attempt while no usable model the stage would keep exists."""
     if (
         first is None
         or attempt.reuse in ("neighbours", "far_matched")
@@ -352,19 +354,17 @@ def _wide_first(plan: list[Attempt], features: float) -> tuple[list[Attempt], st
     )
 
 
-def _fold_cures(settings: SfmSettings) -> list[Attempt]:
-    """The retries made at once after an attempt (with `settings`) whose model folded, in order: its matches
-    restricted to neighbours in capture order (faces that look alike: a carton's prints), then the last
-    extraction's matches without the features matched far across the order (what did not turn with the object:
-    a turntable's room), mapped with the relaxed thresholds since fewer matches remain."""
-    return [
-        Attempt(name="neighbours in capture order", settings=settings, reuse="neighbours"),
-        Attempt(
-            name="far-matched features dropped",
-            settings=replace(settings, mapper=RELAXED_MAPPER),
-            reuse="far_matched",
-        ),
-    ]
+def _fold_cure(plan: list[Attempt], done: Attempt) -> Attempt | None:
+    """The retry to make at once after `done`, an attempt whose model folded, or None: first its matches restricted
+    to neighbours in capture order (faces that look alike: a carton's prints); when that folded too, the last
+    extraction's matches without the features matched far across the order (what did not turn with the object: a
+    turntable's room), mapped with the relaxed thresholds since fewer matches remain. Each once a run."""
+    if not any(a.reuse == "neighbours" for a in plan):
+        return Attempt(name="neighbours in capture order", settings=done.settings, reuse="neighbours")
+    if done.reuse == "neighbours" and not any(a.reuse == "far_matched" for a in plan):
+        settings = replace(done.settings, mapper=RELAXED_MAPPER)
+        return Attempt(name="far-matched features dropped", settings=settings, reuse="far_matched")
+    return None
 
 
 def _folded(found: Candidate) -> bool:
