@@ -415,6 +415,7 @@ def test_ladder_follows_a_second_fold_with_the_far_matched_attempt(tmp_path, mon
     assert state.attempts[2]["far_matched_dropped"]["window"] == 3 and state.attempts[2]["reused"] == "far_matched"
     assert "without the features matched over 3 places away" in state.attempts[2]["settings"]
     assert [a["kept"] for a in state.attempts] == [False, False, True]
+    assert any("without the 20% of features" in w and "--masks" in w for w in state.warnings)
 
 
 def test_the_far_matched_cure_follows_only_a_neighbours_attempt_that_folded():
