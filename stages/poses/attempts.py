@@ -295,8 +295,8 @@ def run_attempts(
         state.warnings.append(
             f"the poses kept were found without the {dropped['keypoints_dropped_share']:.0%} of features that also "
             "match photos far away in capture order: what did not turn with the object (a turntable's room) or "
-            "faces that look alike; a field cannot learn a room that stood still while the object turned: if so, "
-            "rerun poses with --masks DIR (the object white)"
+            "faces that look alike; a room that stood still while the object turned is not one scene with it, and "
+            "a field fits it worse than the object: if so, rerun poses with --masks DIR (the object white)"
         )
     if skipped and stopped.startswith("every attempt"):
         stopped = f"the retries that fit the time budget were made ({', '.join(skipped)} did not fit)"
