@@ -137,6 +137,34 @@ def test_inference_reads_the_grid_from_caches_that_follow_the_factors():
     torch.testing.assert_close(f_grad.detach(), twin.sdf_unit(u).detach(), rtol=0, atol=1e-5)
 
 
+def test_the_dense_grid_adds_its_trilinear_distance_on_both_paths_and_learns():
+    """The dense grid under the factors (field.py's module doc): a linear ramp over its nodes is read back exactly
+    (trilinear interpolation reproduces a linear function) by the factor path and by inference's volume path, its
+    nodes get gradients, and a field's config without it (runs before it) rebuilds a field without it."""
+    torch.manual_seed(0)
+    field = SdfField(aabb=[[-1.0, -0.5, -0.3], [1.0, 0.5, 0.3]], resolution=9, radius=0.5, dense=5)
+    u = torch.rand(300, 3) * 2 - 1
+    xn = field._grid_coords(u)
+    with torch.no_grad():
+        plain = field.sdf_unit(u)
+        ramp = torch.linspace(-1, 1, 5)  # node coordinates per axis; the volume is indexed (z, y, x)
+        field.dense.copy_(0.3 * ramp[None, None, None, None, :] - 0.2 * ramp[None, None, :, None, None])
+        expected = plain + 0.3 * xn[:, 0] - 0.2 * xn[:, 2]
+        torch.testing.assert_close(field.sdf_unit(u), expected, rtol=0, atol=1e-5)
+        field.eval()
+        torch.testing.assert_close(field.sdf_unit(u), expected, rtol=0, atol=1e-5)
+    field.train()
+    field.sdf_unit(u).sum().backward()
+    assert field.dense.grad is not None and field.dense.grad.abs().sum() > 0
+    assert any(field.dense is p for g in field.param_groups(0.02) for p in g["params"])
+    old = SdfField(aabb=[[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], resolution=9)
+    config = old.config()
+    del config["dense"]
+    rebuilt = SdfField(**config)
+    rebuilt.load_state_dict(old.state_dict())
+    assert rebuilt.dense is None and rebuilt.config()["dense"] == 0
+
+
 def test_curvature_term_is_the_laplacian_of_the_starting_sphere():
     """With the grid at zero the field is the sphere |u| - r, whose Laplacian is 2 / |u|: the training render's
     curvature (mean |lap f| over the coloured samples, which lie about the surface |u| = r) is 2 / r, and it has a
@@ -285,6 +313,8 @@ def test_sdf_refuses_scenes_outside_a_box_and_bad_options(tmp_path):
         method_named("sdf").validate(SdfOptions(outside_tv=-1.0))
     with pytest.raises(UserError, match="curvature: expected >= 0"):
         method_named("sdf").validate(SdfOptions(curvature=-1.0))
+    with pytest.raises(UserError, match="dense_grid: expected 0"):
+        method_named("sdf").validate(SdfOptions(dense_grid=1))
 
 
 # ---------------------------------------------------------------------------------------------- real captures

@@ -27,6 +27,7 @@ from nerfpipe.model.methods.sdf.hooks import hooks_for
 from nerfpipe.model.methods.sdf.model import SdfModel
 from nerfpipe.model.methods.sdf.options import (
     CURVATURE_REAL,
+    DENSE_GRID,
     REFINE,
     RESOLUTION,
     SAMPLES,
@@ -69,6 +70,7 @@ def _model(
             resolution=options.resolution[0],
             view_dependent=options.view_dependent,
             radius=options.init_radius,
+            dense=options.dense_grid,
         ).config()
     field = SdfField(**field_cfg).to(device)
     if outside is None and isinstance(space, Contracted):
@@ -86,8 +88,8 @@ def _model(
 class SdfMethod(Method):
     name = "sdf"
     summary = (
-        "signed distance (an ellipsoid start + VM grid), NeuS opacity, Eikonal term: objects in their box, real "
-        "captures with a density field outside the box"
+        "signed distance (an ellipsoid start + a coarse dense grid + VM grid), NeuS opacity, Eikonal term: objects in "
+        "their box, real captures with a density field outside the box"
     )
     Options = SdfOptions
 
@@ -118,11 +120,17 @@ class SdfMethod(Method):
             sdf_refine=options.sdf_refine or REFINE,
             view_dependent=True if options.view_dependent is None else options.view_dependent,
             curvature=options.curvature if options.curvature is not None else (0.0 if box else CURVATURE_REAL),
+            dense_grid=options.dense_grid if options.dense_grid is not None else (DENSE_GRID if box else 0),
         )
         curvature_why = (
             "0 (off) for objects in their box: it rounds off their edges (docs/SDF.md)"
             if box
             else f"{CURVATURE_REAL:g} for real captures: the surface comes out rippled without it (docs/SDF.md)"
+        )
+        dense_why = (
+            f"{DENSE_GRID} per axis under the planes and lines for objects in their box: the coarse shape (docs/SDF.md)"
+            if box
+            else "0 (none) for real captures: on the fox it filled the unseen back of the box (docs/SDF.md)"
         )
         for name, why in (
             ("resolution", "32 to 128 (coarse-to-fine)"),
@@ -131,6 +139,7 @@ class SdfMethod(Method):
             ("sdf_refine", f"{REFINE} sub-intervals an interval near the surface"),
             ("view_dependent", "on for every scene"),
             ("curvature", curvature_why),
+            ("dense_grid", dense_why),
         ):
             reasons[name] = "asked for" if getattr(options, name) is not None else why
         return SdfPrepared(options=resolved, space=make_space(ctx.space_kind, ctx.scene))

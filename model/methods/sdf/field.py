@@ -1,6 +1,8 @@
 """The signed-distance field: an ellipsoid inscribed in the box (a sphere in a cube box) to start from plus a
-learned VM grid (the density field's planes and lines, `radiance.fields.fast`), a colour network that sees the
-surface normal, and NeuS's learned sharpness.
+coarse dense grid (`dense` nodes per axis, read trilinearly, starting at 0: the coarse shape) plus a learned VM grid
+(the density field's planes and lines, `radiance.fields.fast`: the detail), a colour network that sees the surface
+normal, and NeuS's learned sharpness. Without the dense grid the low-rank factors alone carve flat faces out of the
+ellipsoid in axis-aligned stripes (docs/SDF.md).
 
 Units: the field works in the box's unit coordinates u = (x - centre) / half (half: half the box's longest side),
 so the starting shape, the sharpness and the finite-difference step mean the same in every scene; `sdf` answers in scene
@@ -69,6 +71,7 @@ class SdfField(nn.Module):
         view_dependent: bool = True,
         radius: float = 0.5,
         sharpness: float = 20.0,
+        dense: int = 0,
     ) -> None:
         super().__init__()
         aabb = torch.as_tensor(aabb, dtype=torch.float32).reshape(2, 3)
@@ -99,6 +102,8 @@ class SdfField(nn.Module):
             nn.Linear(hidden, 3),
         )
         self.log_sharpness = nn.Parameter(torch.tensor(math.log(sharpness)))
+        self.dense_resolution = int(dense)
+        self.dense = nn.Parameter(torch.zeros(1, 1, dense, dense, dense)) if dense else None
         self._caches: dict[str, tuple] = {}  # inference caches (module doc): name -> (factors' key, value)
 
     # ------------------------------------------------------------------------------------------------ frames
@@ -146,13 +151,16 @@ class SdfField(nn.Module):
         return torch.where(centre, -a.min(), k0 * (k0 - 1) / torch.where(centre, torch.ones_like(k1), k1))
 
     def sdf_unit(self, u: Tensor) -> Tensor:
-        """u [N, 3] -> signed distance [N] in u units (negative inside): the start plus the grid (at inference read
-        from the grid's volume, module doc)."""
+        """u [N, 3] -> signed distance [N] in u units (negative inside): the start plus the dense grid plus the
+        factors (at inference the factors read from their node volume, module doc)."""
         xn = self._grid_coords(u)
+        base = self.start(u)
+        if self.dense is not None:
+            base = base + F.grid_sample(self.dense, xn[None, :, None, None, :], align_corners=True).reshape(-1)
         if self._inferring() and self.resolution**3 <= MAX_VOLUME_NODES:
             grid = xn[None, :, None, None, :].to(self.planes[0].dtype)  # [1, N, 1, 1, 3] (x, y, z)
-            return self.start(u) + F.grid_sample(self._sdf_volume(), grid, align_corners=True).reshape(-1).to(u.dtype)
-        return self.start(u) + sum(p.sum(0) for p in _plane_features(self.planes, self.lines, xn))
+            return base + F.grid_sample(self._sdf_volume(), grid, align_corners=True).reshape(-1).to(u.dtype)
+        return base + sum(p.sum(0) for p in _plane_features(self.planes, self.lines, xn))
 
     def _inferring(self) -> bool:
         return not self.training and not torch.is_grad_enabled()
@@ -215,6 +223,7 @@ class SdfField(nn.Module):
     def param_groups(self, lr: float) -> list[dict]:
         """The grids at lr, the colour network at lr / 20 (the density field's split), the log-sharpness at lr."""
         grids = [*self.planes, *self.lines, *self.app_planes, *self.app_lines]
+        grids += [self.dense] if self.dense is not None else []
         nets = [*self.basis.parameters(), *self.mlp.parameters()]
         return [
             {"params": grids, "lr": lr, "lr_scale": 1.0},
@@ -243,4 +252,5 @@ class SdfField(nn.Module):
             "view_dependent": self.view_dependent,
             "radius": self.radius,
             "sharpness": self.initial_sharpness,
+            "dense": self.dense_resolution,
         }

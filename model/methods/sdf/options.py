@@ -7,7 +7,16 @@ from dataclasses import dataclass
 
 from nerfpipe.data.errors import UserError
 
-__all__ = ["SdfOptions", "validate_options", "RESOLUTION", "UPSAMPLE_AT", "SAMPLES", "REFINE", "CURVATURE_REAL"]
+__all__ = [
+    "SdfOptions",
+    "validate_options",
+    "RESOLUTION",
+    "UPSAMPLE_AT",
+    "SAMPLES",
+    "REFINE",
+    "CURVATURE_REAL",
+    "DENSE_GRID",
+]
 
 RESOLUTION = (32, 128)
 """The grid's resolution at the start and at the end (coarse-to-fine) by default."""
@@ -18,6 +27,11 @@ SAMPLES = 32
 """Intervals a ray is cut into in the box by default."""
 REFINE = 4
 """Sub-intervals each interval of the band is cut into by default."""
+DENSE_GRID = 16
+"""The dense grid's resolution per axis by default for objects in their box: without it the planes and lines carve a
+flat disk out of the starting ellipsoid in axis-aligned stripes of a third to half a cell (docs/SDF.md). Real
+captures (contracted scenes) keep 0: on the fox it made the unseen back of the box solid (train's surface_found
+check said suspect) for no better held-out PSNR."""
 CURVATURE_REAL = 1e-4
 """The curvature term's weight by default in a contracted scene (a real capture): the fox's surface without it is
 covered in ripples a few cells across, with it smooth at the same held-out PSNR (docs/SDF.md). Objects in their box
@@ -26,7 +40,8 @@ keep 0: at 1e-4 bench-sdf's scene meshed worse (Chamfer 0.33 against 0.21 % of t
 
 @dataclass(frozen=True, kw_only=True)
 class SdfOptions:
-    """A signed distance (ellipsoid start + VM grid), NeuS's logistic opacity with a learned sharpness, Eikonal term."""
+    """A signed distance (ellipsoid start + dense grid + VM grid), NeuS's logistic opacity with a learned sharpness,
+    Eikonal term."""
 
     resolution: tuple[int, int] | None = None
     """Grid resolution per axis at the start and at the end (coarse-to-fine). None: 32,128."""
@@ -46,6 +61,10 @@ class SdfOptions:
     curvature: float | None = None
     """Weight of Neuralangelo's curvature term, mean |Laplacian f| over the coloured samples (u units, one cell
     wide): smooths the surface. None: 1e-4 for real captures (contracted scenes), 0 (off) for objects in their box."""
+    dense_grid: int | None = None
+    """Resolution per axis of a dense grid of distances under the planes and lines (trilinear, starting at 0): the
+    coarse shape, which the low-rank factors then only refine. None: 16 for objects in their box, 0 (none) for real
+    captures (contracted scenes); runs before it had none."""
     outside_tv: float = 0.01
     """Contracted scenes: weight of the total variation on the outside field's planes (the density method's weight
     for real captures); object scenes have no outside field."""
@@ -66,6 +85,8 @@ def validate_options(options: SdfOptions) -> None:
         raise UserError(f"eikonal: expected >= 0, got {options.eikonal}")
     if options.curvature is not None and not options.curvature >= 0:
         raise UserError(f"curvature: expected >= 0, got {options.curvature}")
+    if options.dense_grid is not None and options.dense_grid != 0 and options.dense_grid < 2:
+        raise UserError(f"dense_grid: expected 0 (none) or >= 2, got {options.dense_grid}")
     if not options.outside_tv >= 0:
         raise UserError(f"outside_tv: expected >= 0, got {options.outside_tv}")
     if not 0 < options.init_radius < 1:
