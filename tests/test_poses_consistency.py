@@ -195,18 +195,11 @@ def test_choice_keeps_the_attempt_that_did_not_fold_and_says_which_check_decided
 def test_ladder_follows_a_fold_with_the_neighbours_attempt(tmp_path, monkeypatch):
     """run_attempts, its pycolmap steps stubbed: attempt 1 folds, the next attempt is the neighbours one (reusing
     attempt 1's database), it is consistent and stops the ladder, and it is kept."""
-    from nerfpipe.data.rundir import MetricsLog
     from nerfpipe.stages.poses import attempts
     from nerfpipe.stages.poses import colmap as sfm
-    from nerfpipe.stages.poses.report import PhaseTimer, RunState
 
     names = [f"{k}.jpg" for k in range(10)]
-    stats = sfm.DatabaseStats(
-        features=dict.fromkeys(names, 500),
-        matches=dict.fromkeys(names, 100),
-        verified_pairs=dict.fromkeys(names, 3),
-        camera_of=dict.fromkeys(names, 1),
-    )
+    stats = _stats(names)
     model = _model10()
     verdicts = iter([False, True])
     restricted = []
@@ -227,7 +220,20 @@ def test_ladder_follows_a_fold_with_the_neighbours_attempt(tmp_path, monkeypatch
 
     monkeypatch.setattr(attempts, "restrict_to_neighbours", fake_restrict)
     monkeypatch.setattr(attempts, "consistency_checks", fake_checks)
-    settings = sfm.SfmSettings(
+    settings = _settings()
+    state = _run_ladder(attempts.ladder(settings, 4, long_side=1000), tmp_path, names)
+    assert [a["name"] for a in state.attempts] == ["as configured", "neighbours in capture order"]
+    assert restricted == ["database.1.db"] and state.attempts[1]["reused"] == "neighbours"
+    assert state.attempts[1]["restricted_to_neighbours"] == {"window": 3, "pairs_kept": 20, "pairs_dropped": 25}
+    assert [a["kept"] for a in state.attempts] == [False, True] and state.attempts[0]["check"] == "suspect"
+    assert "decided by capture_order" in state.choice and state.ladder["stopped"].startswith("'neighbours")
+    assert state.consistency[0][0].ok and (tmp_path / "database.db").is_file()
+
+
+def _settings():
+    from nerfpipe.stages.poses import colmap as sfm
+
+    return sfm.SfmSettings(
         max_image_size=1000,
         max_num_features=2048,
         camera_model="SIMPLE_RADIAL",
@@ -237,19 +243,33 @@ def test_ladder_follows_a_fold_with_the_neighbours_attempt(tmp_path, monkeypatch
         num_threads=1,
         seed=0,
     )
+
+
+def _stats(names: list[str]):
+    """Database statistics of `names` with enough features and matches for every attempt to map."""
+    from nerfpipe.stages.poses import colmap as sfm
+
+    return sfm.DatabaseStats(
+        features=dict.fromkeys(names, 500),
+        matches=dict.fromkeys(names, 100),
+        verified_pairs=dict.fromkeys(names, 3),
+        camera_of=dict.fromkeys(names, 1),
+    )
+
+
+def _run_ladder(plan, tmp_path: Path, names: list[str]):
+    """`attempts.run_attempts` of `plan` on `names` in tmp_path (its pycolmap steps stubbed by the caller): the
+    RunState it leaves."""
+    from nerfpipe.data.rundir import MetricsLog
+    from nerfpipe.stages.poses import attempts
+    from nerfpipe.stages.poses.report import PhaseTimer, RunState
+
     state = RunState(started=0.0)
     phase = PhaseTimer(
         state, MetricsLog(tmp_path / "metrics.csv", ["step", "seconds", "phase", "images", "registered"]), None
     )
-    attempts.run_attempts(
-        attempts.ladder(settings, 4, long_side=1000), tmp_path, tmp_path, [names], [1000], state, phase
-    )
-    assert [a["name"] for a in state.attempts] == ["as configured", "neighbours in capture order"]
-    assert restricted == ["database.1.db"] and state.attempts[1]["reused"] == "neighbours"
-    assert state.attempts[1]["restricted_to_neighbours"] == {"window": 3, "pairs_kept": 20, "pairs_dropped": 25}
-    assert [a["kept"] for a in state.attempts] == [False, True] and state.attempts[0]["check"] == "suspect"
-    assert "decided by capture_order" in state.choice and state.ladder["stopped"].startswith("'neighbours")
-    assert state.consistency[0][0].ok and (tmp_path / "database.db").is_file()
+    attempts.run_attempts(plan, tmp_path, tmp_path, [names], [1000], state, phase)
+    return state
 
 
 def _model10() -> pycolmap.Reconstruction:
@@ -348,18 +368,11 @@ def test_ladder_follows_a_second_fold_with_the_far_matched_attempt(tmp_path, mon
     """run_attempts, its pycolmap steps stubbed: attempt 1 folds, the neighbours attempt folds too, the next is the
     far-matched one: built from attempt 1's database (every pair the photos gave), mapped with the relaxed
     thresholds, its model checked against its own database (the matches it kept), kept."""
-    from nerfpipe.data.rundir import MetricsLog
     from nerfpipe.stages.poses import attempts
     from nerfpipe.stages.poses import colmap as sfm
-    from nerfpipe.stages.poses.report import PhaseTimer, RunState
 
     names = [f"{k}.jpg" for k in range(10)]
-    stats = sfm.DatabaseStats(
-        features=dict.fromkeys(names, 500),
-        matches=dict.fromkeys(names, 100),
-        verified_pairs=dict.fromkeys(names, 3),
-        camera_of=dict.fromkeys(names, 1),
-    )
+    stats = _stats(names)
     model = _model10()
     verdicts = iter([False, False, True])
     checked, built, mappers = [], [], []
@@ -388,23 +401,8 @@ def test_ladder_follows_a_second_fold_with_the_far_matched_attempt(tmp_path, mon
     )
     monkeypatch.setattr(attempts, "drop_far_matched", fake_drop)
     monkeypatch.setattr(attempts, "consistency_checks", fake_checks)
-    settings = sfm.SfmSettings(
-        max_image_size=1000,
-        max_num_features=2048,
-        camera_model="SIMPLE_RADIAL",
-        single_camera=True,
-        matcher="exhaustive",
-        sequential_overlap=10,
-        num_threads=1,
-        seed=0,
-    )
-    state = RunState(started=0.0)
-    phase = PhaseTimer(
-        state, MetricsLog(tmp_path / "metrics.csv", ["step", "seconds", "phase", "images", "registered"]), None
-    )
-    attempts.run_attempts(
-        attempts.ladder(settings, 5, long_side=1000), tmp_path, tmp_path, [names], [1000], state, phase
-    )
+    settings = _settings()
+    state = _run_ladder(attempts.ladder(settings, 5, long_side=1000), tmp_path, names)
     assert [a["name"] for a in state.attempts] == [
         "as configured",
         "neighbours in capture order",
@@ -424,16 +422,7 @@ def test_the_far_matched_cure_follows_only_a_neighbours_attempt_that_folded():
     from nerfpipe.stages.poses import attempts
     from nerfpipe.stages.poses import colmap as sfm
 
-    settings = sfm.SfmSettings(
-        max_image_size=1000,
-        max_num_features=2048,
-        camera_model="SIMPLE_RADIAL",
-        single_camera=True,
-        matcher="exhaustive",
-        sequential_overlap=10,
-        num_threads=1,
-        seed=0,
-    )
+    settings = _settings()
     plan = attempts.ladder(settings, 5, long_side=1000)
     cure = attempts._fold_cure(plan, plan[0])
     assert cure.reuse == "neighbours" and cure.settings == settings
