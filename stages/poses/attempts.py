@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import math
 import os
-import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -55,13 +54,12 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-import pycolmap
 
 from nerfpipe.data.checks import verdict
 from nerfpipe.data.rundir import config_to_json
 from nerfpipe.stages.poses import colmap as sfm
 from nerfpipe.stages.poses.budget import AttemptCost, attempt_cost, fit_retry
-from nerfpipe.stages.poses.choice import Candidate, candidate, choose, keepable, stop_reason
+from nerfpipe.stages.poses.choice import Candidate, agreement, candidate, choose, keepable, stop_reason
 from nerfpipe.stages.poses.colmap import (
     ENOUGH_FEATURES,
     PYCOLMAP_MAX_IMAGE_SIZE,
@@ -72,10 +70,8 @@ from nerfpipe.stages.poses.colmap import (
     SfmSettings,
 )
 from nerfpipe.stages.poses.consistency import (
-    AGREE_DEG,
     consistency_checks,
     restrict_to_neighbours,
-    rotation_disagreement,
 )
 from nerfpipe.stages.poses.exif import apply_focal_priors
 from nerfpipe.stages.poses.far_matched import drop_far_matched
@@ -207,7 +203,7 @@ def run_attempts(
             db = evidence_db = build / f"database.{k}.db"
             with phase("features"):
                 if attempt.reuse == "features":
-                    _copy_features(extracted, db)
+                    sfm.copy_features(extracted, db)
                 else:
                     sfm.extract(db, images, groups, long_sides, s, build / "working")
                     priors = apply_focal_priors(
@@ -287,7 +283,7 @@ def run_attempts(
     state.attempts[chosen.index]["kept"] = True
     state.models = state.attempts[chosen.index]["models_found"]
     state.consistency = (list(candidates[chosen.index].consistency), records[chosen.index])
-    state.choice = chosen.sentence + _agreement(state.attempts, results, chosen.index)
+    state.choice = chosen.sentence + agreement(state.attempts, [r[3] for r in results], chosen.index)
     if chosen.warning is not None:
         state.warnings.append(chosen.warning)
     dropped = state.attempts[chosen.index].get("far_matched_dropped")
@@ -380,28 +376,6 @@ def _folded(found: Candidate) -> bool:
     return any(c.name == "capture_order" and not c.ok for c in found.consistency)
 
 
-def _agreement(records: list[dict], results: list[tuple], kept: int) -> str:
-    """Each other attempt's rotation disagreement with the kept model into its record ("rotation_vs_kept_deg":
-    median, largest); a clause for the choice sentence naming those that disagree (over consistency.AGREE_DEG)."""
-    model = results[kept][3]
-    apart = []
-    for i, (record, result) in enumerate(zip(records, results, strict=True)):
-        if i == kept or result[3] is None or model is None:
-            continue
-        median, largest, common = rotation_disagreement(model, result[3])
-        if common >= 2:
-            record["rotation_vs_kept_deg"] = [round(median, 2), round(largest, 2)]
-            if median > AGREE_DEG:
-                apart.append(f"'{record['name']}' by {median:.1f} deg (largest {largest:.0f})")
-    if not apart:
-        return ""
-    return (
-        "; the attempts disagree on the rotation between two cameras (median over pairs): "
-        + ", ".join(apart)
-        + " from the kept model"
-    )
-
-
 def prior_focals(cameras: dict[int, dict]) -> dict[int, float | None]:
     """camera id -> prior focal px (None: absent), from `exif.apply_focal_priors`' record."""
     return {c: info["prior_px"] for c, info in cameras.items()}
@@ -410,14 +384,3 @@ def prior_focals(cameras: dict[int, dict]) -> dict[int, float | None]:
 def weak_priors(cameras: dict[int, dict]) -> dict[int, str | None]:
     """camera id -> why its prior is only a guess (None: it is not), from `exif.apply_focal_priors`' record."""
     return {c: info.get("weak") for c, info in cameras.items()}
-
-
-def _copy_features(src: Path, dst: Path) -> None:
-    """A copy of database `src` with its features only (matches and two-view geometries cleared)."""
-    shutil.copyfile(src, dst)
-    db = pycolmap.Database.open(dst)
-    try:
-        db.clear_matches()
-        db.clear_two_view_geometries()
-    finally:
-        db.close()

@@ -26,6 +26,7 @@ import pycolmap
 
 from nerfpipe.data.checks import Check
 from nerfpipe.stages.poses import quality
+from nerfpipe.stages.poses.consistency import AGREE_DEG, rotation_disagreement
 from nerfpipe.stages.poses.report import FAIL_FRACTION, MIN_REGISTERED, WARN_FRACTION
 
 __all__ = [
@@ -36,6 +37,7 @@ __all__ = [
     "stop_reason",
     "usable",
     "keepable",
+    "agreement",
 ]
 
 
@@ -190,3 +192,26 @@ def stop_reason(candidates: Sequence[Candidate], total: int, spent: float, budge
 def keepable(candidates: Sequence[Candidate], total: int) -> Candidate | None:
     """The first attempt the stage would keep as it is (usable, sane cameras, consistent poses), or None."""
     return next((c for c in candidates if c.sane and c.consistent and usable(c.registered, total)), None)
+
+
+def agreement(records: list[dict], models: Sequence[pycolmap.Reconstruction | None], kept: int) -> str:
+    """Each other attempt's rotation disagreement with the kept model into its record ("rotation_vs_kept_deg":
+    median, largest); a clause for the choice sentence naming those that disagree (over consistency.AGREE_DEG).
+    `records` and `models`: one per attempt (None: no model); `kept`: the kept attempt's index."""
+    model = models[kept]
+    apart = []
+    for i, (record, other) in enumerate(zip(records, models, strict=True)):
+        if i == kept or other is None or model is None:
+            continue
+        median, largest, common = rotation_disagreement(model, other)
+        if common >= 2:
+            record["rotation_vs_kept_deg"] = [round(median, 2), round(largest, 2)]
+            if median > AGREE_DEG:
+                apart.append(f"'{record['name']}' by {median:.1f} deg (largest {largest:.0f})")
+    if not apart:
+        return ""
+    return (
+        "; the attempts disagree on the rotation between two cameras (median over pairs): "
+        + ", ".join(apart)
+        + " from the kept model"
+    )

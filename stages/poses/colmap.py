@@ -15,6 +15,7 @@ features: only a larger cap does.
 from __future__ import annotations
 
 import contextlib
+import shutil
 import signal
 import threading
 from collections import defaultdict
@@ -41,6 +42,7 @@ __all__ = [
     "extract",
     "match",
     "verification_options",
+    "copy_features",
     "reconstruct",
     "database_stats",
     "DatabaseStats",
@@ -328,3 +330,14 @@ def database_stats(db_path: Path) -> DatabaseStats:
         verified_pairs={n: pairs.get(n, 0) for n in features},
         camera_of=camera_of,
     )
+
+
+def copy_features(src: Path, dst: Path) -> None:
+    """A copy of database `src` with its features only (matches and two-view geometries cleared)."""
+    shutil.copyfile(src, dst)
+    db = pycolmap.Database.open(dst)
+    try:
+        db.clear_matches()
+        db.clear_two_view_geometries()
+    finally:
+        db.close()
