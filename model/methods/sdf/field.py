@@ -33,7 +33,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from nerfpipe.radiance.fields.encodings import positional_encoding
-from nerfpipe.radiance.fields.fast import _plane_features
+from nerfpipe.radiance.fields.fast import _plane_features, factors_key, vm_node_volume
 from nerfpipe.radiance.fields.vm_tables import VmTables
 from nerfpipe.radiance.safe import eps
 
@@ -166,7 +166,7 @@ class SdfField(nn.Module):
         return not self.training and not torch.is_grad_enabled()
 
     def _cached(self, name: str, factors: list[Tensor], build) -> object:
-        key = tuple((t.data_ptr(), t._version, t.shape, t.dtype, t.device) for t in factors)
+        key = factors_key(factors)
         hit = self._caches.get(name)
         if hit is None or hit[0] != key:
             with torch.no_grad():
@@ -175,18 +175,8 @@ class SdfField(nn.Module):
         return hit[1]
 
     def _sdf_volume(self) -> Tensor:
-        """The grid's plane-times-line sums at every node, [1, 1, R, R, R] indexed (z, y, x) as `F.grid_sample`
-        reads a volume (cached: module doc)."""
-
-        def build() -> Tensor:
-            p = [t.detach()[0] for t in self.planes]  # [C, R, R] each
-            ln = [t.detach()[0, :, :, 0] for t in self.lines]  # [C, R] each
-            vol = torch.einsum("cyx,cz->zyx", p[0], ln[0])  # plane (x, y), line z
-            vol += torch.einsum("czx,cy->zyx", p[1], ln[1])  # plane (x, z), line y
-            vol += torch.einsum("czy,cx->zyx", p[2], ln[2])  # plane (y, z), line x
-            return vol[None, None].contiguous()
-
-        return self._cached("sdf_volume", [*self.planes, *self.lines], build)
+        """The grid's plane-times-line sums at every node (`vm_node_volume`), cached: module doc."""
+        return self._cached("sdf_volume", [*self.planes, *self.lines], lambda: vm_node_volume(self.planes, self.lines))
 
     def train(self, mode: bool = True) -> SdfField:
         self._caches.clear()  # a step between two modes may change the factors behind their versions (module doc)
