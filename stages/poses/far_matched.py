@@ -8,9 +8,10 @@ folded the same way). Its object, seen from around, matches only photos taken ne
 surface turned by more than ~45 deg. A feature with a verified match in a photo over `neighbour_window` places away
 (an eighth of the set) in capture order is therefore what did not turn (the static room), or a face that looks
 like another (a print repeated on a carton's sides): `far_matched` finds them; `drop_far_matched` writes a database
-whose matches that touch them are gone, verified again. Places are counted round a closed loop (the last photos
-neighbour the first), so an object matched across the loop's seam is kept; an open arc counted that way only
-loses the far pairs across its ends, while a static background still matches at every other distance.
+whose matches that touch them are gone, verified again. Places are counted round a closed loop (`neighbour_pairs`:
+the last photos neighbour the first), so an object matched across the loop's seam is kept; an open arc counted
+that way only loses the far pairs across its ends, while a static background still matches at every other
+distance.
 """
 
 from __future__ import annotations
@@ -22,33 +23,28 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from nerfpipe.stages.poses.consistency import neighbour_window
+from nerfpipe.stages.poses.consistency import neighbour_pairs, neighbour_window
 
 __all__ = ["far_matched", "drop_far_matched"]
-
-
-def _loop_distance(i: int, j: int, n: int) -> int:
-    d = abs(i - j)
-    return min(d, n - d)
 
 
 def far_matched(db: pycolmap.Database, order: Sequence[str]) -> tuple[dict[int, np.ndarray], int]:
     """({image id: bool [num_keypoints], True where the keypoint has a verified inlier match in a photo more than
     the window's places away round the capture `order`}, the window). Images not in `order` get no far pairs."""
     window = neighbour_window(len(order))
-    place = {name: k for k, name in enumerate(order)}
+    near, named = neighbour_pairs(order, window), set(order)
     images = db.read_all_images()
-    rank = {im.image_id: place.get(im.name) for im in images}
+    name_of = {im.image_id: im.name for im in images}
     far = {im.image_id: np.zeros(db.num_keypoints_for_image(im.image_id), bool) for im in images}
     pair_ids, geometries = db.read_two_view_geometries()
     for pair_id, geometry in zip(pair_ids, geometries, strict=True):
         m = np.asarray(geometry.inlier_matches)
         a, b = pycolmap.pair_id_to_image_pair(pair_id)
-        if m.size == 0 or rank[a] is None or rank[b] is None:
+        pair = frozenset((name_of[a], name_of[b]))
+        if m.size == 0 or not pair <= named or pair in near:
             continue
-        if _loop_distance(rank[a], rank[b], len(order)) > window:
-            far[a][m[:, 0]] = True
-            far[b][m[:, 1]] = True
+        far[a][m[:, 0]] = True
+        far[b][m[:, 1]] = True
     return far, window
 
 
