@@ -68,11 +68,13 @@ def drop_far_matched(
                 continue
             a, b = pycolmap.pair_id_to_image_pair(pair_id)
             keep = ~(far[a][m[:, 0]] | far[b][m[:, 1]])  # [K]
+            kept += int(keep.sum())
+            dropped += int((~keep).sum())
+            if keep.all():
+                continue  # nothing to drop: the pair's matches stay as they are
             db.delete_matches(a, b)
             if keep.any():
                 db.write_matches(a, b, np.ascontiguousarray(m[keep], dtype=np.uint32))
-            kept += int(keep.sum())
-            dropped += int((~keep).sum())
         db.clear_two_view_geometries()
     finally:
         db.close()

@@ -102,7 +102,6 @@ class SdfField(nn.Module):
             nn.Linear(hidden, 3),
         )
         self.log_sharpness = nn.Parameter(torch.tensor(math.log(sharpness)))
-        self.dense_resolution = int(dense)
         self.dense = nn.Parameter(torch.zeros(1, 1, dense, dense, dense)) if dense else None
         self._caches: dict[str, tuple] = {}  # inference caches (module doc): name -> (factors' key, value)
 
@@ -242,5 +241,5 @@ class SdfField(nn.Module):
             "view_dependent": self.view_dependent,
             "radius": self.radius,
             "sharpness": self.initial_sharpness,
-            "dense": self.dense_resolution,
+            "dense": self.dense.shape[-1] if self.dense is not None else 0,
         }
