@@ -61,6 +61,14 @@ def main(argv: list[str] | None = None) -> int:
     }
     args.weights_dir.mkdir(parents=True, exist_ok=True)
     target = args.weights_dir / "pretrained.pt"
+    shipped = args.weights_dir / "pretrained.json"
+    if config.get("init") == "pretrained" and shipped.is_file():  # continued the weights it replaces: keep their story
+        before = json.loads(shipped.read_text())
+        keep = ("command", "commit", "code_commit", "pretrain_started", "continued_from")
+        provenance["continued_from"] = {k: before[k] for k in keep if k in before} | {
+            "steps": before.get("figures", {}).get("steps"),
+            "seconds": before.get("figures", {}).get("seconds"),
+        }
     shutil.copyfile(args.pretrain_out / "weights.pt", target)
     write_json(
         args.weights_dir / "pretrained.json",

@@ -1,6 +1,7 @@
 # issue 49: the gnt model nerfpipe ships (model/methods/gnt/weights/pretrained.pt), made from generated scenes only.
 #   make pretrain-gnt                      # the recipe below: scenes, then PRETRAIN_SECONDS of training
 #   make pretrain-gnt PRETRAIN_DEVICE=cuda PRETRAIN_SECONDS=3600
+#   make pretrain-gnt PRETRAIN_INIT=pretrained   # continue the shipped weights (pretrained.json keeps what made them)
 # The scenes: --subject random (a seed draws the objects, their textures and the lights) in three layouts, objects
 # with alpha seen all round, forward-facing captures before a wall, orbits inside a room; seeds 100000 and up
 # (bench-gnt holds out seeds 900000 and up). The weights and pretrained.json (command, commit, recipe, figures) are
@@ -12,6 +13,7 @@ PRETRAIN_THREADS ?= 1
 PRETRAIN_SCENES ?= 60
 PRETRAIN_SIZE ?= 80
 PRETRAIN_VIEWS ?= 16
+PRETRAIN_INIT ?=
 GNT_WEIGHTS := model/methods/gnt/weights
 
 .PHONY: pretrain-gnt pretrain-gnt-scenes
@@ -25,9 +27,9 @@ pretrain-gnt-scenes: $(INSTALLED)
 
 pretrain-gnt: pretrain-gnt-scenes
 	$(VENV)/bin/nerfpipe pretrain-gnt $(PRETRAIN_OUT)/scenes $(PRETRAIN_OUT)/model --max-seconds $(PRETRAIN_SECONDS) \
-		--device $(PRETRAIN_DEVICE) --threads $(PRETRAIN_THREADS) --overwrite
+		--device $(PRETRAIN_DEVICE) --threads $(PRETRAIN_THREADS) $(if $(PRETRAIN_INIT),--init $(PRETRAIN_INIT)) --overwrite
 	$(VENV)/bin/python -m benchmarks.ship_weights $(PRETRAIN_OUT)/model $(GNT_WEIGHTS) \
-		--command "make pretrain-gnt PRETRAIN_SECONDS=$(PRETRAIN_SECONDS) PRETRAIN_SCENES=$(PRETRAIN_SCENES) PRETRAIN_SIZE=$(PRETRAIN_SIZE) PRETRAIN_VIEWS=$(PRETRAIN_VIEWS) PRETRAIN_DEVICE=$(PRETRAIN_DEVICE)"
+		--command "make pretrain-gnt PRETRAIN_SECONDS=$(PRETRAIN_SECONDS) PRETRAIN_SCENES=$(PRETRAIN_SCENES) PRETRAIN_SIZE=$(PRETRAIN_SIZE) PRETRAIN_VIEWS=$(PRETRAIN_VIEWS) PRETRAIN_DEVICE=$(PRETRAIN_DEVICE)$(if $(PRETRAIN_INIT), PRETRAIN_INIT=$(PRETRAIN_INIT))"
 
 # issue 49: GNT zero-shot on held-out generated scenes (3, 6, 10 photos) against the density method on the same
 # photos, zero-shot on lego_400 and the fern, per-scene against density (docs/GNT.md has the table and the commit).

@@ -116,8 +116,9 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
         write_config(out, config)
         torch.manual_seed(config.seed)
         scenes = load_scene_set(Path(config.scenes), config.source_side, device)
+        init_provenance: dict = {}
         if config.init:
-            net_cfg, state, _ = read_weights(config.init, device)
+            net_cfg, state, init_provenance = read_weights(config.init, device)
             net = build_net(net_cfg, state, device)
         else:
             net = GntNet(extractor=config.extractor, readout=config.readout).to(device)
@@ -177,6 +178,7 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
             "loss_start": start,
             "loss_end": end,
             "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(config).items()},
+            "init_provenance": init_provenance or None,  # what the weights it continued were made by
         }
         weights = write_weights(out / "weights.pt", net.config(), net.state_dict(), provenance)
         (out / "weights.partial.pt").unlink(missing_ok=True)
@@ -186,7 +188,8 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
             started=started,
             outputs=["weights.pt", "metrics.csv", "config.json"],
             used={
-                **{k: v for k, v in provenance.items() if k not in ("config",)},
+                **{k: v for k, v in provenance.items() if k not in ("config", "init_provenance")},
+                "steps_before": (init_provenance or {}).get("steps"),
                 "net": net.config(),
                 "parameters": sum(p.numel() for p in net.parameters()),
                 "weights_sha256": sha256_file(weights),
