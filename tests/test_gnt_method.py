@@ -16,6 +16,7 @@ from nerfpipe.model.methods.gnt.model import RayRange
 from nerfpipe.model.methods.gnt.net import GntNet, masked_softmax, stored_config, unpremultiply
 from nerfpipe.model.methods.gnt.options import GntOptions
 from nerfpipe.model.methods.gnt.sources import Sources, gather, gather_plain
+from nerfpipe.model.methods.gnt.weights import read_weights
 from nerfpipe.radiance.camera import Intrinsics, project
 from nerfpipe.stages import depth as depth_stage
 from nerfpipe.stages import eval as eval_stage
@@ -293,6 +294,19 @@ def test_pretraining_across_scenes_writes_weights_a_run_starts_from(tmp_path):
         )
     )
     assert run.steps == 0 and run.test_psnr is not None
+    more = pretrain_gnt.run(  # continued: the new weights keep what made the ones they started from
+        pretrain_gnt.Config(
+            scenes=tmp_path / "scenes",
+            out_dir=tmp_path / "more",
+            max_steps=2,
+            batch_rays=64,
+            gnt_samples=8,
+            init=str(out.weights),
+        )
+    )
+    prov = read_weights(str(more.weights), torch.device("cpu"))[2]
+    assert prov["steps"] == 2 and prov["init_provenance"]["steps"] == 30
+    assert json.loads(more.manifest.read_text())["used"]["steps_before"] == 30
     with pytest.raises(UserError, match="no scene folders"):
         pretrain_gnt.run(pretrain_gnt.Config(scenes=tmp_path / "pre", out_dir=tmp_path / "pre2", max_steps=1))
 
@@ -322,7 +336,7 @@ def test_a_training_ray_reads_every_photo_but_its_own_and_a_new_view_reads_them_
 def test_the_shipped_weights_render_a_scene_they_never_saw_better_than_a_constant_colour(tmp_path):
     """A fresh clone renders zero-shot: `--init pretrained --max-steps 0` on a generated scene of a seed the
     pretraining never drew (it drew 100000-399999), scored against the best constant colour (the test photos' mean)."""
-    from nerfpipe.model.methods.gnt.weights import PRETRAINED, read_weights
+    from nerfpipe.model.methods.gnt.weights import PRETRAINED
 
     provenance = read_weights("pretrained", torch.device("cpu"))[2]
     assert PRETRAINED.stat().st_size < 10e6 and provenance["stage"] == "pretrain-gnt" and provenance["steps"] > 0
