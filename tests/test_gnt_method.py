@@ -309,6 +309,11 @@ def test_pretraining_across_scenes_writes_weights_a_run_starts_from(tmp_path):
     assert json.loads(more.manifest.read_text())["used"]["steps_before"] == 30
     with pytest.raises(UserError, match="no scene folders"):
         pretrain_gnt.run(pretrain_gnt.Config(scenes=tmp_path / "pre", out_dir=tmp_path / "pre2", max_steps=1))
+    with pytest.raises(UserError, match="not gnt weights"):
+        pretrain_gnt.run(
+            pretrain_gnt.Config(scenes=tmp_path / "scenes", out_dir=tmp_path / "pre3", init=str(out.manifest))
+        )
+    assert not (tmp_path / "pre2").exists() and not (tmp_path / "pre3").exists()  # bad input: nothing written
 
 
 def test_a_training_ray_reads_every_photo_but_its_own_and_a_new_view_reads_them_all():

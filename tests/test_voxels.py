@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from nerfpipe import cli
+from nerfpipe.data.errors import UserError
 from nerfpipe.data.synthetic.families import FAMILIES, HELD_OUT, TRAINED, inside, primitives, shape
 from nerfpipe.data.synthetic.raycast import _cast
 from nerfpipe.data.synthetic.shape_views import grid_points, shape_photos, view_occupancy, view_rotation
@@ -214,6 +215,11 @@ def test_pretrain_continues_weights_and_keeps_their_provenance(tiny):
     _, prov = load_net(more.weights, torch.device("cpu"))
     assert prov["steps"] == 2 and prov["init_provenance"]["steps"] == 3
     assert json.loads(more.manifest.read_text())["used"]["steps_before"] == 3
+    with pytest.raises(UserError):  # not weights: refused before anything is written
+        pretrain_voxels.run(
+            pretrain_voxels.Config(shapes=root / "shapes", out_dir=root / "w3", init=str(more.manifest))
+        )
+    assert not (root / "w3").exists()
 
 
 def test_weights_file_halves_and_predicts_the_same(tmp_path):

@@ -111,14 +111,15 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     progress = progress or NO_PROGRESS
     device = resolve_device(config.device)
     started = time.time()
+    scenes = load_scene_set(Path(config.scenes), config.source_side, device)  # bad input refused before any write
+    init = read_weights(config.init, device) if config.init else None
     with output_folder(config.out_dir, overwrite=config.overwrite), cpu_threads(config.threads):
         out = Path(config.out_dir)
         write_config(out, config)
         torch.manual_seed(config.seed)
-        scenes = load_scene_set(Path(config.scenes), config.source_side, device)
         init_provenance: dict = {}
-        if config.init:
-            net_cfg, state, init_provenance = read_weights(config.init, device)
+        if init is not None:
+            net_cfg, state, init_provenance = init
             net = build_net(net_cfg, state, device)
         else:
             net = GntNet(extractor=config.extractor, readout=config.readout).to(device)

@@ -108,20 +108,20 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     device = resolve_device(config.device)
     started = time.time()
     data, meta = load_shapes(config.shapes)
+    side = data.inputs.shape[-1]
+    init = load_net(config.init, device) if config.init else None  # bad input refused before any write
+    if init is not None and (init[0].side, init[0].res) != (side, data.res):
+        took = f"{init[0].side} px -> {init[0].res}^3"
+        raise UserError(f"pretrain-voxels: the weights take {took}, the data is {side} -> {data.res}^3")
     with output_folder(config.out_dir, overwrite=config.overwrite), cpu_threads(config.threads):
         out = Path(config.out_dir)
         write_config(out, config)
         torch.manual_seed(config.seed)
-        side = data.inputs.shape[-1]
         init_provenance: dict = {}
-        if config.init:
-            net, init_provenance = load_net(config.init, device)  # VoxelStep puts it in training mode
+        if init is not None:
+            net, init_provenance = init  # VoxelStep puts it in training mode
         else:
             net = VoxelNet(side=side, res=data.res).to(device)
-        if (net.side, net.res) != (side, data.res):
-            raise UserError(
-                f"pretrain-voxels: the weights take {net.side} px -> {net.res}^3, the data is {side} -> {data.res}^3"
-            )
         opt = torch.optim.Adam(net.parameters(), lr=config.lr)
         metrics = MetricsLog(out / "metrics.csv", METRICS)
         losses: list[float] = []
