@@ -111,8 +111,9 @@ def run(config: Config, progress: Progress | None = None) -> Outputs:
     progress = progress or NO_PROGRESS
     device = resolve_device(config.device)
     started = time.time()
-    scenes = load_scene_set(Path(config.scenes), config.source_side, device)  # bad input refused before any write
-    init = read_weights(config.init, device) if config.init else None
+    with cpu_threads(config.threads):  # bad input refused before any write, within the thread cap as before
+        scenes = load_scene_set(Path(config.scenes), config.source_side, device)
+        init = read_weights(config.init, device) if config.init else None
     with output_folder(config.out_dir, overwrite=config.overwrite), cpu_threads(config.threads):
         out = Path(config.out_dir)
         write_config(out, config)
