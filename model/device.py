@@ -72,4 +72,5 @@ def render_in_chunks(
         out = render(rays_o[i : i + chunk].to(device, torch.float32), rays_d[i : i + chunk].to(device, torch.float32))
         for k in parts:
             parts[k].append(out[k])
-    return {k: torch.cat(v) if v else torch.zeros(0, device=device) for k, v in parts.items()}
+    empty = {"rgb": (0, 3)}  # no rays: each key empty in its own shape (rgb [0, 3], the others [0])
+    return {k: torch.cat(v) if v else torch.zeros(empty.get(k, (0,)), device=device) for k, v in parts.items()}

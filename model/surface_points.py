@@ -1,8 +1,8 @@
-"""Where a trained run's rays end: coloured surface points with density normals, from its cameras.
+"""Where a trained run's rays end: coloured surface points with density (or signed-distance) normals.
 
 Shared by the stages that turn a field into a point set: `export-points` (the cloud itself) and `mesh --method
 poisson` (the cloud Poisson meshes). Only the `Trained` attributes are used: `render_rays`, `background`,
-`density`, `device`.
+`density` (or `sdf`), `device`.
 
 Sampling: each camera's pixels (at the render size) are split into `stride` x `stride` interleaved sub-grids:
 pixel (row, col) belongs to offset (row % stride, col % stride). A pass renders one sub-grid of every camera (rays
@@ -22,11 +22,13 @@ acc_threshold > 0, and the division clamps acc at float32's epsilon).
 
 Normals (`density_normals`): n = -grad sigma / |grad sigma| at the point, by central differences of the density
 with a step h: grad_k = (sigma(x + h e_k) - sigma(x - h e_k)) / 2h. Density grows into an object, so -grad sigma
-points out of it, whichever camera saw the point. Central differences rather than autograd: `Trained.density` is
-the public no-grad query that maps scene points into every run's space (box, contracted, NDC), and the analytic
-gradient of a trilinear hash grid is piecewise constant per cell of its finest level and noisy, while a step of a
-few cells averages over them. Where the gradient is zero or not finite (empty space around the point) the normal
-is the reverse of the ray that gave the point (facing its camera), and counted.
+points out of it, whichever camera saw the point. A run with a signed distance f (negative inside: the sdf
+method's) has `sdf_normals`, +grad f / |grad f| by the same differences: f grows out of the object. Central
+differences rather than autograd: `Trained.density` (and `Trained.sdf`) is the public no-grad query that maps scene
+points into every run's space (box, contracted, NDC), and the analytic gradient of a trilinear hash grid is
+piecewise constant per cell of its finest level and noisy, while a step of a few cells averages over them. Where
+the gradient is zero or not finite (empty space around the point) the normal is the reverse of the ray that gave
+the point (facing its camera), and counted.
 """
 
 from __future__ import annotations
@@ -43,7 +45,7 @@ from nerfpipe.data.progress import NO_PROGRESS, Progress
 from nerfpipe.model.cameras import CameraPath
 from nerfpipe.radiance.camera import generate_rays
 
-__all__ = ["PASS_SHARE", "Gathered", "gather_points", "pass_stride", "density_normals", "facing_share"]
+__all__ = ["PASS_SHARE", "Gathered", "gather_points", "pass_stride", "density_normals", "sdf_normals", "facing_share"]
 
 PASS_SHARE = 0.25
 """One pass renders about this share of the points asked for (so the last pass overshoots by at most that)."""
@@ -197,6 +199,28 @@ def density_normals(
     are -dirs).
 
     points [N, 3] scene frame; dirs [N, 3] unit ray directions; step h in scene units (> 0)."""
+    return _gradient_normals(density, -1.0, points, dirs, step, device, chunk)
+
+
+def sdf_normals(
+    sdf: DensityFn, points: np.ndarray, dirs: np.ndarray, step: float, device: torch.device, chunk: int = 1 << 16
+) -> tuple[np.ndarray, np.ndarray]:
+    """`density_normals` for a signed distance `sdf` (scene points [M, 3] -> [M], negative inside): +grad f
+    normalised (module doc)."""
+    return _gradient_normals(sdf, 1.0, points, dirs, step, device, chunk)
+
+
+def _gradient_normals(
+    fn: DensityFn,
+    sign: float,
+    points: np.ndarray,
+    dirs: np.ndarray,
+    step: float,
+    device: torch.device,
+    chunk: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """sign x grad fn / |grad fn| by central differences (module doc), [N, 3] float64, and the mask [N] of those
+    from the gradient (the others: -dirs)."""
     if not step > 0:
         raise ValueError(f"expected a step > 0, got {step}")
     normals = np.empty((len(points), 3), np.float64)
@@ -205,9 +229,9 @@ def density_normals(
         for a in range(0, len(points), chunk):
             x = points[a : a + chunk]
             q = (x[:, None, :] + offsets[None]).reshape(-1, 3)
-            sigma = density(torch.as_tensor(q, dtype=torch.float32, device=device))
-            s = sigma.detach().double().cpu().numpy().reshape(-1, 6)
-            normals[a : a + chunk] = -(s[:, 0::2] - s[:, 1::2]) / (2.0 * step)  # -grad sigma
+            value = fn(torch.as_tensor(q, dtype=torch.float32, device=device))
+            v = value.detach().double().cpu().numpy().reshape(-1, 6)
+            normals[a : a + chunk] = sign * (v[:, 0::2] - v[:, 1::2]) / (2.0 * step)
     norm = np.linalg.norm(normals, axis=1)
     good = np.isfinite(norm) & (norm > 0)
     normals[good] /= norm[good, None]

@@ -21,7 +21,7 @@ from benchmarks.standin import StandIn
 from nerfpipe import cli
 from nerfpipe.data.errors import UserError
 from nerfpipe.model.methods.density import DensityOptions
-from nerfpipe.model.surface_points import density_normals
+from nerfpipe.model.surface_points import density_normals, sdf_normals
 from nerfpipe.radiance.render import StratifiedSampler, render_rays
 from nerfpipe.stages import export_points as ep
 from nerfpipe.stages.export_points.geometry import statistical_outliers, to_frame
@@ -257,7 +257,7 @@ def test_missing_run_dir(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------- the pieces
-def test_density_normals_are_minus_the_gradient_direction():
+def test_density_normals_are_minus_the_gradient_direction_and_sdf_normals_plus():
     a = np.array([0.3, -2.0, 1.0])
 
     def density(x):
@@ -269,6 +269,8 @@ def test_density_normals_are_minus_the_gradient_direction():
     assert good.all() and np.allclose(normals, -a / np.linalg.norm(a), atol=1e-3)
     flat, good = density_normals(lambda x: torch.zeros(len(x)), pts, dirs, 1e-2, torch.device("cpu"))
     assert not good.any() and np.allclose(flat, -dirs)  # no gradient: the normal faces the camera
+    normals, good = sdf_normals(density, pts, dirs, 1e-2, torch.device("cpu"))  # a distance grows out of the object
+    assert good.all() and np.allclose(normals, a / np.linalg.norm(a), atol=1e-3)
 
 
 def test_statistical_rule_removes_isolated_points_only():

@@ -268,13 +268,27 @@ def test_a_method_from_this_file_goes_through_every_stage(registered, tmp_path):
 
 
 def test_a_run_of_the_method_is_refused_where_it_cannot_serve(registered, tmp_path):
-    """A stage says in one line what the run cannot do: export-points needs a density, the toy has none."""
+    """A stage says in one line what the run cannot do: export-points needs a density or a signed distance (its
+    normals); the toy has a signed distance, so its points come out with the distance's normals, and without one
+    the stage refuses."""
+    from nerfpipe.model import load_trained
     from nerfpipe.stages import export_points
 
     scene_dir = sphere_scene(tmp_path / "scene", views=6, size=16)
     train.run(train.Config(scene_dir=scene_dir, run_dir=tmp_path / "run", method="sphere", max_steps=2, device="cpu"))
-    with pytest.raises(UserError, match="a sphere run cannot give a density at points"):
-        export_points.run(export_points.Config(run_dir=tmp_path / "run", out=tmp_path / "p.ply", device="cpu"))
+    config = export_points.Config(run_dir=tmp_path / "run", out=tmp_path / "p.ply", frame="normalized", device="cpu")
+    out = export_points.run(config)
+    report = json.loads(out.report.read_text())
+    run = load_trained(tmp_path / "run", "cpu")
+    radii = np.linalg.norm(np.asarray(trimesh.load(out.out, process=False).vertices) - CENTRE, axis=1)
+    assert out.points > 0 and np.abs(radii / run.radius - 1).max() < 0.05  # on the toy's sphere
+    normals = report["normals"]  # +grad f faces every camera that saw its point (-grad f would face none)
+    assert normals["rule"].startswith("+grad f") and normals["facing_camera_before_reorienting"] == 1.0
+    assert normals["from_view_direction"] == 0 and normals["reoriented"] == 0
+    blind = dataclasses.replace(run, capabilities=frozenset({"rays", "color"}))
+    with pytest.raises(UserError, match="a sphere run cannot give a signed distance at points or give a density at"):
+        export_points.export(blind, dataclasses.replace(config, out=tmp_path / "q.ply"))
+    assert not (tmp_path / "q.ply").exists()
     with pytest.raises(UserError, match="radius: expected > 0"):
         train.run(
             train.Config(

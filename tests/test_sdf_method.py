@@ -35,6 +35,7 @@ from nerfpipe.stages import eval as eval_stage
 from nerfpipe.stages import export_points, train
 from nerfpipe.stages import mesh as mesh_stage
 from nerfpipe.stages import render as render_stage
+from nerfpipe.stages import splat as splat_stage
 from nerfpipe.stages.view.run_view import render_camera
 
 CENTRE, RADIUS, COLOUR = np.array([0.1, -0.05, 0.2]), 0.6, (0.8, 0.3, 0.15)
@@ -294,8 +295,21 @@ def test_sdf_run_goes_through_mesh_render_eval_depth(tmp_path):
     assert len(dm.names) == 4
     image = render_camera(run, (1.0, 0.0, 0.0, 0.0), (0.1, -3.0, 0.2), 0.8, 1.0, 12, coarse=True)  # the viewer
     assert image.shape == (12, 12, 3) and image.dtype == np.uint8
-    with pytest.raises(UserError, match="a sdf run cannot give a density at points"):  # no density: one line
-        export_points.run(export_points.Config(run_dir=run_dir, out=tmp_path / "p.ply", device="cpu"))
+    points = export_points.run(  # normals from the distance's gradient (no density)
+        export_points.Config(run_dir=run_dir, out=tmp_path / "p.ply", frame="normalized", device="cpu")
+    )
+    cloud = np.asarray(trimesh.load(points.out, process=False).vertices)
+    normals = json.loads(points.report.read_text())["normals"]
+    assert points.points > 0 and normals["rule"].startswith("+grad f")
+    assert normals["facing_camera_before_reorienting"] > 0.8  # outward: -grad f would face one in twenty here
+    on_surface = run.sdf(torch.as_tensor(cloud, dtype=torch.float32)).abs()  # the rays' expected depths
+    assert float(on_surface.median()) < float(run.model.field.cell * run.model.field.half)
+    empty = run.render_rays(torch.zeros(0, 3), torch.zeros(0, 3))  # a view splat draws no ray from: shaped
+    assert empty["rgb"].shape == (0, 3) and empty["acc"].shape == empty["depth_median"].shape == (0,)
+    splats = splat_stage.run(  # Gaussians where its training rays end, then fitted to the photos
+        splat_stage.Config(run_dir=run_dir, out=tmp_path / "s.ply", gaussians=100, max_steps=3, device="cpu")
+    )
+    assert splats.out.is_file() and splats.gaussians > 0 and splats.steps == 3
 
 
 def test_sdf_refuses_scenes_outside_a_box_and_bad_options(tmp_path):

@@ -14,8 +14,10 @@ Steps:
 3. Outliers (`stages.export_points.geometry`): open3d's statistical rule (20 neighbours, 2 standard deviations, as
    nerfstudio calls it), with scipy's cKDTree. So the cloud holds at most `num_points` points.
 4. Normals: -grad sigma normalised, by central differences of the density with a step of `normal_step` of the
-   scene box's diagonal (why: the geometry module's doc); with `reorient_normals` (default, as nerfstudio) a normal
-   that faces away from the camera whose ray gave the point is flipped.
+   scene box's diagonal (why: the geometry module's doc); a run with a signed distance (the sdf method's) gives
+   +grad f normalised instead, the same differences of its distance (`model.surface_points.sdf_normals`); with
+   `reorient_normals` (default, as nerfstudio) a normal that faces away from the camera whose ray gave the point
+   is flipped.
 5. Output frame (`data.export_frame`): "upright" (default) the user's frame (the one `convert` started from, e.g.
    COLMAP's; `p_scene = applied_scale * (applied_transform @ [p_src; 1])`, docs/DESIGN.md) turned so that the
    scene's up is +Z, the point-cloud tools' up; "user" that frame as it came in; "normalized" the scene frame the
@@ -32,7 +34,7 @@ Self-check (the report's `check`: ok | suspect, `checks`: `data.checks`):
   takes a few % of a clean surface; far more means fog or floaters scattered through the volume.
 - `normals_facing_camera`: share of the gradient normals that face the camera that saw their point (before they
   are reoriented), at least `MIN_FACING`: a surface seen from outside faces its cameras; a lower share means the
-  density gradient is noise at the points (an untrained or foggy field, or points inside semi-transparent volume).
+  gradient is noise at the points (an untrained or foggy field, or points inside semi-transparent volume).
 - `non_finite`: rays whose opacity, or an opaque ray's depth or colour, is NaN / inf: 0.
 """
 
@@ -51,8 +53,8 @@ from nerfpipe.data.errors import UserError
 from nerfpipe.data.export_frame import check_frame_options, export_frame
 from nerfpipe.data.progress import NO_PROGRESS, Progress
 from nerfpipe.data.rundir import config_to_json, write_manifest
-from nerfpipe.model import camera_path, can, load_trained, require
-from nerfpipe.model.surface_points import Gathered, density_normals, facing_share, gather_points
+from nerfpipe.model import camera_path, can, load_trained, require, require_any
+from nerfpipe.model.surface_points import Gathered, density_normals, facing_share, gather_points, sdf_normals
 from nerfpipe.stages.export_points.geometry import statistical_outliers, to_frame
 from nerfpipe.stages.export_points.ply import ply_properties, write_ply
 
@@ -64,6 +66,11 @@ MAX_OUTLIER_FRACTION = 0.2
 """Self-check: the statistical rule removes at most this share of the points."""
 MIN_FACING = 0.7
 """Self-check: at least this share of the gradient normals face the camera that saw their point."""
+NORMAL_RULES = {
+    "density": "-grad sigma / |grad sigma|, central differences of the density",
+    "sdf": "+grad f / |grad f|, central differences of the signed distance",
+}
+"""The report's `normals.rule`, by what the run gives at points."""
 TRANSFORM = "p_out = out_from_scene @ [p_scene; 1]; normals by the inverse transpose of its 3x3, renormalised"
 
 
@@ -92,7 +99,8 @@ class Config:
     """Statistical outlier removal: a point goes when its mean neighbour distance exceeds the mean over all
     points by more than this many standard deviations."""
     normal_step: float = 0.002
-    """Central-difference step of the density gradient (normals), as a fraction of the scene box's diagonal."""
+    """Central-difference step of the density's (or signed distance's) gradient, the normals, as a fraction of the
+    scene box's diagonal."""
     reorient_normals: bool = True
     """Flip normals that face away from the camera whose ray gave the point."""
     double: bool = False
@@ -175,8 +183,8 @@ def _checks(g: Gathered, outlier_share: float, facing: float) -> list[Check]:
             "normals_facing_camera",
             facing,
             MIN_FACING,
-            "the density gradient at the points is noise (normals face away from the cameras that saw "
-            "them): an untrained or foggy field",
+            "the gradient at the points is noise (normals face away from the cameras that saw them): an "
+            "untrained or foggy field",
         ),
         Check.upper(
             "non_finite",
@@ -188,12 +196,12 @@ def _checks(g: Gathered, outlier_share: float, facing: float) -> list[Check]:
 
 
 def export(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), progress: Progress | None = None) -> Outputs:
-    """Export the points of an already loaded run (`model.run.Run` with the capabilities rays and density, and
-    colour for coloured points). `run` loads and calls this."""
+    """Export the points of an already loaded run (`model.run.Run` with the capabilities rays and density or sdf
+    (the normals), and colour for coloured points). `run` loads and calls this."""
     started, t0 = time.time(), time.perf_counter()
     _validate(config)
     require(trained, "rays", stage="export-points")
-    require(trained, "density", stage="export-points")
+    normals_from = require_any(trained, ("sdf", "density"), stage="export-points")
     out, scene = Path(config.out), trained.scene
     timing: dict[str, float] = {}
     out_from_scene, frame_info = export_frame(scene.source_from_scene(), config.frame, "points", config.up)
@@ -232,7 +240,8 @@ def export(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), progr
     t = time.perf_counter()
     box = np.asarray(trained.aabb.tolist(), np.float64).reshape(2, 3)  # a tensor or an array
     step = config.normal_step * float(np.linalg.norm(box[1] - box[0]))
-    normals, from_gradient = density_normals(trained.density, points, dirs, step, trained.device)
+    gradient_normals, fn = (sdf_normals, trained.sdf) if normals_from == "sdf" else (density_normals, trained.density)
+    normals, from_gradient = gradient_normals(fn, points, dirs, step, trained.device)
     facing = facing_share(normals[from_gradient], dirs[from_gradient])
     flipped = np.einsum("ij,ij->i", normals, dirs.astype(np.float64)) > 0  # facing away from its camera
     flipped &= config.reorient_normals
@@ -264,7 +273,7 @@ def export(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), progr
         },
         "removed": _removed(config, g, over, outliers),
         "normals": {
-            "rule": "-grad sigma / |grad sigma|, central differences of the density",
+            "rule": NORMAL_RULES[normals_from],
             "step_scene": step,
             "from_view_direction": int((~from_gradient).sum()),
             "reoriented": int(flipped.sum()),
