@@ -418,3 +418,10 @@ def test_sdf_run_of_a_contracted_scene_goes_through_the_stages(tmp_path):
         mesh_stage.Config(run_dir=run_dir, out=tmp_path / "m.ply", frame="normalized", resolution=24, device="cpu")
     )
     assert json.loads(mesh.report.read_text())["method"]["name"] == "signed distance"
+    points = export_points.run(  # the surroundings' points (outside the distance's box) face their camera
+        export_points.Config(run_dir=run_dir, out=tmp_path / "p.ply", frame="normalized", acc_threshold=0.01)
+    )
+    cloud = np.asarray(trimesh.load(points.out, process=False).vertices)
+    box = run.aabb.numpy()
+    beyond = int((~((cloud >= box[0]) & (cloud <= box[1])).all(axis=1)).sum())
+    assert beyond > 0 and json.loads(points.report.read_text())["normals"]["from_view_direction"] >= beyond

@@ -15,7 +15,8 @@ Steps:
    nerfstudio calls it), with scipy's cKDTree. So the cloud holds at most `num_points` points.
 4. Normals: -grad sigma normalised, by central differences of the density with a step of `normal_step` of the
    scene box's diagonal (why: the geometry module's doc); a run with a signed distance (the sdf method's) gives
-   +grad f normalised instead, the same differences of its distance (`model.surface_points.sdf_normals`); with
+   +grad f normalised instead, the same differences of its distance (`model.surface_points.sdf_normals`), and a
+   point outside the distance's box (a real capture's surroundings) the reverse of its ray, counted; with
    `reorient_normals` (default, as nerfstudio) a normal that faces away from the camera whose ray gave the point
    is flipped.
 5. Output frame (`data.export_frame`): "upright" (default) the user's frame (the one `convert` started from, e.g.
@@ -242,6 +243,10 @@ def export(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), progr
     step = config.normal_step * float(np.linalg.norm(box[1] - box[0]))
     gradient_normals, fn = (sdf_normals, trained.sdf) if normals_from == "sdf" else (density_normals, trained.density)
     normals, from_gradient = gradient_normals(fn, points, dirs, step, trained.device)
+    if normals_from == "sdf":  # a surface's gradient only in the distance's box: a point beyond it (a real
+        # capture's surroundings, from the density outside) faces its camera, as a point without a gradient does
+        outside = ~((points >= box[0]) & (points <= box[1])).all(axis=1)
+        normals[outside], from_gradient[outside] = -dirs[outside], False
     facing = facing_share(normals[from_gradient], dirs[from_gradient])
     flipped = np.einsum("ij,ij->i", normals, dirs.astype(np.float64)) > 0  # facing away from its camera
     flipped &= config.reorient_normals
