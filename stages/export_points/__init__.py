@@ -42,6 +42,7 @@ Self-check (the report's `check`: ok | suspect, `checks`: `data.checks`):
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -67,11 +68,22 @@ MAX_OUTLIER_FRACTION = 0.2
 """Self-check: the statistical rule removes at most this share of the points."""
 MIN_FACING = 0.7
 """Self-check: at least this share of the gradient normals face the camera that saw their point."""
+
+
+@dataclass(frozen=True)
+class NormalRule:
+    """How the normals come from what a run gives at points (a capability of `model.run`, read as `run.<name>`)."""
+
+    normals: Callable[..., tuple[np.ndarray, np.ndarray]]  # `model.surface_points.density_normals` or `sdf_normals`
+    words: str  # the report's `normals.rule`
+    in_box_only: bool  # a surface's gradient only inside the run's aabb (beyond: the point faces its camera)
+
+
 NORMAL_RULES = {
-    "density": "-grad sigma / |grad sigma|, central differences of the density",
-    "sdf": "+grad f / |grad f|, central differences of the signed distance",
+    "density": NormalRule(density_normals, "-grad sigma / |grad sigma|, central differences of the density", False),
+    "sdf": NormalRule(sdf_normals, "+grad f / |grad f|, central differences of the signed distance", True),
 }
-"""The report's `normals.rule`, by what the run gives at points."""
+"""By what the run gives at points (export-points takes the signed distance's when a run has both)."""
 TRANSFORM = "p_out = out_from_scene @ [p_scene; 1]; normals by the inverse transpose of its 3x3, renormalised"
 
 
@@ -202,7 +214,7 @@ def export(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), progr
     started, t0 = time.time(), time.perf_counter()
     _validate(config)
     require(trained, "rays", stage="export-points")
-    normals_from = require_any(trained, ("sdf", "density"), stage="export-points")
+    normals_from = require_any(trained, ("sdf", "density"), stage="export-points")  # a distance's when there is one
     out, scene = Path(config.out), trained.scene
     timing: dict[str, float] = {}
     out_from_scene, frame_info = export_frame(scene.source_from_scene(), config.frame, "points", config.up)
@@ -241,10 +253,10 @@ def export(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), progr
     t = time.perf_counter()
     box = np.asarray(trained.aabb.tolist(), np.float64).reshape(2, 3)  # a tensor or an array
     step = config.normal_step * float(np.linalg.norm(box[1] - box[0]))
-    gradient_normals, fn = (sdf_normals, trained.sdf) if normals_from == "sdf" else (density_normals, trained.density)
-    normals, from_gradient = gradient_normals(fn, points, dirs, step, trained.device)
-    if normals_from == "sdf":  # a surface's gradient only in the distance's box: a point beyond it (a real
-        # capture's surroundings, from the density outside) faces its camera, as a point without a gradient does
+    rule = NORMAL_RULES[normals_from]
+    normals, from_gradient = rule.normals(getattr(trained, normals_from), points, dirs, step, trained.device)
+    if rule.in_box_only:  # a signed distance is a surface's only in its box: a point beyond it (a real capture's
+        # surroundings, from the density outside) faces its camera, as a point without a gradient does
         outside = ~((points >= box[0]) & (points <= box[1])).all(axis=1)
         normals[outside], from_gradient[outside] = -dirs[outside], False
     facing = facing_share(normals[from_gradient], dirs[from_gradient])
@@ -278,7 +290,7 @@ def export(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), progr
         },
         "removed": _removed(config, g, over, outliers),
         "normals": {
-            "rule": NORMAL_RULES[normals_from],
+            "rule": rule.words,
             "step_scene": step,
             "from_view_direction": int((~from_gradient).sum()),
             "reoriented": int(flipped.sum()),
