@@ -43,9 +43,21 @@ import torch
 
 from nerfpipe.data.progress import NO_PROGRESS, Progress
 from nerfpipe.model.cameras import CameraPath
+from nerfpipe.model.run import require_any
 from nerfpipe.radiance.camera import generate_rays
 
-__all__ = ["PASS_SHARE", "Gathered", "gather_points", "pass_stride", "density_normals", "sdf_normals", "facing_share"]
+__all__ = [
+    "PASS_SHARE",
+    "Gathered",
+    "gather_points",
+    "pass_stride",
+    "density_normals",
+    "sdf_normals",
+    "NormalRule",
+    "NORMAL_RULES",
+    "surface_normals",
+    "facing_share",
+]
 
 PASS_SHARE = 0.25
 """One pass renders about this share of the points asked for (so the last pass overshoots by at most that)."""
@@ -237,6 +249,39 @@ def _gradient_normals(
     normals[good] /= norm[good, None]
     normals[~good] = -np.asarray(dirs, np.float64)[~good]
     return normals, good
+
+
+@dataclass(frozen=True)
+class NormalRule:
+    """How the normals come from what a run gives at points (a capability of `model.run`, read as `run.<name>`)."""
+
+    normals: Callable[..., tuple[np.ndarray, np.ndarray]]  # `density_normals` or `sdf_normals`
+    words: str  # the reports' rule
+    in_box_only: bool  # a surface's gradient only inside the run's aabb (beyond: the point faces its camera)
+
+
+NORMAL_RULES = {
+    "sdf": NormalRule(sdf_normals, "+grad f / |grad f|, central differences of the signed distance", True),
+    "density": NormalRule(density_normals, "-grad sigma / |grad sigma|, central differences of the density", False),
+}
+"""By what the run gives at points, in the order asked (a signed distance's when a run has both)."""
+
+
+def surface_normals(
+    trained: Any, points: np.ndarray, dirs: np.ndarray, step: float, device: torch.device, *, stage: str
+) -> tuple[np.ndarray, np.ndarray, NormalRule]:
+    """(unit normals [N, 3] float64, mask [N] of those from the gradient, the rule used) of a run's points (scene
+    frame) by the first of NORMAL_RULES it can give; a signed distance's only inside the run's aabb, a point beyond
+    it (a real capture's surroundings, from the density outside) facing its camera as one without a gradient does.
+    UserError in one line (naming `stage`) when the run gives neither."""
+    name = require_any(trained, tuple(NORMAL_RULES), stage=stage)
+    rule = NORMAL_RULES[name]
+    normals, good = rule.normals(getattr(trained, name), points, dirs, step, device)
+    if rule.in_box_only:
+        box = np.asarray(trained.aabb.tolist(), np.float64).reshape(2, 3)  # a tensor or an array
+        outside = ~((points >= box[0]) & (points <= box[1])).all(axis=1)
+        normals[outside], good[outside] = -np.asarray(dirs, np.float64)[outside], False
+    return normals, good, rule
 
 
 def facing_share(normals: np.ndarray, dirs: np.ndarray) -> float:

@@ -306,6 +306,10 @@ def test_sdf_run_goes_through_mesh_render_eval_depth(tmp_path):
     assert float(on_surface.median()) < float(run.model.field.cell * run.model.field.half)
     empty = run.render_rays(torch.zeros(0, 3), torch.zeros(0, 3))  # a view splat draws no ray from: shaped
     assert empty["rgb"].shape == (0, 3) and empty["acc"].shape == empty["depth_median"].shape == (0,)
+    poisson = mesh_stage.run(  # Poisson through the rays' points, oriented by the distance's gradient
+        mesh_stage.Config(run_dir=run_dir, out=tmp_path / "pm.ply", method="poisson", resolution=32, device="cpu")
+    )
+    assert json.loads(poisson.report.read_text())["method"]["normal_rule"].startswith("+grad f") and poisson.faces
     splats = splat_stage.run(  # Gaussians where its training rays end, then fitted to the photos
         splat_stage.Config(run_dir=run_dir, out=tmp_path / "s.ply", gaussians=100, max_steps=3, device="cpu")
     )

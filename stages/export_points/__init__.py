@@ -42,7 +42,6 @@ Self-check (the report's `check`: ok | suspect, `checks`: `data.checks`):
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -56,7 +55,7 @@ from nerfpipe.data.export_frame import check_frame_options, export_frame
 from nerfpipe.data.progress import NO_PROGRESS, Progress
 from nerfpipe.data.rundir import config_to_json, write_manifest
 from nerfpipe.model import camera_path, can, load_trained, require, require_any
-from nerfpipe.model.surface_points import Gathered, density_normals, facing_share, gather_points, sdf_normals
+from nerfpipe.model.surface_points import NORMAL_RULES, Gathered, facing_share, gather_points, surface_normals
 from nerfpipe.stages.export_points.geometry import statistical_outliers, to_frame
 from nerfpipe.stages.export_points.ply import ply_properties, write_ply
 
@@ -70,20 +69,6 @@ MIN_FACING = 0.7
 """Self-check: at least this share of the gradient normals face the camera that saw their point."""
 
 
-@dataclass(frozen=True)
-class NormalRule:
-    """How the normals come from what a run gives at points (a capability of `model.run`, read as `run.<name>`)."""
-
-    normals: Callable[..., tuple[np.ndarray, np.ndarray]]  # `model.surface_points.density_normals` or `sdf_normals`
-    words: str  # the report's `normals.rule`
-    in_box_only: bool  # a surface's gradient only inside the run's aabb (beyond: the point faces its camera)
-
-
-NORMAL_RULES = {
-    "density": NormalRule(density_normals, "-grad sigma / |grad sigma|, central differences of the density", False),
-    "sdf": NormalRule(sdf_normals, "+grad f / |grad f|, central differences of the signed distance", True),
-}
-"""By what the run gives at points (export-points takes the signed distance's when a run has both)."""
 TRANSFORM = "p_out = out_from_scene @ [p_scene; 1]; normals by the inverse transpose of its 3x3, renormalised"
 
 
@@ -214,7 +199,7 @@ def export(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), progr
     started, t0 = time.time(), time.perf_counter()
     _validate(config)
     require(trained, "rays", stage="export-points")
-    normals_from = require_any(trained, ("sdf", "density"), stage="export-points")  # a distance's when there is one
+    require_any(trained, tuple(NORMAL_RULES), stage="export-points")  # the normals' (before any ray is rendered)
     out, scene = Path(config.out), trained.scene
     timing: dict[str, float] = {}
     out_from_scene, frame_info = export_frame(scene.source_from_scene(), config.frame, "points", config.up)
@@ -253,12 +238,7 @@ def export(trained: Any, config: Config, *, inputs: tuple[Path, ...] = (), progr
     t = time.perf_counter()
     box = np.asarray(trained.aabb.tolist(), np.float64).reshape(2, 3)  # a tensor or an array
     step = config.normal_step * float(np.linalg.norm(box[1] - box[0]))
-    rule = NORMAL_RULES[normals_from]
-    normals, from_gradient = rule.normals(getattr(trained, normals_from), points, dirs, step, trained.device)
-    if rule.in_box_only:  # a signed distance is a surface's only in its box: a point beyond it (a real capture's
-        # surroundings, from the density outside) faces its camera, as a point without a gradient does
-        outside = ~((points >= box[0]) & (points <= box[1])).all(axis=1)
-        normals[outside], from_gradient[outside] = -dirs[outside], False
+    normals, from_gradient, rule = surface_normals(trained, points, dirs, step, trained.device, stage="export-points")
     facing = facing_share(normals[from_gradient], dirs[from_gradient])
     flipped = np.einsum("ij,ij->i", normals, dirs.astype(np.float64)) > 0  # facing away from its camera
     flipped &= config.reorient_normals

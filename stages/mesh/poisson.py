@@ -11,8 +11,9 @@ Steps:
    rendered in passes until `points` rays gave a point (accumulated opacity >= `acc_threshold`) inside the box and,
    when the stage cuts a support plane (`stages.mesh.crop`), beyond its cut. A point lies at the ray's median depth
    (where it becomes half opaque: the surface it sees), as the auto threshold and the looked-at box read it.
-2. Normals (`model.surface_points.density_normals`): -grad sigma by central differences, step `normal_step` of the
-   scene box's diagonal, flipped where they face away from the camera whose ray gave the point.
+2. Normals (`model.surface_points.surface_normals`): -grad sigma by central differences, step `normal_step` of the
+   scene box's diagonal (a run with a signed distance: +grad f, the same differences), flipped where they face away
+   from the camera whose ray gave the point.
 3. Screened Poisson (Kazhdan & Hoppe 2013; pymeshlab `generate_surface_reconstruction_screened_poisson`) at octree
    depth `depth`, or by default the depth whose finest cells match the stage's `resolution`:
    ceil(log2(resolution)). Its octree spans the points' bounding cube, grown by 10 %.
@@ -41,7 +42,7 @@ import torch
 
 from nerfpipe.data.errors import UserError
 from nerfpipe.model.cameras import CameraPath, camera_path
-from nerfpipe.model.surface_points import density_normals, facing_share, gather_points
+from nerfpipe.model.surface_points import facing_share, gather_points, surface_normals
 from nerfpipe.stages.mesh.crop import Plane
 from nerfpipe.stages.mesh.field_access import as_np
 from nerfpipe.stages.mesh.grid import Grid
@@ -165,7 +166,9 @@ def _oriented_points(
         )
     box = as_np(trained.aabb).reshape(2, 3)
     step = params.normal_step * float(np.linalg.norm(box[1] - box[0]))
-    normals, from_gradient = density_normals(trained.density, g.points, g.dirs, step, device)
+    normals, from_gradient, rule = surface_normals(
+        trained, g.points, g.dirs, step, device, stage="mesh --method poisson"
+    )
     facing = facing_share(normals[from_gradient], g.dirs[from_gradient])
     flip = np.einsum("ij,ij->i", normals, g.dirs.astype(np.float64)) > 0  # away from the camera that saw it
     normals[flip] *= -1
@@ -176,6 +179,7 @@ def _oriented_points(
         "rays_outside_box": g.outside,
         "passes": g.passes,
         "point_depth": "median (opacity 0.5)",
+        "normal_rule": rule.words,
         "normal_step_scene": step,
         "normals_from_view_direction": int((~from_gradient).sum()),
         "normals_flipped": int(flip.sum()),
