@@ -2,7 +2,7 @@
 
 Shared by the stages that turn a field into a point set: `export-points` (the cloud itself) and `mesh --method
 poisson` (the cloud Poisson meshes). Only the `Trained` attributes are used: `render_rays`, `background`,
-`density` (or `sdf`), `device`.
+`density` (or `sdf` and `aabb`: `surface_normals`), `device`.
 
 Sampling: each camera's pixels (at the render size) are split into `stride` x `stride` interleaved sub-grids:
 pixel (row, col) belongs to offset (row % stride, col % stride). A pass renders one sub-grid of every camera (rays
