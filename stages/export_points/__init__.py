@@ -67,8 +67,6 @@ MAX_OUTLIER_FRACTION = 0.2
 """Self-check: the statistical rule removes at most this share of the points."""
 MIN_FACING = 0.7
 """Self-check: at least this share of the gradient normals face the camera that saw their point."""
-
-
 TRANSFORM = "p_out = out_from_scene @ [p_scene; 1]; normals by the inverse transpose of its 3x3, renormalised"
 
 
